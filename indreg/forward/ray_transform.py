@@ -1,0 +1,256 @@
+"""The 2D parallel-beam ray transform ``T`` as a precomputed sparse system matrix (Joseph's method).
+
+Discretisation: Joseph's method. For every ray the line is marched along its dominant image axis
+(y when ``|cos theta| >= |sin theta|``, else x), one step per pixel row (column); at each step the image
+is linearly interpolated between the two neighbouring cell centres along the other axis (zero outside the
+image), and the step length ``h / |cos theta|`` (or ``h / |sin theta|``) is folded into the weights. This
+is exact for the linear interpolant along each row, second-order accurate, gives two non-zeros per step
+(fewer than exact pixel-intersection lengths for the same accuracy) and is built with a few vectorised
+numpy operations per angle.
+
+The matrix ``A`` (rows ``k * det_count + d``, columns ``i * ny + j``) and its transpose ``A^T`` are kept as
+two CSR matrices (float64 master copy on the CPU, converted copies cached per dtype and device), so the
+forward and the adjoint are each one sparse-dense product (``torch.mv`` for one image, ``torch.mm`` for a
+batch). A separate CSR for ``A^T`` is about as fast as ``A`` itself, while a transposed product over ``A``
+is not. 32-bit indices are used when they fit (about 1.5x faster than 64-bit on CPU).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from torch import nn
+
+from .._checks import check_int, check_same, check_tensor
+from ..domain import ImageDomain
+from .geometry import ParallelBeamGeometry
+
+
+def joseph_matrix(domain: ImageDomain, geometry: ParallelBeamGeometry) -> sp.csr_matrix:
+    """The Joseph system matrix ``A`` as a scipy CSR matrix (float64, sorted column indices).
+
+    Row ``k * det_count + d`` holds the weights of the line integral ``p(theta_k, s_d)``; column
+    ``i * ny + j`` is pixel ``(i, j)``. For a ray marched along y (``|cos theta| >= |sin theta|``) the
+    point at height ``y_j`` is ``x = (s_d - y_j sin theta) / cos theta``, weight ``hy / |cos theta|``; along x,
+    ``y = (s_d - x_i cos theta) / sin theta``, weight ``hx / |sin theta|``. Entries are generated ray by ray
+    (one vectorised block per angle), so the CSR structure needs no global sort.
+    """
+    nx, ny = domain.shape
+    hx, hy = domain.cell_sides
+    xc, yc = (a.numpy() for a in domain.axes())
+    sd = geometry.det_points.numpy()
+    itype = np.int32 if nx * ny < 2**31 - 1 else np.int64
+    counts, cols, vals = [], [], []
+    for theta in geometry.angles.tolist():
+        c, s = math.cos(theta), math.sin(theta)
+        along_y = abs(c) >= abs(s)
+        if along_y:   # march over rows y_j, interpolate in x
+            u = ((sd[:, None] - yc[None, :] * s) / c - xc[0]) / hx
+            step, n_interp, n_march = hy / abs(c), nx, ny
+        else:         # march over columns x_i, interpolate in y
+            u = ((sd[:, None] - xc[None, :] * c) / s - yc[0]) / hy
+            step, n_interp, n_march = hx / abs(s), ny, nx
+        lower = np.floor(np.clip(u, -2, n_interp + 1))   # out-of-image points are dropped below
+        frac = u - lower
+        lo = lower.astype(itype)
+        march = np.arange(n_march, dtype=itype)[None, :]
+        base = lo * ny + march if along_y else march * ny + lo           # column of the lower neighbour
+        col = np.stack([base, base + (ny if along_y else 1)], axis=-1)   # (det_count, n_march, 2)
+        w = np.stack([1.0 - frac, frac], axis=-1)
+        keep = np.stack([(lo >= 0) & (lo < n_interp), (lo >= -1) & (lo < n_interp - 1) & (frac > 0)], axis=-1)
+        counts.append(keep.sum(axis=(1, 2)))
+        cols.append(col[keep])
+        vals.append(w[keep] * step)
+    indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
+    shape = (geometry.num_angles * geometry.det_count, nx * ny)
+    mat = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=shape)
+    mat.sort_indices()
+    return mat
+
+
+class _SystemMatrix:
+    """``A`` and ``A^T`` as CSR, float64 on the CPU, with converted copies cached per (dtype, device)."""
+
+    def __init__(self, domain: ImageDomain, geometry: ParallelBeamGeometry):
+        mat = joseph_matrix(domain, geometry)
+        self.shape = mat.shape
+        self.nnz = int(mat.nnz)
+        self.index_dtype = torch.int32 if max(self.shape + (self.nnz,)) < 2**31 - 1 else torch.int64
+        mat_t = mat.tocsc()   # CSC of A = CSR of A^T (linear-time conversion, sorted indices)
+        self.master = tuple((torch.from_numpy(m.indptr), torch.from_numpy(m.indices), torch.from_numpy(m.data))
+                            for m in (mat, mat_t))
+        self._cache = {}
+
+    def get(self, dtype: torch.dtype, device: torch.device) -> tuple:
+        """``(A, A^T)`` as torch CSR tensors of this dtype on this device (float64 CPU shares the master)."""
+        key = (dtype, torch.device(device))
+        if key not in self._cache:
+            with warnings.catch_warnings():   # "Sparse CSR tensor support is in beta state"
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+                self._cache[key] = tuple(
+                    torch.sparse_csr_tensor(crow.to(device, self.index_dtype), col.to(device, self.index_dtype),
+                                            val.to(device, dtype), shape, check_invariants=False)
+                    for (crow, col, val), shape in zip(self.master, (self.shape, self.shape[::-1])))
+        return self._cache[key]
+
+    def nbytes(self, dtype: torch.dtype = torch.float64) -> int:
+        """Memory of one cached ``(A, A^T)`` pair in bytes."""
+        isz = torch.empty(0, dtype=self.index_dtype).element_size()
+        vsz = torch.empty(0, dtype=dtype).element_size()
+        return 2 * self.nnz * (isz + vsz) + (sum(self.shape) + 2) * isz
+
+
+def _matmul(mat: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``x @ mat^T`` for a CSR ``mat`` and a dense batch ``x`` of shape ``(B, n)``."""
+    if x.shape[0] == 1:
+        return torch.mv(mat, x[0]).unsqueeze(0)
+    return torch.mm(mat, x.t()).t()
+
+
+class _Project(torch.autograd.Function):
+    """``x -> x A^T`` on flattened images ``(B, nx*ny)``; backward is the exact transpose."""
+
+    @staticmethod
+    def forward(x, system):
+        return _matmul(system.get(x.dtype, x.device)[0], x)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.system = inputs[1]
+
+    @staticmethod
+    def backward(ctx, grad):
+        return _Backproject.apply(grad, ctx.system), None
+
+
+class _Backproject(torch.autograd.Function):
+    """``y -> y A`` on flattened data ``(B, num_angles*det_count)``; backward is the forward projection."""
+
+    @staticmethod
+    def forward(y, system):
+        return _matmul(system.get(y.dtype, y.device)[1], y)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.system = inputs[1]
+
+    @staticmethod
+    def backward(ctx, grad):
+        return _Project.apply(grad, ctx.system), None
+
+
+class RayTransform(nn.Module):
+    """Parallel-beam ray transform ``T: L2(domain) -> L2(angles x detector)`` (deepinv-style operator).
+
+    ``(T f)(theta, s) = integral over t of f(s w + t w_perp)``, ``w = (cos theta, sin theta)``,
+    ``w_perp = (-sin theta, cos theta)``: the forward operator of the paper's indirect registration problem
+    (``eq:OptimV``, data ``g = T(W(nu, I)) + noise``), discretised with Joseph's method (module docstring).
+
+    Convention:
+        - Input images ``(..., nx, ny)`` on ``domain`` (axis 0 = x, axis 1 = y, physical units), any
+          leading batch dims, float32 or float64, on any device (the operator follows the input).
+        - Output data ``(..., num_angles, det_count)``: line integrals in physical length units
+          (a unit-valued disk of radius r gives ``2 r`` through its centre).
+        - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` with
+          ``data_weight = geometry.data_weight`` (as ODL).
+        - ``transpose`` is the exact matrix transpose ``A^T``; the L2 adjoint for the weighted inner
+          products is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint`` = ``A_adjoint``), and
+          ``T^* q (x) ~ sum_k angle_cell * q(theta_k, x . w_k)``, the discrete backprojection.
+        - Gradients: the forward is an autograd Function whose backward is ``A^T`` and vice versa, so the
+          backward of ``A`` is exact and twice differentiable.
+
+    Example:
+        >>> dom = ImageDomain.paper(64)
+        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(10, 92))
+        >>> T(dom.zeros(3)).shape
+        torch.Size([3, 10, 92])
+    """
+
+    def __init__(self, domain: ImageDomain, geometry: ParallelBeamGeometry):
+        super().__init__()
+        if not isinstance(domain, ImageDomain):
+            raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+        if not isinstance(geometry, ParallelBeamGeometry):
+            raise TypeError(f"geometry must be a ParallelBeamGeometry, got {type(geometry).__name__}")
+        self.domain = domain
+        self.geometry = geometry
+        self.system = _SystemMatrix(domain, geometry)
+
+    @property
+    def range_shape(self) -> tuple:
+        """Data shape ``(num_angles, det_count)``."""
+        return self.geometry.shape
+
+    @property
+    def adjoint_scale(self) -> float:
+        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
+        return self.geometry.data_weight / self.domain.cell_volume
+
+    def _check_dtype(self, x: torch.Tensor, name: str) -> None:
+        if x.dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        """``T f``: images ``(..., nx, ny)`` -> data ``(..., num_angles, det_count)``."""
+        f = self.domain.check_image(f, "image")
+        self._check_dtype(f, "image")
+        batch = f.shape[:-2]
+        out = _Project.apply(f.reshape(-1, f.shape[-2] * f.shape[-1]), self.system)
+        return out.reshape(*batch, *self.range_shape)
+
+    def A(self, f: torch.Tensor) -> torch.Tensor:
+        """The forward operator ``T f`` (same as calling the module)."""
+        return self(f)
+
+    def transpose(self, y: torch.Tensor) -> torch.Tensor:
+        """Exact matrix transpose ``A^T y``: data ``(..., num_angles, det_count)`` -> images ``(..., nx, ny)``."""
+        y = check_tensor(y, "data", self.range_shape)
+        self._check_dtype(y, "data")
+        batch = y.shape[:-2]
+        out = _Backproject.apply(y.reshape(-1, y.shape[-2] * y.shape[-1]), self.system)
+        return out.reshape(*batch, *self.domain.shape)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """L2 adjoint ``T^* y = (data_weight / cell_volume) * A^T y`` (backprojection)."""
+        return self.adjoint_scale * self.transpose(y)
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """deepinv name of ``adjoint``."""
+        return self.adjoint(y)
+
+    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
+        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the last two axes."""
+        check_same(y1, y2, "y1", "y2")
+        return self.geometry.data_weight * (y1 * y2).sum(dim=(-2, -1))
+
+    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted data norm over the last two axes."""
+        return self.inner_data(y, y).sqrt()
+
+    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
+        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (weighted inner products)."""
+        gen = torch.Generator().manual_seed(seed)
+        x = torch.randn(self.domain.shape, generator=gen, dtype=dtype).to(device)
+        y = torch.randn(self.range_shape, generator=gen, dtype=dtype).to(device)
+        tx = self(x)
+        lhs, rhs = self.inner_data(tx, y), self.domain.inner(x, self.adjoint(y))
+        return float((lhs - rhs).abs() / (self.norm_data(tx) * self.norm_data(y)))
+
+    @torch.no_grad()
+    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
+                      seed: int = 0) -> float:
+        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T``."""
+        num_iter = check_int(num_iter, "num_iter", 1)
+        gen = torch.Generator().manual_seed(seed)
+        x = torch.randn(self.domain.shape, generator=gen, dtype=dtype).to(device)
+        x = x / self.domain.norm(x)
+        for _ in range(num_iter):
+            x = self.adjoint(self(x))
+            x = x / self.domain.norm(x)
+        return float(self.norm_data(self(x)))
+
+    def extra_repr(self) -> str:
+        return f"domain={self.domain}, geometry={self.geometry}, nnz={self.system.nnz}"

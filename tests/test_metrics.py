@@ -1,0 +1,65 @@
+"""Tests of indreg.metrics: known values of SSIM / PSNR / relative error in both conventions."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from indreg.metrics import psnr, psnr_paper, relative_error, ssim, ssim_paper
+
+
+def images():
+    gt = np.zeros((32, 32))
+    gt[8:24, 10:20] = 0.5  # range 0.5
+    x = gt + 0.05 * np.random.default_rng(0).standard_normal(gt.shape)
+    return x, gt
+
+
+def test_identical():
+    _, gt = images()
+    assert ssim(gt, gt) == pytest.approx(1.0) and ssim_paper(gt, gt) == pytest.approx(1.0)
+    assert psnr(gt, gt) == math.inf and psnr_paper(gt, gt) == math.inf
+    assert relative_error(gt, gt) == 0.0
+
+
+def test_known_mse_psnr():
+    _, gt = images()
+    x = gt + 0.01  # MSE = 1e-4, nonnegative
+    assert psnr(x, gt) == pytest.approx(10 * math.log10(0.5 ** 2 / 1e-4))       # range of gt = 0.5
+    assert psnr_paper(x, gt) == pytest.approx(10 * math.log10(1.0 / 1e-4))      # 2017: range 1 if nonnegative
+    xn = gt - 0.01  # negative values -> 2017 range 2
+    assert psnr_paper(xn, gt) == pytest.approx(10 * math.log10(4.0 / 1e-4))
+    assert psnr_paper(xn, gt) - psnr_paper(x, gt) == pytest.approx(20 * math.log10(2))
+
+
+def test_ssim_conventions():
+    x, gt = images()
+    from skimage.metrics import structural_similarity
+    assert ssim(x, gt) == pytest.approx(structural_similarity(x, gt, data_range=0.5))
+    assert ssim_paper(x, gt) == pytest.approx(structural_similarity(x, gt, data_range=2.0))
+    assert 0 < ssim(x, gt) < ssim_paper(x, gt) < 1  # a larger data range hides the same error
+
+
+def test_relative_error_and_inputs():
+    x, gt = images()
+    assert relative_error(2 * gt, gt) == pytest.approx(1.0)
+    assert relative_error(x, gt) == pytest.approx(np.linalg.norm(x - gt) / np.linalg.norm(gt))
+    xt, gtt = torch.from_numpy(x).float(), torch.from_numpy(gt)  # torch, mixed dtypes, numpy all fine
+    assert ssim(xt, gtt) == pytest.approx(ssim(x, gt), rel=1e-5)
+    assert psnr(xt, gt) == pytest.approx(psnr(x, gt), rel=1e-5)
+
+
+def test_errors():
+    x, gt = images()
+    with pytest.raises(ValueError, match="same shape"):
+        ssim(x[:30], gt)
+    with pytest.raises(ValueError, match="2D"):
+        psnr(x[None], gt[None])
+    with pytest.raises(TypeError, match="torch.Tensor or numpy"):
+        relative_error([[1.0]], gt)
+    with pytest.raises(ValueError, match="constant"):
+        psnr(x, np.ones_like(gt))
+    with pytest.raises(ValueError, match="zero"):
+        relative_error(x, np.zeros_like(gt))
+    with pytest.raises(ValueError, match="non-finite"):
+        ssim(np.full_like(x, np.nan), gt)
