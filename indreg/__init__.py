@@ -1,5 +1,13 @@
 """indreg: indirect image registration with large diffeomorphic deformations (LDDMM) in PyTorch."""
 from .domain import ImageDomain
+from .forward import ParallelBeamGeometry, RayTransform
+from .deform import GaussianKernel, LDDMMDeformation
+from . import metrics, noise, phantoms
+from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
+from .deform.shooting import GeodesicShooting, ShootingResult
+from .learn.loss import IndirectShootingLoss
 
-__all__ = ["ImageDomain"]
+__all__ = ["ImageDomain", "ParallelBeamGeometry", "RayTransform", "GaussianKernel", "LDDMMDeformation",
+           "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss"]
 __version__ = "0.1.0"

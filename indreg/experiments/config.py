@@ -1,0 +1,358 @@
+"""Typed (structured) configs of the experiment app, registered in Hydra's ConfigStore.
+
+The dataclasses below are the *schema* of ``configs/**.yaml``: Hydra merges every yaml file into them, so an
+unknown key (``solver.gama=1``), a wrong type (``solver.gamma=abc``) or a value outside an enum
+(``deformation.action=affine``, ``phantom.target=cat``) fails at composition with a message that names the key.
+Range checks that a type cannot express (``solver.gamma >= 0``, ``kernel.sigma > 0``, ...) are done by
+:func:`validate` when the app starts, also naming the key.
+
+Config groups (one sub-config each) and top-level keys::
+
+    phantom      template/target names (``indreg.phantoms.get``) and the grid size n (domain [-16, 16]^2)
+    geometry     parallel-beam geometry: angles x detector bins (the authors' ODL partition by default)
+    noise        white noise at an SNR in dB ("code" convention, PAPER_NOTES) or with a fixed std
+    deformation  LDDMM time steps N, group action, backward (gradient) scheme, interpolation scheme
+    kernel       Gaussian RKHS kernel width sigma
+    solver       gamma, step size, iterations; Algorithm 1 or a torch.optim parametrisation
+    baseline     FBP (filter, frequency scaling) and TV (mu, iterations) reconstructions from the same data
+    logging      evaluation / image / checkpoint period k, TensorBoard, progress bar, figure
+    experiment   presets of the paper's test suites (package _global_), ``suite1_jv`` by default
+    sweep        multirun presets (``sweep=suite3_table``: the paper's sensitivity table)
+    name, seed, dtype, device, resume, stop_after
+
+If ``configs/`` is not next to the installed package, :func:`register_configs` (``presets=True``) puts the
+same presets into the ConfigStore so the app still runs (``experiment=...`` and ``sweep=...`` work).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Dict, Optional
+
+from omegaconf import DictConfig, OmegaConf
+
+from .. import phantoms as _phantoms
+
+Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
+Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
+
+
+class Dtype(str, Enum):
+    float32 = "float32"
+    float64 = "float64"
+
+
+class AnglePartition(str, Enum):
+    """``paper``: ODL's ``uniform_partition(0, pi, n, nodes_on_bdry=(True, False))``; ``uniform``: k pi / n."""
+    paper = "paper"
+    uniform = "uniform"
+
+
+class NoiseConvention(str, Enum):
+    code = "code"
+    paper = "paper"
+
+
+class Action(str, Enum):
+    geometric = "geometric"
+    mass_preserving = "mass_preserving"
+
+
+class Backward(str, Enum):
+    paper = "paper"
+    autograd = "autograd"
+
+
+class Interpolation(str, Enum):
+    reinterpolate = "reinterpolate"
+    compose = "compose"
+
+
+class SolverName(str, Enum):
+    algorithm1 = "algorithm1"
+    torch_optim = "torch_optim"
+
+
+class Optimizer(str, Enum):
+    lbfgs = "lbfgs"
+    adam = "adam"
+    sgd = "sgd"
+
+
+class FBPFilter(str, Enum):
+    ram_lak = "ram-lak"
+    shepp_logan = "shepp-logan"
+    cosine = "cosine"
+    hamming = "hamming"
+    hann = "hann"
+
+
+@dataclass
+class PhantomConfig:
+    """Template I and target f_true (``indreg.phantoms``), digitised on n x n cells of [-half_width, half_width]^2."""
+    template: Phantom = Phantom["j"]
+    target: Phantom = Phantom["v"]
+    size: int = 64
+    half_width: float = 16.0
+
+
+@dataclass
+class GeometryConfig:
+    """Parallel-beam geometry: ``num_angles`` directions in [0, pi), ``det_count`` bins on [det_min, det_max]."""
+    num_angles: int = 10
+    det_count: int = 92
+    det_min: float = -24.0
+    det_max: float = 24.0
+    partition: AnglePartition = AnglePartition.paper
+
+
+@dataclass
+class NoiseConfig:
+    """Additive white noise: give ``snr_db`` (in ``convention``) or ``std`` (or neither: noise-free data)."""
+    snr_db: Optional[float] = 4.87
+    std: Optional[float] = None
+    convention: NoiseConvention = NoiseConvention.code
+    seed: Optional[int] = None  # None: the run's seed
+
+
+@dataclass
+class DeformationConfig:
+    """LDDMM flow with N time steps (t_i = i / N), group action and derivative scheme (``LDDMMDeformation``)."""
+    num_steps: int = 20
+    action: Action = Action.geometric
+    backward: Backward = Backward.paper
+    interpolation: Interpolation = Interpolation.reinterpolate
+
+
+@dataclass
+class KernelConfig:
+    """Gaussian RKHS kernel ``exp(-|x - y|^2 / (2 sigma^2))`` (physical units)."""
+    sigma: float = 6.0
+
+
+@dataclass
+class SolverConfig:
+    """Objective weights and the optimiser. ``step_size`` is Algorithm 1's epsilon, or the lr of torch.optim."""
+    name: SolverName = SolverName.algorithm1
+    gamma: float = 1e-6
+    tv_weight: float = 0.0
+    step_size: float = 0.02
+    max_iter: int = 200
+    grad_tol: float = 0.0
+    step_halving: bool = False
+    optimizer: Optimizer = Optimizer.lbfgs
+    optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class BaselineConfig:
+    """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock)."""
+    enabled: bool = True
+    fbp_filter: FBPFilter = FBPFilter.hamming
+    fbp_frequency_scaling: float = 0.4
+    fbp_padding: bool = True
+    tv_mu: float = 3.0
+    tv_iterations: int = 1000
+
+
+@dataclass
+class LoggingConfig:
+    """Every ``every`` iterations: SSIM/PSNR and image to TensorBoard; checkpoint every ``checkpoint_every``."""
+    every: int = 10
+    checkpoint_every: int = 10
+    tensorboard: bool = True
+    progress: bool = True
+    figure: bool = True
+
+
+@dataclass
+class RegisterConfig:
+    """The whole run. ``stop_after``: stop (checkpoint, as if interrupted) once this many iterations are done."""
+    name: str = "suite1_jv"
+    seed: int = 0
+    dtype: Dtype = Dtype.float32
+    device: str = "auto"
+    resume: bool = False
+    stop_after: Optional[int] = None
+    phantom: PhantomConfig = field(default_factory=PhantomConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
+    kernel: KernelConfig = field(default_factory=KernelConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+
+
+SCHEMA_NAME = "indreg_schema"
+FALLBACK_NAME = "indreg_fallback"
+
+# Hydra settings shared by configs/config.yaml and the ConfigStore fallback.
+HYDRA_SETTINGS = {
+    "run": {"dir": "outputs/${name}/${now:%Y-%m-%d_%H-%M-%S}"},
+    "sweep": {"dir": "multirun/${name}/${now:%Y-%m-%d_%H-%M-%S}", "subdir": "${hydra.job.num}"},
+    "job": {"chdir": False},
+}
+
+# The paper's test suites (PAPER_NOTES table). configs/experiment/*.yaml must compose to the same values
+# (tests/experiments/test_config.py checks it); these copies serve the ConfigStore fallback.
+_SHEPP = {"size": 256, "target": "shepp_logan"}
+_GEOM_10x362 = {"num_angles": 10, "det_count": 362, "det_min": -24.0, "det_max": 24.0, "partition": "paper"}
+_BASELINE_SL = {"tv_mu": 1.0}
+PRESETS = {
+    "suite1_jv": {
+        "name": "suite1_jv",
+        "phantom": {"template": "j", "target": "v", "size": 64},
+        "geometry": {"num_angles": 10, "det_count": 92, "det_min": -24.0, "det_max": 24.0, "partition": "paper"},
+        "noise": {"snr_db": 4.87, "std": None, "convention": "code"},
+        "deformation": {"num_steps": 20, "action": "geometric"},
+        "kernel": {"sigma": 6.0},
+        "solver": {"name": "algorithm1", "gamma": 1e-6, "step_size": 0.02, "max_iter": 200},
+        "baseline": {"fbp_filter": "hamming", "fbp_frequency_scaling": 0.4, "tv_mu": 3.0, "tv_iterations": 1000},
+    },
+    "suite2_six_objects": {
+        "name": "suite2_six_objects",
+        "phantom": {"template": "six_objects_template", "target": "six_objects_target", "size": 438},
+        "geometry": {"num_angles": 6, "det_count": 620, "det_min": -24.0, "det_max": 24.0, "partition": "paper"},
+        "noise": {"snr_db": 4.75, "std": None, "convention": "code"},
+        "deformation": {"num_steps": 20, "action": "geometric"},
+        "kernel": {"sigma": 2.0},
+        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.04, "max_iter": 200},
+        "baseline": {"fbp_filter": "hamming", "fbp_frequency_scaling": 0.4, "tv_mu": 1.0, "tv_iterations": 1000},
+    },
+    "suite3_shepp_logan": {
+        "name": "suite3_shepp_logan",
+        "phantom": dict(_SHEPP, template="shepp_logan_template"),
+        "geometry": _GEOM_10x362,
+        "noise": {"snr_db": 7.06, "std": None, "convention": "code"},
+        "deformation": {"num_steps": 20, "action": "geometric"},
+        "kernel": {"sigma": 2.0},
+        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 500},
+        "baseline": _BASELINE_SL,
+    },
+    "suite4_missing_object": {
+        "name": "suite4_missing_object",
+        "phantom": dict(_SHEPP, template="shepp_logan_template_missing"),
+        "geometry": _GEOM_10x362,
+        "noise": {"snr_db": 7.06, "std": None, "convention": "code"},
+        "deformation": {"num_steps": 20, "action": "geometric"},
+        "kernel": {"sigma": 2.0},
+        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 1000},
+        "baseline": _BASELINE_SL,
+    },
+    "suite4_extra_object": {
+        "name": "suite4_extra_object",
+        "phantom": dict(_SHEPP, template="shepp_logan_template_extra"),
+        "geometry": _GEOM_10x362,
+        "noise": {"snr_db": 6.46, "std": None, "convention": "code"},
+        "deformation": {"num_steps": 20, "action": "geometric"},
+        "kernel": {"sigma": 2.0},
+        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 1000},
+        "baseline": _BASELINE_SL,
+    },
+}
+
+# Suite 3's sensitivity table as one multirun (configs/sweep/suite3_table.yaml).
+SUITE3_GAMMAS = (1e-7, 1e-5, 1e-3, 1e-1, 10.0)
+SUITE3_SIGMAS = (1.0, 2.0, 2.5, 3.0, 4.0, 8.0)
+SWEEPS = {
+    "suite3_table": {
+        "defaults": [{"override /experiment": "suite3_shepp_logan"}],
+        "hydra": {"sweeper": {"params": {
+            "solver.gamma": ",".join(repr(g) for g in SUITE3_GAMMAS),
+            "kernel.sigma": ",".join(repr(s) for s in SUITE3_SIGMAS)}}},
+    },
+}
+
+
+def register_configs(presets: bool = False) -> None:
+    """Store the schema (``indreg_schema``); with ``presets``, also the fallback primary config and presets."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name=SCHEMA_NAME, node=RegisterConfig)
+    if not presets:
+        return
+    cs.store(name=FALLBACK_NAME, node={
+        "defaults": [SCHEMA_NAME, "_self_", {"experiment": "suite1_jv"}, {"sweep": None}],
+        "hydra": HYDRA_SETTINGS})
+    for name, node in PRESETS.items():
+        cs.store(group="experiment", name=name, node=node, package="_global_")
+    for name, node in SWEEPS.items():
+        cs.store(group="sweep", name=name, node=node, package="_global_")
+
+
+class ConfigError(ValueError):
+    """An invalid config value; the message names the key (e.g. ``solver.gamma``)."""
+
+
+_DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+
+def _require(ok: bool, key: str, expected: str, value) -> None:
+    if not ok:
+        raise ConfigError(f"invalid config value {key}={value!r}: expected {expected}")
+
+
+def _finite(v) -> bool:
+    return v is not None and math.isfinite(float(v))
+
+
+def _unknown_keys(node, schema, prefix: str = "") -> list:
+    """Dotted keys of ``node`` absent from ``schema`` (e.g. added with Hydra's ``+key=value``)."""
+    out = []
+    for key in node:
+        if key not in schema:
+            out.append(prefix + str(key))
+        elif OmegaConf.is_dict(schema[key]) and key != "optimizer_kwargs":
+            out += _unknown_keys(node[key], schema[key], f"{prefix}{key}.")
+    return out
+
+
+def validate(cfg: DictConfig) -> None:
+    """Range checks the schema's types cannot express; raises :class:`ConfigError` naming the key."""
+    c = cfg
+    unknown = _unknown_keys(cfg, OmegaConf.structured(RegisterConfig))
+    if unknown:
+        raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
+                          "indreg.experiments.config.RegisterConfig")
+    _require(c.seed >= 0, "seed", "an integer >= 0", c.seed)
+    _require(bool(_DEVICE.match(c.device)), "device", "'auto', 'cpu', 'cuda' or 'cuda:<index>'", c.device)
+    _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)
+    _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
+    _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
+             c.phantom.half_width)
+    g = c.geometry
+    _require(g.num_angles >= 1, "geometry.num_angles", "an integer >= 1", g.num_angles)
+    _require(g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)
+    _require(_finite(g.det_min) and _finite(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
+             "finite det_min < det_max", (g.det_min, g.det_max))
+    n = c.noise
+    _require(n.snr_db is None or n.std is None, "noise.snr_db", "at most one of noise.snr_db and noise.std",
+             (n.snr_db, n.std))
+    _require(n.snr_db is None or _finite(n.snr_db), "noise.snr_db", "a finite number (dB) or null", n.snr_db)
+    _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
+    _require(n.seed is None or n.seed >= 0, "noise.seed", "null or an integer >= 0", n.seed)
+    _require(c.deformation.num_steps >= 1, "deformation.num_steps", "an integer >= 1", c.deformation.num_steps)
+    _require(_finite(c.kernel.sigma) and c.kernel.sigma > 0, "kernel.sigma", "a number > 0", c.kernel.sigma)
+    s = c.solver
+    _require(_finite(s.gamma) and s.gamma >= 0, "solver.gamma", "a number >= 0", s.gamma)
+    _require(_finite(s.tv_weight) and s.tv_weight >= 0, "solver.tv_weight", "a number >= 0", s.tv_weight)
+    _require(_finite(s.step_size) and s.step_size > 0, "solver.step_size", "a number > 0", s.step_size)
+    _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
+    _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
+    b = c.baseline
+    _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
+             "a number in (0, 1]", b.fbp_frequency_scaling)
+    _require(_finite(b.tv_mu) and b.tv_mu >= 0, "baseline.tv_mu", "a number >= 0", b.tv_mu)
+    _require(b.tv_iterations >= 1, "baseline.tv_iterations", "an integer >= 1", b.tv_iterations)
+    lg = c.logging
+    _require(lg.every >= 1, "logging.every", "an integer >= 1", lg.every)
+    _require(lg.checkpoint_every >= 1, "logging.checkpoint_every", "an integer >= 1", lg.checkpoint_every)
+
+
+def to_plain(cfg: DictConfig) -> dict:
+    """The config as plain python (enums as strings), e.g. for metrics.json and checkpoints."""
+    return OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)

@@ -1,0 +1,82 @@
+"""Figures laid out as the paper's (fig. Test_suite_1:single_object): matplotlib ``Figure`` objects (no pyplot,
+so no global backend is touched; ``savefig`` renders with Agg).
+
+Convention: images are arrays ``(nx, ny)`` with axis 0 = x and axis 1 = y; they are shown as
+``np.rot90(image)`` so that x runs to the right and y upwards (upright), grey colormap.
+"""
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.figure import Figure
+
+PAPER_TIMES = (0.25, 0.5, 0.75, 1.0)
+
+
+def time_indices(num_steps: int, times=PAPER_TIMES) -> list:
+    """Indices i of t_i = i / N nearest to ``times`` (exact when 4 divides N)."""
+    return [int(round(t * num_steps)) for t in times]
+
+
+def show_image(ax, image: np.ndarray, title: str, vmin=None, vmax=None, extent=None) -> None:
+    """``image`` (nx, ny) upright: ``np.rot90``, grey colormap, no ticks."""
+    ax.imshow(np.rot90(np.asarray(image)), cmap="gray", vmin=vmin, vmax=vmax, extent=extent,
+              interpolation="nearest")
+    ax.set_title(title)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_data0, fbp=None, tv=None,
+                 extent=None, title: str = ""):
+    """The 3 x 3 layout of the paper's figures 1-2 and 4.
+
+    Row 1: template, t = 0.25, t = 0.5; row 2: t = 0.75, t = 1.0, target; row 3: data at 0 degrees
+    (noise-free blue, noisy red, against the detector coordinate), FBP, TV. ``trajectory`` is
+    ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of the target.
+    """
+    trajectory = np.asarray(trajectory)
+    n = trajectory.shape[0] - 1
+    vmin, vmax = float(np.min(target)), float(np.max(target))
+    fig = Figure(figsize=(10.5, 10.5), layout="constrained")
+    axes = fig.subplots(3, 3)
+    panels = [(template, "Template")]
+    panels += [(trajectory[i], f"$t={i / n:.2f}$") for i in time_indices(n)]
+    panels += [(target, "Target")]
+    for ax, (img, label) in zip(axes.flat[:6], panels):
+        show_image(ax, img, label, vmin, vmax, extent)
+    ax = axes[2, 0]
+    ax.plot(np.asarray(det_points), np.asarray(clean_data0), color="tab:blue", lw=1.5, label="noise-free")
+    ax.plot(np.asarray(det_points), np.asarray(noisy_data0), color="tab:red", lw=0.8, label="noisy")
+    ax.set_title(r"Data at $0^{\circ}$")
+    ax.set_xlabel("detector coordinate")
+    ax.legend(loc="upper right", fontsize="small")
+    ax.set_box_aspect(1)
+    for ax, img, label in ((axes[2, 1], fbp, "FBP"), (axes[2, 2], tv, "TV")):
+        if img is None:
+            ax.set_axis_off()
+            ax.set_title(f"{label} (off)")
+        else:
+            show_image(ax, img, label, vmin, vmax, extent)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"):
+    """The deformed grid: images of the grid lines x = const and y = const under ``points`` = phi (2, nx, ny)."""
+    p = np.asarray(points)
+    nx, ny = p.shape[1:]
+    every = every or max(1, min(nx, ny) // 32)
+    fig = Figure(figsize=(5, 5), layout="constrained")
+    ax = fig.subplots()
+    for i in range(0, nx, every):
+        ax.plot(p[0, i, :], p[1, i, :], color="k", lw=0.5)
+    for j in range(0, ny, every):
+        ax.plot(p[0, :, j], p[1, :, j], color="k", lw=0.5)
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    return fig
+
+
+def save(fig, path, dpi: int = 100) -> None:
+    fig.savefig(path, dpi=dpi)

@@ -1,0 +1,359 @@
+"""``indreg-register``: run one indirect registration experiment of the paper (a Hydra app).
+
+Usage (configs in ``configs/``; every key can be overridden as ``key=value``)::
+
+    indreg-register                                   # suite 1 (J -> V), the default experiment
+    indreg-register experiment=suite3_shepp_logan dtype=float64 device=cuda
+    indreg-register hydra.run.dir=outputs/suite1      # a fixed run dir, so that it can be resumed:
+    indreg-register hydra.run.dir=outputs/suite1 resume=true
+    # the suite-3 table as one multirun: locally in 2 worker processes, or as a SLURM array job
+    indreg-register -m sweep=suite3_table hydra/launcher=joblib hydra.launcher.n_jobs=2 \
+        hydra.sweep.dir=multirun/suite3_table
+    indreg-register -m sweep=suite3_table hydra/launcher=slurm hydra.launcher.partition=<partition> \
+        hydra.sweep.dir=multirun/suite3_table resume=true
+    python scripts/sweep_table.py multirun/suite3_table          # the paper's table (table.md, table.csv)
+    tensorboard --logdir outputs                      # or the multirun dir (HParams tab compares the sweep)
+
+A fixed ``hydra.run.dir`` / ``hydra.sweep.dir`` (the defaults contain the date and time) is what makes a run or
+a sweep resumable: rerun the same command with ``resume=true``. See configs/README.md.
+
+A run builds the problem (:mod:`indreg.experiments.build`), computes the FBP and TV baselines from the same
+data, then loops ``info = solver.step(state)`` for ``solver.max_iter`` iterations: scalars to TensorBoard every
+iteration; SSIM / PSNR and the deformed template every ``logging.every``; a checkpoint every
+``logging.checkpoint_every`` and on SIGINT / SIGTERM (then the process exits with 128 + signal number).
+``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends with the same numbers as an uninterrupted
+run. Outputs in the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``,
+``velocity.npy``, ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``,
+``data.npy``, ``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from . import checkpoint as ckpt
+from .build import build, seed_everything
+from .config import FALLBACK_NAME, ConfigError, register_configs, to_plain, validate
+
+log = logging.getLogger(__name__)
+
+#: configs/ of the source tree (editable install); INDREG_CONFIG_DIR overrides it.
+CONFIG_DIR = Path(os.environ.get("INDREG_CONFIG_DIR", Path(__file__).resolve().parents[2] / "configs"))
+
+# Config keys that may change between an interrupted run and its resumption.
+_RESUMABLE = ("name", "device", "resume", "stop_after", "logging", "baseline")
+
+
+def config_source() -> tuple:
+    """``(config_path, config_name)``: the yaml dir if present, else the ConfigStore fallback."""
+    if (CONFIG_DIR / "config.yaml").is_file():
+        register_configs(presets=False)
+        return str(CONFIG_DIR), "config"
+    register_configs(presets=True)
+    return None, FALLBACK_NAME
+
+
+class StopRequest:
+    """SIGINT / SIGTERM handlers that only record the signal; the loop then checkpoints and exits.
+
+    A second signal gets the previous handler (e.g. a second Ctrl-C raises KeyboardInterrupt at once).
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum = None
+        self._previous = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # e.g. a launcher running jobs in threads: signals are not ours to handle
+        for s in self.SIGNALS:
+            self._previous[s] = signal.signal(s, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        self.signum = signum
+        log.warning("received %s: writing a checkpoint after this iteration, then exiting",
+                    signal.Signals(signum).name)
+        self.restore()
+
+    def restore(self) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        self._previous = {}
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().to("cpu", torch.float64).numpy()
+
+
+def figures_of_merit(image, target_64) -> dict:
+    """SSIM / PSNR against the target: data range of the target, and the paper's convention (PAPER_NOTES)."""
+    from .. import metrics
+
+    x = image.detach().to("cpu", torch.float64)
+    return {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64),
+            "ssim_paper": metrics.ssim_paper(x, target_64), "psnr_paper": metrics.psnr_paper(x, target_64)}
+
+
+def baselines(cfg: DictConfig, exp, out: Path) -> dict:
+    """FBP and TV reconstructions from the noisy data (float64 on the run's device, returned on the CPU);
+    cached in ``baselines.npz`` so that a resumed run does not recompute them."""
+    if not cfg.baseline.enabled:
+        return {}
+    b = cfg.baseline
+    key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, b.tv_mu, b.tv_iterations],
+                   dtype=str)
+    cache = out / "baselines.npz"
+    if cache.is_file():
+        with np.load(cache) as z:
+            if np.array_equal(z["key"], key):
+                return {"fbp": torch.from_numpy(z["fbp"]), "tv": torch.from_numpy(z["tv"])}
+    from ..forward import fbp
+    from ..forward.tv import tv_reconstruction
+
+    t0 = time.perf_counter()
+    T, g = exp.ray_transform, exp.noisy_data_64.to(exp.template.device)
+    rec = {"fbp": fbp(T, g, filter=b.fbp_filter.value, frequency_scaling=b.fbp_frequency_scaling,
+                      padding=b.fbp_padding),
+           "tv": tv_reconstruction(T, g, mu=b.tv_mu, num_iter=b.tv_iterations)[0]}
+    rec = {k: v.detach().to("cpu", torch.float64) for k, v in rec.items()}
+    log.info("baselines (FBP, TV %d iterations) in %.1f s", b.tv_iterations, time.perf_counter() - t0)
+    np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
+    return rec
+
+
+def _problem_config(plain: dict) -> dict:
+    """The config keys that define the iterates (all but ``_RESUMABLE`` and ``solver.max_iter``)."""
+    out = {k: v for k, v in plain.items() if k not in _RESUMABLE}
+    out["solver"] = {k: v for k, v in out["solver"].items() if k != "max_iter"}
+    return out
+
+
+def hyperparameters(cfg: DictConfig) -> dict:
+    """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
+    return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
+            "N": int(cfg.deformation.num_steps), "step_size": float(cfg.solver.step_size),
+            "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
+            "template": cfg.phantom.template.value, "size": int(cfg.phantom.size),
+            "max_iter": int(cfg.solver.max_iter), "dtype": cfg.dtype.value, "seed": int(cfg.seed)}
+
+
+def _json_float(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return v
+
+
+def run(cfg: DictConfig, output_dir) -> dict:
+    """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
+
+    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol`` or a
+    non-finite objective), ``stopped`` (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its
+    number). Only ``completed`` and ``converged`` runs write the final outputs.
+    """
+    from tqdm import tqdm
+
+    from ..solvers import SolverState
+    from .tblog import RunWriter
+
+    validate(cfg)
+    out = Path(output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    seed_everything(cfg.seed)
+    exp = build(cfg)
+    problem, solver = exp.problem, exp.solver
+    log.info("%s | %s | %s", cfg.name, problem, solver)
+    plain = to_plain(cfg)
+    problem_cfg = _problem_config(plain)
+    rec = baselines(cfg, exp, out)
+
+    state = SolverState(momentum=problem.zero_momentum(), iteration=0)
+    history, seconds = [], 0.0
+    path = out / "checkpoint.pt"
+    if cfg.resume and path.is_file():
+        saved = ckpt.load(path)
+        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
+        if mismatch:
+            raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
+        state.load_state_dict(saved["state"])
+        state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
+        solver.load_state_dict(saved["solver"])
+        ckpt.set_rng_state(saved["rng"])
+        history, seconds = saved["history"], saved["seconds"]
+        log.info("resumed from %s at iteration %d", path, state.iteration)
+    elif cfg.resume:
+        log.warning("resume=true but there is no %s: starting at iteration 0", path)
+
+    def save_checkpoint() -> None:
+        ckpt.save(path, {"iteration": state.iteration, "state": state.state_dict(), "solver": solver.state_dict(),
+                         "rng": ckpt.rng_state(), "history": history, "seconds": seconds,
+                         "problem": problem_cfg})
+
+    lg = cfg.logging
+    vmin, vmax = float(exp.target_64.min()), float(exp.target_64.max())
+    # a resumed run drops the events an interrupted one logged after its checkpoint
+    writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None, vmin, vmax,
+                       enabled=lg.tensorboard)
+    if state.iteration == 0:
+        writer.image("images/template", exp.template_64, 0)
+        writer.image("images/target", exp.target_64, 0)
+        for k, v in rec.items():
+            writer.image(f"images/{k}", v, 0)
+        writer.image("images/deformed_template", exp.template_64, 0)
+        writer.metrics(figures_of_merit(exp.template_64, exp.target_64), 0)
+
+    max_iter, stop_after = cfg.solver.max_iter, cfg.stop_after
+    stop = StopRequest()
+    stop.install()
+    bar = tqdm(total=max_iter, initial=state.iteration, desc=cfg.name, dynamic_ncols=True,
+               disable=not (lg.progress and sys.stderr.isatty()))
+    status, warnings = "completed", sum(1 for h in history if h.get("warning"))
+    try:
+        while state.iteration < max_iter:
+            if stop_after is not None and state.iteration >= stop_after:
+                status = "stopped"
+                break
+            t0 = time.perf_counter()
+            info = solver.step(state)
+            dt = time.perf_counter() - t0
+            seconds += dt
+            it = state.iteration
+            history.append(dict(info, iteration=it, seconds=dt))
+            writer.scalars(info, it)
+            if info.get("warning"):  # logged the first time and then every k iterations (counted in metrics)
+                warnings += 1
+                if warnings == 1 or it % lg.every == 0:
+                    log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], warnings)
+            done = solver.converged(info)
+            if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
+                deformed = problem.deformed(state.momentum)
+                fom = figures_of_merit(deformed, exp.target_64)
+                writer.metrics(fom, it)
+                writer.image("images/deformed_template", deformed, it)
+                log.info("iteration %d: objective %.6g, data fit %.6g, min Jacobian %.4g, SSIM %.4f, PSNR %.2f",
+                         it, info["objective"], info["data_fit"], info["min_jacobian"], fom["ssim"], fom["psnr"])
+            bar.update(1)
+            bar.set_postfix(objective=f"{info['objective']:.4g}")
+            if it % lg.checkpoint_every == 0:
+                save_checkpoint()
+            if stop.signum is not None:
+                status = "interrupted"
+                break
+            if done:
+                status = "completed" if it >= max_iter else "converged"
+                break
+    finally:
+        bar.close()
+        stop.restore()
+    save_checkpoint()
+    if status in ("stopped", "interrupted"):
+        writer.close()
+        log.warning("%s at iteration %d; continue with resume=true (same run dir %s)", status, state.iteration, out)
+        return {"status": status, "iteration": state.iteration, "signal": stop.signum}
+    result = finish(cfg, exp, state, rec, history, seconds, out, writer, status)
+    writer.close()
+    return result
+
+
+def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: str) -> dict:
+    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams."""
+    from . import figures
+    from .tblog import METRICS
+
+    problem, m, it = exp.problem, state.momentum, state.iteration
+    final = problem.deformed(m)
+    trajectory = problem.trajectory(m)
+    with torch.no_grad():
+        velocity = problem.velocity(m)
+        phi = problem.deformation.deformation(velocity)
+    terms = problem.evaluate(m)
+    target = exp.target_64
+    result = figures_of_merit(final, target)
+    for name, image in rec.items():
+        result.update({f"{name}_{k}": v for k, v in figures_of_merit(image, target).items()})
+    result.update({f"template_{k}": v for k, v in figures_of_merit(exp.template_64, target).items()})
+    result.update(terms)
+    result.update({
+        "status": status, "snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value, "iterations": it,
+        "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds,
+        "min_jacobian": problem.min_jacobian(velocity),
+        "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
+        "evaluations": history[-1]["evaluations"] if history else 0,
+        "warnings": sum(1 for h in history if h.get("warning")),
+        "device": str(exp.template.device), "hparams": hyperparameters(cfg), "config": to_plain(cfg)})
+    arrays = {"final": final, "trajectory": trajectory, "velocity": velocity, "momentum": m, "deformation": phi,
+              "target": target, "template": exp.template_64, "data": exp.noisy_data_64,
+              "data_clean": exp.clean_data_64, **rec}
+    for name, a in arrays.items():
+        np.save(out / f"{name}.npy", _numpy(a))
+    with open(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+
+    traj = _numpy(trajectory)
+    extent = domain_extent(exp.domain)
+    if cfg.logging.figure:
+        fig = figures.paper_figure(exp.template_64.numpy(), traj, target.numpy(), exp.geometry.det_points.numpy(),
+                                   exp.clean_data_64[0].numpy(), exp.noisy_data_64[0].numpy(),
+                                   _numpy(rec["fbp"]) if "fbp" in rec else None,
+                                   _numpy(rec["tv"]) if "tv" in rec else None, extent=extent,
+                                   title=f"{cfg.name}: SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB")
+        figures.save(fig, out / "figure.png")
+    n = traj.shape[0] - 1
+    writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
+    writer.image("images/deformed_template", final, it)
+    writer.figure("images/deformed_grid", figures.deformed_grid_figure(_numpy(phi)), it)
+    writer.metrics(result, it)
+    writer.hparams(hyperparameters(cfg), {k: result[k] for k in METRICS})
+    log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s",
+             it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
+             _pair(result, "fbp"), _pair(result, "tv"))
+    return result
+
+
+def domain_extent(domain) -> tuple:
+    """``imshow`` extent (x_min, x_max, y_min, y_max) of the domain."""
+    (x0, y0), (x1, y1) = domain.min_pt, domain.max_pt
+    return x0, x1, y0, y1
+
+
+def _pair(result: dict, name: str) -> str:
+    if f"{name}_ssim" not in result:
+        return "off"
+    return f"{result[f'{name}_ssim']:.4f} / {result[f'{name}_psnr']:.2f}"
+
+
+_CONFIG_PATH, _CONFIG_NAME = config_source()
+
+
+def _task(cfg: DictConfig):
+    from hydra.core.hydra_config import HydraConfig
+
+    result = run(cfg, HydraConfig.get().runtime.output_dir)
+    if result["status"] == "interrupted":
+        sys.exit(128 + int(result["signal"]))
+    return result.get("ssim")
+
+
+def main() -> None:
+    """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``)."""
+    import hydra
+
+    hydra.main(version_base="1.3", config_path=_CONFIG_PATH, config_name=_CONFIG_NAME)(_task)()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""Collect a multirun's ``metrics.json`` files into the paper's suite-3 table (sigma rows x gamma columns).
+
+Each cell is ``SSIM / PSNR`` of one run, next to the paper's published value (PAPER_NOTES, table
+Test_suite_3:Sensitivity_table). The paper's numbers are in its SSIM/PSNR convention (data range 2 / 1 or 2,
+``ssim_paper`` / ``psnr_paper``), so that convention is the default; ``convention="range"`` uses the data range
+of the target (``ssim`` / ``psnr``).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+from .config import SUITE3_GAMMAS
+
+#: The paper's table: PAPER[sigma][gamma] = (SSIM, PSNR in dB).
+PAPER = {
+    1.0: dict(zip(SUITE3_GAMMAS, [(0.8958, 26.69), (0.8958, 26.69), (0.8957, 26.69), (0.8820, 26.18), (0.6800, 17.82)])),
+    2.0: dict(zip(SUITE3_GAMMAS, [(0.9039, 26.96), (0.9039, 26.96), (0.9038, 26.96), (0.8958, 26.72), (0.6967, 18.45)])),
+    2.5: dict(zip(SUITE3_GAMMAS, [(0.9018, 26.90), (0.9018, 26.90), (0.9017, 26.89), (0.8964, 26.74), (0.7057, 18.71)])),
+    3.0: dict(zip(SUITE3_GAMMAS, [(0.9007, 26.90), (0.9007, 26.90), (0.9006, 26.89), (0.8968, 26.77), (0.7164, 19.03)])),
+    4.0: dict(zip(SUITE3_GAMMAS, [(0.8992, 26.88), (0.8992, 26.88), (0.8992, 26.87), (0.8979, 26.77), (0.7426, 19.79)])),
+    8.0: dict(zip(SUITE3_GAMMAS, [(0.8305, 24.15), (0.8305, 24.15), (0.8307, 24.16), (0.8438, 24.84), (0.7960, 21.27)])),
+}
+CONVENTIONS = {"paper": ("ssim_paper", "psnr_paper"), "range": ("ssim", "psnr")}
+
+
+def collect(multirun_dir) -> list:
+    """One record per ``metrics.json`` below ``multirun_dir``: gamma, sigma, figures of merit, run dir."""
+    records = []
+    for path in sorted(Path(multirun_dir).rglob("metrics.json")):
+        with open(path) as f:
+            m = json.load(f)
+        hp = m["hparams"]
+        records.append({"gamma": float(hp["gamma"]), "sigma": float(hp["sigma"]), "run": str(path.parent),
+                        "iterations": m.get("iterations"),
+                        **{k: float(m[k]) for k in ("ssim", "psnr", "ssim_paper", "psnr_paper")}})
+    if not records:
+        raise FileNotFoundError(f"no metrics.json below {multirun_dir} (a multirun dir of indreg-register)")
+    return records
+
+
+def _key(x: float) -> float:
+    return float(f"{x:.6g}")
+
+
+def grid(records: list) -> tuple:
+    """Sorted sigmas, gammas (the paper's and the runs') and ``{(sigma, gamma): record}``."""
+    cells = {(_key(r["sigma"]), _key(r["gamma"])): r for r in records}
+    sigmas = sorted({s for s, _ in cells})
+    gammas = sorted({g for _, g in cells})
+    return sigmas, gammas, cells
+
+
+def _paper(sigma: float, gamma: float):
+    return PAPER.get(sigma, {}).get(gamma)
+
+
+def markdown(records: list, convention: str = "paper") -> str:
+    """The table in Markdown: each cell ``ours SSIM / PSNR (paper SSIM / PSNR)``."""
+    ks, kp = CONVENTIONS[convention]
+    sigmas, gammas, cells = grid(records)
+    head = "| sigma \\ gamma | " + " | ".join(f"{g:g}" for g in gammas) + " |"
+    lines = [f"SSIM / PSNR (dB), {convention} convention; in parentheses the paper's table", "",
+             head, "|---" * (len(gammas) + 1) + "|"]
+    for s in sigmas:
+        row = []
+        for g in gammas:
+            r = cells.get((s, g))
+            ours = f"{r[ks]:.4f} / {r[kp]:.2f}" if r else "—"
+            p = _paper(s, g)
+            row.append(ours + (f" ({p[0]:.4f} / {p[1]:.2f})" if p else ""))
+        lines.append(f"| {s:g} | " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(records: list) -> str:
+    """Long format: one row per run with both conventions and the paper's values."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["sigma", "gamma", "ssim_paper", "psnr_paper", "ssim", "psnr", "paper_ssim", "paper_psnr",
+                "iterations", "run"])
+    sigmas, gammas, cells = grid(records)
+    for s in sigmas:
+        for g in gammas:
+            r = cells.get((s, g))
+            if r is None:
+                continue
+            p = _paper(s, g) or ("", "")
+            w.writerow([s, g, r["ssim_paper"], r["psnr_paper"], r["ssim"], r["psnr"], p[0], p[1],
+                        r["iterations"], r["run"]])
+    return buf.getvalue()
+
+
+def main(argv=None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Suite-3 table (sigma x gamma, SSIM / PSNR) from a multirun dir, "
+                                             "side by side with the paper's numbers.")
+    ap.add_argument("multirun_dir")
+    ap.add_argument("--convention", choices=sorted(CONVENTIONS), default="paper",
+                    help="paper: the paper's SSIM/PSNR convention (default); range: data range of the target")
+    ap.add_argument("--out", default=None, help="write table.md and table.csv here (default: the multirun dir)")
+    args = ap.parse_args(argv)
+    records = collect(args.multirun_dir)
+    md = markdown(records, args.convention)
+    out = Path(args.out or args.multirun_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(md)
+    (out / "table.csv").write_text(csv_text(records))
+    print(md)
+    print(f"wrote {out / 'table.md'} and {out / 'table.csv'} ({len(records)} runs)")

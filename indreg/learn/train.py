@@ -1,0 +1,287 @@
+"""Training of a learned initial momentum (rem:AltLDDMM): ``Lambda_Theta(template, FBP(g)) = m0``.
+
+The network (``MomentumUNet``) is trained with the indirect loss ``||T(W(m0, I)) - g||^2 + gamma <m0, K m0>``
+(``IndirectShootingLoss``) on a seeded synthetic data set (``SyntheticDeformationDataset``), logs to
+TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``, DDP: gloo on CPU, nccl on
+CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
+
+Entry point: ``python scripts/train_momentum.py [key=value ...]`` (Hydra config ``configs/train_momentum.yaml``),
+``torchrun --standalone --nproc_per_node=2 scripts/train_momentum.py ...`` for DDP.
+
+Batches: step ``s`` draws a global batch of ``batch_size * world_size`` distinct samples from a generator
+seeded by ``(seed, s)``; rank ``r`` takes its slice. The batch sequence is thus a function of the step only
+(exact resume, no sampler state) and the ranks see disjoint samples; DDP averages the gradients, so the
+replicas stay identical (checked at the end: ``replica_max_abs_diff`` in ``metrics.json``).
+
+Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/data_fit``,
+``train/regulariser``, ``train/ssim``, ``val/ssim``, ``val/loss``, images ``val/template``, ``val/fbp``,
+``val/target``, ``val/prediction``), ``checkpoint.pt`` (model, optimizer, step, RNG), ``metrics.json``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from ..deform.kernel import GaussianKernel
+from ..deform.lddmm import LDDMMDeformation
+from ..deform.shooting import GeodesicShooting
+from ..domain import ImageDomain
+from ..forward.fbp import fbp
+from ..forward.geometry import ParallelBeamGeometry
+from ..forward.ray_transform import RayTransform
+from ..metrics import ssim
+from .dataset import SyntheticDeformationDataset
+from .loss import IndirectShootingLoss
+from .unet import MomentumUNet
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+# ------------------------------------------------------------------ set-up
+def init_distributed(device_name: str) -> tuple:
+    """``(rank, world_size, device)``; starts the process group when launched by torchrun (``WORLD_SIZE`` > 1)."""
+    if device_name == "auto":
+        device_name = "cuda" if torch.cuda.is_available() else "cpu"
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    device = torch.device(device_name)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return rank, world, device
+
+
+def build(cfg, device, dtype) -> dict:
+    """Domain, kernel, shooting layer, ray transform, loss and network from the config."""
+    domain = ImageDomain.paper(int(cfg.domain.n))
+    kernel = GaussianKernel(domain, float(cfg.kernel.sigma))
+    shooting = GeodesicShooting(domain, kernel, int(cfg.shooting.num_steps), str(cfg.shooting.action),
+                                backward=str(cfg.shooting.backward),
+                                corrector_steps=int(cfg.shooting.corrector_steps),
+                                checkpoint=bool(cfg.shooting.checkpoint))
+    geometry = ParallelBeamGeometry.paper(int(cfg.geometry.num_angles), int(cfg.geometry.det_count))
+    ray = RayTransform(domain, geometry)
+    loss = IndirectShootingLoss(shooting, ray, float(cfg.train.gamma))
+    scale = float(cfg.data.displacement) / (2 * math.pi * float(cfg.kernel.sigma) ** 2)
+    torch.manual_seed(int(cfg.seed))      # same initial weights on every rank (DDP also broadcasts rank 0's)
+    model = MomentumUNet(2, int(cfg.model.width), int(cfg.model.levels), momentum_scale=scale)
+    return {"domain": domain, "kernel": kernel, "shooting": shooting, "ray": ray, "loss": loss,
+            "model": model.to(device=device, dtype=dtype)}
+
+
+def datasets(cfg, parts: dict, dtype) -> tuple:
+    """Training and held-out sets (different seeds: disjoint sample generators)."""
+    common = dict(snr_db=float(cfg.data.snr_db), displacement=float(cfg.data.displacement),
+                  smoothness=float(cfg.data.smoothness), dtype=dtype)
+    train = SyntheticDeformationDataset(parts["shooting"], parts["ray"], int(cfg.data.num_train),
+                                        seed=2 * int(cfg.data.seed), **common)
+    val = SyntheticDeformationDataset(parts["shooting"], parts["ray"], int(cfg.data.num_val),
+                                      seed=2 * int(cfg.data.seed) + 1, **common)
+    return train, val
+
+
+def network_input(batch: dict) -> torch.Tensor:
+    """``(B, 2, nx, ny)``: channel 0 the template, channel 1 the FBP of the data."""
+    return torch.stack([batch["template"], batch["fbp"]], dim=1)
+
+
+def batch_indices(step: int, seed: int, size: int, num_samples: int, rank: int, world: int) -> torch.Tensor:
+    """This rank's slice of the global batch of step ``step`` (a function of ``(seed, step)`` only)."""
+    gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + step)
+    perm = torch.randperm(num_samples, generator=gen)
+    total = size * world
+    if total > num_samples:
+        perm = perm.repeat(math.ceil(total / num_samples))
+    return perm[rank * size:(rank + 1) * size]
+
+
+def gather(dataset, idx, device) -> dict:
+    return {k: v[idx].to(device) for k, v in dataset.tensors.items()}
+
+
+# ------------------------------------------------------------------ checkpoints
+def save_checkpoint(path: Path, model, optimizer, step: int) -> None:
+    """Atomic ``torch.save`` (tmp file then ``os.replace``)."""
+    payload = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+               "rng": torch.get_rng_state()}
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, model, optimizer, device) -> int:
+    payload = torch.load(path, map_location=device, weights_only=False)
+    model.load_state_dict(payload["model"])
+    optimizer.load_state_dict(payload["optimizer"])
+    torch.set_rng_state(payload["rng"].cpu())
+    return int(payload["step"])
+
+
+# ------------------------------------------------------------------ evaluation
+def predict(model, shooting, batch: dict) -> torch.Tensor:
+    """Deformed templates ``W(Lambda(template, fbp), template)``, ``(B, nx, ny)``, no gradient."""
+    with torch.no_grad():
+        return shooting(model(network_input(batch)), batch["template"])
+
+
+def evaluate_network(model, parts: dict, dataset, device) -> dict:
+    """SSIM of the shot template against the ground truth and seconds per sample (FBP + net + shooting)."""
+    scores, seconds = [], 0.0
+    for i in range(len(dataset)):
+        item = gather(dataset, torch.tensor([i]), device)
+        start = time.perf_counter()
+        with torch.no_grad():
+            item["fbp"] = fbp(parts["ray"], item["data"])
+            deformed = predict(model, parts["shooting"], item)
+        seconds += time.perf_counter() - start
+        scores.append(ssim(deformed[0], item["target"][0]))
+    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / len(dataset),
+            "template_ssim": float(np.mean([ssim(dataset.tensors["template"][i], dataset.tensors["target"][i])
+                                            for i in range(len(dataset))]))}
+
+
+def evaluate_algorithm1(cfg, parts: dict, dataset, device, dtype) -> dict:
+    """Per-sample Algorithm 1 (``indreg.solvers``) from zero momentum: mean SSIM and seconds per sample."""
+    from ..solvers import Algorithm1, IndirectRegistration, SolverState
+
+    count = min(int(cfg.eval.algorithm1.num_samples), len(dataset))
+    deformation = LDDMMDeformation(parts["domain"], int(cfg.shooting.num_steps), str(cfg.shooting.action))
+    scores, seconds = [], 0.0
+    for i in range(count):
+        template = dataset.tensors["template"][i].to(device, dtype)
+        data = dataset.tensors["data"][i].to(device, dtype)
+        problem = IndirectRegistration(parts["ray"], deformation, parts["kernel"], template, data,
+                                       gamma=float(cfg.eval.algorithm1.gamma))
+        state = SolverState(momentum=problem.zero_momentum(), iteration=0)
+        solver = Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size),
+                            max_iter=int(cfg.eval.algorithm1.max_iter))
+        start = time.perf_counter()
+        solver.run(state)
+        result = problem.deformed(state.momentum)
+        seconds += time.perf_counter() - start
+        scores.append(ssim(result, dataset.tensors["target"][i]))
+    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / count, "num_samples": count}
+
+
+def validation_loss(loss_fn, model, dataset, device) -> float:
+    batch = gather(dataset, torch.arange(len(dataset)), device)
+    with torch.no_grad():
+        return float(loss_fn(model(network_input(batch)), batch["template"], batch["data"]))
+
+
+def replica_difference(model, world: int) -> float:
+    """Max over ranks of ``max |theta_rank - theta_rank0|`` (0 when DDP kept the replicas identical)."""
+    flat = torch.cat([p.detach().reshape(-1) for p in model.parameters()])
+    if world == 1:
+        return 0.0
+    reference = flat.clone()
+    dist.broadcast(reference, src=0)
+    diff = (flat - reference).abs().max()
+    dist.all_reduce(diff, op=dist.ReduceOp.MAX)
+    return float(diff)
+
+
+# ------------------------------------------------------------------ training
+def log_images(writer, dataset, model, parts, device, step: int) -> None:
+    item = gather(dataset, torch.tensor([0]), device)
+    images = {"template": item["template"][0], "fbp": item["fbp"][0], "target": item["target"][0],
+              "prediction": predict(model, parts["shooting"], item)[0]}
+    for name, image in images.items():
+        a = torch.rot90(image.detach().float().cpu(), 1, (0, 1)).clamp(0.0, 1.0)
+        writer.add_image(f"val/{name}", a[None], step, dataformats="CHW")
+
+
+def train(cfg, run_dir) -> dict:
+    """Train (resuming from ``<run_dir>/checkpoint.pt`` when ``train.resume``), evaluate, return the metrics."""
+    rank, world, device = init_distributed(str(cfg.device))
+    dtype = DTYPES[str(cfg.dtype)]
+    if world > 1:                          # every rank writes where rank 0 does (Hydra dirs may differ)
+        holder = [str(run_dir)]
+        dist.broadcast_object_list(holder, src=0)
+        run_dir = holder[0]
+    run_dir = Path(run_dir)
+    parts = build(cfg, device, dtype)
+    model = parts["model"]
+    train_set, val_set = datasets(cfg, parts, dtype)
+    optimizer = torch.optim.Adam(model.parameters(), lr=float(cfg.train.lr))
+    ckpt = run_dir / "checkpoint.pt"
+    start = load_checkpoint(ckpt, model, optimizer, device) if bool(cfg.train.resume) and ckpt.is_file() else 0
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
+    writer = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+        writer = SummaryWriter(str(run_dir / "tensorboard"), purge_step=start + 1)  # drop stale events
+    steps, size = int(cfg.train.steps), int(cfg.train.batch_size)
+    t0 = time.perf_counter()
+    for step in range(start, steps):
+        idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
+        batch = gather(train_set, idx, device)
+        terms = parts["loss"].terms(net(network_input(batch)), batch["template"], batch["data"])
+        optimizer.zero_grad(set_to_none=True)
+        terms["loss"].mean().backward()
+        optimizer.step()
+        done = step + 1
+        stats = torch.stack([terms[k].detach().mean() for k in ("loss", "data_fit", "regulariser")])
+        if world > 1:
+            dist.all_reduce(stats)
+            stats /= world
+        if rank == 0 and (done % int(cfg.train.log_every) == 0 or done == steps):
+            for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
+                writer.add_scalar(f"train/{name}", value, done)
+            writer.add_scalar("train/ssim", float(np.mean([ssim(d, t) for d, t in
+                                                           zip(terms["deformed"].detach(), batch["target"])])), done)
+            print(f"step {done}/{steps} loss {stats[0]:.4g} data_fit {stats[1]:.4g} "
+                  f"({time.perf_counter() - t0:.1f} s)", flush=True)
+        if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
+            writer.add_scalar("val/loss", validation_loss(parts["loss"], model, val_set, device), done)
+            writer.add_scalar("val/ssim", evaluate_network(model, parts, val_set, device)["ssim"], done)
+            log_images(writer, val_set, model, parts, device, done)
+        if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
+            save_checkpoint(ckpt, model, optimizer, done)
+    metrics = {"steps": steps, "resumed_from": start, "world_size": world,
+               "train_seconds": time.perf_counter() - t0,
+               "replica_max_abs_diff": replica_difference(model, world)}
+    if rank == 0:
+        metrics["network"] = evaluate_network(model, parts, val_set, device)
+        if int(cfg.eval.algorithm1.num_samples) > 0:
+            metrics["algorithm1"] = evaluate_algorithm1(cfg, parts, val_set, device, dtype)
+        writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
+        writer.close()
+        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        print(json.dumps(metrics, indent=2), flush=True)
+    if world > 1:
+        dist.barrier()
+        dist.destroy_process_group()
+    return metrics
+
+
+def _task(cfg) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    train(cfg, HydraConfig.get().runtime.output_dir)
+
+
+def main() -> None:
+    """Console entry point (Hydra parses ``sys.argv``; config ``configs/train_momentum.yaml``)."""
+    import hydra
+
+    if not (CONFIG_DIR / "train_momentum.yaml").is_file():
+        raise FileNotFoundError(f"config {CONFIG_DIR / 'train_momentum.yaml'} not found (run from a source checkout)")
+    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train_momentum")(_task)()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,61 @@
+"""Solver state (for checkpoints) and the per-iteration report shared by the solvers."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class SolverState:
+    """The iterate of a registration solver: momentum ``m`` (``nu = K m``) and the iteration count.
+
+    Convention: ``momentum (N+1, 2, nx, ny)`` at ``t_i = i/N``. Solvers replace ``momentum`` by a new
+    tensor at every accepted step (they never modify it in place). Optimizer internals (Adam moments,
+    L-BFGS history, step size) live in ``solver.state_dict()``; save both to resume bit-identically.
+    """
+
+    momentum: torch.Tensor
+    iteration: int = 0
+
+    def state_dict(self) -> dict:
+        return {"momentum": self.momentum.detach().clone(), "iteration": int(self.iteration)}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.momentum = d["momentum"].detach().clone()
+        self.iteration = int(d["iteration"])
+
+    @classmethod
+    def from_state_dict(cls, d: dict) -> "SolverState":
+        state = cls(momentum=d["momentum"])
+        state.load_state_dict(d)
+        return state
+
+
+def problems(objective: float, min_jacobian: float, previous: float | None = None) -> list:
+    """Warnings for an iterate: non-finite objective, folding (min Jacobian <= 0; nan = not computed),
+    increase over ``previous``."""
+    out = []
+    if not math.isfinite(objective):
+        out.append(f"non-finite objective ({objective})")
+    if min_jacobian <= 0:
+        out.append(f"folding: min Jacobian determinant {min_jacobian:.4g} <= 0")
+    if previous is not None and math.isfinite(objective) and objective > previous:
+        out.append(f"objective increased from {previous:.10g} to {objective:.10g}")
+    return out
+
+
+def make_info(iteration, terms, grad_norm, min_jacobian, step_size, evaluations, rejected, warnings) -> dict:
+    """The per-iteration report (python floats) returned by ``solver.step``."""
+    return {"iteration": int(iteration), "objective": terms["objective"], "data_fit": terms["data_fit"],
+            "regulariser": terms["regulariser"], "tv": terms["tv"], "grad_norm": float(grad_norm),
+            "min_jacobian": float(min_jacobian), "step_size": float(step_size),
+            "evaluations": int(evaluations), "rejected": bool(rejected), "warning": "; ".join(warnings)}
+
+
+def is_converged(info: dict, max_iter: int, grad_tol: float) -> bool:
+    """Stop at ``max_iter`` iterations, at ``grad_norm <= grad_tol`` (if ``grad_tol > 0``) or on a non-finite
+    objective."""
+    return (info["iteration"] >= max_iter or not math.isfinite(info["objective"])
+            or (grad_tol > 0 and info["grad_norm"] <= grad_tol))

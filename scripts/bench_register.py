@@ -1,0 +1,117 @@
+"""Benchmark of the registration solvers: seconds per iteration and peak memory on the paper's suites.
+
+For each suite (1: 64^2, 10x92, sigma 6; 3: 256^2, 10x362, sigma 2; 2: 438^2, 6x620, sigma 2; N = 20),
+solver (Algorithm 1; L-BFGS with strong-Wolfe line search) and dtype, a fresh subprocess builds the
+problem, runs ``--warmup`` iterations, then times ``--iters`` iterations (median seconds per iteration;
+for L-BFGS also seconds per forward/backward evaluation = total time / evaluations). Memory is the peak
+resident set size of that subprocess (``ru_maxrss``, includes Python + torch, about 0.3 GiB) and its
+growth during the iterations (peak minus the resident size before the first iteration). "CPU s / it" is
+the process CPU time per iteration (all threads): on a shared, overloaded machine it is a steadier figure
+than the wall-clock time (with 2 threads on an overloaded machine OpenMP spinning inflates both).
+Prints one Markdown table with the authors' ODL reference times (suite 1: 0.13 s/it, suite 3: 0.93 s/it).
+
+    python scripts/bench_register.py                      # all suites, float32, 2 threads
+    python scripts/bench_register.py --suites 1 3 --dtypes float32 float64 --iters 10
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+SUITES = {  # grid, angles, bins, sigma, template, target, step size
+    "1": (64, 10, 92, 6.0, "j", "v", 0.02),
+    "3": (256, 10, 362, 2.0, "shepp_logan_template", "shepp_logan", 0.02),
+    "2": (438, 6, 620, 2.0, "six_objects_template", "six_objects_target", 0.04),
+}
+ODL_SECONDS = {"1": 0.13, "3": 0.93}
+
+
+def _rss_gib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / 2 ** 30
+
+
+def worker(suite: str, solver_name: str, dtype_name: str, iters: int, warmup: int, threads: int) -> dict:
+    import torch
+
+    from indreg import ImageDomain, phantoms
+    from indreg.deform.kernel import GaussianKernel
+    from indreg.deform.lddmm import LDDMMDeformation
+    from indreg.forward import ParallelBeamGeometry, RayTransform
+    from indreg.noise import add_white_noise
+    from indreg.solvers import Algorithm1, IndirectRegistration, SolverState, TorchOptimSolver
+
+    torch.set_num_threads(threads)
+    n, angles, bins, sigma, template, target, step = SUITES[suite]
+    dtype = getattr(torch, dtype_name)
+    dom = ImageDomain.paper(n)
+    T = RayTransform(dom, ParallelBeamGeometry.paper(angles, bins))
+    data, _ = add_white_noise(T(phantoms.get(target, dom)), std=1.0, seed=0)
+    problem = IndirectRegistration(T, LDDMMDeformation(dom, num_steps=20), GaussianKernel(dom, sigma),
+                                   phantoms.get(template, dom).to(dtype), data.to(dtype), gamma=1e-6)
+    if solver_name == "algorithm1":
+        solver = Algorithm1(problem, step_size=step)
+    else:
+        solver = TorchOptimSolver(problem, "lbfgs")
+    state = SolverState(problem.zero_momentum())
+    for _ in range(warmup):
+        solver.step(state)
+    rss_before = _rss_gib()
+    evals_before = solver.evaluations
+    times, cpu = [], []
+    for _ in range(iters):
+        t0, c0 = time.perf_counter(), time.process_time()
+        info = solver.step(state)
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    evaluations = solver.evaluations - evals_before
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    return {"suite": suite, "solver": solver_name, "dtype": dtype_name, "s_per_it": statistics.median(times),
+            "cpu_per_it": statistics.median(cpu),
+            "s_per_eval": sum(times) / max(evaluations, 1), "evals_per_it": evaluations / iters,
+            "peak_gib": peak, "growth_gib": peak - rss_before, "objective": info["objective"]}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--suites", nargs="+", default=["1", "3", "2"], choices=list(SUITES))
+    parser.add_argument("--solvers", nargs="+", default=["algorithm1", "lbfgs"], choices=["algorithm1", "lbfgs"])
+    parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "float64"])
+    parser.add_argument("--iters", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--worker", nargs=3, metavar=("SUITE", "SOLVER", "DTYPE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(*args.worker, args.iters, args.warmup, args.threads)))
+        return
+    rows = []
+    for suite in args.suites:
+        for solver in args.solvers:
+            for dtype in args.dtypes:
+                cmd = [sys.executable, __file__, "--worker", suite, solver, dtype, "--iters", str(args.iters),
+                       "--warmup", str(args.warmup), "--threads", str(args.threads)]
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+                rows.append(json.loads(out.strip().splitlines()[-1]))
+                print(f"# done: suite {suite} {solver} {dtype}", file=sys.stderr)
+    print(f"torch threads: {args.threads}; median over {args.iters} iterations after {args.warmup} warm-up; "
+          f"N = 20; peak = process peak RSS (incl. ~0.3 GiB Python + torch), growth = during the iterations\n")
+    print("| suite | grid | solver | dtype | s / iteration | CPU s / it | evals / it | s / evaluation | ODL s / it | "
+          "speed-up vs ODL | peak GiB | growth GiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        n = SUITES[r["suite"]][0]
+        odl = ODL_SECONDS.get(r["suite"])
+        ratio = f"{odl / r['s_per_it']:.1f}x" if odl and r["solver"] == "algorithm1" else "-"
+        print(f"| {r['suite']} | {n}^2 | {r['solver']} | {r['dtype']} | {r['s_per_it']:.4f} | {r['cpu_per_it']:.4f} | "
+              f"{r['evals_per_it']:.2f} | {r['s_per_eval']:.4f} | {odl if odl else '-'} | {ratio} | "
+              f"{r['peak_gib']:.2f} | {r['growth_gib']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""Structured configs: the paper's presets, yaml vs ConfigStore fallback, and errors naming the bad key."""
+import json
+import subprocess
+import sys
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from indreg.experiments.config import PRESETS, SUITE3_GAMMAS, SUITE3_SIGMAS, ConfigError, to_plain, validate
+
+from experiment_helpers import compose, run_cli
+
+# PAPER_NOTES suite table: (size, angles, bins, snr, N, step, gamma, sigma, iterations, template)
+PAPER = {
+    "suite1_jv": (64, 10, 92, 4.87, 20, 0.02, 1e-6, 6.0, 200, "j"),
+    "suite2_six_objects": (438, 6, 620, 4.75, 20, 0.04, 1e-7, 2.0, 200, "six_objects_template"),
+    "suite3_shepp_logan": (256, 10, 362, 7.06, 20, 0.02, 1e-7, 2.0, 500, "shepp_logan_template"),
+    "suite4_missing_object": (256, 10, 362, 7.06, 20, 0.02, 1e-7, 2.0, 1000, "shepp_logan_template_missing"),
+    "suite4_extra_object": (256, 10, 362, 6.46, 20, 0.02, 1e-7, 2.0, 1000, "shepp_logan_template_extra"),
+}
+
+
+def _message(exc) -> str:
+    parts, e = [], exc
+    while e is not None:
+        parts.append(str(e))
+        e = e.__cause__ or e.__context__
+    return "\n".join(parts)
+
+
+def test_default_is_suite1():
+    cfg = compose()
+    assert cfg.name == "suite1_jv" and cfg.phantom.template.value == "j" and cfg.kernel.sigma == 6.0
+
+
+@pytest.mark.parametrize("name", sorted(PAPER))
+def test_presets_have_the_papers_parameters(name):
+    cfg = compose([f"experiment={name}"])
+    validate(cfg)
+    got = (cfg.phantom.size, cfg.geometry.num_angles, cfg.geometry.det_count, cfg.noise.snr_db,
+           cfg.deformation.num_steps, cfg.solver.step_size, cfg.solver.gamma, cfg.kernel.sigma,
+           cfg.solver.max_iter, cfg.phantom.template.value)
+    assert got == PAPER[name]
+    assert cfg.name == name and cfg.noise.convention.value == "code" and cfg.geometry.partition.value == "paper"
+    assert cfg.baseline.fbp_filter.value == "hamming" and cfg.baseline.fbp_frequency_scaling == 0.4
+    assert cfg.baseline.tv_mu == {"suite1_jv": 3.0}.get(name, 1.0)
+
+
+@pytest.mark.slow
+def test_yaml_presets_equal_configstore_fallback(tmp_path):
+    """Without configs/ the app falls back to the ConfigStore; both give the same config for every preset."""
+    script = (
+        "import json; from hydra import initialize, compose\n"
+        "from indreg.experiments import register\n"
+        "assert register._CONFIG_PATH is None\n"
+        "from indreg.experiments.config import to_plain, PRESETS\n"
+        "out = {}\n"
+        "with initialize(version_base='1.3', config_path=None):\n"
+        "    for n in PRESETS:\n"
+        "        out[n] = to_plain(compose(register._CONFIG_NAME, overrides=['experiment=' + n]))\n"
+        "    out['sweep'] = to_plain(compose(register._CONFIG_NAME, overrides=['sweep=suite3_table'],"
+        " return_hydra_config=True).hydra.sweeper.params)\n"
+        "print(json.dumps(out))\n")
+    env = {"INDREG_CONFIG_DIR": str(tmp_path / "absent")}
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env={**__import__("os").environ, **env})
+    assert proc.returncode == 0, proc.stderr
+    fallback = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name in PRESETS:
+        assert fallback[name] == to_plain(compose([f"experiment={name}"])), name
+    assert fallback["sweep"] == to_plain(compose(["sweep=suite3_table"], return_hydra_config=True).hydra.sweeper.params)
+
+
+def test_sweep_preset_is_the_papers_table():
+    cfg = compose(["sweep=suite3_table"], return_hydra_config=True)
+    assert cfg.name == "suite3_shepp_logan" and cfg.solver.max_iter == 500
+    params = cfg.hydra.sweeper.params
+    assert [float(g) for g in params["solver.gamma"].split(",")] == list(SUITE3_GAMMAS)
+    assert [float(s) for s in params["kernel.sigma"].split(",")] == list(SUITE3_SIGMAS)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("solver.gama=1e-3", "solver.gama"),                 # unknown key
+    ("solver.gamma=abc", "solver.gamma"),                # wrong type
+    ("solver.max_iter=1.5", "solver.max_iter"),          # wrong type
+    ("deformation.action=affine", "deformation.action"),  # unknown action
+    ("phantom.target=cat", "phantom.target"),            # unknown phantom
+    ("dtype=float16", "dtype"),
+])
+def test_composition_errors_name_the_key(override, key):
+    with pytest.raises(ConfigCompositionException) as err:
+        compose([override])
+    assert key in _message(err.value)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("solver.gamma=-1e-7", "solver.gamma"),
+    ("kernel.sigma=0", "kernel.sigma"),
+    ("solver.step_size=-0.1", "solver.step_size"),
+    ("deformation.num_steps=0", "deformation.num_steps"),
+    ("device=gpu", "device"),
+    ("noise.std=1.0", "noise.snr_db"),    # both snr_db and std
+    ("+solver.foo=1", "solver.foo"),      # appended key the schema lacks
+    ("logging.every=0", "logging.every"),
+])
+def test_invalid_values_name_the_key(override, key):
+    cfg = compose([override])
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        validate(cfg)
+
+
+@pytest.mark.slow
+def test_entry_point_rejects_invalid_value(tmp_path):
+    proc = run_cli(["solver.gamma=-1", f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert proc.returncode != 0
+    assert "solver.gamma" in proc.stderr and "-1" in proc.stderr
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_plain_config_is_json_serialisable():
+    json.dumps(to_plain(compose(["experiment=suite3_shepp_logan"])))
+    assert OmegaConf.is_config(compose())
+    assert set(PRESETS) == set(PAPER)

@@ -1,0 +1,86 @@
+"""Tests of IndirectShootingLoss (indreg/learn/loss.py)."""
+import pytest
+import torch
+
+from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
+from indreg.deform.kernel import GaussianKernel
+
+
+@pytest.fixture(scope="module")
+def setup():
+    dom = ImageDomain.paper(16)
+    K = GaussianKernel(dom, 5.0)
+    shoot = GeodesicShooting(dom, K, 3)
+    gen = torch.Generator().manual_seed(0)
+    m0 = 1e-3 * torch.randn(3, 2, 16, 16, generator=gen, dtype=torch.float64)
+    tmpl = torch.rand(3, 16, 16, generator=gen, dtype=torch.float64)
+    transforms = [RayTransform(dom, ParallelBeamGeometry.paper(a, 24)) for a in (4, 6)]
+    return dom, shoot, m0, tmpl, transforms
+
+
+def test_value_is_data_misfit_plus_gamma_energy(setup):
+    dom, shoot, m0, tmpl, (T, _) = setup
+    g = T(tmpl) + 0.1
+    loss = IndirectShootingLoss(shoot, T, gamma=0.5, reduction="none")
+    deformed = shoot(m0, tmpl)
+    r = T(deformed) - g
+    expected = T.geometry.data_weight * (r * r).sum(dim=(-2, -1)) + 0.5 * shoot.kernel.inner_v(m0, m0)
+    torch.testing.assert_close(loss(m0, tmpl, g), expected)
+    assert loss(m0, tmpl, g).shape == (3,)
+    torch.testing.assert_close(IndirectShootingLoss(shoot, T, 0.5)(m0, tmpl, g), expected.mean())
+    torch.testing.assert_close(IndirectShootingLoss(shoot, T, 0.5, "sum")(m0, tmpl, g), expected.sum())
+
+
+def test_zero_loss_at_the_generating_momentum(setup):
+    dom, shoot, m0, tmpl, (T, _) = setup
+    g = T(shoot(m0, tmpl))
+    terms = IndirectShootingLoss(shoot, T, gamma=0.0).terms(m0, tmpl, g)
+    assert float(terms["data_fit"].abs().max()) < 1e-20
+    assert (terms["regulariser"] > 0).all()
+
+
+def test_per_sample_geometry_equals_separate_calls(setup):
+    dom, shoot, m0, tmpl, transforms = setup
+    index = torch.tensor([1, 0, 1])
+    data = [transforms[k](tmpl[b]) + 0.05 * b for b, k in enumerate(index.tolist())]
+    per_sample = IndirectShootingLoss(shoot, transforms, gamma=1e-2, reduction="none")(m0, tmpl, data, index)
+    for b, k in enumerate(index.tolist()):
+        single = IndirectShootingLoss(shoot, transforms[k], gamma=1e-2, reduction="none")(
+            m0[b:b + 1], tmpl[b:b + 1], data[b][None])
+        torch.testing.assert_close(per_sample[b], single[0])
+    # one transform per sample, no index
+    listed = [transforms[k] for k in index.tolist()]
+    torch.testing.assert_close(IndirectShootingLoss(shoot, listed, 1e-2, "none")(m0, tmpl, data), per_sample)
+
+
+def test_gradient_reaches_momentum_and_template(setup):
+    dom, shoot, m0, tmpl, (T, _) = setup
+    m = m0.clone().requires_grad_(True)
+    t = tmpl.clone().requires_grad_(True)
+    IndirectShootingLoss(shoot, T, gamma=1e-2)(m, t, T(tmpl) + 1.0).backward()
+    assert m.grad.abs().sum() > 0 and t.grad.abs().sum() > 0
+
+
+def test_errors(setup):
+    dom, shoot, m0, tmpl, transforms = setup
+    with pytest.raises(TypeError, match="shooting"):
+        IndirectShootingLoss("x", transforms[0], 1.0)
+    with pytest.raises(TypeError, match="RayTransform"):
+        IndirectShootingLoss(shoot, [], 1.0)
+    with pytest.raises(ValueError, match="reduction"):
+        IndirectShootingLoss(shoot, transforms[0], 1.0, reduction="max")
+    with pytest.raises(ValueError, match="gamma"):
+        IndirectShootingLoss(shoot, transforms[0], -1.0)
+    other = RayTransform(ImageDomain.paper(8), ParallelBeamGeometry.paper(4, 12))
+    with pytest.raises(ValueError, match="domain"):
+        IndirectShootingLoss(shoot, other, 1.0)
+    loss = IndirectShootingLoss(shoot, transforms, 1.0)
+    data = transforms[0](tmpl)
+    with pytest.raises(ValueError, match="one per sample or an index"):
+        loss(m0, tmpl, data)
+    with pytest.raises(ValueError, match=r"index entries must lie in \[0, 1\]"):
+        loss(m0, tmpl, data, torch.tensor([0, 2, 0]))
+    with pytest.raises(ValueError, match=r"data for transform 1 must have shape \(\.\.\., 6, 24\)"):
+        loss(m0, tmpl, data, torch.tensor([0, 1, 0]))
+    with pytest.raises(ValueError, match=r"momentum must have shape \(B, 2, nx, ny\)"):
+        IndirectShootingLoss(shoot, transforms[0], 1.0)(m0[0], tmpl, data)

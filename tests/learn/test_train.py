@@ -1,0 +1,73 @@
+"""Tests of the training example through its real entry point (scripts/train_momentum.py, Hydra, torchrun)."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "train_momentum.py"
+TINY = ["domain.n=16", "geometry.num_angles=6", "geometry.det_count=24", "shooting.num_steps=3",
+        "data.num_train=8", "data.num_val=2", "model.width=4", "model.levels=2", "train.batch_size=2",
+        "train.log_every=1", "train.eval_every=2", "train.checkpoint_every=1", "eval.algorithm1.max_iter=2",
+        "device=cpu"]
+
+
+def run(run_dir, *overrides, launcher=(sys.executable,)):
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [*launcher, str(SCRIPT), *TINY, *overrides, f"hydra.run.dir={run_dir}"]
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return json.loads((Path(run_dir) / "metrics.json").read_text())
+
+
+def scalars(run_dir, tag):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(Path(run_dir) / "tensorboard"), size_guidance={"scalars": 0, "images": 0})
+    acc.Reload()
+    return acc, [e.step for e in acc.Scalars(tag)]
+
+
+def parameters(run_dir):
+    return torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=False)
+
+
+@pytest.mark.slow
+def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
+    first = run(tmp_path / "a", "train.steps=2", "eval.algorithm1.num_samples=1")
+    assert first["resumed_from"] == 0 and first["world_size"] == 1
+    assert 0 <= first["network"]["ssim"] <= 1 and first["network"]["seconds_per_sample"] > 0
+    assert 0 <= first["algorithm1"]["ssim"] <= 1 and first["algorithm1"]["seconds_per_sample"] > 0
+    acc, steps = scalars(tmp_path / "a", "train/loss")
+    assert steps == [1, 2]
+    assert {"val/template", "val/fbp", "val/target", "val/prediction"} <= set(acc.Tags()["images"])
+    assert "val/ssim" in acc.Tags()["scalars"]
+    assert parameters(tmp_path / "a")["step"] == 2
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+
+    resumed = run(tmp_path / "b", "train.steps=4", "eval.algorithm1.num_samples=0")
+    assert resumed["resumed_from"] == 2 and "algorithm1" not in resumed
+    _, steps = scalars(tmp_path / "b", "train/loss")
+    assert steps == [1, 2, 3, 4]
+    straight = run(tmp_path / "c", "train.steps=4", "eval.algorithm1.num_samples=0")
+    b, c = parameters(tmp_path / "b"), parameters(tmp_path / "c")
+    assert b["step"] == c["step"] == 4
+    for name, value in c["model"].items():            # resuming gives the uninterrupted run's weights
+        torch.testing.assert_close(b["model"][name], value, rtol=1e-6, atol=1e-7)
+    assert c["model"]["head.weight"].abs().sum() > 0     # the zero-initialised head did train
+
+
+@pytest.mark.slow
+def test_ddp_two_processes_keep_replicas_identical(tmp_path):
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
+    metrics = run(tmp_path, "train.steps=3", "eval.algorithm1.num_samples=0", launcher=torchrun)
+    assert metrics["world_size"] == 2
+    assert metrics["replica_max_abs_diff"] == 0.0
+    assert parameters(tmp_path)["model"]["head.weight"].abs().sum() > 0
+    _, steps = scalars(tmp_path, "train/loss")
+    assert steps == [1, 2, 3]
