@@ -2,7 +2,7 @@
 
 A geodesic of the right-invariant metric on the diffeomorphism group is determined by its initial
 momentum ``m0``: the velocity is ``v_t = K m_t`` and the momentum is transported by the flow (the
-coadjoint action, EPDiff in Lagrangian form),
+coadjoint action: the solution of EPDiff in closed form, Eulerian fields),
 
     m_t = |D phi_{t,0}| (D phi_{t,0})^T (m0 o phi_{t,0}),
 

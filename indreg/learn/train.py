@@ -146,7 +146,7 @@ def evaluate_network(model, parts: dict, dataset, device) -> dict:
             deformed = predict(model, parts["shooting"], item)
         seconds += time.perf_counter() - start
         scores.append(ssim(deformed[0], item["target"][0]))
-    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / len(dataset),
+    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / len(dataset), "per_sample_ssim": scores,
             "template_ssim": float(np.mean([ssim(dataset.tensors["template"][i], dataset.tensors["target"][i])
                                             for i in range(len(dataset))]))}
 
@@ -171,7 +171,8 @@ def evaluate_algorithm1(cfg, parts: dict, dataset, device, dtype) -> dict:
         result = problem.deformed(state.momentum)
         seconds += time.perf_counter() - start
         scores.append(ssim(result, dataset.tensors["target"][i]))
-    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / count, "num_samples": count}
+    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / count, "num_samples": count,
+            "per_sample_ssim": scores}
 
 
 def validation_loss(loss_fn, model, dataset, device) -> float:
@@ -258,6 +259,9 @@ def train(cfg, run_dir) -> dict:
         metrics["network"] = evaluate_network(model, parts, val_set, device)
         if int(cfg.eval.algorithm1.num_samples) > 0:
             metrics["algorithm1"] = evaluate_algorithm1(cfg, parts, val_set, device, dtype)
+            count = metrics["algorithm1"]["num_samples"]      # the network on the same samples, side by side
+            metrics["algorithm1"]["network_ssim_same_samples"] = float(
+                np.mean(metrics["network"]["per_sample_ssim"][:count]))
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
         writer.close()
         (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

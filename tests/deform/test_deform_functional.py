@@ -27,7 +27,8 @@ def test_zero_steps_are_exact():
     for n, dtype in ((438, torch.float32), (37, torch.float64)):
         dom = ImageDomain((n, n))
         f = torch.rand(2, 1, n, n, dtype=dtype)
-        assert torch.equal(Fd.template_trajectory(f[:, 0], torch.zeros(2, 3, 2, n, n, dtype=dtype), dom)[:, -1], f[:, 0])
+        assert torch.equal(
+            Fd.template_trajectory(f[:, 0], torch.zeros(2, 3, 2, n, n, dtype=dtype), dom)[:, -1], f[:, 0])
 
 
 @pytest.mark.parametrize("scheme,order", (("central", 2), ("forward", 1)))

@@ -307,3 +307,13 @@ def test_bad_input():
         W(v, template.clone().fill_(float("inf")))
     with pytest.raises(TypeError, match="dtype"):
         W(v.float(), template)
+
+
+@pytest.mark.parametrize("backward", ("paper", "autograd"))
+def test_template_only_requires_grad(backward):
+    """Gradients w.r.t. the template alone (velocity fixed) equal those of the joint call."""
+    dom, v, template, grad_out = smooth_problem(16, 4)
+    W = LDDMMDeformation(dom, 4, backward=backward)
+    t = template.clone().requires_grad_()
+    (W(v, t) * grad_out).sum().backward()
+    torch.testing.assert_close(t.grad, grads(W, v, template, grad_out)[1])

@@ -43,6 +43,7 @@ def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
     assert first["resumed_from"] == 0 and first["world_size"] == 1
     assert 0 <= first["network"]["ssim"] <= 1 and first["network"]["seconds_per_sample"] > 0
     assert 0 <= first["algorithm1"]["ssim"] <= 1 and first["algorithm1"]["seconds_per_sample"] > 0
+    assert first["algorithm1"]["network_ssim_same_samples"] == first["network"]["per_sample_ssim"][0]
     acc, steps = scalars(tmp_path / "a", "train/loss")
     assert steps == [1, 2]
     assert {"val/template", "val/fbp", "val/target", "val/prediction"} <= set(acc.Tags()["images"])
