@@ -176,7 +176,7 @@ class _Steps:
         self.scale = tuple(self.step * 2.0 / e for e in domain.extent)  # physical -> grid units, times sign / N
         self.base = identity_grid(domain, velocity.dtype, velocity.device)
         self.recording = torch.is_grad_enabled() and velocity.requires_grad
-        self._moving, self._buffer = {}, None
+        self._moving, self._buffer = None, None
         if self.recording:  # one graph node for all steps (per-step slicing would zero-fill a full-size
             # gradient for every slice in backward)
             w = to_grid_units(velocity, domain) * self.step
@@ -186,8 +186,9 @@ class _Steps:
     def moves(self, i: int) -> bool:
         if self.recording:
             return True
-        if i not in self._moving:
-            self._moving[i] = bool(self.velocity[..., i, :, :, :].any())
+        if self._moving is None:  # one pass for all steps (abs().amax() is several times faster than any())
+            size = self.velocity.flatten(-3).abs().amax(-1)  # (..., N+1)
+            self._moving = size.reshape(-1, size.shape[-1]).amax(0).gt(0).tolist()
         return self._moving[i]
 
     def w(self, i: int) -> torch.Tensor:
