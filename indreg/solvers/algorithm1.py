@@ -7,10 +7,10 @@ import torch
 
 from .._checks import check_int, check_positive
 from .objective import IndirectRegistration, check_nonnegative
-from .state import SolverState, is_converged, make_info, problems
+from .state import IterativeSolver, SolverState, make_info, problems
 
 
-class Algorithm1:
+class Algorithm1(IterativeSolver):
     """Gradient descent ``nu <- nu - alpha grad_V E(nu)`` (eq:gradientflow), as the authors' code.
 
     ``grad_V E(nu)(t_i) = gamma nu_i - K(|D phi_{t_i,1}| (grad_data o phi_{t_i,1}) grad(I o phi_{t_i,0}))``
@@ -103,21 +103,6 @@ class Algorithm1:
         state.iteration += 1
         return make_info(state.iteration, new_terms, self.problem.gradient_norm(new_h), min_jac, alpha,
                          self.evaluations, rejected, warnings)
-
-    def converged(self, info: dict) -> bool:
-        """True at ``max_iter``, at ``grad_norm <= grad_tol`` (if > 0), or on a non-finite objective."""
-        return is_converged(info, self.max_iter, self.grad_tol)
-
-    def run(self, state: SolverState, callback=None) -> dict:
-        """Iterate ``step`` until ``converged``; ``callback(state, info)`` after every step. Returns the last report."""
-        info = None
-        while state.iteration < self.max_iter:
-            info = self.step(state)
-            if callback is not None:
-                callback(state, info)
-            if self.converged(info):
-                break
-        return info
 
     def state_dict(self) -> dict:
         """Step size (it may have been halved) and the evaluation counter."""

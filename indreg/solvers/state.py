@@ -54,8 +54,25 @@ def make_info(iteration, terms, grad_norm, min_jacobian, step_size, evaluations,
             "evaluations": int(evaluations), "rejected": bool(rejected), "warning": "; ".join(warnings)}
 
 
-def is_converged(info: dict, max_iter: int, grad_tol: float) -> bool:
-    """Stop at ``max_iter`` iterations, at ``grad_norm <= grad_tol`` (if ``grad_tol > 0``) or on a non-finite
-    objective."""
-    return (info["iteration"] >= max_iter or not math.isfinite(info["objective"])
-            or (grad_tol > 0 and info["grad_norm"] <= grad_tol))
+class IterativeSolver:
+    """What every solver shares: the stopping rule and the loop. Subclasses set ``max_iter``, ``grad_tol``
+    and implement ``step(state) -> info``."""
+
+    max_iter: int
+    grad_tol: float
+
+    def converged(self, info: dict) -> bool:
+        """True at ``max_iter``, at ``grad_norm <= grad_tol`` (if > 0), or on a non-finite objective."""
+        return (info["iteration"] >= self.max_iter or not math.isfinite(info["objective"])
+                or (self.grad_tol > 0 and info["grad_norm"] <= self.grad_tol))
+
+    def run(self, state: SolverState, callback=None) -> dict:
+        """Iterate ``step`` until ``converged``; ``callback(state, info)`` after every step. Returns the last report."""
+        info = None
+        while state.iteration < self.max_iter:
+            info = self.step(state)
+            if callback is not None:
+                callback(state, info)
+            if self.converged(info):
+                break
+        return info

@@ -8,7 +8,7 @@ import torch
 
 from .._checks import check_int, check_positive
 from .objective import IndirectRegistration, check_nonnegative
-from .state import SolverState, is_converged, make_info, problems
+from .state import IterativeSolver, SolverState, make_info, problems
 
 _DEFAULTS = {
     # one solver iteration = one L-BFGS iteration; stopping is ours (grad_tol, max_iter), not L-BFGS's
@@ -32,7 +32,7 @@ def _optimizer_class(optimizer):
     return names[optimizer.lower()]
 
 
-class TorchOptimSolver:
+class TorchOptimSolver(IterativeSolver):
     """Minimise E with a ``torch.optim`` optimizer over ``p``, where ``nu = K(s p)``, ``s = N / cell_volume``.
 
     Why this parametrisation: with ``m = s p`` the torch gradient is ``dE/dm = (cell_volume/N) K h``
@@ -146,21 +146,6 @@ class TorchOptimSolver:
             if isinstance(self.optimizer, torch.optim.LBFGS) else self.lr
         return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, step_size,
                          self.evaluations, False, warnings)
-
-    def converged(self, info: dict) -> bool:
-        """True at ``max_iter``, at ``grad_norm <= grad_tol`` (if > 0), or on a non-finite objective."""
-        return is_converged(info, self.max_iter, self.grad_tol)
-
-    def run(self, state: SolverState, callback=None) -> dict:
-        """Iterate ``step`` until ``converged``; ``callback(state, info)`` after every step. Returns the last report."""
-        info = None
-        while state.iteration < self.max_iter:
-            info = self.step(state)
-            if callback is not None:
-                callback(state, info)
-            if self.converged(info):
-                break
-        return info
 
     def state_dict(self) -> dict:
         """Optimizer internals (Adam moments, L-BFGS history), the parameter ``p`` and the evaluation counter."""
