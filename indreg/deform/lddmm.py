@@ -50,12 +50,15 @@ class _PaperDeformation(torch.autograd.Function):
     def setup_context(ctx, inputs, output):
         velocity, template, config = inputs
         ctx.mark_non_differentiable(output[1])
+        ctx.set_materialize_grads(False)  # no zero-filled (N+1) n^2 gradient for the trajectory output
         ctx.save_for_backward(velocity, output[1])
         ctx.config, ctx.template_shape = config, template.shape
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out, _grad_trajectory):
+        if grad_out is None:
+            return None, None, None
         velocity, trajectory = ctx.saved_tensors
         c = ctx.config
         grad_v, grad_i = Fd.paper_gradient(
