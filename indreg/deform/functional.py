@@ -108,16 +108,38 @@ def gradient(f: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> t
     return torch.stack((gx, gy), dim=-3)
 
 
-def _gradient_into(out: torch.Tensor, f: torch.Tensor, domain: ImageDomain, scheme: str) -> torch.Tensor:
-    """``gradient(f, domain, scheme)`` written into ``out (..., 2, nx, ny)`` with few temporaries (no autograd)."""
-    (hx, hy), p = domain.cell_sides, F.pad(f, (1, 1, 1, 1))
-    gx, gy = out[..., 0, :, :], out[..., 1, :, :]
-    if scheme == "central":
-        torch.sub(p[..., 2:, 1:-1], p[..., :-2, 1:-1], out=gx).mul_(0.5 / hx)
-        torch.sub(p[..., 1:-1, 2:], p[..., 1:-1, :-2], out=gy).mul_(0.5 / hy)
+def _zero_padded_diff_into(out: torch.Tensor, f: torch.Tensor, dim: int, central: bool) -> None:
+    """``f[k+1] - f[k-1]`` (``central``) or ``f[k+1] - f[k]`` along ``dim`` into ``out``, ``f`` 0 outside (size >= 3)."""
+    n = f.shape[dim]
+    if central:
+        torch.sub(f.narrow(dim, 2, n - 2), f.narrow(dim, 0, n - 2), out=out.narrow(dim, 1, n - 2))
+        out.narrow(dim, 0, 1).copy_(f.narrow(dim, 1, 1))
+        torch.neg(f.narrow(dim, n - 2, 1), out=out.narrow(dim, n - 1, 1))
     else:
-        torch.sub(p[..., 2:, 1:-1], f, out=gx).mul_(1.0 / hx)
-        torch.sub(p[..., 1:-1, 2:], f, out=gy).mul_(1.0 / hy)
+        torch.sub(f.narrow(dim, 1, n - 1), f.narrow(dim, 0, n - 1), out=out.narrow(dim, 0, n - 1))
+        torch.neg(f.narrow(dim, n - 1, 1), out=out.narrow(dim, n - 1, 1))
+
+
+def _gradient_into(out: torch.Tensor, f: torch.Tensor, domain: ImageDomain, scheme: str, scale: float,
+                   weight: torch.Tensor) -> torch.Tensor:
+    """``scale * weight * gradient(f, domain, scheme)`` written into ``out (..., 2, nx, ny)``, ``weight (..., nx, ny)``.
+
+    No autograd; no padded copy of ``f`` (the zero boundary is handled by the edge rows / columns), and the
+    difference quotient's factor is folded into the weight (fewer passes over memory).
+    """
+    hx, hy = domain.cell_sides
+    if min(f.shape[-2:]) < 3:
+        out.copy_(gradient(f, domain, scheme))
+        hx = hy = 1.0
+    else:
+        _zero_padded_diff_into(out[..., 0, :, :], f, -2, scheme == "central")
+        _zero_padded_diff_into(out[..., 1, :, :], f, -1, scheme == "central")
+        if scheme == "central":
+            hx, hy = 2 * hx, 2 * hy
+    if hx == hy:
+        return out.mul_((weight * (scale / hx)).unsqueeze(-3))
+    out[..., 0, :, :].mul_(weight * (scale / hx))
+    out[..., 1, :, :].mul_(weight * (scale / hy))
     return out
 
 
@@ -149,6 +171,30 @@ def divergence(v: torch.Tensor, domain: ImageDomain, scheme: str = "central") ->
     raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
 
 
+def _divergence_into(out: torch.Tensor, v: torch.Tensor, domain: ImageDomain, scheme: str) -> torch.Tensor:
+    """``divergence(v, domain, scheme)`` written into ``out (..., nx, ny)`` without temporaries (no autograd).
+
+    Vectorised over all leading dims (e.g. all time steps at once); equal to ``divergence`` up to rounding.
+    """
+    (hx, hy), vx, vy = domain.cell_sides, v[..., 0, :, :], v[..., 1, :, :]
+    if scheme == "forward":  # backward differences, the field 0 before the first sample
+        torch.mul(vx, 1.0 / hx, out=out)
+        out[..., 1:, :].sub_(vx[..., :-1, :], alpha=1.0 / hx)
+        out.add_(vy, alpha=1.0 / hy)
+        out[..., :, 1:].sub_(vy[..., :, :-1], alpha=1.0 / hy)
+        return out
+    if min(out.shape[-2:]) < 3:
+        return out.copy_(divergence(v, domain, scheme))
+    # central differences inside, one-sided at both ends (as _central_diff)
+    torch.sub(vx[..., 2:, :], vx[..., :-2, :], out=out[..., 1:-1, :]).mul_(0.5 / hx)
+    torch.sub(vx[..., 1, :], vx[..., 0, :], out=out[..., 0, :]).mul_(1.0 / hx)
+    torch.sub(vx[..., -1, :], vx[..., -2, :], out=out[..., -1, :]).mul_(1.0 / hx)
+    out[..., :, 1:-1].add_(vy[..., :, 2:], alpha=0.5 / hy).sub_(vy[..., :, :-2], alpha=0.5 / hy)
+    out[..., :, 0].add_(vy[..., :, 1], alpha=1.0 / hy).sub_(vy[..., :, 0], alpha=1.0 / hy)
+    out[..., :, -1].add_(vy[..., :, -1], alpha=1.0 / hy).sub_(vy[..., :, -2], alpha=1.0 / hy)
+    return out
+
+
 # ----------------------------------------------------------------------------------------------------------
 # flow recursions (eq:ODEflow1b forward in time, eq:ODEflow2b backward in time)
 def _check_interpolation(interpolation: str) -> None:
@@ -156,27 +202,42 @@ def _check_interpolation(interpolation: str) -> None:
         raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
 
 
+def step_flags(velocity: torch.Tensor) -> tuple:
+    """``(moving, finite)`` of a velocity ``(..., N+1, 2, nx, ny)`` in one pass without temporaries.
+
+    ``moving[i]``: ``nu(t_i)`` is nonzero somewhere (any batch entry); ``finite``: no nan / inf anywhere
+    (``amax`` / ``amin`` propagate nan, and an inf is the max or the min). Used to skip the zero steps
+    (``_Steps``) and, by ``LDDMMDeformation``, as the finiteness check of the input.
+    """
+    v = velocity.detach().flatten(-3)
+    hi = v.amax(-1).reshape(-1, v.shape[-2]).amax(0)
+    lo = v.amin(-1).reshape(-1, v.shape[-2]).amin(0)
+    finite = torch.isfinite(hi).all() & torch.isfinite(lo).all()
+    flags = ((hi > 0) | (lo < 0)).tolist()
+    return flags, bool(finite)
+
+
 class _Steps:
     """The small deformations ``Id + sign * nu(t_i)/N`` of the time steps, as ``grid_sample`` grids.
 
     ``grid(i)`` is the grid of ``x + w_i(x)``, ``w_i = sign * nu(t_i)/N`` in grid units (``w(i)``), built per
-    step (two fused adds, into a reused buffer under ``torch.no_grad``), so no ``O(N n^2)``
-    temporaries are made. ``moves(i)`` is False for a step whose velocity is exactly zero everywhere
-    (all batch entries) while no graph is recorded: the step is skipped, so ``nu = 0`` maps every image to
-    itself bit for bit (``(2j + 1) / n - 1`` is not exact in floating point and ``grid_sample`` scales its
-    rounding error by ``n / 2``: an identity step would change a 438^2 float32 image by ~3e-5). While
-    autograd records (``backward="autograd"``) every step is interpolated, so derivatives w.r.t. ``nu``
-    exist at ``nu = 0``; the identity then holds up to that rounding.
+    step (two fused adds, into a reused buffer under ``torch.no_grad``; the last one is kept for a second
+    transport of the same step), so no ``O(N n^2)`` temporaries are made. ``moves(i)`` is False for a step whose velocity is exactly zero everywhere (all batch entries) while
+    no graph is recorded: the step is skipped, so ``nu = 0`` maps every image to itself bit for bit
+    (``(2j + 1) / n - 1`` is not exact in floating point and ``grid_sample`` scales its rounding error by
+    ``n / 2``: an identity step would change a 438^2 float32 image by ~3e-5). ``moving`` (``step_flags``)
+    can be given when already known. While autograd records (``backward="autograd"``) every step is
+    interpolated, so derivatives w.r.t. ``nu`` exist at ``nu = 0``; the identity then holds up to that rounding.
     """
 
-    def __init__(self, velocity: torch.Tensor, domain: ImageDomain, sign: float):
+    def __init__(self, velocity: torch.Tensor, domain: ImageDomain, sign: float, moving: list | None = None):
         n = velocity.shape[-4] - 1
         self.velocity, self.domain = velocity, domain
         self.step = sign / n
         self.scale = tuple(self.step * 2.0 / e for e in domain.extent)  # physical -> grid units, times sign / N
         self.base = identity_grid(domain, velocity.dtype, velocity.device)
         self.recording = torch.is_grad_enabled() and velocity.requires_grad
-        self._moving, self._buffer = None, None
+        self._moving, self._buffer, self._buffer_step = moving, None, None
         if self.recording:  # one graph node for all steps (per-step slicing would zero-fill a full-size
             # gradient for every slice in backward)
             w = to_grid_units(velocity, domain) * self.step
@@ -186,9 +247,8 @@ class _Steps:
     def moves(self, i: int) -> bool:
         if self.recording:
             return True
-        if self._moving is None:  # one pass for all steps (abs().amax() is several times faster than any())
-            size = self.velocity.flatten(-3).abs().amax(-1)  # (..., N+1)
-            self._moving = size.reshape(-1, size.shape[-1]).amax(0).gt(0).tolist()
+        if self._moving is None:
+            self._moving = step_flags(self.velocity)[0]
         return self._moving[i]
 
     def w(self, i: int) -> torch.Tensor:
@@ -198,15 +258,16 @@ class _Steps:
         return to_grid_units(self.velocity[..., i, :, :, :], self.domain) * self.step
 
     def grid(self, i: int) -> torch.Tensor:
-        v = self.velocity[..., i, :, :, :]
-        (sx, sy), base = self.scale, self.base
         if self.recording:
             return self._grids[i]
+        if self._buffer_step == i:
+            return self._buffer
+        v, (sx, sy), base = self.velocity[..., i, :, :, :], self.scale, self.base
         if torch.is_grad_enabled():  # an image may require grad: grid_sample keeps the grid for backward
             return torch.stack((base[..., 0] + sy * v[..., 1, :, :], base[..., 1] + sx * v[..., 0, :, :]), dim=-1)
         if self._buffer is None:
             self._buffer = torch.empty(*v.shape[:-3], *v.shape[-2:], 2, dtype=v.dtype, device=v.device)
-        g = self._buffer
+        g, self._buffer_step = self._buffer, i
         torch.add(base[..., 0], v[..., 1, :, :], alpha=sy, out=g[..., 0])
         torch.add(base[..., 1], v[..., 0, :, :], alpha=sx, out=g[..., 1])
         return g
@@ -243,19 +304,19 @@ def _sample_displaced(f: torch.Tensor, u: torch.Tensor, domain: ImageDomain, pad
 
 
 def template_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain,
-                        interpolation: str = "reinterpolate") -> torch.Tensor:
+                        interpolation: str = "reinterpolate", moving: list | None = None) -> torch.Tensor:
     """``I o phi_{t_i,0}`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (Algorithm 1, line 7, eq:ODEflow1b).
 
     ``"reinterpolate"`` (the paper): ``I o phi_{t_i,0} = (I o phi_{t_{i-1},0}) o (Id - nu(t_i)/N)``, one
     bilinear interpolation of the current image per step (the blur accumulates over N steps).
     ``"compose"``: compose the displacements first (``displacements_t0``) and interpolate the template
-    once per output time, ``I o (Id + u_i)``.
+    once per output time, ``I o (Id + u_i)``. ``moving``: the steps' ``step_flags``, when already known.
     """
     _check_interpolation(interpolation)
     if interpolation == "compose":
         u = displacements_t0(velocity, domain)
         return _sample_displaced(template[..., None, None, :, :], u, domain, "zeros").squeeze(-3)
-    steps = _Steps(velocity, domain, -1.0)
+    steps = _Steps(velocity, domain, -1.0, moving)
     if steps.recording or template.requires_grad and torch.is_grad_enabled():
         images = [template]
         for i in range(1, velocity.shape[-4]):
@@ -268,14 +329,17 @@ def template_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: 
     return images
 
 
-def jacobian_trajectory(velocity: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> torch.Tensor:
+def jacobian_trajectory(velocity: torch.Tensor, domain: ImageDomain, scheme: str = "central",
+                        moving: list | None = None) -> torch.Tensor:
     """``|D phi_{t_i,0}|`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (the mass-preserving replacement of step 8).
 
     ``|D phi_{t_i,0}| = (1 - div nu(t_i)/N) * |D phi_{t_{i-1},0}| o (Id - nu(t_i)/N)``, ``|D phi_{0,0}| = 1``
     (border padding).
     """
     n = velocity.shape[-4] - 1
-    steps = _Steps(velocity, domain, -1.0)
+    steps = _Steps(velocity, domain, -1.0, moving)
+    if not steps.recording:
+        return _jacobian_trajectory_no_grad(velocity, domain, scheme, steps)
     nu = velocity.unbind(-4)  # one graph node (per-step slicing would zero-fill full-size gradients)
     jac = [torch.ones_like(nu[0][..., 0, :, :])]
     for i in range(1, n + 1):
@@ -287,16 +351,32 @@ def jacobian_trajectory(velocity: torch.Tensor, domain: ImageDomain, scheme: str
     return torch.stack(jac, dim=-3)
 
 
+def _jacobian_trajectory_no_grad(velocity: torch.Tensor, domain: ImageDomain, scheme: str,
+                                 steps: _Steps) -> torch.Tensor:
+    """``jacobian_trajectory`` without autograd: the factors ``1 - div nu(t_i)/N`` of all steps at once, then
+    multiplied in place by the transported previous determinant."""
+    n = velocity.shape[-4] - 1
+    jac = velocity.new_empty(velocity.shape[:-3] + velocity.shape[-2:])
+    _divergence_into(jac, velocity, domain, scheme).mul_(-1.0 / n).add_(1.0)
+    jac[..., 0, :, :] = 1.0
+    for i in range(1, n + 1):
+        if steps.moves(i):
+            jac[..., i, :, :].mul_(steps.move(jac[..., i - 1, :, :].unsqueeze(-3), i, "border").squeeze(-3))
+        else:
+            jac[..., i, :, :] = jac[..., i - 1, :, :]
+    return jac
+
+
 def deformed_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain,
                         action: str = "geometric", interpolation: str = "reinterpolate",
-                        scheme: str = "central") -> torch.Tensor:
+                        scheme: str = "central", moving: list | None = None) -> torch.Tensor:
     """``W(nu, I)(t_i)``, ``(..., N+1, nx, ny)``: ``I o phi_{t_i,0}`` (geometric, eq:DeforOpGeom) or
     ``|D phi_{t_i,0}| I o phi_{t_i,0}`` (mass-preserving, eq:DeforOpMP)."""
-    images = template_trajectory(template, velocity, domain, interpolation)
+    images = template_trajectory(template, velocity, domain, interpolation, moving)
     if action == "geometric":
         return images
     if action == "mass_preserving":
-        jac = jacobian_trajectory(velocity, domain, scheme)
+        jac = jacobian_trajectory(velocity, domain, scheme, moving)
         if torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
             return jac * images
         return jac.mul_(images)  # jac is a fresh tensor; images may be an expanded view
@@ -305,7 +385,7 @@ def deformed_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: 
 
 def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, trajectory: torch.Tensor,
                    domain: ImageDomain, action: str = "geometric", interpolation: str = "reinterpolate",
-                   scheme: str = "central", need_velocity: bool = True) -> tuple:
+                   scheme: str = "central", need_velocity: bool = True, moving: list | None = None) -> tuple:
     """The paper's gradient (Algorithm 1, lines 8-10, kernel not applied), scaled for torch entries.
 
     Given ``G = dL/dW`` (``grad_out (..., nx, ny)``, torch entries), ``velocity (..., N+1, 2, nx, ny)`` and
@@ -324,31 +404,36 @@ def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, trajectory: t
     gradient w.r.t. the template). ``interpolation="compose"`` composes the displacements of
     ``phi_{t_i,1}`` (``q_i(x) = q_{i+1}(x + nu(t_i, x)/N) + nu(t_i, x)/N``) and interpolates ``G`` once per
     step instead of re-interpolating the transported ``G``. ``grad_velocity`` is None unless
-    ``need_velocity``.
+    ``need_velocity``; ``moving``: the steps' ``step_flags``, when already known.
+    The divergences of all steps are computed at once, into the (not yet written) first components of
+    ``grad_velocity``.
     """
     _check_interpolation(interpolation)
     n = velocity.shape[-4] - 1
     geometric = action == "geometric"
-    steps = _Steps(velocity, domain, 1.0)
+    steps = _Steps(velocity, domain, 1.0, moving)
+    grad_v = torch.empty_like(velocity) if need_velocity else None
+    if geometric:  # 1 + div nu(t_i)/N of all steps at once; slot i of grad_v is free until step i writes it
+        growth = grad_v[..., 0, :, :] if need_velocity else velocity.new_empty(velocity.shape[:-3] + velocity.shape[-2:])
+        growth = _divergence_into(growth, velocity, domain, scheme).mul_(1.0 / n).add_(1.0)
     g_t = grad_out  # G o phi_{t_i,1}
     jac = torch.ones_like(grad_out) if geometric else None  # |D phi_{t_i,1}|
     q = torch.zeros_like(grad_out.unsqueeze(-3).expand(*grad_out.shape[:-2], 2, *grad_out.shape[-2:])) \
         if interpolation == "compose" else None
-    grad_v = torch.empty_like(velocity) if need_velocity else None
     for i in range(n, -1, -1):
-        if i < n and steps.moves(i):
+        if i < n and steps.moves(i):  # both transports of a step share its grid (built once)
             if q is None:
                 g_t = steps.move(g_t.unsqueeze(-3), i, "zeros").squeeze(-3)
             else:
                 q = steps.move(q, i, "border") + steps.w(i)
                 g_t = sample(grad_out.unsqueeze(-3), displaced_grid(q, domain), "zeros").squeeze(-3)
-            if geometric:
-                moved = steps.move(jac.unsqueeze(-3), i, "border").squeeze(-3)
-                jac = (1 + divergence(velocity[..., i, :, :, :], domain, scheme) / n) * moved
+            if geometric:  # line 8
+                jac = steps.move(jac.unsqueeze(-3), i, "border").squeeze(-3).mul_(growth[..., i, :, :])
+        jg = jac * g_t if geometric else g_t  # |D phi_{t_i,1}| G o phi_{t_i,1}
         if need_velocity:
             image, out = trajectory[..., i, :, :], grad_v[..., i, :, :, :]
             if geometric:
-                _gradient_into(out, image, domain, scheme).mul_((jac * g_t).mul_(-1.0 / n).unsqueeze(-3))
+                _gradient_into(out, image, domain, scheme, -1.0 / n, jg)
             else:
-                _gradient_into(out, g_t, domain, scheme).mul_((image / n).unsqueeze(-3))
-    return grad_v, (jac * g_t if geometric else g_t)
+                _gradient_into(out, g_t, domain, scheme, 1.0 / n, image)
+    return grad_v, jg

@@ -34,39 +34,40 @@ class _PaperDeformation(torch.autograd.Function):
     """``W(nu, I)`` with the paper's gradient as backward (Algorithm 1, lines 7-10, without the kernel).
 
     The forward runs the time loop without an autograd graph and keeps only the trajectory
-    ``W(nu, I)(t_i)``, ``(B, N+1, nx, ny)`` (plus the velocity input): memory ``O(N n^2)``.
+    ``W(nu, I)(t_i)``, ``(B, N+1, nx, ny)`` (plus the velocity input): memory ``O(N n^2)``. ``moving``: the
+    per-step flags of ``functional.step_flags`` (computed once by the input check, shared by both passes).
     Double backward is not supported (``once_differentiable``): use ``backward="autograd"`` for it.
     """
 
     @staticmethod
-    def forward(velocity, template, config):
+    def forward(velocity, template, config, moving):
         batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
         trajectory = Fd.deformed_trajectory(
             template.expand(*batch, *template.shape[-2:]), velocity.expand(*batch, *velocity.shape[-4:]),
-            config.domain, config.action, config.interpolation, config.scheme)
+            config.domain, config.action, config.interpolation, config.scheme, moving)
         return trajectory[..., -1, :, :].clone(), trajectory
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        velocity, template, config = inputs
+        velocity, template, config, moving = inputs
         ctx.mark_non_differentiable(output[1])
         ctx.set_materialize_grads(False)  # no zero-filled (N+1) n^2 gradient for the trajectory output
         ctx.save_for_backward(velocity, output[1])
-        ctx.config, ctx.template_shape = config, template.shape
+        ctx.config, ctx.template_shape, ctx.moving = config, template.shape, moving
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out, _grad_trajectory):
         if grad_out is None:
-            return None, None, None
+            return None, None, None, None
         velocity, trajectory = ctx.saved_tensors
         c = ctx.config
         grad_v, grad_i = Fd.paper_gradient(
             grad_out, velocity.expand(*grad_out.shape[:-2], *velocity.shape[-4:]), trajectory, c.domain,
-            c.action, c.interpolation, c.scheme, need_velocity=ctx.needs_input_grad[0])
+            c.action, c.interpolation, c.scheme, need_velocity=ctx.needs_input_grad[0], moving=ctx.moving)
         grad_v = grad_v.sum_to_size(velocity.shape) if grad_v is not None else None
         grad_i = grad_i.sum_to_size(ctx.template_shape) if ctx.needs_input_grad[1] else None
-        return grad_v, grad_i, None
+        return grad_v, grad_i, None, None
 
 
 class LDDMMDeformation(torch.nn.Module):
@@ -80,9 +81,10 @@ class LDDMMDeformation(torch.nn.Module):
     - ``backward="paper"``: a custom autograd Function whose backward is the paper's gradient
       (``functional.paper_gradient``): no graph of the time loop is kept, memory ``O(N n^2)``.
       ``backward="autograd"``: plain autograd through the discrete forward (the exact derivative of the
-      discrete map; keeps the graph of the time loop). Measured (``scripts/bench_deform.py``, 256^2, N=20,
-      float32, 1 thread, busy 2-core CPU): fwd+bwd paper 0.053 s / 21 MB vs autograd 0.095 s / 49 MB (the
-      11 MB velocity gradient included in both; 438^2: 0.14 s / 60 MB vs 0.27 s / 188 MB). The paper mode
+      discrete map; keeps the graph of the time loop). Measured (``scripts/bench_deform.py`` problem, 256^2,
+      N=20, float32, 1 thread, process CPU time, 25th percentile, busy 2-core CPU): fwd+bwd paper
+      0.023-0.031 s / 15 MB vs autograd 0.045-0.06 s / 52 MB (1.9-2.1x; the 11 MB velocity gradient included
+      in both; 438^2: 0.07-0.08 s / 40-47 MB vs 0.14-0.17 s / 185 MB). The paper mode
       runs many small elementwise ops per step: on an oversubscribed CPU use ``torch.set_num_threads(1)``
       (with 2 threads on a loaded machine every op waits ~8 ms for the second thread).
     - ``interpolation="reinterpolate"`` (the paper: re-interpolate the image every step) or ``"compose"``
@@ -170,14 +172,22 @@ class LDDMMDeformation(torch.nn.Module):
         """The zero velocity field ``(*batch, N+1, 2, nx, ny)``."""
         return torch.zeros(self.velocity_shape(*batch), dtype=dtype, device=device)
 
-    def _check_velocity(self, velocity) -> None:
+    def _check_velocity(self, velocity) -> list:
+        """Validates the velocity; returns its ``functional.step_flags`` (one pass: finiteness and zero steps)."""
         if isinstance(velocity, torch.Tensor) and velocity.dim() >= 4 and velocity.shape[-4] != self.num_steps + 1:
             raise ValueError(f"velocity must have num_steps + 1 = {self.num_steps + 1} time points on axis -4 "
                              f"(shape (..., N+1, 2, nx, ny)), got shape {tuple(velocity.shape)}")
-        _check_fast(velocity, "velocity", (self.num_steps + 1, 2, *self.domain.shape))
+        shape = (self.num_steps + 1, 2, *self.domain.shape)
+        if not isinstance(velocity, torch.Tensor) or not velocity.is_floating_point() \
+                or velocity.shape[velocity.dim() - 4:] != shape:
+            check_tensor(velocity, "velocity", shape)
+        moving, finite = Fd.step_flags(velocity)
+        if not finite:
+            check_tensor(velocity, "velocity", shape)
+        return moving
 
-    def _check(self, velocity, template) -> None:
-        self._check_velocity(velocity)
+    def _check(self, velocity, template) -> list:
+        moving = self._check_velocity(velocity)
         _check_fast(template, "template", self.domain.shape)
         check_same(velocity, template, "velocity", "template")
         try:
@@ -185,27 +195,30 @@ class LDDMMDeformation(torch.nn.Module):
         except RuntimeError:
             raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-4])} and template "
                              f"{tuple(template.shape[:-2])} do not broadcast") from None
+        return moving
 
     def forward(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """The deformed template ``W(nu, I)``, ``(..., nx, ny)``."""
-        self._check(velocity, template)
+        moving = self._check(velocity, template)
         if self.backward == "paper":
-            return _PaperDeformation.apply(velocity, template, self._config)[0]
-        return self.trajectory(velocity, template)[..., -1, :, :]
+            return _PaperDeformation.apply(velocity, template, self._config, moving)[0]
+        return self._trajectory(velocity, template, moving)[..., -1, :, :]
 
     def trajectory(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """``W(nu, I)(t_i)`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (differentiable by plain autograd)."""
-        self._check(velocity, template)
+        return self._trajectory(velocity, template, self._check(velocity, template))
+
+    def _trajectory(self, velocity: torch.Tensor, template: torch.Tensor, moving: list) -> torch.Tensor:
         batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
         c = self._config
         return Fd.deformed_trajectory(template.expand(*batch, *template.shape[-2:]),
                                       velocity.expand(*batch, *velocity.shape[-4:]),
-                                      c.domain, c.action, c.interpolation, c.scheme)
+                                      c.domain, c.action, c.interpolation, c.scheme, moving)
 
     def jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
         """``|D phi_{1,0}|``, ``(..., nx, ny)``, by the recursion of the mass-preserving step 8."""
-        self._check_velocity(velocity)
-        return Fd.jacobian_trajectory(velocity, self.domain, self.scheme)[..., -1, :, :]
+        moving = self._check_velocity(velocity)
+        return Fd.jacobian_trajectory(velocity, self.domain, self.scheme, moving)[..., -1, :, :]
 
     def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
         """Minimum over the grid of ``|D phi_{1,0}|``, ``(...)``: folding when ``<= 0`` (for logging)."""
