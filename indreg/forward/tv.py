@@ -43,9 +43,22 @@ def divergence(p: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     return dx + dy
 
 
-def total_variation(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
-    """Isotropic ``TV(f) = cell_volume * sum |grad f|`` (batch dims kept)."""
-    return domain.cell_volume * gradient(f, domain).norm(dim=-3).sum(dim=(-2, -1))
+def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0) -> torch.Tensor:
+    """Isotropic total variation ``TV(f) = int sqrt(|grad f|^2 + eps^2) dx`` (eps = ``smoothing``).
+
+    Convention: ``f (..., nx, ny)`` on ``domain``; ``grad f`` by forward differences in physical units with
+    zero padding (``gradient``, ODL's default); the integral is the Riemann sum with the cell volume; batch
+    dims kept. ``smoothing = 0`` gives plain TV, whose autograd gradient is taken as 0 where ``grad f = 0``
+    (a subgradient); ``smoothing > 0`` gives the smooth approximation (``TV_eps >= TV``,
+    ``TV_eps - TV <= eps |Omega|``), differentiable everywhere.
+    """
+    sq = (gradient(f, domain) ** 2).sum(dim=-3)
+    if smoothing > 0:
+        mag = (sq + smoothing ** 2).sqrt()
+    else:
+        positive = sq > 0
+        mag = torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
+    return domain.cell_volume * mag.sum(dim=(-2, -1))
 
 
 def _normal_operator_norm(T, shape, dtype, device, num_iter: int) -> float:

@@ -20,7 +20,7 @@ import math
 import torch
 
 from .._checks import check_same, check_tensor
-from ..forward.tv import gradient
+from ..forward.tv import total_variation
 
 
 def check_nonnegative(value, name: str) -> float:
@@ -32,25 +32,6 @@ def check_nonnegative(value, name: str) -> float:
     if not (v >= 0 and math.isfinite(v)):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return v
-
-
-def total_variation(f: torch.Tensor, domain, smoothing: float = 0.0) -> torch.Tensor:
-    """Isotropic total variation ``TV(f) = int sqrt(|grad f|^2 + eps^2) dx`` (eps = ``smoothing``).
-
-    Convention: ``f (..., nx, ny)`` on ``domain``; ``grad f`` by forward differences in physical units
-    with zero padding (``indreg.forward.tv.gradient``, ODL's default, as the TV baseline); the integral
-    is the Riemann sum with the cell volume; batch dims kept. ``smoothing = 0`` gives plain TV, whose
-    autograd gradient is taken as 0 where ``grad f = 0`` (a subgradient); ``smoothing > 0`` gives the
-    smooth approximation
-    (``TV_eps >= TV``, ``TV_eps - TV <= eps |Omega|``), differentiable everywhere.
-    """
-    sq = (gradient(f, domain) ** 2).sum(dim=-3)
-    if smoothing > 0:
-        mag = (sq + smoothing ** 2).sqrt()
-    else:
-        positive = sq > 0
-        mag = torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
-    return domain.cell_volume * mag.sum(dim=(-2, -1))
 
 
 class IndirectRegistration:
