@@ -4,15 +4,21 @@
     python scripts/bench_deform.py --kernel        # GaussianKernel: matrix vs FFT (the "auto" crossover)
     python scripts/bench_deform.py --blur          # interpolation="reinterpolate" vs "compose" (J, Shepp-Logan)
 
-Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``.
-Memory: every (size, mode, phase) runs in a fresh subprocess; after building the inputs and a warm-up
-on a 16^2 problem the peak RSS (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) is read as the baseline,
-then one call is made and the increase of the peak RSS is reported: the extra memory of that call over
-its inputs (trajectories, saved tensors / autograd graph, outputs, gradients).
+Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``,
+every (size, mode, phase) in a fresh subprocess.
+Memory: every (size, mode, phase) in another fresh subprocess, after building the inputs and a warm-up,
+measured two ways over one call (the extra memory of that call over its inputs: trajectories, saved
+tensors / autograd graph, outputs, gradients; the velocity gradient alone is 11 MB at 256^2, N = 20):
+- "RSS": the increase of the process's peak resident set (``ru_maxrss``; transparent huge pages off, so it
+  grows page by page): what the operating system charges, allocator fragmentation included;
+- "live": the peak of the bytes malloc has handed out (glibc ``mallinfo2``), read after every aten op
+  (a ``TorchDispatchMode``): the live tensors at op boundaries, independent of the allocator's caching,
+  the CPU analogue of ``torch.cuda.max_memory_allocated``.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import resource
 import statistics
@@ -22,6 +28,8 @@ import time
 
 import numpy as np
 import torch
+
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from indreg import GaussianKernel, ImageDomain, LDDMMDeformation
 from indreg.deform import functional as Fd
@@ -52,26 +60,75 @@ def call(W, velocity, template, grad_out, phase):
     return out
 
 
-def worker(n, mode, phase, num_steps, repeats, threads):
+def worker(n, mode, phase, num_steps, repeats, threads, what):
     torch.set_num_threads(threads)
+    if what == "memory":
+        _disable_huge_pages()
     call(*problem(16, num_steps, mode), phase)  # warm-up of the code paths
     args = problem(n, num_steps, mode)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    out = call(*args, phase)
-    peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024
-    del out
+    if what == "memory":
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        call(*args, phase)
+        rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024
+        for _ in range(2):  # the first pass warms up the dispatch mode itself
+            with LivePeak() as live:
+                call(*args, phase)
+        print(json.dumps({"rss_mb": rss, "live_mb": live.peak / 2 ** 20}))
+        return
+    call(*args, phase)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         call(*args, phase)
         times.append(time.perf_counter() - t0)
-    print(json.dumps({"time": statistics.median(times), "peak_mb": peak_mb}))
+    print(json.dumps({"time": statistics.median(times)}))
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
+class LivePeak(TorchDispatchMode):
+    """Peak of malloc's bytes in use (``mallinfo2``: heap + mmapped) after every aten op, over the baseline
+    at entry; nan without glibc >= 2.33."""
+
+    def __enter__(self):
+        try:
+            self._mallinfo = ctypes.CDLL(None).mallinfo2
+            self._mallinfo.restype = _MallInfo2
+            self.base, self.peak = self._in_use(), 0
+        except (OSError, AttributeError):
+            self._mallinfo, self.peak = None, float("nan")
+        return super().__enter__()
+
+    def _in_use(self):
+        info = self._mallinfo()
+        return info.uordblks + info.hblkhd
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        if self._mallinfo is not None:
+            self.peak = max(self.peak, self._in_use() - self.base)
+        return out
+
+
+def _disable_huge_pages():
+    """``prctl(PR_SET_THP_DISABLE, 1)`` (Linux): resident memory then grows in 4 KiB pages, not 2 MiB."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(41, 1, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
 
 
 def run_worker(n, mode, phase, a):
-    cmd = [sys.executable, __file__, "--worker", str(n), mode, phase, "--steps", str(a.steps),
-           "--repeats", str(a.repeats), "--threads", str(a.threads)]
-    return json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1])
+    out = {}
+    for what in ("time", "memory"):
+        cmd = [sys.executable, __file__, "--worker", str(n), mode, phase, what, "--steps", str(a.steps),
+               "--repeats", str(a.repeats), "--threads", str(a.threads)]
+        done = subprocess.run(cmd, check=True, capture_output=True, text=True)
+        out.update(json.loads(done.stdout.strip().splitlines()[-1]))
+    return out
 
 
 def main_table(a):
@@ -82,23 +139,31 @@ def main_table(a):
                 results[n, mode, phase] = run_worker(n, mode, phase, a)
                 print(f"  {n}^2 {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
     print(f"\n### LDDMMDeformation, N = {a.steps}, float32, {a.threads} thread(s), geometric, reinterpolate\n")
-    print("| size | backward | forward (s) | fwd+bwd (s) | peak mem fwd (MB) | peak mem fwd+bwd (MB) |")
+    print("| size | backward | forward (s) | fwd+bwd (s) | fwd: RSS / live (MB) | fwd+bwd: RSS / live (MB) |")
     print("|---|---|---|---|---|---|")
     for n in a.sizes:
         for mode in ("paper", "autograd"):
             f, b = results[n, mode, "fwd"], results[n, mode, "fwd+bwd"]
-            print(f"| {n}^2 | {mode} | {f['time']:.4f} | {b['time']:.4f} | {f['peak_mb']:.1f} | {b['peak_mb']:.1f} |")
-    print("\n| backward | exponent fwd (time ~ pixels^p) | exponent fwd+bwd |")
-    print("|---|---|---|")
-    pixels = np.log([n * n for n in a.sizes])
-    for mode in ("paper", "autograd"):
-        p = [np.polyfit(pixels, np.log([results[n, mode, ph]["time"] for n in a.sizes]), 1)[0]
-             for ph in ("fwd", "fwd+bwd")]
-        print(f"| {mode} | {p[0]:.2f} | {p[1]:.2f} |")
+            print(f"| {n}^2 | {mode} | {f['time']:.4f} | {b['time']:.4f} | {f['rss_mb']:.1f} / {f['live_mb']:.1f} "
+                  f"| {b['rss_mb']:.1f} / {b['live_mb']:.1f} |")
+    if len(a.sizes) > 1:
+        exponents(results, a.sizes)
     if 256 in a.sizes:
         pa, au = results[256, "paper", "fwd+bwd"], results[256, "autograd", "fwd+bwd"]
-        print(f"\nAt 256^2 fwd+bwd: autograd / paper time = {au['time'] / pa['time']:.2f}x, "
-              f"memory = {au['peak_mb'] / max(pa['peak_mb'], 1e-9):.2f}x")
+        ratio = lambda key: au[key] / max(pa[key], 1e-9)  # noqa: E731
+        print(f"\nAt 256^2 fwd+bwd, autograd / paper: time {ratio('time'):.2f}x, memory RSS {ratio('rss_mb'):.2f}x, "
+              f"live {ratio('live_mb'):.2f}x")
+
+
+def exponents(results, sizes):
+    """Least-squares exponent p of time ~ pixels^p over the sizes."""
+    print("\n| backward | exponent fwd (time ~ pixels^p) | exponent fwd+bwd |")
+    print("|---|---|---|")
+    pixels = np.log([n * n for n in sizes])
+    for mode in ("paper", "autograd"):
+        p = [np.polyfit(pixels, np.log([results[n, mode, ph]["time"] for n in sizes]), 1)[0]
+             for ph in ("fwd", "fwd+bwd")]
+        print(f"| {mode} | {p[0]:.2f} | {p[1]:.2f} |")
 
 
 def kernel_table(a):
@@ -157,10 +222,10 @@ def main():
     p.add_argument("--kernel", action="store_true", help="also the kernel matrix/FFT table")
     p.add_argument("--blur", action="store_true", help="also the reinterpolate/compose table")
     p.add_argument("--no-main", action="store_true", help="skip the time/memory table")
-    p.add_argument("--worker", nargs=3, metavar=("SIZE", "MODE", "PHASE"), help=argparse.SUPPRESS)
+    p.add_argument("--worker", nargs=4, metavar=("SIZE", "MODE", "PHASE", "WHAT"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.worker:
-        worker(int(a.worker[0]), a.worker[1], a.worker[2], a.steps, a.repeats, a.threads)
+        worker(int(a.worker[0]), a.worker[1], a.worker[2], a.steps, a.repeats, a.threads, a.worker[3])
         return
     torch.set_num_threads(a.threads)
     if not a.no_main:

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from ..domain import ImageDomain
 
+ACTIONS = ("geometric", "mass_preserving")
 SCHEMES = ("central", "forward")
 INTERPOLATIONS = ("reinterpolate", "compose")
 
@@ -95,52 +96,33 @@ def gradient(f: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> t
 
     ``"central"``: ``(f[i+1] - f[i-1]) / (2h)``; ``"forward"``: ``(f[i+1] - f[i]) / h``; zero padding.
     """
-    hx, hy = domain.cell_sides
-    p = F.pad(f, (1, 1, 1, 1))
-    if scheme == "central":
-        gx = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) / (2 * hx)
-        gy = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) / (2 * hy)
-    elif scheme == "forward":
-        gx = (p[..., 2:, 1:-1] - f) / hx
-        gy = (p[..., 1:-1, 2:] - f) / hy
-    else:
+    if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-    return torch.stack((gx, gy), dim=-3)
+    p, (cx, cy) = pad(f), _difference_factors(domain, scheme)
+    return torch.stack((torch.sub(*_differenced(p, -2, scheme)) * cx, torch.sub(*_differenced(p, -1, scheme)) * cy),
+                       dim=-3)
 
 
-def _zero_padded_diff_into(out: torch.Tensor, f: torch.Tensor, dim: int, central: bool) -> None:
-    """``f[k+1] - f[k-1]`` (``central``) or ``f[k+1] - f[k]`` along ``dim`` into ``out``, ``f`` 0 outside (size >= 3)."""
-    n = f.shape[dim]
-    if central:
-        torch.sub(f.narrow(dim, 2, n - 2), f.narrow(dim, 0, n - 2), out=out.narrow(dim, 1, n - 2))
-        out.narrow(dim, 0, 1).copy_(f.narrow(dim, 1, 1))
-        torch.neg(f.narrow(dim, n - 2, 1), out=out.narrow(dim, n - 1, 1))
-    else:
-        torch.sub(f.narrow(dim, 1, n - 1), f.narrow(dim, 0, n - 1), out=out.narrow(dim, 0, n - 1))
-        torch.neg(f.narrow(dim, n - 1, 1), out=out.narrow(dim, n - 1, 1))
+def pad(f: torch.Tensor) -> torch.Tensor:
+    """An image ``(..., nx, ny)`` zero-padded by one cell on each side, ``(..., nx+2, ny+2)`` (0 outside the domain)."""
+    return F.pad(f, (1, 1, 1, 1))
 
 
-def _gradient_into(out: torch.Tensor, f: torch.Tensor, domain: ImageDomain, scheme: str, scale: float,
-                   weight: torch.Tensor) -> torch.Tensor:
-    """``scale * weight * gradient(f, domain, scheme)`` written into ``out (..., 2, nx, ny)``, ``weight (..., nx, ny)``.
-
-    No autograd; no padded copy of ``f`` (the zero boundary is handled by the edge rows / columns), and the
-    difference quotient's factor is folded into the weight (fewer passes over memory).
-    """
+def _difference_factors(domain: ImageDomain, scheme: str) -> tuple:
+    """The difference quotients' factors ``(1/(2 hx), 1/(2 hy))`` (central) or ``(1/hx, 1/hy)`` (forward)."""
     hx, hy = domain.cell_sides
-    if min(f.shape[-2:]) < 3:
-        out.copy_(gradient(f, domain, scheme))
-        hx = hy = 1.0
-    else:
-        _zero_padded_diff_into(out[..., 0, :, :], f, -2, scheme == "central")
-        _zero_padded_diff_into(out[..., 1, :, :], f, -1, scheme == "central")
-        if scheme == "central":
-            hx, hy = 2 * hx, 2 * hy
-    if hx == hy:
-        return out.mul_((weight * (scale / hx)).unsqueeze(-3))
-    out[..., 0, :, :].mul_(weight * (scale / hx))
-    out[..., 1, :, :].mul_(weight * (scale / hy))
-    return out
+    return (0.5 / hx, 0.5 / hy) if scheme == "central" else (1.0 / hx, 1.0 / hy)
+
+
+def _differenced(p: torch.Tensor, dim: int, scheme: str) -> tuple:
+    """Views ``(ahead, behind)`` of a zero-padded image ``p (..., nx+2, ny+2)`` whose difference is the finite
+    difference (before the quotient's factor) of the image along ``dim`` (-2: x, -1: y) at every cell:
+    ``f[k+1] - f[k-1]`` (central) or ``f[k+1] - f[k]`` (forward). No edge cases: the padding is the image's
+    zero continuation."""
+    behind = slice(None, -2) if scheme == "central" else slice(1, -1)
+    if dim == -2:
+        return p[..., 2:, 1:-1], p[..., behind, 1:-1]
+    return p[..., 1:-1, 2:], p[..., 1:-1, behind]
 
 
 def _central_diff(f: torch.Tensor, dim: int, h: float) -> torch.Tensor:
@@ -171,27 +153,31 @@ def divergence(v: torch.Tensor, domain: ImageDomain, scheme: str = "central") ->
     raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
 
 
-def _divergence_into(out: torch.Tensor, v: torch.Tensor, domain: ImageDomain, scheme: str) -> torch.Tensor:
-    """``divergence(v, domain, scheme)`` written into ``out (..., nx, ny)`` without temporaries (no autograd).
+def _growth_into(out: torch.Tensor, v: torch.Tensor, domain: ImageDomain, scheme: str, c: float) -> torch.Tensor:
+    """``1 + c * divergence(v, domain, scheme)`` written into ``out (..., nx, ny)`` (no autograd).
 
-    Vectorised over all leading dims (e.g. all time steps at once); equal to ``divergence`` up to rounding.
+    The factors ``1 -/+ div nu(t_i)/N`` of the Jacobian recursions (``c = -/+ 1/N``). Vectorised over all
+    leading dims (e.g. all time steps at once), four passes over memory; equal to the composed
+    expression up to rounding.
     """
     (hx, hy), vx, vy = domain.cell_sides, v[..., 0, :, :], v[..., 1, :, :]
+    one = out.new_ones(())
     if scheme == "forward":  # backward differences, the field 0 before the first sample
-        torch.mul(vx, 1.0 / hx, out=out)
-        out[..., 1:, :].sub_(vx[..., :-1, :], alpha=1.0 / hx)
-        out.add_(vy, alpha=1.0 / hy)
-        out[..., :, 1:].sub_(vy[..., :, :-1], alpha=1.0 / hy)
+        torch.add(one, vx, alpha=c / hx, out=out)
+        out[..., 1:, :].sub_(vx[..., :-1, :], alpha=c / hx)
+        out.add_(vy, alpha=c / hy)
+        out[..., :, 1:].sub_(vy[..., :, :-1], alpha=c / hy)
         return out
     if min(out.shape[-2:]) < 3:
-        return out.copy_(divergence(v, domain, scheme))
+        return out.copy_(1 + c * divergence(v, domain, scheme))
     # central differences inside, one-sided at both ends (as _central_diff)
-    torch.sub(vx[..., 2:, :], vx[..., :-2, :], out=out[..., 1:-1, :]).mul_(0.5 / hx)
-    torch.sub(vx[..., 1, :], vx[..., 0, :], out=out[..., 0, :]).mul_(1.0 / hx)
-    torch.sub(vx[..., -1, :], vx[..., -2, :], out=out[..., -1, :]).mul_(1.0 / hx)
-    out[..., :, 1:-1].add_(vy[..., :, 2:], alpha=0.5 / hy).sub_(vy[..., :, :-2], alpha=0.5 / hy)
-    out[..., :, 0].add_(vy[..., :, 1], alpha=1.0 / hy).sub_(vy[..., :, 0], alpha=1.0 / hy)
-    out[..., :, -1].add_(vy[..., :, -1], alpha=1.0 / hy).sub_(vy[..., :, -2], alpha=1.0 / hy)
+    cx, cy = c / hx, c / hy
+    torch.add(one, vx[..., 2:, :], alpha=0.5 * cx, out=out[..., 1:-1, :]).sub_(vx[..., :-2, :], alpha=0.5 * cx)
+    torch.add(one, vx[..., 1, :], alpha=cx, out=out[..., 0, :]).sub_(vx[..., 0, :], alpha=cx)
+    torch.add(one, vx[..., -1, :], alpha=cx, out=out[..., -1, :]).sub_(vx[..., -2, :], alpha=cx)
+    out[..., :, 1:-1].add_(vy[..., :, 2:], alpha=0.5 * cy).sub_(vy[..., :, :-2], alpha=0.5 * cy)
+    out[..., :, 0].add_(vy[..., :, 1], alpha=cy).sub_(vy[..., :, 0], alpha=cy)
+    out[..., :, -1].add_(vy[..., :, -1], alpha=cy).sub_(vy[..., :, -2], alpha=cy)
     return out
 
 
@@ -205,29 +191,31 @@ def _check_interpolation(interpolation: str) -> None:
 def step_flags(velocity: torch.Tensor) -> tuple:
     """``(moving, finite)`` of a velocity ``(..., N+1, 2, nx, ny)`` in one pass without temporaries.
 
-    ``moving[i]``: ``nu(t_i)`` is nonzero somewhere (any batch entry); ``finite``: no nan / inf anywhere
-    (``amax`` / ``amin`` propagate nan, and an inf is the max or the min). Used to skip the zero steps
+    ``moving[i]``: ``nu(t_i)`` is numerically nonzero (its L2 norm over all batch entries is > 0; a step whose
+    squares all underflow moves every point by less than a rounding error and is skipped, which is exact);
+    ``finite``: the norms are finite (nan and inf propagate; a finite field whose squares overflow reports
+    False, and ``LDDMMDeformation`` then runs the full element check). Used to skip the zero steps
     (``_Steps``) and, by ``LDDMMDeformation``, as the finiteness check of the input.
     """
-    v = velocity.detach().flatten(-3)
-    hi = v.amax(-1).reshape(-1, v.shape[-2]).amax(0)
-    lo = v.amin(-1).reshape(-1, v.shape[-2]).amin(0)
-    finite = torch.isfinite(hi).all() & torch.isfinite(lo).all()
-    flags = ((hi > 0) | (lo < 0)).tolist()
-    return flags, bool(finite)
+    norms = torch.linalg.vector_norm(velocity.detach().flatten(-3), dim=-1)
+    norms = norms.reshape(-1, norms.shape[-1]).amax(0)
+    return (norms > 0).tolist(), bool(torch.isfinite(norms).all())
 
 
 class _Steps:
     """The small deformations ``Id + sign * nu(t_i)/N`` of the time steps, as ``grid_sample`` grids.
 
     ``grid(i)`` is the grid of ``x + w_i(x)``, ``w_i = sign * nu(t_i)/N`` in grid units (``w(i)``), built per
-    step (two fused adds, into a reused buffer under ``torch.no_grad``; the last one is kept for a second
-    transport of the same step), so no ``O(N n^2)`` temporaries are made. ``moves(i)`` is False for a step whose velocity is exactly zero everywhere (all batch entries) while
-    no graph is recorded: the step is skipped, so ``nu = 0`` maps every image to itself bit for bit
-    (``(2j + 1) / n - 1`` is not exact in floating point and ``grid_sample`` scales its rounding error by
-    ``n / 2``: an identity step would change a 438^2 float32 image by ~3e-5). ``moving`` (``step_flags``)
-    can be given when already known. While autograd records (``backward="autograd"``) every step is
-    interpolated, so derivatives w.r.t. ``nu`` exist at ``nu = 0``; the identity then holds up to that rounding.
+    step, so no ``O(N n^2)`` temporaries are made. Without autograd it is built planar, ``(..., 2, nx, ny)``
+    (two contiguous fused adds into a reused buffer) and handed to ``grid_sample`` as the strided view
+    ``(..., nx, ny, 2)`` (``grid_sample`` reads any strides; the same values, half the cost of writing the
+    interleaved layout); the last one is kept for a second transport of the same step. ``moves(i)`` is False
+    for a step whose velocity is exactly zero everywhere (all batch entries) while no graph is recorded: the
+    step is skipped, so ``nu = 0`` maps every image to itself bit for bit (``(2j + 1) / n - 1`` is not exact
+    in floating point and ``grid_sample`` scales its rounding error by ``n / 2``: an identity step would
+    change a 438^2 float32 image by ~3e-5). ``moving`` (``step_flags``) can be given when already known.
+    While autograd records (``backward="autograd"``) every step is interpolated, so derivatives w.r.t. ``nu``
+    exist at ``nu = 0``; the identity then holds up to that rounding.
     """
 
     def __init__(self, velocity: torch.Tensor, domain: ImageDomain, sign: float, moving: list | None = None):
@@ -235,14 +223,16 @@ class _Steps:
         self.velocity, self.domain = velocity, domain
         self.step = sign / n
         self.scale = tuple(self.step * 2.0 / e for e in domain.extent)  # physical -> grid units, times sign / N
-        self.base = identity_grid(domain, velocity.dtype, velocity.device)
         self.recording = torch.is_grad_enabled() and velocity.requires_grad
-        self._moving, self._buffer, self._buffer_step = moving, None, None
+        self._moving, self._buffer, self._buffer_step, self._velocities = moving, None, None, None
         if self.recording:  # one graph node for all steps (per-step slicing would zero-fill a full-size
             # gradient for every slice in backward)
             w = to_grid_units(velocity, domain) * self.step
             self._w = w.unbind(-4)
-            self._grids = (self.base + w.movedim(-3, -1).flip(-1)).unbind(-4)
+            base = identity_grid(domain, velocity.dtype, velocity.device)
+            self._grids = (base + w.movedim(-3, -1).flip(-1)).unbind(-4)
+        else:  # planar identity grid: y and x in grid units, each (nx, ny)
+            self.base = _planar_identity_grid(domain, velocity.dtype, velocity.device).unbind(0)
 
     def moves(self, i: int) -> bool:
         if self.recording:
@@ -260,21 +250,28 @@ class _Steps:
     def grid(self, i: int) -> torch.Tensor:
         if self.recording:
             return self._grids[i]
-        if self._buffer_step == i:
-            return self._buffer
-        v, (sx, sy), base = self.velocity[..., i, :, :, :], self.scale, self.base
-        if torch.is_grad_enabled():  # an image may require grad: grid_sample keeps the grid for backward
-            return torch.stack((base[..., 0] + sy * v[..., 1, :, :], base[..., 1] + sx * v[..., 0, :, :]), dim=-1)
-        if self._buffer is None:
-            self._buffer = torch.empty(*v.shape[:-3], *v.shape[-2:], 2, dtype=v.dtype, device=v.device)
-        g, self._buffer_step = self._buffer, i
-        torch.add(base[..., 0], v[..., 1, :, :], alpha=sy, out=g[..., 0])
-        torch.add(base[..., 1], v[..., 0, :, :], alpha=sx, out=g[..., 1])
-        return g
+        if self._buffer_step != i:
+            if self._velocities is None:
+                self._velocities = self.velocity.unbind(-4)
+            v = self._velocities[i]
+            # an image may require grad: grid_sample then keeps the grid for backward (no reuse)
+            if self._buffer is None or torch.is_grad_enabled():
+                self._buffer = torch.empty_like(v)
+                self._planes, self._grid = self._buffer.unbind(-3), self._buffer.movedim(-3, -1)
+            (sx, sy), (vx, vy), (gy, gx) = self.scale, v.unbind(-3), self._planes
+            torch.add(self.base[0], vy, alpha=sy, out=gy)
+            torch.add(self.base[1], vx, alpha=sx, out=gx)
+            self._buffer_step = i
+        return self._grid
 
     def move(self, f: torch.Tensor, i: int, padding_mode: str) -> torch.Tensor:
         """``f o (Id + w_i)`` for ``f (..., C, nx, ny)``."""
         return sample(f, self.grid(i), padding_mode) if self.moves(i) else f
+
+
+@functools.lru_cache(maxsize=32)
+def _planar_identity_grid(domain, dtype, device):
+    return _identity_grid(domain, dtype, device).movedim(-1, 0).contiguous()
 
 
 def displacements_t0(velocity: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
@@ -304,42 +301,54 @@ def _sample_displaced(f: torch.Tensor, u: torch.Tensor, domain: ImageDomain, pad
 
 
 def template_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain,
-                        interpolation: str = "reinterpolate", moving: list | None = None) -> torch.Tensor:
+                        interpolation: str = "reinterpolate", moving: list | None = None,
+                        out: torch.Tensor | None = None) -> torch.Tensor:
     """``I o phi_{t_i,0}`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (Algorithm 1, line 7, eq:ODEflow1b).
 
     ``"reinterpolate"`` (the paper): ``I o phi_{t_i,0} = (I o phi_{t_{i-1},0}) o (Id - nu(t_i)/N)``, one
     bilinear interpolation of the current image per step (the blur accumulates over N steps).
     ``"compose"``: compose the displacements first (``displacements_t0``) and interpolate the template
     once per output time, ``I o (Id + u_i)``. ``moving``: the steps' ``step_flags``, when already known.
+    ``out``: a tensor (any strides) to write the trajectory into, without autograd.
     """
     _check_interpolation(interpolation)
+    steps = _Steps(velocity, domain, -1.0, moving)
+    recording = steps.recording or template.requires_grad and torch.is_grad_enabled()
+    if out is not None and recording:
+        raise RuntimeError("template_trajectory(out=...) does not record autograd graphs")
     if interpolation == "compose":
         u = displacements_t0(velocity, domain)
-        return _sample_displaced(template[..., None, None, :, :], u, domain, "zeros").squeeze(-3)
-    steps = _Steps(velocity, domain, -1.0, moving)
-    if steps.recording or template.requires_grad and torch.is_grad_enabled():
+        images = _sample_displaced(template[..., None, None, :, :], u, domain, "zeros").squeeze(-3)
+        return images if out is None else out.copy_(images)
+    if recording:
         images = [template]
         for i in range(1, velocity.shape[-4]):
             images.append(steps.move(images[-1].unsqueeze(-3), i, "zeros").squeeze(-3))
         return torch.stack(images, dim=-3)
-    images = template.new_empty(*template.shape[:-2], velocity.shape[-4], *template.shape[-2:])
-    images[..., 0, :, :] = template  # written in place: no second copy of the trajectory
-    for i in range(1, velocity.shape[-4]):
-        images[..., i, :, :] = steps.move(images[..., i - 1, :, :].unsqueeze(-3), i, "zeros").squeeze(-3)
-    return images
+    if out is None:
+        out = template.new_empty(*template.shape[:-2], velocity.shape[-4], *template.shape[-2:])
+    frames = out.unbind(-3)  # written in place: no second copy of the trajectory
+    frames[0].copy_(template)
+    for i in range(1, len(frames)):
+        frames[i].copy_(steps.move(frames[i - 1].unsqueeze(-3), i, "zeros").squeeze(-3))
+    return out
 
 
 def jacobian_trajectory(velocity: torch.Tensor, domain: ImageDomain, scheme: str = "central",
-                        moving: list | None = None) -> torch.Tensor:
+                        moving: list | None = None, out: torch.Tensor | None = None) -> torch.Tensor:
     """``|D phi_{t_i,0}|`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (the mass-preserving replacement of step 8).
 
     ``|D phi_{t_i,0}| = (1 - div nu(t_i)/N) * |D phi_{t_{i-1},0}| o (Id - nu(t_i)/N)``, ``|D phi_{0,0}| = 1``
-    (border padding).
+    (border padding). ``out``: a tensor (any strides) to write it into, without autograd.
     """
     n = velocity.shape[-4] - 1
     steps = _Steps(velocity, domain, -1.0, moving)
     if not steps.recording:
-        return _jacobian_trajectory_no_grad(velocity, domain, scheme, steps)
+        if out is None:
+            out = velocity.new_empty(velocity.shape[:-3] + velocity.shape[-2:])
+        return _jacobian_trajectory_into(out, velocity, domain, scheme, steps)
+    if out is not None:
+        raise RuntimeError("jacobian_trajectory(out=...) does not record autograd graphs")
     nu = velocity.unbind(-4)  # one graph node (per-step slicing would zero-fill full-size gradients)
     jac = [torch.ones_like(nu[0][..., 0, :, :])]
     for i in range(1, n + 1):
@@ -351,19 +360,18 @@ def jacobian_trajectory(velocity: torch.Tensor, domain: ImageDomain, scheme: str
     return torch.stack(jac, dim=-3)
 
 
-def _jacobian_trajectory_no_grad(velocity: torch.Tensor, domain: ImageDomain, scheme: str,
-                                 steps: _Steps) -> torch.Tensor:
-    """``jacobian_trajectory`` without autograd: the factors ``1 - div nu(t_i)/N`` of all steps at once, then
-    multiplied in place by the transported previous determinant."""
+def _jacobian_trajectory_into(jac: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain, scheme: str,
+                              steps: _Steps) -> torch.Tensor:
+    """``jacobian_trajectory`` without autograd, into ``jac``: the factors ``1 - div nu(t_i)/N`` of all steps at
+    once, then multiplied in place by the transported previous determinant."""
     n = velocity.shape[-4] - 1
-    jac = velocity.new_empty(velocity.shape[:-3] + velocity.shape[-2:])
-    _divergence_into(jac, velocity, domain, scheme).mul_(-1.0 / n).add_(1.0)
-    jac[..., 0, :, :] = 1.0
+    frames = _growth_into(jac, velocity, domain, scheme, -1.0 / n).unbind(-3)
+    frames[0].fill_(1.0)
     for i in range(1, n + 1):
         if steps.moves(i):
-            jac[..., i, :, :].mul_(steps.move(jac[..., i - 1, :, :].unsqueeze(-3), i, "border").squeeze(-3))
+            frames[i].mul_(steps.move(frames[i - 1].unsqueeze(-3), i, "border").squeeze(-3))
         else:
-            jac[..., i, :, :] = jac[..., i - 1, :, :]
+            frames[i].copy_(frames[i - 1])
     return jac
 
 
@@ -372,68 +380,137 @@ def deformed_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: 
                         scheme: str = "central", moving: list | None = None) -> torch.Tensor:
     """``W(nu, I)(t_i)``, ``(..., N+1, nx, ny)``: ``I o phi_{t_i,0}`` (geometric, eq:DeforOpGeom) or
     ``|D phi_{t_i,0}| I o phi_{t_i,0}`` (mass-preserving, eq:DeforOpMP)."""
+    _check_action(action)
     images = template_trajectory(template, velocity, domain, interpolation, moving)
     if action == "geometric":
         return images
-    if action == "mass_preserving":
-        jac = jacobian_trajectory(velocity, domain, scheme, moving)
-        if torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
-            return jac * images
-        return jac.mul_(images)  # jac is a fresh tensor; images may be an expanded view
-    raise ValueError(f"action must be 'geometric' or 'mass_preserving', got {action!r}")
+    jac = jacobian_trajectory(velocity, domain, scheme, moving)
+    if torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
+        return jac * images
+    return jac.mul_(images)  # jac is a fresh tensor; images may be an expanded view
 
 
-def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, trajectory: torch.Tensor,
-                   domain: ImageDomain, action: str = "geometric", interpolation: str = "reinterpolate",
-                   scheme: str = "central", need_velocity: bool = True, moving: list | None = None) -> tuple:
+def _check_action(action: str) -> None:
+    if action not in ACTIONS:
+        raise ValueError(f"action must be one of {ACTIONS}, got {action!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the paper's gradient (Algorithm 1, lines 8-10)
+def gradient_record(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain,
+                    action: str = "geometric", interpolation: str = "reinterpolate", scheme: str = "central",
+                    moving: list | None = None) -> torch.Tensor:
+    """The forward pass's record for ``paper_gradient``, shaped like the velocity ``(..., N+1, 2, nx, ny)``.
+
+    ``record[..., i, 0, :, :] = W(nu, I)(t_i)`` (the trajectory, ``deformed_trajectory``) and, for the geometric
+    action, ``record[..., i, 1, :, :] = 1 + div nu(t_i)/N`` (the factors of line 8); for the mass-preserving
+    action the second slots hold ``|D phi_{t_i,0}|``. No autograd. ``paper_gradient`` overwrites it with the
+    velocity gradient, step ``i`` after reading slot ``i``: forward and backward together hold one
+    velocity-sized tensor, ``O(N n^2)`` as the paper's complexity analysis.
+    """
+    _check_action(action)
+    record = velocity.new_empty(torch.broadcast_shapes(template.shape[:-2], velocity.shape[:-4]) + velocity.shape[-4:])
+    frames, factors = record.unbind(-3)
+    template_trajectory(template, velocity, domain, interpolation, moving, out=frames)
+    if action == "geometric":
+        _growth_into(factors, velocity, domain, scheme, 1.0 / (velocity.shape[-4] - 1))
+    else:
+        frames.mul_(jacobian_trajectory(velocity, domain, scheme, moving, out=factors))
+    return record
+
+
+def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, record: torch.Tensor, domain: ImageDomain,
+                   action: str = "geometric", interpolation: str = "reinterpolate", scheme: str = "central",
+                   need_velocity: bool = True, moving: list | None = None) -> tuple:
     """The paper's gradient (Algorithm 1, lines 8-10, kernel not applied), scaled for torch entries.
 
     Given ``G = dL/dW`` (``grad_out (..., nx, ny)``, torch entries), ``velocity (..., N+1, 2, nx, ny)`` and
-    the forward ``trajectory`` ``W(nu, I)(t_i)`` ``(..., N+1, nx, ny)``, carries ``G`` back along the flow,
-    ``G o phi_{t_i,1} = (G o phi_{t_{i+1},1}) o (Id + nu(t_i)/N)`` (eq:ODEflow2b, line 9), and for the
-    geometric action ``|D phi_{t_i,1}| = (1 + div nu(t_i)/N) |D phi_{t_{i+1},1}| o (Id + nu(t_i)/N)`` (line 8),
-    for ``i = N-1..0``. Returns ``(grad_velocity, grad_template)``:
+    the forward pass's ``record`` (``gradient_record``: the trajectory ``W(nu, I)(t_i)`` and the factors
+    ``1 + div nu(t_i)/N``), carries ``G`` back along the flow (eq:ODEflow2b) for ``i = N-1..0`` with the
+    small steps ``s_i = Id + nu(t_i)/N``. Returns ``(grad_velocity, grad_template)``:
 
-    - geometric:        ``dL/dnu_i = -(1/N) |D phi_{t_i,1}| (G o phi_{t_i,1}) grad(I o phi_{t_i,0})``,
-                        ``dL/dI = |D phi_{0,1}| (G o phi_{0,1})``;
+    - geometric:        ``dL/dnu_i = -(1/N) rho_i grad(I o phi_{t_i,0})``, ``dL/dI = rho_0``, where
+                        ``rho_i = |D phi_{t_i,1}| (G o phi_{t_i,1})``;
     - mass-preserving:  ``dL/dnu_i = +(1/N) |D phi_{t_i,0}| (I o phi_{t_i,0}) grad(G o phi_{t_i,1})``,
-                        ``dL/dI = G o phi_{0,1}``.
+                        ``dL/dI = G o phi_{0,1}``, with ``G o phi_{t_i,1} = (G o phi_{t_{i+1},1}) o s_i`` (line 9).
+
+    Lines 8 and 9 carry ``|D phi_{t_i,1}| = (1 + div nu(t_i)/N) |D phi_{t_{i+1},1}| o s_i`` and
+    ``G o phi_{t_i,1}`` separately; the geometric gradient only needs their product, which obeys the same
+    recursion: ``rho_i = (1 + div nu(t_i)/N) rho_{i+1} o s_i``, ``rho_N = G`` (composition distributes over
+    products; it is the mass-preserving action of the step on ``G``, the adjoint of the geometric action).
+    It is carried as one scalar field: one interpolation per step instead of two (zero padding: ``G`` is 0
+    outside the domain). The two discretisations differ only by interpolating a product instead of
+    multiplying interpolants: relative difference of the velocity gradient 0.33% / 0.20% / 0.11% / 0.06% at
+    16^2 N=4 / 32^2 N=8 / 64^2 N=16 / 128^2 N=32 (tests/deform/test_lddmm.py), with the same distance to
+    the exact discrete derivative (autograd) to 3 digits.
 
     With ``G = cell_volume * grad_L2`` these are ``(1/N) * cell_volume`` times the L2 gradients before the
     kernel of eq:GradGoalFunctionalVRHKS / eq:GradGoalFunctionalVRHKS_mp (and ``cell_volume`` times the L2
     gradient w.r.t. the template). ``interpolation="compose"`` composes the displacements of
     ``phi_{t_i,1}`` (``q_i(x) = q_{i+1}(x + nu(t_i, x)/N) + nu(t_i, x)/N``) and interpolates ``G`` once per
-    step instead of re-interpolating the transported ``G``. ``grad_velocity`` is None unless
-    ``need_velocity``; ``moving``: the steps' ``step_flags``, when already known.
-    The divergences of all steps are computed at once, into the (not yet written) first components of
-    ``grad_velocity``.
+    step (``G o (Id + q_i)``) instead of re-interpolating a transported field; the Jacobian then follows
+    line 8 (border padding). ``moving``: the steps' ``step_flags``, when already known.
+
+    ``grad_velocity`` is ``record`` itself, overwritten (step ``i`` writes slot ``i`` after reading it), or None
+    unless ``need_velocity`` (``record`` is then left as it is).
     """
     _check_interpolation(interpolation)
-    n = velocity.shape[-4] - 1
-    geometric = action == "geometric"
+    n, shape = velocity.shape[-4] - 1, velocity.shape[-2:]
+    if record.shape[-4:] != velocity.shape[-4:]:
+        raise ValueError(f"record must be shaped like the velocity (gradient_record), (..., {n + 1}, 2, "
+                         f"{shape[0]}, {shape[1]}), got {tuple(record.shape)}")
+    geometric, compose = action == "geometric", interpolation == "compose"
     steps = _Steps(velocity, domain, 1.0, moving)
-    grad_v = torch.empty_like(velocity) if need_velocity else None
-    if geometric:  # 1 + div nu(t_i)/N of all steps at once; slot i of grad_v is free until step i writes it
-        growth = grad_v[..., 0, :, :] if need_velocity else velocity.new_empty(velocity.shape[:-3] + velocity.shape[-2:])
-        growth = _divergence_into(growth, velocity, domain, scheme).mul_(1.0 / n).add_(1.0)
-    g_t = grad_out  # G o phi_{t_i,1}
-    jac = torch.ones_like(grad_out) if geometric else None  # |D phi_{t_i,1}|
-    q = torch.zeros_like(grad_out.unsqueeze(-3).expand(*grad_out.shape[:-2], 2, *grad_out.shape[-2:])) \
-        if interpolation == "compose" else None
+    slots = record.unbind(-4)
+    g_t = grad_out.unsqueeze(-3)  # G o phi_{t_i,1}; for the geometric reinterpolation rho_i; (..., 1, nx, ny)
+    jac = torch.ones_like(g_t) if geometric and compose else None  # |D phi_{t_i,1}|
+    q = torch.zeros_like(grad_out.unsqueeze(-3).expand(*grad_out.shape[:-2], 2, *shape)) if compose else None
+    padded, inner = _padded_scratch(grad_out)  # the image differentiated at step i, zero-padded
+    differences = torch.empty_like(slots[0]) if need_velocity else None
+    cx, cy = _difference_factors(domain, scheme)
     for i in range(n, -1, -1):
-        if i < n and steps.moves(i):  # both transports of a step share its grid (built once)
-            if q is None:
-                g_t = steps.move(g_t.unsqueeze(-3), i, "zeros").squeeze(-3)
-            else:
+        frame, factor = slots[i][..., 0:1, :, :], slots[i][..., 1:2, :, :]  # W(t_i), 1 + div nu(t_i)/N
+        if i < n and steps.moves(i):
+            if compose:  # the transports of a step share its grid (built once)
                 q = steps.move(q, i, "border") + steps.w(i)
-                g_t = sample(grad_out.unsqueeze(-3), displaced_grid(q, domain), "zeros").squeeze(-3)
-            if geometric:  # line 8
-                jac = steps.move(jac.unsqueeze(-3), i, "border").squeeze(-3).mul_(growth[..., i, :, :])
-        jg = jac * g_t if geometric else g_t  # |D phi_{t_i,1}| G o phi_{t_i,1}
-        if need_velocity:
-            image, out = trajectory[..., i, :, :], grad_v[..., i, :, :, :]
-            if geometric:
-                _gradient_into(out, image, domain, scheme, -1.0 / n, jg)
+                g_t = sample(grad_out.unsqueeze(-3), displaced_grid(q, domain), "zeros")
+                if geometric:  # line 8
+                    jac = steps.move(jac, i, "border").mul_(factor)
             else:
-                _gradient_into(out, g_t, domain, scheme, 1.0 / n, image)
-    return grad_v, jg
+                g_t = steps.move(g_t, i, "zeros")
+                if geometric:  # rho_i = (1 + div nu(t_i)/N) rho_{i+1} o s_i
+                    g_t.mul_(factor)
+        weight = (jac * g_t if compose else g_t) if geometric else g_t
+        if need_velocity:  # geometric: -(1/N) rho_i grad(W(t_i)); mass-preserving: (1/N) W(t_i) grad(G o phi_{t_i,1})
+            inner.copy_(frame if geometric else g_t)
+            _differences_into(differences, padded, scheme)
+            sign = -1.0 / n if geometric else 1.0 / n
+            _weigh_into(slots[i], differences, weight if geometric else frame, sign * cx, sign * cy)
+    return (record if need_velocity else None), weight.squeeze(-3)
+
+
+def _padded_scratch(like: torch.Tensor) -> tuple:
+    """A zero-padded image buffer ``(..., 1, nx+2, ny+2)`` for images like ``like (..., nx, ny)``, and its interior."""
+    padded = like.new_zeros(*like.shape[:-2], 1, like.shape[-2] + 2, like.shape[-1] + 2)
+    return padded, padded[..., 1:-1, 1:-1]
+
+
+def _differences_into(out: torch.Tensor, p: torch.Tensor, scheme: str) -> torch.Tensor:
+    """The x and y finite differences (before the quotients' factors) of the zero-padded image ``p (..., 1, nx+2,
+    ny+2)`` into ``out (..., 2, nx, ny)``."""
+    ox, oy = out.unbind(-3)
+    torch.sub(*_differenced(p.squeeze(-3), -2, scheme), out=ox)
+    torch.sub(*_differenced(p.squeeze(-3), -1, scheme), out=oy)
+    return out
+
+
+def _weigh_into(out: torch.Tensor, differences: torch.Tensor, weight: torch.Tensor, cx: float, cy: float) -> None:
+    """``out (..., 2, nx, ny) = differences * weight * (cx, cy)``, ``weight (..., 1, nx, ny)`` (the gradient's
+    quotient factors folded into the weight; ``weight`` may share memory with ``out``: it is scaled into a
+    temporary first)."""
+    if cx == cy:
+        torch.mul(differences, weight * cx, out=out)
+        return
+    scaled = [weight.squeeze(-3) * c for c in (cx, cy)]
+    for o, d, w in zip(out.unbind(-3), differences.unbind(-3), scaled):
+        torch.mul(d, w, out=o)

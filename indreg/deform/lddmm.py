@@ -10,7 +10,7 @@ from .._checks import check_int, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 
-ACTIONS = ("geometric", "mass_preserving")
+ACTIONS = Fd.ACTIONS
 BACKWARDS = ("paper", "autograd")
 
 
@@ -33,41 +33,53 @@ class _Config:
 class _PaperDeformation(torch.autograd.Function):
     """``W(nu, I)`` with the paper's gradient as backward (Algorithm 1, lines 7-10, without the kernel).
 
-    The forward runs the time loop without an autograd graph and keeps only the trajectory
-    ``W(nu, I)(t_i)``, ``(B, N+1, nx, ny)`` (plus the velocity input): memory ``O(N n^2)``. ``moving``: the
-    per-step flags of ``functional.step_flags`` (computed once by the input check, shared by both passes).
-    Double backward is not supported (``once_differentiable``): use ``backward="autograd"`` for it.
+    The forward runs the time loop without an autograd graph and keeps only ``functional.gradient_record``:
+    the trajectory ``W(nu, I)(t_i)`` and the factors ``1 + div nu(t_i)/N`` in one velocity-sized tensor,
+    which the backward overwrites with the velocity gradient and returns: forward and backward together hold
+    one ``(B, N+1, 2, nx, ny)`` tensor (memory ``O(N n^2)``). The record is kept on ``ctx`` (not through
+    ``save_for_backward``, so saved-tensor hooks do not see it) and dropped once consumed; a second backward
+    through a retained graph recomputes it. ``moving``: the per-step flags of ``functional.step_flags``
+    (computed once by the input check, shared by both passes). Double backward is not supported
+    (``once_differentiable``): use ``backward="autograd"`` for it.
     """
 
     @staticmethod
     def forward(velocity, template, config, moving):
-        batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
-        trajectory = Fd.deformed_trajectory(
-            template.expand(*batch, *template.shape[-2:]), velocity.expand(*batch, *velocity.shape[-4:]),
-            config.domain, config.action, config.interpolation, config.scheme, moving)
-        return trajectory[..., -1, :, :].clone(), trajectory
+        record = _record(velocity, template, config, moving)
+        return record[..., -1, 0, :, :].clone(), record
 
     @staticmethod
     def setup_context(ctx, inputs, output):
         velocity, template, config, moving = inputs
         ctx.mark_non_differentiable(output[1])
-        ctx.set_materialize_grads(False)  # no zero-filled (N+1) n^2 gradient for the trajectory output
-        ctx.save_for_backward(velocity, output[1])
-        ctx.config, ctx.template_shape, ctx.moving = config, template.shape, moving
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(velocity, template)
+        ctx.config, ctx.moving, ctx.record = config, moving, output[1]
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_out, _grad_trajectory):
+    def backward(ctx, grad_out, _grad_record):
         if grad_out is None:
             return None, None, None, None
-        velocity, trajectory = ctx.saved_tensors
-        c = ctx.config
+        velocity, template = ctx.saved_tensors
+        c, need_velocity = ctx.config, ctx.needs_input_grad[0]
+        record = ctx.record if ctx.record is not None else _record(velocity, template, c, ctx.moving)
+        if need_velocity:  # paper_gradient overwrites it
+            ctx.record = None
         grad_v, grad_i = Fd.paper_gradient(
-            grad_out, velocity.expand(*grad_out.shape[:-2], *velocity.shape[-4:]), trajectory, c.domain,
-            c.action, c.interpolation, c.scheme, need_velocity=ctx.needs_input_grad[0], moving=ctx.moving)
-        grad_v = grad_v.sum_to_size(velocity.shape) if grad_v is not None else None
-        grad_i = grad_i.sum_to_size(ctx.template_shape) if ctx.needs_input_grad[1] else None
+            grad_out, velocity.expand(*grad_out.shape[:-2], *velocity.shape[-4:]), record, c.domain,
+            c.action, c.interpolation, c.scheme, need_velocity=need_velocity, moving=ctx.moving)
+        grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
+        grad_i = grad_i.sum_to_size(template.shape) if ctx.needs_input_grad[1] else None
         return grad_v, grad_i, None, None
+
+
+def _record(velocity, template, config, moving) -> torch.Tensor:
+    """``functional.gradient_record`` of the broadcast inputs."""
+    batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
+    return Fd.gradient_record(template.expand(*batch, *template.shape[-2:]),
+                              velocity.expand(*batch, *velocity.shape[-4:]), config.domain, config.action,
+                              config.interpolation, config.scheme, moving)
 
 
 class LDDMMDeformation(torch.nn.Module):
@@ -200,9 +212,10 @@ class LDDMMDeformation(torch.nn.Module):
     def forward(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """The deformed template ``W(nu, I)``, ``(..., nx, ny)``."""
         moving = self._check(velocity, template)
-        if self.backward == "paper":
+        if self.backward == "paper" and torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
             return _PaperDeformation.apply(velocity, template, self._config, moving)[0]
-        return self._trajectory(velocity, template, moving)[..., -1, :, :]
+        deformed = self._trajectory(velocity, template, moving)[..., -1, :, :]
+        return deformed if self.backward == "autograd" else deformed.clone()  # not a view of the trajectory
 
     def trajectory(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """``W(nu, I)(t_i)`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (differentiable by plain autograd)."""

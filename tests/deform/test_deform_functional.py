@@ -66,3 +66,44 @@ def test_bad_scheme():
         Fd.gradient(dom.zeros(), dom, "upwind")
     with pytest.raises(ValueError, match="scheme"):
         Fd.divergence(dom.zeros(2), dom, "upwind")
+
+
+@pytest.mark.parametrize("scheme", ("central", "forward"))
+@pytest.mark.parametrize("shape", ((9, 7), (2, 5), (1, 1)))
+def test_growth_factors_equal_one_plus_scaled_divergence(scheme, shape):
+    dom = ImageDomain(shape, (0.0, 0.0), (3.0, 1.0))
+    v = torch.randn(4, 2, *shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    out = torch.empty(4, *shape, dtype=torch.float64)
+    Fd._growth_into(out, v, dom, scheme, -0.25)
+    torch.testing.assert_close(out, 1 - 0.25 * Fd.divergence(v, dom, scheme), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("shape", ((9, 7), (1, 2)))
+def test_gradient_from_padded_differences(shape):
+    """gradient() reads its differences from the zero-padded image: explicit formulas, any size."""
+    dom = ImageDomain(shape, (0.0, 0.0), (3.0, 1.0))
+    (hx, hy), f = dom.cell_sides, torch.rand(*shape, dtype=torch.float64)
+    p = torch.nn.functional.pad(f, (1, 1, 1, 1))
+    central = torch.stack([(p[2:, 1:-1] - p[:-2, 1:-1]) / (2 * hx), (p[1:-1, 2:] - p[1:-1, :-2]) / (2 * hy)])
+    forward = torch.stack([(p[2:, 1:-1] - f) / hx, (p[1:-1, 2:] - f) / hy])
+    torch.testing.assert_close(Fd.gradient(f, dom), central, rtol=0, atol=1e-14)
+    torch.testing.assert_close(Fd.gradient(f, dom, "forward"), forward, rtol=0, atol=1e-14)
+
+
+def test_step_flags():
+    v = torch.zeros(2, 4, 2, 5, 5)
+    v[1, 2, 0, 3, 3] = -1e-3  # one nonzero entry in one batch entry marks the step as moving
+    assert Fd.step_flags(v) == ([False, False, True, False], True)
+    v[0, 3, 1, 0, 0] = float("nan")
+    assert Fd.step_flags(v)[1] is False
+    v[0, 3, 1, 0, 0] = float("-inf")
+    assert Fd.step_flags(v)[1] is False
+
+
+def test_out_buffers_only_without_autograd():
+    dom = ImageDomain.paper(8)
+    v = torch.zeros(3, 2, 8, 8, requires_grad=True)
+    with pytest.raises(RuntimeError, match="out="):
+        Fd.template_trajectory(dom.zeros(), v, dom, out=torch.empty(3, 8, 8))
+    with pytest.raises(RuntimeError, match="out="):
+        Fd.jacobian_trajectory(v, dom, out=torch.empty(3, 8, 8))

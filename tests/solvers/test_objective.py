@@ -57,13 +57,11 @@ def _paper_update(p, nu, alpha):
         images.append(Fn.warp(images[-1], x - nu[i] / N, dom))
     f = images[-1]
     grad_data = T.adjoint(T(f) - p.data)                        # T^*(T f - g)
-    jac, gd = [None] * (N + 1), [None] * (N + 1)
-    jac[N], gd[N] = torch.ones_like(f), grad_data
-    for i in range(N - 1, -1, -1):                              # lines 8-9
-        forward = x + nu[i] / N
-        jac[i] = (1 + Fn.divergence(nu[i], dom, scheme) / N) * Fn.warp(jac[i + 1], forward, dom, "border")
-        gd[i] = Fn.warp(gd[i + 1], forward, dom)
-    data_grad = torch.stack([gd[i] * jac[i] * Fn.gradient(images[i], dom, scheme) for i in range(N + 1)])
+    rho = [None] * (N + 1)                                      # lines 8-9 fused: |D phi_{t_i,1}| G o phi_{t_i,1}
+    rho[N] = grad_data
+    for i in range(N - 1, -1, -1):
+        rho[i] = (1 + Fn.divergence(nu[i], dom, scheme) / N) * Fn.warp(rho[i + 1], x + nu[i] / N, dom)
+    data_grad = torch.stack([rho[i] * Fn.gradient(images[i], dom, scheme) for i in range(N + 1)])
     grad_v = p.gamma * nu - K(data_grad)                        # line 10 (code's scale, no factor 2)
     return nu - alpha * grad_v                                  # line 11
 
