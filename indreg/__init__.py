@@ -9,5 +9,5 @@ from .learn.loss import IndirectShootingLoss
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "RayTransform", "GaussianKernel", "LDDMMDeformation",
            "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss"]
+           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"

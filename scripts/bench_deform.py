@@ -4,8 +4,9 @@
     python scripts/bench_deform.py --kernel        # GaussianKernel: matrix vs FFT (the "auto" crossover)
     python scripts/bench_deform.py --blur          # interpolation="reinterpolate" vs "compose" (J, Shepp-Logan)
 
-Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``,
-every (size, mode, phase) in a fresh subprocess.
+Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``; per
+size one fresh subprocess times both modes and phases in interleaved rounds (per round and combination one
+untimed call, then three timed ones), so the ratios are measured in one run under the same machine state.
 Memory: every (size, mode, phase) in another fresh subprocess, after building the inputs and a warm-up,
 measured two ways over one call (the extra memory of that call over its inputs: trajectories, saved
 tensors / autograd graph, outputs, gradients; the velocity gradient alone is 11 MB at 256^2, N = 20):
@@ -60,28 +61,39 @@ def call(W, velocity, template, grad_out, phase):
     return out
 
 
-def worker(n, mode, phase, num_steps, repeats, threads, what):
+COMBOS = [(mode, phase) for mode in ("paper", "autograd") for phase in ("fwd", "fwd+bwd")]
+
+
+def time_worker(n, num_steps, repeats, threads):
+    """Median times of both modes and phases, interleaved call by call (the ratios see the same machine state)."""
     torch.set_num_threads(threads)
-    if what == "memory":
-        _disable_huge_pages()
+    problems = {mode: problem(n, num_steps, mode) for mode in ("paper", "autograd")}
+    for mode, phase in COMBOS:
+        call(*problem(16, num_steps, mode), phase)  # warm-up of the code paths
+        call(*problems[mode], phase)
+    times = {combo: [] for combo in COMBOS}
+    for _ in range(max(1, repeats // 3)):  # rounds: per combo one untimed call (its steady state), three timed
+        for mode, phase in COMBOS:
+            call(*problems[mode], phase)
+            for _ in range(3):
+                t0 = time.perf_counter()
+                call(*problems[mode], phase)
+                times[mode, phase].append(time.perf_counter() - t0)
+    print(json.dumps({f"{mode} {phase}": statistics.median(t) for (mode, phase), t in times.items()}))
+
+
+def memory_worker(n, mode, phase, num_steps, threads):
+    torch.set_num_threads(threads)
+    _disable_huge_pages()
     call(*problem(16, num_steps, mode), phase)  # warm-up of the code paths
     args = problem(n, num_steps, mode)
-    if what == "memory":
-        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        call(*args, phase)
-        rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024
-        for _ in range(2):  # the first pass warms up the dispatch mode itself
-            with LivePeak() as live:
-                call(*args, phase)
-        print(json.dumps({"rss_mb": rss, "live_mb": live.peak / 2 ** 20}))
-        return
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     call(*args, phase)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call(*args, phase)
-        times.append(time.perf_counter() - t0)
-    print(json.dumps({"time": statistics.median(times)}))
+    rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024
+    for _ in range(2):  # the first pass warms up the dispatch mode itself
+        with LivePeak() as live:
+            call(*args, phase)
+    print(json.dumps({"rss_mb": rss, "live_mb": live.peak / 2 ** 20}))
 
 
 class _MallInfo2(ctypes.Structure):
@@ -121,23 +133,20 @@ def _disable_huge_pages():
         pass
 
 
-def run_worker(n, mode, phase, a):
-    out = {}
-    for what in ("time", "memory"):
-        cmd = [sys.executable, __file__, "--worker", str(n), mode, phase, what, "--steps", str(a.steps),
-               "--repeats", str(a.repeats), "--threads", str(a.threads)]
-        done = subprocess.run(cmd, check=True, capture_output=True, text=True)
-        out.update(json.loads(done.stdout.strip().splitlines()[-1]))
-    return out
+def run(a, *worker_args):
+    cmd = [sys.executable, __file__, "--worker", *map(str, worker_args), "--steps", str(a.steps),
+           "--repeats", str(a.repeats), "--threads", str(a.threads)]
+    done = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def main_table(a):
     results = {}
     for n in a.sizes:
-        for mode in ("paper", "autograd"):
-            for phase in ("fwd", "fwd+bwd"):
-                results[n, mode, phase] = run_worker(n, mode, phase, a)
-                print(f"  {n}^2 {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
+        times = run(a, "time", n)
+        for mode, phase in COMBOS:
+            results[n, mode, phase] = {"time": times[f"{mode} {phase}"], **run(a, "memory", n, mode, phase)}
+            print(f"  {n}^2 {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
     print(f"\n### LDDMMDeformation, N = {a.steps}, float32, {a.threads} thread(s), geometric, reinterpolate\n")
     print("| size | backward | forward (s) | fwd+bwd (s) | fwd: RSS / live (MB) | fwd+bwd: RSS / live (MB) |")
     print("|---|---|---|---|---|---|")
@@ -218,14 +227,17 @@ def main():
     p.add_argument("--kernel-sizes", type=int, nargs="+", default=[64, 128, 256, 438, 512, 768])
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=1)
     p.add_argument("--kernel", action="store_true", help="also the kernel matrix/FFT table")
     p.add_argument("--blur", action="store_true", help="also the reinterpolate/compose table")
     p.add_argument("--no-main", action="store_true", help="skip the time/memory table")
-    p.add_argument("--worker", nargs=4, metavar=("SIZE", "MODE", "PHASE", "WHAT"), help=argparse.SUPPRESS)
+    p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.worker:
-        worker(int(a.worker[0]), a.worker[1], a.worker[2], a.steps, a.repeats, a.threads, a.worker[3])
+        if a.worker[0] == "time":
+            time_worker(int(a.worker[1]), a.steps, a.repeats, a.threads)
+        else:
+            memory_worker(int(a.worker[1]), a.worker[2], a.worker[3], a.steps, a.threads)
         return
     torch.set_num_threads(a.threads)
     if not a.no_main:

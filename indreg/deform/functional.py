@@ -98,14 +98,9 @@ def gradient(f: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> t
     """
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-    p, (cx, cy) = pad(f), _difference_factors(domain, scheme)
+    p, (cx, cy) = F.pad(f, (1, 1, 1, 1)), _difference_factors(domain, scheme)
     return torch.stack((torch.sub(*_differenced(p, -2, scheme)) * cx, torch.sub(*_differenced(p, -1, scheme)) * cy),
                        dim=-3)
-
-
-def pad(f: torch.Tensor) -> torch.Tensor:
-    """An image ``(..., nx, ny)`` zero-padded by one cell on each side, ``(..., nx+2, ny+2)`` (0 outside the domain)."""
-    return F.pad(f, (1, 1, 1, 1))
 
 
 def _difference_factors(domain: ImageDomain, scheme: str) -> tuple:
@@ -454,6 +449,7 @@ def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, record: torch
     ``grad_velocity`` is ``record`` itself, overwritten (step ``i`` writes slot ``i`` after reading it), or None
     unless ``need_velocity`` (``record`` is then left as it is).
     """
+    _check_action(action)
     _check_interpolation(interpolation)
     n, shape = velocity.shape[-4] - 1, velocity.shape[-2:]
     if record.shape[-4:] != velocity.shape[-4:]:

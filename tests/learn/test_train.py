@@ -55,7 +55,7 @@ def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
     assert resumed["resumed_from"] == 2 and "algorithm1" not in resumed
     _, steps = scalars(tmp_path / "b", "train/loss")
     assert steps == [1, 2, 3, 4]
-    straight = run(tmp_path / "c", "train.steps=4", "eval.algorithm1.num_samples=0")
+    run(tmp_path / "c", "train.steps=4", "eval.algorithm1.num_samples=0")  # the uninterrupted run
     b, c = parameters(tmp_path / "b"), parameters(tmp_path / "c")
     assert b["step"] == c["step"] == 4
     for name, value in c["model"].items():            # resuming gives the uninterrupted run's weights
