@@ -107,3 +107,23 @@ def test_out_buffers_only_without_autograd():
         Fd.template_trajectory(dom.zeros(), v, dom, out=torch.empty(3, 8, 8))
     with pytest.raises(RuntimeError, match="out="):
         Fd.jacobian_trajectory(v, dom, out=torch.empty(3, 8, 8))
+
+
+@pytest.mark.parametrize("padding_mode", ("zeros", "border"))
+def test_sample_in_row_bands_is_exact(padding_mode):
+    """With several CPU threads a single image is sampled in bands of rows: the same values and gradients."""
+    g = torch.Generator().manual_seed(0)
+    f = torch.rand(1, 1, 64, 48, dtype=torch.float64, generator=g)
+    grid = torch.rand(1, 64, 48, 2, dtype=torch.float64, generator=g) * 2.2 - 1.1
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        single = Fd.sample(f, grid, padding_mode)
+        torch.set_num_threads(2)
+        assert Fd._bands(f, 64) == 2
+        assert torch.equal(Fd.sample(f, grid, padding_mode), single)
+        assert torch.autograd.gradcheck(lambda a, b: Fd.sample(a, b, padding_mode),
+                                        (f[..., :16, :12].clone().requires_grad_(),
+                                         grid[:, :32, :12].clone().requires_grad_()))
+    finally:
+        torch.set_num_threads(threads)
