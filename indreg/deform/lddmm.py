@@ -98,10 +98,10 @@ class LDDMMDeformation(torch.nn.Module):
       requiring grad) the plain forward runs. ``backward="autograd"``: plain autograd through the discrete
       forward (the exact derivative of the discrete map; keeps the graph of the time loop).
       Measured (``scripts/bench_deform.py``, 256^2, N=20, float32, 1 thread, modes interleaved in one
-      process): fwd+bwd paper 0.015-0.017 s vs autograd 0.035-0.042 s (2.15-2.75x over 4 runs); peak memory
+      process): fwd+bwd paper 0.015-0.017 s vs autograd 0.035-0.042 s (2.15-2.75x over 5 runs); peak memory
       of fwd+bwd 10-11 MB vs 42-55 MB resident (4.2-5.2x), 12.5 MB vs 31.5 MB of live tensors (2.5x; the
       11 MB velocity gradient, returned by both, bounds this ratio below 31.5 / 11 = 2.9). With 2 threads
-      0.013 s vs 0.027 s (2.0x).
+      2.1-2.6x over 3 runs.
     - ``interpolation="reinterpolate"`` (the paper: re-interpolate the image every step) or ``"compose"``
       (compose the displacements, interpolate the template once per time: less numerical blur; the
       paper's gradient then transports ``G`` by composed displacements too). Measured

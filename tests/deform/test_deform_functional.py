@@ -111,19 +111,26 @@ def test_out_buffers_only_without_autograd():
 
 @pytest.mark.parametrize("padding_mode", ("zeros", "border"))
 def test_sample_in_row_bands_is_exact(padding_mode):
-    """With several CPU threads a single image is sampled in bands of rows: the same values and gradients."""
+    """With several CPU threads a large single image is sampled in bands of rows: the same values, and the
+    same gradients (the input's summed over the bands)."""
     g = torch.Generator().manual_seed(0)
-    f = torch.rand(1, 1, 64, 48, dtype=torch.float64, generator=g)
-    grid = torch.rand(1, 64, 48, 2, dtype=torch.float64, generator=g) * 2.2 - 1.1
+    f = torch.rand(1, 1, 128, 96, dtype=torch.float64, generator=g)
+    grid = torch.rand(1, 128, 128, 2, dtype=torch.float64, generator=g) * 2.2 - 1.1
+    weight = torch.rand(1, 1, 128, 128, dtype=torch.float64, generator=g)
+
+    def value_and_grads():
+        a, b = f.clone().requires_grad_(), grid.clone().requires_grad_()
+        out = Fd.sample(a, b, padding_mode)
+        return (out.detach(), *torch.autograd.grad((out * weight).sum(), (a, b)))
+
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        single = Fd.sample(f, grid, padding_mode)
+        single = value_and_grads()
         torch.set_num_threads(2)
-        assert Fd._bands(f, 64) == 2
-        assert torch.equal(Fd.sample(f, grid, padding_mode), single)
-        assert torch.autograd.gradcheck(lambda a, b: Fd.sample(a, b, padding_mode),
-                                        (f[..., :16, :12].clone().requires_grad_(),
-                                         grid[:, :32, :12].clone().requires_grad_()))
+        assert Fd._bands(f, 128, 128) == 2 and Fd._bands(f, 64, 64) == 1 and Fd._bands(f, 127, 128) == 1
+        banded = value_and_grads()
     finally:
         torch.set_num_threads(threads)
+    assert torch.equal(banded[0], single[0]) and torch.equal(banded[2], single[2])
+    torch.testing.assert_close(banded[1], single[1], rtol=1e-13, atol=1e-13)
