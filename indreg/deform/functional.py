@@ -1,7 +1,9 @@
 """Pure functions of the LDDMM time discretisation: interpolation, finite differences, the flow recursions.
 
-Everything here is plain torch (differentiable by autograd) and device / dtype agnostic, so the
-deformation operator (``lddmm.py``) and later layers (geodesic shooting) share one implementation.
+Everything here is plain torch and device / dtype agnostic, so the deformation operator (``lddmm.py``) and
+later layers (geodesic shooting) share one implementation. The recursions are differentiable by autograd;
+without a graph to record they run in place (reused buffers, ``out=``), and ``gradient_record`` /
+``paper_gradient`` are the two halves of the paper's gradient (Algorithm 1, lines 7-10) without autograd.
 
 Convention:
     - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
