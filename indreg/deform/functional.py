@@ -326,14 +326,14 @@ def template_trajectory(template: torch.Tensor, velocity: torch.Tensor, domain: 
     ``out``: a tensor (any strides) to write the trajectory into, without autograd.
     """
     _check_interpolation(interpolation)
-    steps = _Steps(velocity, domain, -1.0, moving)
-    recording = steps.recording or template.requires_grad and torch.is_grad_enabled()
+    recording = torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad)
     if out is not None and recording:
         raise RuntimeError("template_trajectory(out=...) does not record autograd graphs")
     if interpolation == "compose":
         u = displacements_t0(velocity, domain)
         images = _sample_displaced(template[..., None, None, :, :], u, domain, "zeros").squeeze(-3)
         return images if out is None else out.copy_(images)
+    steps = _Steps(velocity, domain, -1.0, moving)
     if recording:
         images = [template]
         for i in range(1, velocity.shape[-4]):
@@ -480,8 +480,9 @@ def paper_gradient(grad_out: torch.Tensor, velocity: torch.Tensor, record: torch
     g_t = grad_out.unsqueeze(-3)  # G o phi_{t_i,1}; for the geometric reinterpolation rho_i; (..., 1, nx, ny)
     jac = torch.ones_like(g_t) if geometric and compose else None  # |D phi_{t_i,1}|
     q = torch.zeros_like(grad_out.unsqueeze(-3).expand(*grad_out.shape[:-2], 2, *shape)) if compose else None
-    padded, inner = _padded_scratch(grad_out)  # the image differentiated at step i, zero-padded
-    differences = torch.empty_like(slots[0]) if need_velocity else None
+    if need_velocity:  # the image differentiated at step i, zero-padded, and its differences
+        padded, inner = _padded_scratch(grad_out)
+        differences = torch.empty_like(slots[0])
     cx, cy = _difference_factors(domain, scheme)
     for i in range(n, -1, -1):
         frame, factor = slots[i][..., 0:1, :, :], slots[i][..., 1:2, :, :]  # W(t_i), 1 + div nu(t_i)/N

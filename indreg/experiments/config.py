@@ -34,6 +34,8 @@ from typing import Any, Dict, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from .. import phantoms as _phantoms
+from ..deform import functional as _Fd
+from ..deform import lddmm as _lddmm
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
 Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
@@ -55,19 +57,10 @@ class NoiseConvention(str, Enum):
     paper = "paper"
 
 
-class Action(str, Enum):
-    geometric = "geometric"
-    mass_preserving = "mass_preserving"
-
-
-class Backward(str, Enum):
-    paper = "paper"
-    autograd = "autograd"
-
-
-class Interpolation(str, Enum):
-    reinterpolate = "reinterpolate"
-    compose = "compose"
+# the deformation operator's choices, from the one place that defines them
+Action = Enum("Action", {name: name for name in _Fd.ACTIONS}, type=str)
+Backward = Enum("Backward", {name: name for name in _lddmm.BACKWARDS}, type=str)
+Interpolation = Enum("Interpolation", {name: name for name in _Fd.INTERPOLATIONS}, type=str)
 
 
 class SolverName(str, Enum):
