@@ -79,7 +79,7 @@ def make_solver(cfg: DictConfig, problem):
     if s.name.value == "algorithm1":
         return Algorithm1(problem, step_size=s.step_size, max_iter=s.max_iter, grad_tol=s.grad_tol,
                           step_halving=s.step_halving)
-    return TorchOptimSolver(problem, optimizer=s.optimizer.value, lr=s.step_size, max_iter=s.max_iter,
+    return TorchOptimSolver(problem, optimizer=s.optimizer.value, lr=s.lr, max_iter=s.max_iter,
                             grad_tol=s.grad_tol, **dict(s.optimizer_kwargs))
 
 

@@ -1,6 +1,6 @@
 """Typed (structured) configs of the experiment app, registered in Hydra's ConfigStore.
 
-The dataclasses below are the *schema* of ``configs/**.yaml``: Hydra merges every yaml file into them, so an
+The dataclasses below are the *schema* of ``indreg/conf/**.yaml``: Hydra merges every yaml file into them, so an
 unknown key (``solver.gama=1``), a wrong type (``solver.gamma=abc``) or a value outside an enum
 (``deformation.action=affine``, ``phantom.target=cat``) fails at composition with a message that names the key.
 Range checks that a type cannot express (``solver.gamma >= 0``, ``kernel.sigma > 0``, ...) are done by
@@ -20,13 +20,14 @@ Config groups (one sub-config each) and top-level keys::
     sweep        multirun presets (``sweep=suite3_table``: the paper's sensitivity table)
     name, seed, dtype, device, resume, stop_after
 
-If ``configs/`` is not next to the installed package, :func:`register_configs` (``presets=True``) puts the
-same presets into the ConfigStore so the app still runs (``experiment=...`` and ``sweep=...`` work).
+The yaml files live in the package (``indreg/conf``, :data:`CONFIG_DIR`), so an installed wheel composes exactly
+the configs of the checkout.
 """
 from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Dict, Optional
@@ -127,11 +128,14 @@ class KernelConfig:
 
 @dataclass
 class SolverConfig:
-    """Objective weights and the optimiser. ``step_size`` is Algorithm 1's epsilon, or the lr of torch.optim."""
+    """Objective weights and the optimiser. ``step_size`` is Algorithm 1's epsilon (the presets set it); ``lr`` is
+    the learning rate of torch.optim (``solver=lbfgs`` / ``adam`` set their own), so an ``experiment=`` preset
+    never changes an optimizer's learning rate."""
     name: SolverName = SolverName.algorithm1
     gamma: float = 1e-6
     tv_weight: float = 0.0
     step_size: float = 0.02
+    lr: float = 1.0
     max_iter: int = 200
     grad_tol: float = 0.0
     step_halving: bool = False
@@ -180,101 +184,18 @@ class RegisterConfig:
 
 
 SCHEMA_NAME = "indreg_schema"
-FALLBACK_NAME = "indreg_fallback"
 
-# Hydra settings shared by configs/config.yaml and the ConfigStore fallback.
-HYDRA_SETTINGS = {
-    "run": {"dir": "outputs/${name}/${now:%Y-%m-%d_%H-%M-%S}"},
-    "sweep": {"dir": "multirun/${name}/${now:%Y-%m-%d_%H-%M-%S}", "subdir": "${hydra.job.num}"},
-    "job": {"chdir": False},
-}
-
-# The paper's test suites (PAPER_NOTES table). configs/experiment/*.yaml must compose to the same values
-# (tests/experiments/test_config.py checks it); these copies serve the ConfigStore fallback.
-_SHEPP = {"size": 256, "target": "shepp_logan"}
-_GEOM_10x362 = {"num_angles": 10, "det_count": 362, "det_min": -24.0, "det_max": 24.0, "partition": "paper"}
-_BASELINE_SL = {"tv_mu": 1.0}
-PRESETS = {
-    "suite1_jv": {
-        "name": "suite1_jv",
-        "phantom": {"template": "j", "target": "v", "size": 64},
-        "geometry": {"num_angles": 10, "det_count": 92, "det_min": -24.0, "det_max": 24.0, "partition": "paper"},
-        "noise": {"snr_db": 4.87, "std": None, "convention": "code"},
-        "deformation": {"num_steps": 20, "action": "geometric"},
-        "kernel": {"sigma": 6.0},
-        "solver": {"name": "algorithm1", "gamma": 1e-6, "step_size": 0.02, "max_iter": 200},
-        "baseline": {"fbp_filter": "hamming", "fbp_frequency_scaling": 0.4, "tv_mu": 3.0, "tv_iterations": 1000},
-    },
-    "suite2_six_objects": {
-        "name": "suite2_six_objects",
-        "phantom": {"template": "six_objects_template", "target": "six_objects_target", "size": 438},
-        "geometry": {"num_angles": 6, "det_count": 620, "det_min": -24.0, "det_max": 24.0, "partition": "paper"},
-        "noise": {"snr_db": 4.75, "std": None, "convention": "code"},
-        "deformation": {"num_steps": 20, "action": "geometric"},
-        "kernel": {"sigma": 2.0},
-        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.04, "max_iter": 200},
-        "baseline": {"fbp_filter": "hamming", "fbp_frequency_scaling": 0.4, "tv_mu": 1.0, "tv_iterations": 1000},
-    },
-    "suite3_shepp_logan": {
-        "name": "suite3_shepp_logan",
-        "phantom": dict(_SHEPP, template="shepp_logan_template"),
-        "geometry": _GEOM_10x362,
-        "noise": {"snr_db": 7.06, "std": None, "convention": "code"},
-        "deformation": {"num_steps": 20, "action": "geometric"},
-        "kernel": {"sigma": 2.0},
-        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 500},
-        "baseline": _BASELINE_SL,
-    },
-    "suite4_missing_object": {
-        "name": "suite4_missing_object",
-        "phantom": dict(_SHEPP, template="shepp_logan_template_missing"),
-        "geometry": _GEOM_10x362,
-        "noise": {"snr_db": 7.06, "std": None, "convention": "code"},
-        "deformation": {"num_steps": 20, "action": "geometric"},
-        "kernel": {"sigma": 2.0},
-        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 1000},
-        "baseline": _BASELINE_SL,
-    },
-    "suite4_extra_object": {
-        "name": "suite4_extra_object",
-        "phantom": dict(_SHEPP, template="shepp_logan_template_extra"),
-        "geometry": _GEOM_10x362,
-        "noise": {"snr_db": 6.46, "std": None, "convention": "code"},
-        "deformation": {"num_steps": 20, "action": "geometric"},
-        "kernel": {"sigma": 2.0},
-        "solver": {"name": "algorithm1", "gamma": 1e-7, "step_size": 0.02, "max_iter": 1000},
-        "baseline": _BASELINE_SL,
-    },
-}
-
-# Suite 3's sensitivity table as one multirun (configs/sweep/suite3_table.yaml).
-SUITE3_GAMMAS = (1e-7, 1e-5, 1e-3, 1e-1, 10.0)
-SUITE3_SIGMAS = (1.0, 2.0, 2.5, 3.0, 4.0, 8.0)
-SWEEPS = {
-    "suite3_table": {
-        "defaults": [{"override /experiment": "suite3_shepp_logan"}],
-        "hydra": {"sweeper": {"params": {
-            "solver.gamma": ",".join(repr(g) for g in SUITE3_GAMMAS),
-            "kernel.sigma": ",".join(repr(s) for s in SUITE3_SIGMAS)}}},
-    },
-}
+#: The app's yaml configs, shipped inside the package (``indreg/conf``; the checkout's top-level ``configs`` is a
+#: link to it): one source of truth for the checkout and the installed wheel. Users add their own config groups
+#: or presets with Hydra's search path, e.g. ``indreg-register 'hydra.searchpath=[file:///my/configs]' ...``.
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
-def register_configs(presets: bool = False) -> None:
-    """Store the schema (``indreg_schema``); with ``presets``, also the fallback primary config and presets."""
+def register_schema() -> None:
+    """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from."""
     from hydra.core.config_store import ConfigStore
 
-    cs = ConfigStore.instance()
-    cs.store(name=SCHEMA_NAME, node=RegisterConfig)
-    if not presets:
-        return
-    cs.store(name=FALLBACK_NAME, node={
-        "defaults": [SCHEMA_NAME, "_self_", {"experiment": "suite1_jv"}, {"sweep": None}],
-        "hydra": HYDRA_SETTINGS})
-    for name, node in PRESETS.items():
-        cs.store(group="experiment", name=name, node=node, package="_global_")
-    for name, node in SWEEPS.items():
-        cs.store(group="sweep", name=name, node=node, package="_global_")
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=RegisterConfig)
 
 
 class ConfigError(ValueError):
@@ -334,6 +255,7 @@ def validate(cfg: DictConfig) -> None:
     _require(_finite(s.gamma) and s.gamma >= 0, "solver.gamma", "a number >= 0", s.gamma)
     _require(_finite(s.tv_weight) and s.tv_weight >= 0, "solver.tv_weight", "a number >= 0", s.tv_weight)
     _require(_finite(s.step_size) and s.step_size > 0, "solver.step_size", "a number > 0", s.step_size)
+    _require(_finite(s.lr) and s.lr > 0, "solver.lr", "a number > 0", s.lr)
     _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
     _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
     b = c.baseline

@@ -1,6 +1,6 @@
 """``indreg-register``: run one indirect registration experiment of the paper (a Hydra app).
 
-Usage (configs in ``configs/``; every key can be overridden as ``key=value``)::
+Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can be overridden as ``key=value``)::
 
     indreg-register                                   # suite 1 (J -> V), the default experiment
     indreg-register experiment=suite3_shepp_logan dtype=float64 device=cuda
@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import signal
 import sys
 import threading
@@ -44,24 +43,12 @@ from omegaconf import DictConfig
 
 from . import checkpoint as ckpt
 from .build import build, seed_everything
-from .config import FALLBACK_NAME, ConfigError, register_configs, to_plain, validate
+from .config import CONFIG_DIR, ConfigError, register_schema, to_plain, validate
 
 log = logging.getLogger(__name__)
 
-#: configs/ of the source tree (editable install); INDREG_CONFIG_DIR overrides it.
-CONFIG_DIR = Path(os.environ.get("INDREG_CONFIG_DIR", Path(__file__).resolve().parents[2] / "configs"))
-
 # Config keys that may change between an interrupted run and its resumption.
 _RESUMABLE = ("name", "device", "resume", "stop_after", "logging", "baseline")
-
-
-def config_source() -> tuple:
-    """``(config_path, config_name)``: the yaml dir if present, else the ConfigStore fallback."""
-    if (CONFIG_DIR / "config.yaml").is_file():
-        register_configs(presets=False)
-        return str(CONFIG_DIR), "config"
-    register_configs(presets=True)
-    return None, FALLBACK_NAME
 
 
 class StopRequest:
@@ -144,7 +131,8 @@ def _problem_config(plain: dict) -> dict:
 def hyperparameters(cfg: DictConfig) -> dict:
     """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
     return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
-            "N": int(cfg.deformation.num_steps), "step_size": float(cfg.solver.step_size),
+            "N": int(cfg.deformation.num_steps),
+            "step_size": float(cfg.solver.step_size if cfg.solver.name.value == "algorithm1" else cfg.solver.lr),
             "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
             "template": cfg.phantom.template.value, "size": int(cfg.phantom.size),
             "max_iter": int(cfg.solver.max_iter), "dtype": cfg.dtype.value, "seed": int(cfg.seed)}
@@ -336,7 +324,8 @@ def _pair(result: dict, name: str) -> str:
     return f"{result[f'{name}_ssim']:.4f} / {result[f'{name}_psnr']:.2f}"
 
 
-_CONFIG_PATH, _CONFIG_NAME = config_source()
+_CONFIG_NAME = "config"
+register_schema()
 
 
 def _task(cfg: DictConfig):
@@ -352,7 +341,7 @@ def main() -> None:
     """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``)."""
     import hydra
 
-    hydra.main(version_base="1.3", config_path=_CONFIG_PATH, config_name=_CONFIG_NAME)(_task)()
+    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=_CONFIG_NAME)(_task)()
 
 
 if __name__ == "__main__":

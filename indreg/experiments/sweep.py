@@ -1,6 +1,6 @@
 """Collect a multirun's ``metrics.json`` files into the paper's suite-3 table (sigma rows x gamma columns).
 
-Each cell is ``SSIM / PSNR`` of one run, next to the paper's published value (PAPER_NOTES, table
+Each cell is ``SSIM / PSNR`` of one run, next to the paper's published value (table
 Test_suite_3:Sensitivity_table). The paper's numbers are in its SSIM/PSNR convention (data range 2 / 1 or 2,
 ``ssim_paper`` / ``psnr_paper``), so that convention is the default; ``convention="range"`` uses the data range
 of the target (``ssim`` / ``psnr``).
@@ -12,7 +12,10 @@ import io
 import json
 from pathlib import Path
 
-from .config import SUITE3_GAMMAS
+
+#: The grid of the paper's suite-3 table (conf/sweep/suite3_table.yaml sweeps the same values).
+SUITE3_GAMMAS = (1e-7, 1e-5, 1e-3, 1e-1, 10.0)
+SUITE3_SIGMAS = (1.0, 2.0, 2.5, 3.0, 4.0, 8.0)
 
 #: The paper's table: PAPER[sigma][gamma] = (SSIM, PSNR in dB).
 PAPER = {

@@ -5,7 +5,7 @@ The network (``MomentumUNet``) is trained with the indirect loss ``||T(W(m0, I))
 TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``, DDP: gloo on CPU, nccl on
 CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
 
-Entry point: ``python scripts/train_momentum.py [key=value ...]`` (Hydra config ``configs/train_momentum.yaml``),
+Entry point: ``python scripts/train_momentum.py [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
 ``torchrun --standalone --nproc_per_node=2 scripts/train_momentum.py ...`` for DDP.
 
 Batches: step ``s`` draws a global batch of ``batch_size * world_size`` distinct samples from a generator
@@ -41,7 +41,6 @@ from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -279,11 +278,11 @@ def _task(cfg) -> None:
 
 
 def main() -> None:
-    """Console entry point (Hydra parses ``sys.argv``; config ``configs/train_momentum.yaml``)."""
+    """Console entry point (Hydra parses ``sys.argv``; config ``indreg/conf/train_momentum.yaml``)."""
     import hydra
 
-    if not (CONFIG_DIR / "train_momentum.yaml").is_file():
-        raise FileNotFoundError(f"config {CONFIG_DIR / 'train_momentum.yaml'} not found (run from a source checkout)")
+    from ..experiments.config import CONFIG_DIR
+
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train_momentum")(_task)()
 
 

@@ -1,17 +1,17 @@
-"""Structured configs: the paper's presets, yaml vs ConfigStore fallback, and errors naming the bad key."""
+"""Structured configs: the paper's presets, the packaged config dir, and errors naming the bad key."""
 import json
-import subprocess
-import sys
+from pathlib import Path
 
 import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from indreg.experiments.config import PRESETS, SUITE3_GAMMAS, SUITE3_SIGMAS, ConfigError, to_plain, validate
+from indreg.experiments.config import CONFIG_DIR, ConfigError, to_plain, validate
+from indreg.experiments.sweep import SUITE3_GAMMAS, SUITE3_SIGMAS
 
 from experiment_helpers import compose, run_cli
 
-# PAPER_NOTES suite table: (size, angles, bins, snr, N, step, gamma, sigma, iterations, template)
+# The paper's suites: (size, angles, bins, snr, N, step, gamma, sigma, iterations, template)
 PAPER = {
     "suite1_jv": (64, 10, 92, 4.87, 20, 0.02, 1e-6, 6.0, 200, "j"),
     "suite2_six_objects": (438, 6, 620, 4.75, 20, 0.04, 1e-7, 2.0, 200, "six_objects_template"),
@@ -47,29 +47,15 @@ def test_presets_have_the_papers_parameters(name):
     assert cfg.baseline.tv_mu == {"suite1_jv": 3.0}.get(name, 1.0)
 
 
-@pytest.mark.slow
-def test_yaml_presets_equal_configstore_fallback(tmp_path):
-    """Without configs/ the app falls back to the ConfigStore; both give the same config for every preset."""
-    script = (
-        "import json; from hydra import initialize, compose\n"
-        "from indreg.experiments import register\n"
-        "assert register._CONFIG_PATH is None\n"
-        "from indreg.experiments.config import to_plain, PRESETS\n"
-        "out = {}\n"
-        "with initialize(version_base='1.3', config_path=None):\n"
-        "    for n in PRESETS:\n"
-        "        out[n] = to_plain(compose(register._CONFIG_NAME, overrides=['experiment=' + n]))\n"
-        "    out['sweep'] = to_plain(compose(register._CONFIG_NAME, overrides=['sweep=suite3_table'],"
-        " return_hydra_config=True).hydra.sweeper.params)\n"
-        "print(json.dumps(out))\n")
-    env = {"INDREG_CONFIG_DIR": str(tmp_path / "absent")}
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-                          env={**__import__("os").environ, **env})
-    assert proc.returncode == 0, proc.stderr
-    fallback = json.loads(proc.stdout.strip().splitlines()[-1])
-    for name in PRESETS:
-        assert fallback[name] == to_plain(compose([f"experiment={name}"])), name
-    assert fallback["sweep"] == to_plain(compose(["sweep=suite3_table"], return_hydra_config=True).hydra.sweeper.params)
+def test_configs_ship_inside_the_package():
+    """One source of truth: the app reads indreg/conf (package data), never a top-level site-packages/configs."""
+    import indreg
+
+    assert CONFIG_DIR == Path(indreg.__file__).resolve().parent / "conf"
+    presets = {p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")}
+    assert set(PAPER) <= presets
+    for group in ("solver", "baseline", "logging", "noise", "deformation", "geometry", "phantom", "sweep"):
+        assert any((CONFIG_DIR / group).glob("*.yaml")), group
 
 
 def test_sweep_preset_is_the_papers_table():
@@ -121,4 +107,13 @@ def test_entry_point_rejects_invalid_value(tmp_path):
 def test_plain_config_is_json_serialisable():
     json.dumps(to_plain(compose(["experiment=suite3_shepp_logan"])))
     assert OmegaConf.is_config(compose())
-    assert set(PRESETS) == set(PAPER)
+
+
+@pytest.mark.parametrize("solver, lr", [("lbfgs", 1.0), ("adam", 0.01)])
+def test_experiment_preset_keeps_the_optimizers_learning_rate(solver, lr):
+    """``experiment=suite1_jv solver=lbfgs`` runs L-BFGS at lbfgs.yaml's lr, not at suite 1's Algorithm-1 step."""
+    from indreg.experiments.build import build
+
+    cfg = compose(["experiment=suite1_jv", f"solver={solver}", "phantom.size=16", "deformation.num_steps=2"])
+    assert cfg.solver.lr == lr and cfg.solver.step_size == 0.02
+    assert build(cfg).solver.optimizer.param_groups[0]["lr"] == lr

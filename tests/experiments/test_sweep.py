@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from indreg.experiments.config import SUITE3_GAMMAS, SUITE3_SIGMAS
+from indreg.experiments.sweep import SUITE3_GAMMAS, SUITE3_SIGMAS
 from indreg.experiments.sweep import PAPER, collect, csv_text, main, markdown
 
 from experiment_helpers import FAST, run_cli
