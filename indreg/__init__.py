@@ -6,8 +6,9 @@ from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
+from .api import RegistrationResult, register
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "RayTransform", "GaussianKernel", "LDDMMDeformation",
            "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "metrics", "noise", "phantoms"]
+           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult", "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"
