@@ -228,11 +228,17 @@ SCHEMA_NAME = "indreg_schema"
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
+#: Example data shipped with the package, named in configs as ``${indreg_data:<file name>}``.
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+
+
 def register_schema() -> None:
-    """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from."""
+    """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
+    resolver ``${indreg_data:name}`` (the path of a file shipped in ``indreg/data``)."""
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RegisterConfig)
+    OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
 
 
 class ConfigError(ValueError):

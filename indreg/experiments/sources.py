@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import phantoms
 from ..domain import ImageDomain
 from ..forward import ParallelBeamGeometry, RayTransform
+from .config import ConfigError
 
 SOURCES: dict = {}
 
@@ -62,12 +63,18 @@ def square_domain(n: int, half_width: float) -> ImageDomain:
 
 def _angles(g) -> Optional[torch.Tensor]:
     """``geometry.angles`` (a text-file path or a list, in ``geometry.angle_unit``) in radians, or None."""
-    from ..io import read_angles
+    from ..io import DataFileError, read_angles
 
     if g.angles is None:
         return None
     spec = OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles) else str(g.angles)
-    return torch.as_tensor(read_angles(spec, g.angle_unit.value, name="geometry.angles"), dtype=torch.float64)
+    try:
+        angles = read_angles(spec, g.angle_unit.value, name="geometry.angles")
+    except DataFileError:
+        raise
+    except ValueError as e:  # inline values
+        raise ConfigError(f"geometry.angles: {e}") from None
+    return torch.as_tensor(angles, dtype=torch.float64)
 
 
 def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch.Tensor] = None):
