@@ -228,6 +228,12 @@ class RegistrationLoop:
         if self.warnings == 1 or it % self.every == 0:
             log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
 
+    def _halved(self) -> bool:
+        """Whether Algorithm 1's step halving shortened the step in the last iteration."""
+        h = self.history
+        return (getattr(self.solver, "step_halving", False) and len(h) > 1
+                and h[-1]["step_size"] < h[-2]["step_size"])
+
     def run(self) -> str:
         from tqdm import tqdm
 
@@ -249,6 +255,9 @@ class RegistrationLoop:
                 self.history.append(dict(info, iteration=it, seconds=dt))
                 if info.get("warning"):
                     self._warn(it, info)
+                if self._halved():
+                    log.info("iteration %d: step size halved to %.4g (the longer step increased the objective or "
+                             "folded)", it, info["step_size"])
                 done = self.solver.converged(info)
                 stop = self.after_step(info, done)
                 if it % self.every == 0 and not done:
