@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._checks import check_int, check_same, check_tensor
+from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 
@@ -17,7 +17,7 @@ BACKWARDS = ("paper", "autograd")
 def _check_fast(x, name: str, trailing_shape: tuple) -> None:
     """``check_tensor`` with one cheap finiteness test (the sum of finite values is finite, barring overflow;
     any nan / inf makes it non-finite), falling back to the full check for the error message."""
-    if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.shape[x.dim() - len(trailing_shape):] \
+    if not isinstance(x, torch.Tensor) or x.dtype not in FLOAT_DTYPES or x.shape[x.dim() - len(trailing_shape):] \
             != trailing_shape or not bool(torch.isfinite(x.sum())):
         check_tensor(x, name, trailing_shape)
 
@@ -193,7 +193,7 @@ class LDDMMDeformation(torch.nn.Module):
             raise ValueError(f"velocity must have num_steps + 1 = {self.num_steps + 1} time points on axis -4 "
                              f"(shape (..., N+1, 2, nx, ny)), got shape {tuple(velocity.shape)}")
         shape = (self.num_steps + 1, 2, *self.domain.shape)
-        if not isinstance(velocity, torch.Tensor) or not velocity.is_floating_point() \
+        if not isinstance(velocity, torch.Tensor) or velocity.dtype not in FLOAT_DTYPES \
                 or velocity.shape[velocity.dim() - 4:] != shape:
             check_tensor(velocity, "velocity", shape)
         moving, finite = Fd.step_flags(velocity)

@@ -500,6 +500,9 @@ def test_bad_input():
         LDDMMDeformation(dom, 0)
     with pytest.raises(TypeError, match="num_steps"):
         LDDMMDeformation(dom, 2.5)
+    for bad in (None, "a", math.nan, math.inf):
+        with pytest.raises(TypeError, match=f"num_steps must be an integer >= 1, got {bad!r}"):
+            LDDMMDeformation(dom, bad)
     with pytest.raises(ValueError, match="action"):
         LDDMMDeformation(dom, 4, action="affine")
     with pytest.raises(ValueError, match="backward"):
@@ -520,6 +523,13 @@ def test_bad_input():
         W(v, template.clone().fill_(float("inf")))
     with pytest.raises(TypeError, match="dtype"):
         W(v.float(), template)
+    for dtype in (torch.float16, torch.bfloat16):  # the projector refuses them too
+        with pytest.raises(TypeError, match=f"velocity must be float32 or float64, got {dtype}"):
+            W(v.to(dtype), template.to(dtype))
+        with pytest.raises(TypeError, match=f"template must be float32 or float64, got {dtype}"):
+            W(v, template.to(dtype))
+        with pytest.raises(TypeError, match=f"velocity must be float32 or float64, got {dtype}"):
+            W.min_jacobian(v.to(dtype))
 
 
 @pytest.mark.parametrize("backward", ("paper", "autograd"))
