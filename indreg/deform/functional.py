@@ -332,16 +332,16 @@ def jacobian_determinant(points: torch.Tensor, domain: ImageDomain) -> torch.Ten
     ``D phi = Id + D u`` with the displacement ``u = phi - Id`` differentiated by finite differences in
     physical units (``_central_diff``: central inside, one-sided at the border, zero along an axis of one
     cell); differencing ``u`` rather than ``phi`` is the same formula (differences of ``Id`` are exact) with
-    less cancellation in float32. Exact for affine maps. No autograd graph is needed (plain tensor ops).
+    less cancellation in float32. Exact for affine maps. Plain tensor ops (differentiable by autograd).
 
     Convention: ``points[..., 0, :, :]`` = x, ``[..., 1, :, :]`` = y in physical units of ``domain``; any
     batch dims, float dtype and device (the input's).
     """
     u = points - domain.points(points.dtype, points.device)
-    return _displacement_determinant(u, domain)
+    return displacement_determinant(u, domain)
 
 
-def _displacement_determinant(u: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
+def displacement_determinant(u: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """``det(Id + D u)`` for a displacement ``u (..., 2, nx, ny)`` in physical units; ``u`` is not modified.
 
     Row ``a`` of ``D u`` is the gradient of component ``a`` (one difference per axis, ``domain.cell_sides``);

@@ -257,7 +257,7 @@ class LDDMMDeformation(torch.nn.Module):
         """
         moving = self._check_velocity(velocity)
         with torch.no_grad():
-            return Fd._displacement_determinant(Fd.displacement_10(velocity, self.domain, moving), self.domain)
+            return Fd.displacement_determinant(Fd.displacement_10(velocity, self.domain, moving), self.domain)
 
     def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
         """Minimum over the grid of ``jacobian_determinant``, ``(...)``: the computed map folds when ``<= 0``.

@@ -158,6 +158,10 @@ def test_jacobian_determinant_matches_independent_differences():
     phi = torch.stack([x + 0.3 * torch.sin(2 * y) * x, y - 0.2 * torch.cos(x * y)])
     (dx1, dy1), (dx2, dy2) = (torch.gradient(phi[k], spacing=dom.cell_sides, edge_order=1) for k in range(2))
     torch.testing.assert_close(Fd.jacobian_determinant(phi, dom), dx1 * dy2 - dy1 * dx2, rtol=1e-12, atol=1e-12)
+    small = ImageDomain((6, 5))  # the in-place products keep autograd's derivative correct
+    noise = torch.randn(2, 6, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    points = (small.points() + 0.1 * noise).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: Fd.jacobian_determinant(p, small), (points,))
     # a single cell along an axis: no difference there (the map's derivative along it is taken as 1)
     thin = ImageDomain((1, 15), (0.0, -1.0), (1.0, 2.0))
     pts = thin.points() * torch.tensor([1.0, 3.0], dtype=torch.float64).view(2, 1, 1)
