@@ -159,6 +159,15 @@ def test_as_operator_adjoint_weighted_inner_products(dinv, kind):
     assert op.adjoint(y[0]).shape == ODD_DOMAIN.shape
 
 
+def test_as_operator_gradcheck(dinv):
+    """Gradients are autograd's through deepinv (float64 gradcheck of T and T^*)."""
+    op = as_operator(tomography(dinv, 6, 3), ODD_DOMAIN, data_weight=0.7)
+    f = torch.randn(*ODD_DOMAIN.shape, dtype=torch.float64, requires_grad=True)
+    y = torch.randn(*op.range_shape, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(op, (f,))
+    assert torch.autograd.gradcheck(op.adjoint, (y,))
+
+
 def test_as_operator_infers_and_checks_range_shape(dinv):
     phys = tomography(dinv, 6, 5)
     op = as_operator(phys, ODD_DOMAIN)
