@@ -203,6 +203,7 @@ class ConfigError(ValueError):
 
 
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")  # a single path component (it names the run dir)
 
 
 def _require(ok: bool, key: str, expected: str, value) -> None:
@@ -232,6 +233,8 @@ def validate(cfg: DictConfig) -> None:
     if unknown:
         raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
                           "indreg.experiments.config.RegisterConfig")
+    _require(bool(_NAME.fullmatch(c.name)), "name", "letters, digits, '.', '_' and '-', not starting with '.'",
+             c.name)
     _require(c.seed >= 0, "seed", "an integer >= 0", c.seed)
     _require(bool(_DEVICE.match(c.device)), "device", "'auto', 'cpu', 'cuda' or 'cuda:<index>'", c.device)
     _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)

@@ -147,9 +147,12 @@ def _json_float(v):
 def run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
-    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol`` or a
-    non-finite objective), ``stopped`` (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its
-    number). Only ``completed`` and ``converged`` runs write the final outputs.
+    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
+    ``failed`` (a non-finite objective or gradient: ``metrics.json`` and ``history.json`` hold the status, the
+    iteration and the warning; the checkpoint keeps the last finite iterate), ``stopped`` (``stop_after``) or
+    ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed`` and ``converged`` runs write the
+    final outputs. A bad config value, a bad run directory or a damaged / foreign / mismatched checkpoint raises
+    ``ConfigError`` or ``CheckpointError`` before any computing.
     """
     from tqdm import tqdm
 
@@ -158,31 +161,30 @@ def run(cfg: DictConfig, output_dir) -> dict:
 
     validate(cfg)
     out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    path = out / "checkpoint.pt"
+    ckpt.check_location(path, cfg.resume)
+    problem_cfg = _problem_config(to_plain(cfg))
+    saved = _read_checkpoint(cfg, path, problem_cfg)
     seed_everything(cfg.seed)
-    exp = build(cfg)
+    try:
+        exp = build(cfg)
+    except (ValueError, TypeError) as e:  # the operators' input validation
+        raise ConfigError(f"invalid configuration: {e}") from e
     problem, solver = exp.problem, exp.solver
     log.info("%s | %s | %s", cfg.name, problem, solver)
-    plain = to_plain(cfg)
-    problem_cfg = _problem_config(plain)
     rec = baselines(cfg, exp, out)
 
     state = SolverState(momentum=problem.zero_momentum(), iteration=0)
     history, seconds = [], 0.0
-    path = out / "checkpoint.pt"
-    if cfg.resume and path.is_file():
-        saved = ckpt.load(path)
-        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
-        if mismatch:
-            raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
-        state.load_state_dict(saved["state"])
-        state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
-        solver.load_state_dict(saved["solver"])
-        ckpt.set_rng_state(saved["rng"])
-        history, seconds = saved["history"], saved["seconds"]
+    if saved is not None:
+        with ckpt.restoring(path):
+            state.load_state_dict(saved["state"])
+            state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
+            problem.check_momentum(state.momentum)
+            solver.load_state_dict(saved["solver"])
+            ckpt.set_rng_state(saved["rng"])
+            history, seconds = list(saved["history"]), float(saved["seconds"])
         log.info("resumed from %s at iteration %d", path, state.iteration)
-    elif cfg.resume:
-        log.warning("resume=true but there is no %s: starting at iteration 0", path)
 
     def save_checkpoint() -> None:
         ckpt.save(path, {"iteration": state.iteration, "state": state.state_dict(), "solver": solver.state_dict(),
@@ -224,7 +226,8 @@ def run(cfg: DictConfig, output_dir) -> dict:
                 warnings += 1
                 if warnings == 1 or it % lg.every == 0:
                     log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], warnings)
-            done = solver.converged(info)
+            reason = solver.status(info)
+            done = reason is not None
             if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
                 deformed = problem.deformed(state.momentum)
                 fom = figures_of_merit(deformed, exp.target_64)
@@ -234,17 +237,23 @@ def run(cfg: DictConfig, output_dir) -> dict:
                          it, info["objective"], info["data_fit"], info["min_jacobian"], fom["ssim"], fom["psnr"])
             bar.update(1)
             bar.set_postfix(objective=f"{info['objective']:.4g}")
+            if reason == "failed":  # keep the last checkpoint: its iterate is finite
+                status = reason
+                break
             if it % lg.checkpoint_every == 0:
                 save_checkpoint()
             if stop.signum is not None:
                 status = "interrupted"
                 break
             if done:
-                status = "completed" if it >= max_iter else "converged"
+                status = reason
                 break
     finally:
         bar.close()
         stop.restore()
+    if status == "failed":
+        writer.close()
+        return _failed(out, history)
     save_checkpoint()
     if status in ("stopped", "interrupted"):
         writer.close()
@@ -252,6 +261,42 @@ def run(cfg: DictConfig, output_dir) -> dict:
         return {"status": status, "iteration": state.iteration, "signal": stop.signum}
     result = finish(cfg, exp, state, rec, history, seconds, out, writer, status)
     writer.close()
+    return result
+
+
+def _read_checkpoint(cfg: DictConfig, path: Path, problem_cfg: dict):
+    """With ``resume``: the verified checkpoint at ``path`` (None if there is none), refused if its problem
+    differs from the config's or it is past ``solver.max_iter``."""
+    if not cfg.resume:
+        return None
+    if not path.exists():
+        log.warning("resume=true but there is no %s: starting at iteration 0", path)
+        return None
+    saved = ckpt.load(path, keys=("iteration", "state", "solver", "rng", "history", "seconds", "problem"))
+    with ckpt.restoring(path):
+        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
+        iteration = int(saved["iteration"])
+    if mismatch:
+        raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
+    if iteration > cfg.solver.max_iter:
+        raise ckpt.CheckpointError(f"checkpoint {path} is at iteration {iteration}, past solver.max_iter="
+                                   f"{cfg.solver.max_iter}: raise solver.max_iter to at least {iteration} or "
+                                   "run without resume=true")
+    return saved
+
+
+def _failed(out: Path, history: list) -> dict:
+    """A run whose objective or gradient became non-finite: ``metrics.json`` and ``history.json`` say so."""
+    last = history[-1]
+    result = {"status": "failed", "iteration": last["iteration"], "objective": last["objective"],
+              "grad_norm": last["grad_norm"], "evaluations": last["evaluations"],
+              "warning": last["warning"] or "non-finite gradient norm"}
+    with open(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    log.error("failed at iteration %d: %s (%s is not overwritten: it keeps the last periodic checkpoint, if any)",
+              result["iteration"], result["warning"], out / "checkpoint.pt")
     return result
 
 
@@ -329,12 +374,26 @@ register_schema()
 
 
 def _task(cfg: DictConfig):
+    """The Hydra task. Exit status: 0 done (completed, converged, stopped); 1 a user error (``ConfigError``,
+    ``CheckpointError``) or a failed run, with one line ``indreg-register: error: ...`` on stderr;
+    128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
 
-    result = run(cfg, HydraConfig.get().runtime.output_dir)
+    try:
+        result = run(cfg, HydraConfig.get().runtime.output_dir)
+    except (ConfigError, ckpt.CheckpointError) as e:  # user errors: one line, no traceback
+        _exit_error(str(e))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))
+    if result["status"] == "failed":
+        _exit_error(f"the run failed at iteration {result['iteration']}: {result['warning']}")
     return result.get("ssim")
+
+
+def _exit_error(message: str) -> None:
+    """``indreg-register: error: <message>`` on stderr (one line), exit status 1."""
+    print("indreg-register: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
+    sys.exit(1)
 
 
 def main() -> None:
