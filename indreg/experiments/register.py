@@ -396,10 +396,42 @@ def _exit_error(message: str) -> None:
     sys.exit(1)
 
 
+def _error_chain(exc: BaseException) -> str:
+    """The messages of an exception and its causes, in one line."""
+    parts, e = [], exc
+    while e is not None:
+        parts.append(" ".join(str(e).split()))
+        e = e.__cause__ or e.__context__
+    return ": ".join(p for p in dict.fromkeys(parts) if p)
+
+
+def preflight(argv) -> None:
+    """Compose and validate a single run's config before Hydra creates its run directory, so that a bad value
+    ends in one line (``indreg-register: error: ...``, exit 1) with nothing written. Multirun (``-m``) and
+    Hydra's own flags (``--help``, ``--cfg``, ...) are left to Hydra; ``hydra.*`` overrides are not needed
+    to validate the job's config."""
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONFIG_DIR), job_name="preflight"):
+            validate(compose(_CONFIG_NAME, overrides=overrides))
+    except (HydraException, ConfigError, ValueError) as e:
+        _exit_error(_error_chain(e))
+    finally:
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()
+
+
 def main() -> None:
     """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``)."""
     import hydra
 
+    preflight(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=_CONFIG_NAME)(_task)()
 
 
