@@ -34,7 +34,7 @@ def test_user_object_is_an_operator():
     op = Scaling()
     assert isinstance(op, LinearOperator) and check_operator(op) is op
     assert adjointness(op) < 1e-15
-    assert adjointness(Scaling(adjoint_factor=1.0)) > 0.1           # a wrong adjoint is caught
+    assert adjointness(Scaling(adjoint_factor=3.0)) > 0.1           # a wrong adjoint is caught
     # ||T|| = c sqrt(weight / cell_volume) for this weighted scaling
     assert operator_norm(op, num_iter=3) == pytest.approx(2.0 * math.sqrt(0.5 / DOM.cell_volume), rel=1e-12)
     y = torch.ones(2, *DOM.shape, dtype=torch.float64)
