@@ -56,6 +56,8 @@ def test_data_to_image_weight_ratio_from_paper_notes(n, bins, ratio):
     (dict(num_angles=3, det_count=2.5), TypeError, "det_count"),
     (dict(num_angles=2, angles=[0.0, 1.0, 2.0], det_count=3), ValueError, "num_angles=2"),
     (dict(det_count=3), ValueError, "num_angles"),
+    (dict(num_angles=3, det_count=3, angle_weights=[1.0, 1.0]), ValueError, "angle_weights must be 3 finite positive"),
+    (dict(num_angles=2, det_count=3, angle_weights=[1.0, -1.0]), ValueError, "angle_weights"),
 ])
 def test_invalid_geometry(kwargs, error, match):
     with pytest.raises(error, match=match):
