@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
-from .._checks import check_int, check_same, check_tensor
+from .._checks import check_same, check_tensor
 from ..domain import ImageDomain
 from .geometry import FanBeamGeometry, ParallelBeamGeometry, domain_radius
 from .operator import adjointness, operator_norm
@@ -77,21 +77,16 @@ def joseph_matrix(domain: ImageDomain, geometry: ParallelBeamGeometry) -> sp.csr
         along_y = abs(c) >= abs(s)
         if along_y:   # march over rows y_j, interpolate in x
             u = ((sd[:, None] - yc[None, :] * s) / c - xc[0]) / hx
-            step, n_interp, n_march = hy / abs(c), nx, ny
+            step, n_march = hy / abs(c), ny
         else:         # march over columns x_i, interpolate in y
             u = ((sd[:, None] - xc[None, :] * c) / s - yc[0]) / hy
-            step, n_interp, n_march = hx / abs(s), ny, nx
-        lower = np.floor(np.clip(u, -2, n_interp + 1))   # out-of-image points are dropped below
-        frac = u - lower
-        lo = lower.astype(itype)
-        march = np.arange(n_march, dtype=itype)[None, :]
-        base = lo * ny + march if along_y else march * ny + lo           # column of the lower neighbour
-        col = np.stack([base, base + (ny if along_y else 1)], axis=-1)   # (det_count, n_march, 2)
-        w = np.stack([1.0 - frac, frac], axis=-1)
-        keep = np.stack([(lo >= 0) & (lo < n_interp), (lo >= -1) & (lo < n_interp - 1) & (frac > 0)], axis=-1)
-        counts.append(keep.sum(axis=(1, 2)))
-        cols.append(col[keep])
-        vals.append(w[keep] * step)
+            step, n_march = hx / abs(s), nx
+        rays = len(sd)
+        cnt, col, val = _joseph_entries(u, np.full(rays, step), np.full(rays, along_y), np.full(rays, n_march),
+                                        (nx, ny), itype)
+        counts.append(cnt)
+        cols.append(col)
+        vals.append(val)
     indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
     shape = (geometry.num_angles * geometry.det_count, nx * ny)
     mat = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=shape)
@@ -105,7 +100,7 @@ def _joseph_entries(u, step, along_y, n_march, shape, itype):
     marching direction, ``n_march`` (rays,) valid positions. Returns (counts per ray, columns, values)."""
     nx, ny = shape
     n_interp = np.where(along_y, nx, ny)[:, None]
-    lower = np.floor(np.clip(u, -2, np.maximum(nx, ny) + 1))
+    lower = np.floor(np.clip(u, -2, max(nx, ny) + 1))   # out-of-image points are dropped below
     frac = u - lower
     lo = lower.astype(itype)
     march = np.arange(u.shape[1], dtype=itype)[None, :]

@@ -127,8 +127,8 @@ def test_non_uniform_angles_are_weighted_by_their_cells(op128, ellipses):
     """Explicit uniform angles reproduce the default geometry; a non-uniform full set (dense on one half,
     sparse on the other) still reconstructs the disk's value, which equal weights would not."""
     dom = op128.domain
-    explicit = RayTransform(dom, ParallelBeamGeometry(angles=torch.arange(180.0, dtype=torch.float64) * math.pi / 180, det_count=182,
-                                                      det_min=-24.0, det_max=24.0))
+    uniform = torch.arange(180.0, dtype=torch.float64) * math.pi / 180
+    explicit = RayTransform(dom, ParallelBeamGeometry(angles=uniform, det_count=182, det_min=-24.0, det_max=24.0))
     torch.testing.assert_close(explicit.geometry.angle_weights, op128.geometry.angle_weights, rtol=1e-13, atol=0)
     y = ellipses.radon(DISK, explicit.geometry)
     torch.testing.assert_close(fbp(explicit, y), fbp(op128, y), rtol=0, atol=1e-4)   # 45-degree rays may march

@@ -194,7 +194,7 @@ def test_tv_reconstruction_errors():
         tv_reconstruction(T, y, mu=1.0, num_iter=0)
     with pytest.raises(ValueError, match=r"y must have shape \(\.\.\., 9, 7\)"):
         tv_reconstruction(T, torch.zeros(7, 9, dtype=torch.float64), mu=1.0)
-    with pytest.raises(TypeError, match="T must be a linear operator.*function lacks domain, range_shape, adjoint, inner_data$"):
+    with pytest.raises(TypeError, match="T must be a linear operator.*lacks domain, range_shape, adjoint, inner_data$"):
         tv_reconstruction(lambda x: x, y, mu=1.0)
 
 
