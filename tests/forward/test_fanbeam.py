@@ -128,3 +128,13 @@ def test_projector_registry():
         RayTransform(dom, object())
     with pytest.raises(TypeError, match="register_projector"):
         register_projector("fan", mirrored_matrix)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu():
+    T = small_fan()
+    f = torch.rand(2, *SMALL_DOMAIN.shape, dtype=torch.float64)
+    y = T(f.cuda())
+    assert y.device.type == "cuda"
+    torch.testing.assert_close(y.cpu(), T(f))
+    torch.testing.assert_close(T.adjoint(y).cpu(), T.adjoint(T(f)))
