@@ -1,4 +1,8 @@
 """indreg: indirect image registration with large diffeomorphic deformations (LDDMM) in PyTorch."""
+from . import _openmp
+
+_openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
+
 from .domain import ImageDomain
 from .forward import ParallelBeamGeometry, RayTransform
 from .deform import GaussianKernel, LDDMMDeformation

@@ -4,12 +4,22 @@ from __future__ import annotations
 import torch
 
 
-def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int | None = None) -> torch.Tensor:
-    """Check that ``x`` is a floating-point tensor with finite values and the given trailing shape."""
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def check_dtype(x: torch.Tensor, name: str) -> None:
+    """Check that a tensor is float32 or float64 (the dtypes every operator supports)."""
     if not x.is_floating_point():
         raise TypeError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
+    if x.dtype not in FLOAT_DTYPES:
+        raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
+
+
+def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int | None = None) -> torch.Tensor:
+    """Check that ``x`` is a float32 / float64 tensor with finite values and the given trailing shape."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    check_dtype(x, name)
     if trailing_shape is not None:
         k = len(trailing_shape)
         if x.dim() < k or tuple(x.shape[x.dim() - k:]) != tuple(trailing_shape):
@@ -42,8 +52,12 @@ def check_positive(value, name: str) -> float:
 
 
 def check_int(value, name: str, minimum: int) -> int:
-    """Check that a parameter is an integer >= minimum."""
-    if isinstance(value, bool) or int(value) != value:
+    """Check that a parameter is an integer >= minimum (an integral float such as 4.0 is accepted)."""
+    try:
+        integral = not isinstance(value, bool) and int(value) == value
+    except (TypeError, ValueError, OverflowError):  # None, "a", nan, inf, ...
+        integral = False
+    if not integral:
         raise TypeError(f"{name} must be an integer >= {minimum}, got {value!r}")
     if int(value) < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")

@@ -1,11 +1,25 @@
 """The image domain: a physical rectangle sampled at cell centres, with L2 inner products."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from ._checks import check_int, check_tensor
+
+
+def _corner(point, name: str) -> tuple:
+    """A corner ``(x, y)`` of the rectangle as 2 finite floats (an infinite extent has no cells to sample)."""
+    try:
+        values = tuple(float(v) for v in point)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be 2 finite numbers (x, y), got {point!r}") from None
+    if len(values) != 2:
+        raise ValueError(f"{name} must have 2 entries (x, y), got {point!r}")
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} must be finite, got {point!r}")
+    return values
 
 
 @dataclass(frozen=True)
@@ -17,6 +31,7 @@ class ImageDomain:
           any leading batch dims.
         - Pixel ``(i, j)`` sits at the cell centre
           ``x_i = min_pt[0] + (i + 1/2) * cell_sides[0]``, ``y_j = min_pt[1] + (j + 1/2) * cell_sides[1]``.
+        - ``min_pt < max_pt`` are finite corners ``(x, y)`` with a finite extent.
         - Units are physical (the paper's domain is ``[-16, 16]^2``), so the paper's kernel width sigma,
           regularisation gamma and step size mean the same at every resolution.
         - Inner products and norms are L2: ``<f, g> = cell_volume * sum_ij f_ij g_ij``, so adjoints of
@@ -37,12 +52,12 @@ class ImageDomain:
         if len(shape) != 2:
             raise ValueError(f"shape must have 2 entries (nx, ny), got {self.shape!r}")
         shape = tuple(check_int(n, "shape entry", 1) for n in shape)
-        lo, hi = tuple(float(v) for v in self.min_pt), tuple(float(v) for v in self.max_pt)
-        if len(lo) != 2 or len(hi) != 2:
-            raise ValueError(f"min_pt and max_pt must have 2 entries, got {self.min_pt!r}, {self.max_pt!r}")
+        lo, hi = _corner(self.min_pt, "min_pt"), _corner(self.max_pt, "max_pt")
         for a, b, ax in zip(lo, hi, "xy"):
             if not b > a:
                 raise ValueError(f"min_pt must be < max_pt on axis {ax}, got {a} >= {b}")
+            if not math.isfinite(b - a):
+                raise ValueError(f"max_pt - min_pt must be finite, overflows on axis {ax}: {b} - {a}")
         object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "min_pt", lo)
         object.__setattr__(self, "max_pt", hi)

@@ -23,6 +23,8 @@ from ._checks import check_int, check_tensor
 PAPER_SNR_DB = {"suite1": 4.87, "suite2": 4.75, "suite3": 7.06, "suite4_missing": 7.06, "suite4_extra": 6.46}
 
 _CONVENTIONS = ("code", "paper")
+#: Largest |SNR| in dB accepted: a norm ratio of at most 1e30 either way, far from float64 over/underflow.
+_SNR_DB_MAX = 300.0
 
 
 def _check_convention(convention: str) -> float:
@@ -47,6 +49,14 @@ def snr_db(ideal: torch.Tensor, noise: torch.Tensor, convention: str = "code", e
     return factor * torch.log10(_centred_norm(ideal, k) / _centred_norm(noise, k))
 
 
+def _number(value, name: str, expected: str) -> float:
+    """``float(value)``, or a TypeError naming the parameter."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be {expected}, got {value!r}") from None
+
+
 def _generator(seed) -> torch.Generator:
     if isinstance(seed, torch.Generator):
         if seed.device.type != "cpu":
@@ -69,23 +79,31 @@ def add_white_noise(data: torch.Tensor, snr_db: float | None = None, std: float 
     """
     k = check_int(event_dims, "event_dims", 1)
     check_tensor(data, "data", min_dim=k)
-    factor = _check_convention(convention)
+    factor, generator = _check_convention(convention), _generator(seed)
     if (snr_db is None) == (std is None):
         raise ValueError(f"give exactly one of snr_db and std, got snr_db={snr_db!r}, std={std!r}")
-    z = torch.randn(data.shape, generator=_generator(seed), dtype=torch.float64)
     if std is not None:
-        s = float(std)
+        s = _number(std, "std", "a finite number >= 0")
         if not (math.isfinite(s) and s >= 0):
             raise ValueError(f"std must be a finite number >= 0, got {std!r}")
-        noise = s * z
-    else:
-        target = float(snr_db)
-        if not math.isfinite(target):
-            raise ValueError(f"snr_db must be a finite number (dB), got {snr_db!r}")
-        signal = _centred_norm(data.detach().to(torch.float64).cpu(), k)
-        if not bool((signal > 0).all()):
-            raise ValueError("data is constant over a data set (zero signal power): the SNR is undefined")
-        scale = signal / (_centred_norm(z, k) * 10.0 ** (target / factor))
-        noise = scale.reshape(scale.shape + (1,) * k) * z
+        return _added(data, s * _draw(data, generator))
+    target = _number(snr_db, "snr_db", "a finite number (dB)")
+    if not abs(target) <= _SNR_DB_MAX:
+        raise ValueError(f"snr_db must be a finite number (dB) in [-{_SNR_DB_MAX:g}, {_SNR_DB_MAX:g}], got {snr_db!r}")
+    signal = _centred_norm(data.detach().to(torch.float64).cpu(), k)
+    if not bool((signal > 0).all()):
+        raise ValueError("data is constant over a data set (zero signal power): the SNR is undefined")
+    z = _draw(data, generator)
+    scale = signal / (_centred_norm(z, k) * 10.0 ** (target / factor))
+    return _added(data, scale.reshape(scale.shape + (1,) * k) * z)
+
+
+def _draw(data: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """A standard normal draw shaped like ``data``, float64 on the CPU."""
+    return torch.randn(data.shape, generator=generator, dtype=torch.float64)
+
+
+def _added(data: torch.Tensor, noise: torch.Tensor) -> tuple:
+    """``(data + noise, noise)`` with the noise cast and moved to the data's dtype and device."""
     noise = noise.to(dtype=data.dtype, device=data.device)
     return data + noise, noise

@@ -48,7 +48,7 @@ SHEPP_LOGAN_ELLIPSES = (
     (0.10, .0230, .0460, 0.0600, -.6050, 0.0),
 )
 
-#: Suite-3 template: the authors' "compressed" ellipse list with the modified intensities (PAPER_NOTES).
+#: Suite-3 template: the authors' "compressed" ellipse list with the modified intensities (docs/paper_notes.md).
 SHEPP_LOGAN_TEMPLATE_ELLIPSES = (
     (1.00, .6000, .6000, 0.0000, 0.1200, 0.0),
     (-.80, .5624, .5640, 0.0000, 0.1016, 0.0),

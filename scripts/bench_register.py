@@ -10,13 +10,21 @@ the process CPU time per iteration (all threads): on a shared, overloaded machin
 than the wall-clock time (with 2 threads on an overloaded machine OpenMP spinning inflates both).
 Prints one Markdown table with the authors' ODL reference times (suite 1: 0.13 s/it, suite 3: 0.93 s/it).
 
+``--busy SUITE`` adds a second table for Algorithm 1 on that suite with one core kept busy by another process
+(a Python busy loop started and stopped by this script), against the idle runs of the same invocation: 1 and
+2 threads idle, 2 threads busy with torch's default OpenMP wait policy (torch imported before indreg, the
+variable unset), 2 threads busy with indreg's ``OMP_WAIT_POLICY=PASSIVE``, and 1 thread busy. The ratio
+column divides by the 1-thread idle time.
+
     python scripts/bench_register.py                      # all suites, float32, 2 threads
     python scripts/bench_register.py --suites 1 3 --dtypes float32 float64 --iters 10
+    python scripts/bench_register.py --suites 3 --solvers algorithm1 --busy 3
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -37,7 +45,7 @@ def _rss_gib() -> float:
 
 
 def worker(suite: str, solver_name: str, dtype_name: str, iters: int, warmup: int, threads: int) -> dict:
-    import torch
+    import torch  # after indreg when the wait policy is indreg's (see _spawn)
 
     from indreg import ImageDomain, phantoms
     from indreg.deform.kernel import GaussianKernel
@@ -77,6 +85,42 @@ def worker(suite: str, solver_name: str, dtype_name: str, iters: int, warmup: in
             "peak_gib": peak, "growth_gib": peak - rss_before, "objective": info["objective"]}
 
 
+def _spawn(suite, solver, dtype, args, threads, policy="indreg") -> dict:
+    """One worker process. ``policy="unset"``: no OMP_WAIT_POLICY and torch imported before indreg (torch's
+    default spinning); ``"indreg"``: indreg is imported first and sets PASSIVE."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    first = "torch" if policy == "unset" else "indreg"
+    cmd = [sys.executable, "-c", f"import {first}, runpy, sys; sys.argv = sys.argv[1:]; "
+           f"runpy.run_path(sys.argv[0], run_name='__main__')", __file__, "--worker", suite, solver, dtype,
+           "--iters", str(args.iters), "--warmup", str(args.warmup), "--threads", str(threads)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def busy_table(suite: str, args) -> None:
+    """Algorithm 1 on ``suite``, idle and with one core kept busy by another process, in one invocation."""
+    cases = [(1, "indreg", False), (2, "indreg", False), (2, "unset", True), (2, "indreg", True), (1, "indreg", True)]
+    rows = []
+    for threads, policy, busy in cases:
+        spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+        try:
+            rows.append((threads, policy, busy, _spawn(suite, "algorithm1", "float32", args, threads, policy)))
+        finally:
+            if spinner is not None:
+                spinner.kill()
+                spinner.wait()
+        print(f"# done: busy table {threads} threads, {policy}, busy={busy}", file=sys.stderr)
+    reference = rows[0][3]["s_per_it"]
+    print(f"\nSuite {suite}, Algorithm 1, float32: one core busy (another process) vs idle; "
+          f"ratio = s / iteration over the 1-thread idle run\n")
+    print("| threads | OMP_WAIT_POLICY | other core | s / iteration | CPU s / it | ratio to 1 thread idle |")
+    print("|---|---|---|---|---|---|")
+    for threads, policy, busy, r in rows:
+        name = "PASSIVE (indreg)" if policy == "indreg" else "unset (torch default)"
+        print(f"| {threads} | {name} | {'busy' if busy else 'idle'} | {r['s_per_it']:.4f} | {r['cpu_per_it']:.4f} | "
+              f"{r['s_per_it'] / reference:.2f}x |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--suites", nargs="+", default=["1", "3", "2"], choices=list(SUITES))
@@ -85,6 +129,7 @@ def main():
     parser.add_argument("--iters", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--busy", choices=list(SUITES), help="add the one-core-busy table for this suite")
     parser.add_argument("--worker", nargs=3, metavar=("SUITE", "SOLVER", "DTYPE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -94,10 +139,7 @@ def main():
     for suite in args.suites:
         for solver in args.solvers:
             for dtype in args.dtypes:
-                cmd = [sys.executable, __file__, "--worker", suite, solver, dtype, "--iters", str(args.iters),
-                       "--warmup", str(args.warmup), "--threads", str(args.threads)]
-                out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
-                rows.append(json.loads(out.strip().splitlines()[-1]))
+                rows.append(_spawn(suite, solver, dtype, args, args.threads))
                 print(f"# done: suite {suite} {solver} {dtype}", file=sys.stderr)
     print(f"torch threads: {args.threads}; median over {args.iters} iterations after {args.warmup} warm-up; "
           f"N = 20; peak = process peak RSS (incl. ~0.3 GiB Python + torch), growth = during the iterations\n")
@@ -111,6 +153,8 @@ def main():
         print(f"| {r['suite']} | {n}^2 | {r['solver']} | {r['dtype']} | {r['s_per_it']:.4f} | {r['cpu_per_it']:.4f} | "
               f"{r['evals_per_it']:.2f} | {r['s_per_eval']:.4f} | {odl if odl else '-'} | {ratio} | "
               f"{r['peak_gib']:.2f} | {r['growth_gib']:.2f} |")
+    if args.busy:
+        busy_table(args.busy, args)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,6 @@
 """ImageDomain: cell-centred geometry, L2 inner products, grid_sample mapping, bad input."""
+import math
+
 import pytest
 import torch
 
@@ -54,6 +56,13 @@ def test_to_grid_matches_grid_sample_at_cell_centres():
     (dict(shape=(4, 4, 4)), "2 entries"),
     (dict(shape=(4, 4), min_pt=(1.0, 0.0), max_pt=(1.0, 1.0)), "min_pt must be < max_pt"),
     (dict(shape=(4.5, 4)), "integer"),
+    (dict(shape=(None, 4)), r"shape entry must be an integer >= 1, got None"),
+    (dict(shape=(4, 4), min_pt=(-math.inf, 0.0)), r"min_pt must be finite, got \(-inf, 0\.0\)"),
+    (dict(shape=(4, 4), max_pt=(1.0, math.inf)), "max_pt must be finite"),
+    (dict(shape=(4, 4), max_pt=(math.nan, 1.0)), "max_pt must be finite"),
+    (dict(shape=(4, 4), min_pt=(-1e308, 0.0), max_pt=(1e308, 1.0)), "max_pt - min_pt must be finite"),
+    (dict(shape=(4, 4), min_pt="ab"), r"min_pt must be 2 finite numbers \(x, y\), got 'ab'"),
+    (dict(shape=(4, 4), min_pt=(0.0, 0.0, 0.0)), "min_pt must have 2 entries"),
 ])
 def test_invalid_domain(kwargs, match):
     with pytest.raises((ValueError, TypeError), match=match):
@@ -66,6 +75,9 @@ def test_check_image_errors():
         dom.check_image(torch.zeros(8, 9))
     with pytest.raises(TypeError, match="floating dtype"):
         dom.check_image(torch.zeros(8, 8, dtype=torch.int64))
+    for dtype in (torch.float16, torch.bfloat16):
+        with pytest.raises(TypeError, match=f"image must be float32 or float64, got {dtype}"):
+            dom.check_image(torch.zeros(8, 8, dtype=dtype))
     bad = torch.zeros(8, 8)
     bad[0, 0] = float("nan")
     with pytest.raises(ValueError, match="non-finite"):

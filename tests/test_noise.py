@@ -90,6 +90,16 @@ def test_errors():
         add_white_noise(g, std=float("nan"))
     with pytest.raises(ValueError, match="snr_db must be a finite"):
         add_white_noise(g, snr_db=float("inf"))
+    with pytest.raises(ValueError, match=r"snr_db must be a finite number \(dB\) in \[-300, 300\], got 100000"):
+        add_white_noise(g, snr_db=1e5)  # 10^(snr/10) overflows
+    with pytest.raises(TypeError, match="std must be a finite number >= 0, got 'a'"):
+        add_white_noise(g, std="a")
+    with pytest.raises(TypeError, match=r"snr_db must be a finite number \(dB\), got 'a'"):
+        add_white_noise(g, snr_db="a")
+    with pytest.raises(TypeError, match=r"std must be a finite number >= 0, got \[1.0\]"):
+        add_white_noise(g, std=[1.0])
+    with pytest.raises(TypeError, match="data must be float32 or float64, got torch.float16"):
+        add_white_noise(g.half(), std=1.0)
     with pytest.raises(ValueError, match="convention"):
         add_white_noise(g, snr_db=3.0, convention="db")
     with pytest.raises(ValueError, match="constant"):

@@ -301,10 +301,56 @@ def displacements_t0(velocity: torch.Tensor, domain: ImageDomain) -> torch.Tenso
     return torch.stack(u, dim=-4)
 
 
+def displacement_10(velocity: torch.Tensor, domain: ImageDomain, moving: list | None = None) -> torch.Tensor:
+    """``phi_{1,0} - Id`` in physical units, ``(..., 2, nx, ny)``: the last displacement of ``displacements_t0``.
+
+    The same recursion (eq:ODEflow1b, border padding) keeping only the current displacement (no
+    ``O(N n^2)`` stack); without autograd the step's ``-nu(t_i)/N`` is added in place.
+    ``moving``: the steps' ``step_flags``, when already known.
+    """
+    steps = _Steps(velocity, domain, -1.0, moving)
+    u = torch.zeros_like(velocity[..., 0, :, :, :])  # physical units (interpolation is unit-free)
+    for i in range(1, velocity.shape[-4]):
+        if not steps.moves(i):
+            continue
+        if steps.recording:
+            u = steps.move(u, i, "border") + velocity[..., i, :, :, :] * steps.step
+        else:  # grid_sample's output is a fresh tensor
+            u = steps.move(u, i, "border").add_(velocity[..., i, :, :, :], alpha=steps.step)
+    return u
+
+
 def deformation(velocity: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """``phi_{1,0}`` as physical points ``(..., 2, nx, ny)``, composing the small deformations of eq:ODEflow1b."""
-    u = displacements_t0(velocity, domain)[..., -1, :, :, :]
-    return domain.points(velocity.dtype, velocity.device) + u / _grid_units(domain, u.dtype, u.device)
+    return domain.points(velocity.dtype, velocity.device) + displacement_10(velocity, domain)
+
+
+def jacobian_determinant(points: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
+    """``|D phi|`` of a map given by its values ``phi(x)`` at the cell centres, ``points (..., 2, nx, ny)`` ->
+    ``(..., nx, ny)``.
+
+    ``D phi = Id + D u`` with the displacement ``u = phi - Id`` differentiated by finite differences in
+    physical units (``_central_diff``: central inside, one-sided at the border, zero along an axis of one
+    cell); differencing ``u`` rather than ``phi`` is the same formula (differences of ``Id`` are exact) with
+    less cancellation in float32. Exact for affine maps. Plain tensor ops (differentiable by autograd).
+
+    Convention: ``points[..., 0, :, :]`` = x, ``[..., 1, :, :]`` = y in physical units of ``domain``; any
+    batch dims, float dtype and device (the input's).
+    """
+    u = points - domain.points(points.dtype, points.device)
+    return displacement_determinant(u, domain)
+
+
+def displacement_determinant(u: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
+    """``det(Id + D u)`` for a displacement ``u (..., 2, nx, ny)`` in physical units; ``u`` is not modified.
+
+    Row ``a`` of ``D u`` is the gradient of component ``a`` (one difference per axis, ``domain.cell_sides``);
+    in 2D the determinant is ``(1 + d1 u1)(1 + d2 u2) - d2 u1 d1 u2``, formed in place.
+    """
+    derivative = [[_central_diff(u[..., a, :, :], axis - 2, h) for axis, h in enumerate(domain.cell_sides)]
+                  for a in range(2)]
+    (d11, d12), (d21, d22) = derivative
+    return d11.add_(1).mul_(d22.add_(1)).sub_(d12.mul_(d21))
 
 
 def _sample_displaced(f: torch.Tensor, u: torch.Tensor, domain: ImageDomain, padding_mode: str) -> torch.Tensor:

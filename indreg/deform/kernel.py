@@ -1,6 +1,9 @@
 """The Gaussian reproducing kernel of the velocity space V and its application to vector fields."""
 from __future__ import annotations
 
+import math
+import sys
+
 import scipy.fft
 import torch
 
@@ -15,6 +18,10 @@ from ..domain import ImageDomain
 #: size measured; the FFT's n^2 log n only pays off beyond ~1000^2 (extrapolated, not measured).
 MATRIX_MAX_CPU = 1024
 MATRIX_MAX_CUDA = 1024
+#: The smallest accepted ``sigma``: ``sqrt`` of the smallest normal float64. Below it ``sigma^2`` underflows and
+#: ``exp(-d^2 / (2 sigma^2))`` is NaN at ``d = 0``; a ``sigma`` far below a cell side but above this bound gives
+#: the (representable) discrete delta ``K m = cell_volume * m``.
+SIGMA_MIN = math.sqrt(sys.float_info.min)
 
 
 class GaussianKernel:
@@ -53,6 +60,11 @@ class GaussianKernel:
             raise ValueError(f"method must be 'auto', 'fft' or 'matrix', got {method!r}")
         self.domain = domain
         self.sigma = check_positive(sigma, "sigma")
+        if self.sigma < SIGMA_MIN:
+            raise ValueError(f"sigma must be >= {SIGMA_MIN:.3g} (below, sigma^2 underflows and the kernel is NaN), "
+                             f"got {sigma!r}")
+        self._two_sigma2 = 2.0 * self.sigma * self.sigma  # a product: inf (a constant kernel) for huge sigma,
+        # where sigma ** 2 raises OverflowError
         self.method = method
         self._cache = {}
 
@@ -67,7 +79,7 @@ class GaussianKernel:
         return "matrix" if max(self.domain.shape) <= limit else "fft"
 
     def _gauss(self, d: torch.Tensor) -> torch.Tensor:
-        return torch.exp(-d * d / (2.0 * self.sigma ** 2))
+        return torch.exp(-d * d / self._two_sigma2)
 
     def toeplitz(self, axis: int, dtype=torch.float64, device=None) -> torch.Tensor:
         """The dense matrix ``exp(-(x_i - x_j)^2 / (2 sigma^2))`` on ``axis`` (0 = x, 1 = y)."""

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._checks import check_int, check_same, check_tensor
+from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 
@@ -17,7 +17,7 @@ BACKWARDS = ("paper", "autograd")
 def _check_fast(x, name: str, trailing_shape: tuple) -> None:
     """``check_tensor`` with one cheap finiteness test (the sum of finite values is finite, barring overflow;
     any nan / inf makes it non-finite), falling back to the full check for the error message."""
-    if not isinstance(x, torch.Tensor) or not x.is_floating_point() or x.shape[x.dim() - len(trailing_shape):] \
+    if not isinstance(x, torch.Tensor) or x.dtype not in FLOAT_DTYPES or x.shape[x.dim() - len(trailing_shape):] \
             != trailing_shape or not bool(torch.isfinite(x.sum())):
         check_tensor(x, name, trailing_shape)
 
@@ -193,7 +193,7 @@ class LDDMMDeformation(torch.nn.Module):
             raise ValueError(f"velocity must have num_steps + 1 = {self.num_steps + 1} time points on axis -4 "
                              f"(shape (..., N+1, 2, nx, ny)), got shape {tuple(velocity.shape)}")
         shape = (self.num_steps + 1, 2, *self.domain.shape)
-        if not isinstance(velocity, torch.Tensor) or not velocity.is_floating_point() \
+        if not isinstance(velocity, torch.Tensor) or velocity.dtype not in FLOAT_DTYPES \
                 or velocity.shape[velocity.dim() - 4:] != shape:
             check_tensor(velocity, "velocity", shape)
         moving, finite = Fd.step_flags(velocity)
@@ -232,16 +232,44 @@ class LDDMMDeformation(torch.nn.Module):
                                       c.domain, c.action, c.interpolation, c.scheme, moving)
 
     def jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
-        """``|D phi_{1,0}|``, ``(..., nx, ny)``, by the recursion of the mass-preserving step 8."""
+        """The mass-preserving action's ``|D phi_{1,0}|``, ``(..., nx, ny)``: the first-order product of step 8.
+
+        ``J_i = (1 - div nu(t_i)/N) * J_{i-1} o (Id - nu(t_i)/N)`` (``functional.jacobian_trajectory``), the
+        factor the mass-preserving action multiplies by (eq:DeforOpMP) and whose recursion the paper's
+        gradient differentiates. It is a first-order approximation (in ``1/N``) of the determinant, not a bound
+        on the determinant of the map the deformation applies: each factor ``1 - div/N`` drops the term
+        ``det(D nu)/N^2`` of ``det(Id - D nu/N)`` (a divergence-free field gets factors near 1), so a swirl can
+        fold the map while every factor stays positive. For folding use ``jacobian_determinant`` /
+        ``min_jacobian``.
+        """
         moving = self._check_velocity(velocity)
         return Fd.jacobian_trajectory(velocity, self.domain, self.scheme, moving)[..., -1, :, :]
 
-    def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
-        """Minimum over the grid of ``|D phi_{1,0}|``, ``(...)``: folding when ``<= 0`` (for logging)."""
+    def jacobian_determinant(self, velocity: torch.Tensor) -> torch.Tensor:
+        """``det D phi_{1,0}`` of the map the deformation applies, ``(..., nx, ny)``: folding where ``<= 0``.
+
+        ``phi_{1,0}`` is the composition of the small steps ``Id - nu(t_i)/N`` of eq:ODEflow1b (``deformation``):
+        ``interpolation="compose"`` samples the template at exactly these composed displacements, and
+        ``"reinterpolate"`` applies the same composition one step at a time. Its Jacobian determinant by finite
+        differences of the computed map (``functional.jacobian_determinant``: central inside, one-sided at the
+        border, physical cell sides), so a value ``<= 0`` means the computed map folds there; ``jacobian``
+        (the first-order product) can stay positive while it does. No autograd graph is recorded.
+        """
+        moving = self._check_velocity(velocity)
         with torch.no_grad():
-            return self.jacobian(velocity).amin(dim=(-2, -1))
+            return Fd.displacement_determinant(Fd.displacement_10(velocity, self.domain, moving), self.domain)
+
+    def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
+        """Minimum over the grid of ``jacobian_determinant``, ``(...)``: the computed map folds when ``<= 0``.
+
+        Uses the determinant of the map actually applied, not the first-order product ``jacobian``: on the
+        cellular swirl ``nu = 20 (sin(x/4) cos(y/4), -cos(x/4) sin(y/4))`` (64^2, ``[-16, 16]^2``, N = 4) the
+        product's minimum is 0.944 while the map's determinant reaches -0.654 and is ``<= 0`` on 37% of the
+        pixels. Cost: N two-channel interpolations (the product: N one-channel ones), no ``O(N n^2)`` storage.
+        """
+        return self.jacobian_determinant(velocity).amin(dim=(-2, -1))
 
     def deformation(self, velocity: torch.Tensor) -> torch.Tensor:
         """``phi_{1,0}`` as physical points ``(..., 2, nx, ny)`` (composed displacements; deformed-grid plots)."""
-        self._check_velocity(velocity)
-        return Fd.deformation(velocity, self.domain)
+        moving = self._check_velocity(velocity)
+        return self.domain.points(velocity.dtype, velocity.device) + Fd.displacement_10(velocity, self.domain, moving)

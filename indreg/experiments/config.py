@@ -238,7 +238,7 @@ def register_schema() -> None:
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RegisterConfig)
-    OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
+    register_resolvers()
 
 
 class ConfigError(ValueError):
@@ -246,6 +246,7 @@ class ConfigError(ValueError):
 
 
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")  # a single path component (it names the run dir)
 
 
 def _require(ok: bool, key: str, expected: str, value) -> None:
@@ -275,8 +276,11 @@ def validate(cfg: DictConfig) -> None:
     if unknown:
         raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
                           "indreg.experiments.config.RegisterConfig")
-    _require(c.seed >= 0, "seed", "an integer >= 0", c.seed)
+    _require(bool(_NAME.fullmatch(c.name)), "name", "letters, digits, '.', '_' and '-', not starting with '.'",
+             c.name)
+    _require(0 <= c.seed < 2 ** 32, "seed", "an integer in [0, 2**32) (numpy's seed range)", c.seed)
     _require(bool(_DEVICE.match(c.device)), "device", "'auto', 'cpu', 'cuda' or 'cuda:<index>'", c.device)
+    _check_cuda(c.device)
     _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)
     _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
     _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
@@ -285,9 +289,10 @@ def validate(cfg: DictConfig) -> None:
     n = c.noise
     _require(n.snr_db is None or n.std is None, "noise.snr_db", "at most one of noise.snr_db and noise.std",
              (n.snr_db, n.std))
-    _require(n.snr_db is None or _finite(n.snr_db), "noise.snr_db", "a finite number (dB) or null", n.snr_db)
+    _require(n.snr_db is None or (_finite(n.snr_db) and abs(n.snr_db) <= 300), "noise.snr_db",
+             "a number in [-300, 300] (dB) or null", n.snr_db)
     _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
-    _require(n.seed is None or n.seed >= 0, "noise.seed", "null or an integer >= 0", n.seed)
+    _require(n.seed is None or 0 <= n.seed < 2 ** 32, "noise.seed", "null or an integer in [0, 2**32)", n.seed)
     _require(c.deformation.num_steps >= 1, "deformation.num_steps", "an integer >= 1", c.deformation.num_steps)
     _require(_finite(c.kernel.sigma) and c.kernel.sigma > 0, "kernel.sigma", "a number > 0", c.kernel.sigma)
     s = c.solver
@@ -297,6 +302,8 @@ def validate(cfg: DictConfig) -> None:
     _require(_finite(s.lr) and s.lr > 0, "solver.lr", "a number > 0", s.lr)
     _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
     _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
+    if s.name.value == "torch_optim":
+        _check_optimizer_kwargs(s.optimizer.value, s.optimizer_kwargs)
     b = c.baseline
     _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
              "a number in (0, 1]", b.fbp_frequency_scaling)
@@ -331,6 +338,44 @@ def _validate_data(c: DictConfig) -> None:
         _require(_finite(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
                  "a number > 0 (source to origin) for geometry.kind=fan_flat", g.src_radius)
     _require(_finite(g.det_radius) and g.det_radius >= 0, "geometry.det_radius", "a number >= 0", g.det_radius)
+
+
+def _check_cuda(device: str) -> None:
+    """``device=cuda[:i]`` needs a CUDA device (with that index)."""
+    if not device.startswith("cuda"):
+        return
+    import torch
+
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    index = int(device.split(":")[1]) if ":" in device else 0
+    _require(index < count, "device", f"'auto', 'cpu' or a CUDA device of this machine ({count} CUDA device(s) "
+             "available)", device)
+
+
+def _check_optimizer_kwargs(optimizer: str, kwargs) -> None:
+    """Every ``solver.optimizer_kwargs`` key must be a keyword of the torch.optim optimizer's constructor."""
+    import inspect
+
+    from ..solvers.torch_optim import _optimizer_class
+
+    allowed = set(inspect.signature(_optimizer_class(optimizer).__init__).parameters) - {"self", "params", "lr"}
+    for key in kwargs:
+        _require(key in allowed, f"solver.optimizer_kwargs.{key}",
+                 f"a keyword of torch.optim {_optimizer_class(optimizer).__name__} ({', '.join(sorted(allowed))})",
+                 kwargs[key])
+
+
+def path_component(name) -> str:
+    """``name`` as one safe path component (resolver ``indreg_path``, used in the run-dir templates): anything
+    but letters, digits, ``._-`` becomes ``_`` and a leading ``.`` is dropped, so ``name=../../x`` cannot place
+    Hydra's run dir outside ``outputs/``; ``validate`` then refuses the name itself."""
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", str(name)).lstrip(".")
+    return safe or "_"
+
+
+def register_resolvers() -> None:
+    OmegaConf.register_new_resolver("indreg_path", path_component, replace=True)
+    OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
 
 
 def to_plain(cfg: DictConfig) -> dict:

@@ -42,6 +42,7 @@ import torch
 from omegaconf import DictConfig
 
 from ..api import RegistrationLoop, count_warnings, relative_residual
+from ..io import DataFileError
 from . import checkpoint as ckpt
 from .build import build, seed_everything
 from .config import CONFIG_DIR, ConfigError, register_schema, to_plain, validate
@@ -195,40 +196,44 @@ class AppLoop(RegistrationLoop):
 def run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
-    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol`` or a
-    non-finite objective), ``stopped`` (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its
-    number). Only ``completed`` and ``converged`` runs write the final outputs. Input errors (config values,
-    data files) are raised before anything is written.
+    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
+    ``failed`` (a non-finite objective or gradient: ``metrics.json`` and ``history.json`` hold the status, the
+    iteration and the warning; the checkpoint keeps the last finite iterate), ``stopped`` (``stop_after``) or
+    ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed`` and ``converged`` runs write the
+    final outputs. A bad config value, a bad data file, a bad run directory or a damaged / foreign / mismatched
+    checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
     """
     from ..solvers import SolverState
     from .tblog import RunWriter
 
     validate(cfg)
     seed_everything(cfg.seed)
-    exp = build(cfg)
+    try:
+        exp = build(cfg)
+    except DataFileError:
+        raise
+    except (ValueError, TypeError) as e:  # the operators' input validation
+        raise ConfigError(f"invalid configuration: {e}") from e
     out = Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    path = out / "checkpoint.pt"
+    ckpt.check_location(path, cfg.resume)
+    problem_cfg = _problem_config(to_plain(cfg))
+    saved = _read_checkpoint(cfg, path, problem_cfg)
     problem = exp.problem
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
-    problem_cfg = _problem_config(to_plain(cfg))
     rec = baselines(cfg, exp, out)
 
     state = SolverState(momentum=problem.zero_momentum(), iteration=0)
     history, seconds = [], 0.0
-    path = out / "checkpoint.pt"
-    if cfg.resume and path.is_file():
-        saved = ckpt.load(path)
-        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
-        if mismatch:
-            raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
-        state.load_state_dict(saved["state"])
-        state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
-        exp.solver.load_state_dict(saved["solver"])
-        ckpt.set_rng_state(saved["rng"])
-        history, seconds = saved["history"], saved["seconds"]
+    if saved is not None:
+        with ckpt.restoring(path):
+            state.load_state_dict(saved["state"])
+            state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
+            problem.check_momentum(state.momentum)
+            exp.solver.load_state_dict(saved["solver"])
+            ckpt.set_rng_state(saved["rng"])
+            history, seconds = list(saved["history"]), float(saved["seconds"])
         log.info("resumed from %s at iteration %d", path, state.iteration)
-    elif cfg.resume:
-        log.warning("resume=true but there is no %s: starting at iteration 0", path)
 
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
     # a resumed run drops the events an interrupted one logged after its checkpoint
@@ -246,6 +251,9 @@ def run(cfg: DictConfig, output_dir) -> dict:
 
     loop = AppLoop(cfg, exp, state, writer, path, problem_cfg, history, seconds)
     status = loop.run()
+    if status == "failed":  # keep the last checkpoint: its iterate is finite
+        writer.close()
+        return _failed(out, loop.history)
     loop.save_checkpoint()
     if status in ("stopped", "interrupted"):
         writer.close()
@@ -253,6 +261,42 @@ def run(cfg: DictConfig, output_dir) -> dict:
         return {"status": status, "iteration": state.iteration, "signal": loop.stop.signum}
     result = finish(cfg, exp, state, rec, loop.history, loop.seconds, out, writer, status)
     writer.close()
+    return result
+
+
+def _read_checkpoint(cfg: DictConfig, path: Path, problem_cfg: dict):
+    """With ``resume``: the verified checkpoint at ``path`` (None if there is none), refused if its problem
+    differs from the config's or it is past ``solver.max_iter``."""
+    if not cfg.resume:
+        return None
+    if not path.exists():
+        log.warning("resume=true but there is no %s: starting at iteration 0", path)
+        return None
+    saved = ckpt.load(path, keys=("iteration", "state", "solver", "rng", "history", "seconds", "problem"))
+    with ckpt.restoring(path):
+        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
+        iteration = int(saved["iteration"])
+    if mismatch:
+        raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
+    if iteration > cfg.solver.max_iter:
+        raise ckpt.CheckpointError(f"checkpoint {path} is at iteration {iteration}, past solver.max_iter="
+                                   f"{cfg.solver.max_iter}: raise solver.max_iter to at least {iteration} or "
+                                   "run without resume=true")
+    return saved
+
+
+def _failed(out: Path, history: list) -> dict:
+    """A run whose objective or gradient became non-finite: ``metrics.json`` and ``history.json`` say so."""
+    last = history[-1]
+    result = {"status": "failed", "iteration": last["iteration"], "objective": last["objective"],
+              "grad_norm": last["grad_norm"], "evaluations": last["evaluations"],
+              "warning": last["warning"] or "non-finite gradient norm"}
+    with open(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    log.error("failed at iteration %d: %s (%s is not overwritten: it keeps the last periodic checkpoint, if any)",
+              result["iteration"], result["warning"], out / "checkpoint.pt")
     return result
 
 
@@ -360,26 +404,66 @@ def _prefix_job_logs(cfg_hydra) -> None:
 
 
 def _task(cfg: DictConfig):
+    """The Hydra task. Exit status: 0 done (completed, converged, stopped); 1 a user error (``ConfigError``,
+    ``DataFileError``, ``CheckpointError``) or a failed run, with one line ``indreg-register: error: ...`` on stderr;
+    128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
-
-    from ..io import DataFileError
 
     hc = HydraConfig.get()
     _prefix_job_logs(hc)
     try:
         result = run(cfg, hc.runtime.output_dir)
-    except (ConfigError, DataFileError) as e:  # bad input: one line, no traceback
-        print(f"indreg-register: error: {e}", file=sys.stderr)
-        sys.exit(1)
+    except (ConfigError, DataFileError, ckpt.CheckpointError) as e:  # user errors: one line, no traceback
+        _exit_error(str(e))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))
+    if result["status"] == "failed":
+        _exit_error(f"the run failed at iteration {result['iteration']}: {result['warning']}")
     return result.get("ssim")
+
+
+def _exit_error(message: str) -> None:
+    """``indreg-register: error: <message>`` on stderr (one line), exit status 1."""
+    print("indreg-register: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
+    sys.exit(1)
+
+
+def _error_chain(exc: BaseException) -> str:
+    """The messages of an exception and its causes, in one line."""
+    parts, e = [], exc
+    while e is not None:
+        parts.append(" ".join(str(e).split()))
+        e = e.__cause__ or e.__context__
+    return ": ".join(p for p in dict.fromkeys(parts) if p)
+
+
+def preflight(argv) -> None:
+    """Compose and validate a single run's config before Hydra creates its run directory, so that a bad value
+    ends in one line (``indreg-register: error: ...``, exit 1) with nothing written. Multirun (``-m``) and
+    Hydra's own flags (``--help``, ``--cfg``, ...) are left to Hydra; ``hydra.*`` overrides are not needed
+    to validate the job's config."""
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONFIG_DIR), job_name="preflight"):
+            validate(compose(_CONFIG_NAME, overrides=overrides))
+    except (HydraException, ConfigError, ValueError) as e:
+        _exit_error(_error_chain(e))
+    finally:
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()
 
 
 def main() -> None:
     """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``)."""
     import hydra
 
+    preflight(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=_CONFIG_NAME)(_task)()
 
 

@@ -1,10 +1,13 @@
-"""Forward model of indirect registration: parallel-beam geometry, ray transform ``T``, FBP and TV baselines.
+"""Forward model of indirect registration: geometries, ray transform ``T``, FBP and TV baselines.
 
-The data model is ``g = T(W(nu, I)) + noise`` (``eq:OptimV``); ``T`` is the 2D parallel-beam ray transform.
+The data model is ``g = T(W(nu, I)) + noise`` (``eq:OptimV``); ``T`` is any ``LinearOperator`` (protocol in
+``operator``), by default the 2D ray transform for a parallel-beam or fan-beam geometry.
 """
-from .geometry import ParallelBeamGeometry
-from .ray_transform import RayTransform
+from .geometry import FanBeamGeometry, ParallelBeamGeometry
+from .operator import LinearOperator, adjointness, check_operator
+from .ray_transform import RayTransform, register_projector
 from .fbp import fbp
 from .tv import tv_reconstruction
 
-__all__ = ["ParallelBeamGeometry", "RayTransform", "fbp", "tv_reconstruction"]
+__all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_projector", "LinearOperator",
+           "check_operator", "adjointness", "fbp", "tv_reconstruction"]

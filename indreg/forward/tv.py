@@ -2,8 +2,10 @@
 "Reconstruction protocol"), solved by the primal-dual method of Chambolle & Pock (2011).
 
 Convention:
-    - Images ``(..., nx, ny)`` (axis 0 = x) on ``T.domain``; data ``(..., num_angles, det_count)``; any
-      leading batch dims (shared by ``y`` and ``x0``); dtype and device follow ``y``.
+    - ``T`` is any ``LinearOperator`` (``indreg.forward.operator``): a ``RayTransform`` or a user's operator.
+    - Images ``(..., nx, ny)`` (axis 0 = x) on ``T.domain``; data ``(..., *T.range_shape)`` (for a ray
+      transform ``(..., num_angles, det_count)``); any leading batch dims (shared by ``y`` and ``x0``); dtype
+      and device follow ``y``.
     - Objective, as the paper's eq:VarReg with ODL's ``L2NormSquared`` data term (no factor 1/2, the
       authors' ODL set-up, so the paper's ``mu`` means the same here):
           ``E(x) = ||T x - y||^2 + mu * TV(x)``,  ``TV(x) = int |grad x| dx``  (isotropic),
@@ -23,6 +25,7 @@ import torch
 
 from .._checks import check_int, check_positive, check_tensor
 from ..domain import ImageDomain
+from .operator import check_operator
 
 
 def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
@@ -62,7 +65,8 @@ def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0
 
 
 def _normal_operator_norm(T, shape, dtype, device, num_iter: int) -> float:
-    """``||K||`` for ``K = [T; grad]`` by power iteration on ``K^* K = T^* T - div grad`` (weighted L2 norms)."""
+    """``||K||`` for ``K = [T; grad]`` by power iteration on ``K^* K = T^* T - div grad`` (weighted L2 norms;
+    needs only ``T``, ``T.adjoint`` and ``T.domain``, so it works for any protocol operator)."""
     dom = T.domain
     x = torch.randn(shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype=dtype,
                                                                                                  device=device)
@@ -88,8 +92,9 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     ``K x_bar`` is formed as ``2 K x_new - K x`` (linearity), so an iteration costs one ``T`` and one ``T^*``.
 
     Args:
-        T: forward operator with ``T(x)``, ``T.adjoint(y)`` (L2 adjoint), ``T.inner_data`` and ``T.domain``.
-        y: data ``(..., num_angles, det_count)``.
+        T: a ``LinearOperator``: ``T(x)``, ``T.adjoint(y)`` (L2 adjoint), ``T.inner_data``, ``T.domain``,
+            ``T.range_shape``; ``||K||`` is estimated by power iteration, so no operator norm is needed.
+        y: data ``(..., *T.range_shape)``.
         mu: TV weight (> 0); the paper uses 3.0 (suite 1) and 1.0 (suite 2).
         num_iter: iterations (the paper: 1000). x0: start (default zeros), shape ``(..., nx, ny)``.
         callback: called as ``callback(i, x)`` after iteration ``i`` (0-based).
@@ -100,11 +105,12 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
         ``(num_iter, ...)`` with ``E`` of each iterate, ``history["step"]`` = ``tau`` (= ``sigma``),
         ``history["opnorm"]`` = the estimated ``||K||``.
     """
-    check_tensor(y, "y", min_dim=2)
+    check_operator(T, "T")
+    check_tensor(y, "y", tuple(T.range_shape))
     mu = check_positive(mu, "mu")
     num_iter = check_int(num_iter, "num_iter", 1)
     dom = T.domain
-    batch = y.shape[:-2]
+    batch = y.shape[:y.dim() - len(T.range_shape)]
     x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else \
         check_tensor(x0, "x0", tuple(batch) + tuple(dom.shape)).to(dtype=y.dtype, device=y.device).clone()
     opnorm = _normal_operator_norm(T, dom.shape, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1))

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from .._checks import check_positive
+from .._checks import check_positive, check_same, check_tensor
 from ..deform.shooting import GeodesicShooting
 from ..forward.ray_transform import RayTransform
 
@@ -28,7 +28,9 @@ class IndirectShootingLoss(nn.Module):
     Convention:
         ``momentum (B, 2, nx, ny)``, ``template (B, nx, ny)`` or ``(nx, ny)``, ``data`` a tensor
         ``(B, num_angles, det_count)`` or (per-sample geometries of different sizes) a list of ``B`` tensors
-        ``(num_angles_b, det_count_b)``. ``reduction``: ``"mean"`` (default), ``"sum"`` or ``"none"`` (``(B,)``).
+        ``(num_angles_b, det_count_b)``: each sinogram in the range of its sample's transform, finite, with the
+        momentum's dtype (float32 / float64) and device (checked before shooting). ``reduction``: ``"mean"``
+        (default), ``"sum"`` or ``"none"`` (``(B,)``).
 
     Example:
         >>> loss_fn = IndirectShootingLoss(GeodesicShooting(dom, K, 10), T, gamma=1e-3)
@@ -73,30 +75,58 @@ class IndirectShootingLoss(nn.Module):
             raise ValueError(f"index entries must lie in [0, {len(self.transforms) - 1}], got {index.tolist()}")
         return index
 
-    def data_fit(self, deformed: torch.Tensor, data, index=None) -> torch.Tensor:
-        """``||T_b(deformed_b) - g_b||^2_data`` per sample, ``(B,)``, for ``deformed (B, nx, ny)``."""
-        batch = deformed.shape[0]
+    def _check_data(self, data, assignment: torch.Tensor, like: torch.Tensor, like_name: str) -> None:
+        """``data`` against the ranges of the samples' transforms: a tensor ``(B, num_angles, det_count)`` or a
+        list of ``B`` tensors ``(num_angles_b, det_count_b)``, finite, with the dtype and device of ``like``."""
+        batch = assignment.numel()
+        if isinstance(data, torch.Tensor):
+            check_tensor(data, "data")
+            if data.dim() != 3 or len(data) != batch:
+                raise ValueError(f"data must have shape (B={batch}, num_angles, det_count), got {tuple(data.shape)}")
+            for k in assignment.unique().tolist():
+                shape = self.transforms[k].range_shape
+                if tuple(data.shape[-2:]) != tuple(shape):
+                    raise ValueError(f"data for transform {k} must have shape (..., {shape[0]}, {shape[1]}), got "
+                                     f"{tuple(data.shape)}")
+            check_same(data, like, "data", like_name)
+            return
+        if not isinstance(data, (list, tuple)):
+            raise TypeError(f"data must be a tensor (B, num_angles, det_count) or a list of B tensors, "
+                            f"got {type(data).__name__}")
         if len(data) != batch:
             raise ValueError(f"data must hold one sinogram per sample ({batch}), got {len(data)}")
-        assignment = self._assignment(batch, index)
-        out = deformed.new_zeros(batch)
+        for b, (g, k) in enumerate(zip(data, assignment.tolist())):
+            shape = self.transforms[k].range_shape
+            check_tensor(g, f"data[{b}]", shape)
+            if g.dim() != 2:
+                raise ValueError(f"data[{b}] must have shape ({shape[0]}, {shape[1]}), got {tuple(g.shape)}")
+            check_same(g, like, f"data[{b}]", like_name)
+
+    def data_fit(self, deformed: torch.Tensor, data, index=None) -> torch.Tensor:
+        """``||T_b(deformed_b) - g_b||^2_data`` per sample, ``(B,)``, for ``deformed (B, nx, ny)``."""
+        assignment = self._assignment(deformed.shape[0], index)
+        self._check_data(data, assignment, deformed, "deformed")
+        return self._data_fit(deformed, data, assignment)
+
+    def _data_fit(self, deformed: torch.Tensor, data, assignment: torch.Tensor) -> torch.Tensor:
+        out = deformed.new_zeros(deformed.shape[0])
         for k in assignment.unique().tolist():
             rows = (assignment == k).nonzero().flatten()
             T = self.transforms[k]
             g = torch.stack([data[b] for b in rows.tolist()]) if isinstance(data, (list, tuple)) else data[rows]
-            if tuple(g.shape[-2:]) != tuple(T.range_shape):
-                raise ValueError(f"data for transform {k} must have shape (..., {T.range_shape[0]}, "
-                                 f"{T.range_shape[1]}), got {tuple(g.shape)}")
-            residual = T(deformed[rows.to(deformed.device)]) - g.to(deformed)
+            residual = T(deformed[rows.to(deformed.device)]) - g
             out = out.index_put((rows.to(out.device),), T.inner_data(residual, residual))
         return out
 
     def terms(self, momentum: torch.Tensor, template: torch.Tensor, data, index=None) -> dict:
         """Per-sample ``loss``, ``data_fit``, ``regulariser`` (``(B,)`` tensors) and the ``deformed`` templates."""
+        check_tensor(momentum, "momentum", (2, *self.shooting.domain.shape))
         if momentum.dim() != 4:
             raise ValueError(f"momentum must have shape (B, 2, nx, ny), got {tuple(momentum.shape)}")
+        assignment = self._assignment(momentum.shape[0], index)
+        self._check_data(data, assignment, momentum, "momentum")
         deformed = self.shooting(momentum, template)
-        fit = self.data_fit(deformed, data, index)
+        fit = self._data_fit(deformed, data, assignment)
         reg = self.shooting.energy(momentum)
         return {"loss": fit + self.gamma * reg, "data_fit": fit, "regulariser": reg, "deformed": deformed}
 

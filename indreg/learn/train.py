@@ -30,6 +30,7 @@ import torch
 import torch.distributed as dist
 
 from ..deform.kernel import GaussianKernel
+from ..experiments import checkpoint as ckpt
 from ..deform.lddmm import LDDMMDeformation
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -42,6 +43,7 @@ from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+RESUME_HINT = "delete it or run without train.resume=true"
 
 
 # ------------------------------------------------------------------ set-up
@@ -111,20 +113,20 @@ def gather(dataset, idx, device) -> dict:
 
 # ------------------------------------------------------------------ checkpoints
 def save_checkpoint(path: Path, model, optimizer, step: int) -> None:
-    """Atomic ``torch.save`` (tmp file then ``os.replace``)."""
-    payload = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-               "rng": torch.get_rng_state()}
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    """Atomic, checksummed write of model / optimizer state_dicts, step and RNG (``indreg.experiments.checkpoint``)."""
+    ckpt.save(path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                     "rng": torch.get_rng_state()})
 
 
-def load_checkpoint(path: Path, model, optimizer, device) -> int:
-    payload = torch.load(path, map_location=device, weights_only=False)
-    model.load_state_dict(payload["model"])
-    optimizer.load_state_dict(payload["optimizer"])
-    torch.set_rng_state(payload["rng"].cpu())
-    return int(payload["step"])
+def load_checkpoint(path: Path, model, optimizer) -> int:
+    """Restore what :func:`save_checkpoint` wrote; returns the step. A damaged, foreign or mismatched file raises
+    ``CheckpointError`` (one line naming ``path``); nothing but tensors and plain data is unpickled."""
+    payload = ckpt.load(path, keys=("model", "optimizer", "step", "rng"), hint=RESUME_HINT)
+    with ckpt.restoring(path, hint=RESUME_HINT):
+        model.load_state_dict(payload["model"])
+        optimizer.load_state_dict(payload["optimizer"])
+        torch.set_rng_state(payload["rng"])
+        return int(payload["step"])
 
 
 # ------------------------------------------------------------------ evaluation
@@ -215,8 +217,8 @@ def train(cfg, run_dir) -> dict:
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
     optimizer = torch.optim.Adam(model.parameters(), lr=float(cfg.train.lr))
-    ckpt = run_dir / "checkpoint.pt"
-    start = load_checkpoint(ckpt, model, optimizer, device) if bool(cfg.train.resume) and ckpt.is_file() else 0
+    checkpoint = run_dir / "checkpoint.pt"
+    start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
@@ -250,7 +252,7 @@ def train(cfg, run_dir) -> dict:
             writer.add_scalar("val/ssim", evaluate_network(model, parts, val_set, device)["ssim"], done)
             log_images(writer, val_set, model, parts, device, done)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
-            save_checkpoint(ckpt, model, optimizer, done)
+            save_checkpoint(checkpoint, model, optimizer, done)
     metrics = {"steps": steps, "resumed_from": start, "world_size": world,
                "train_seconds": time.perf_counter() - t0,
                "replica_max_abs_diff": replica_difference(model, world)}

@@ -36,8 +36,11 @@ class Algorithm1(IterativeSolver):
 
     ``step(state)`` performs one iteration and returns the report at the new iterate: objective, data_fit,
     regulariser, tv, grad_norm, min_jacobian (of ``phi_{1,0}``), step_size, evaluations (cumulative
-    forward/backward evaluations, one per accepted step plus one at the start), rejected, warning.
+    forward/backward evaluations, one per tried step plus one at the start), rejected, warning.
     The gradient at the new iterate is kept for the next step, so an iteration costs one evaluation.
+    ``report(state)`` is that report at the current iterate without a step. After ``load_state_dict`` the
+    first evaluation recomputes the cached gradient of the saved iterate and is not counted, so
+    ``evaluations`` continues as in an uninterrupted run.
     """
 
     def __init__(self, problem: IndirectRegistration, step_size: float = 0.02, max_iter: int = 200,
@@ -54,14 +57,15 @@ class Algorithm1(IterativeSolver):
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
         self.evaluations = 0
         self._current = None   # (momentum tensor, its _version, terms, h, nu) of the last evaluation
+        self._recount = False  # the next evaluation at the iterate recomputes one already counted
 
     def __repr__(self):
         return (f"Algorithm1(step_size={self.step_size}, max_iter={self.max_iter}, grad_tol={self.grad_tol}, "
                 f"step_halving={self.step_halving})")
 
-    def _evaluate(self, m):
+    def _evaluate(self, m, counted: bool = True):
         terms, h, nu = self.problem.l2_gradient(m)
-        self.evaluations += 1
+        self.evaluations += int(counted)
         return terms, h, nu
 
     def _at(self, state: SolverState):
@@ -70,13 +74,21 @@ class Algorithm1(IterativeSolver):
         c = self._current
         if c is None or c[0] is not m or c[1] != m._version:
             self.problem.check_momentum(m)
-            self._current = (m, m._version, *self._evaluate(m))
+            self._current = (m, m._version, *self._evaluate(m, counted=not self._recount))
+            self._recount = False
         return self._current[2:]
 
     def _min_jacobian(self, nu, iteration: int) -> float:
         if self.step_halving or iteration % self.jacobian_every == 0:
             return self.problem.min_jacobian(nu)
         return math.nan
+
+    def report(self, state: SolverState) -> dict:
+        """The report at ``state.momentum`` (no step; ``min_jacobian`` always computed)."""
+        terms, h, nu = self._at(state)
+        min_jac = self.problem.min_jacobian(nu)
+        return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, self.step_size,
+                         self.evaluations, False, problems(terms["objective"], min_jac))
 
     def step(self, state: SolverState) -> dict:
         """One iteration ``m <- m - alpha h`` (with optional step halving); mutates ``state``; returns the report."""
@@ -105,10 +117,12 @@ class Algorithm1(IterativeSolver):
                          self.evaluations, rejected, warnings)
 
     def state_dict(self) -> dict:
-        """Step size (it may have been halved) and the evaluation counter."""
-        return {"step_size": self.step_size, "evaluations": self.evaluations}
+        """Step size (it may have been halved), the evaluation counter and whether it counts the iterate's."""
+        return {"step_size": self.step_size, "evaluations": self.evaluations,
+                "evaluated": self._current is not None}
 
     def load_state_dict(self, d: dict) -> None:
         self.step_size = check_positive(d["step_size"], "step_size")
         self.evaluations = int(d["evaluations"])
         self._current = None
+        self._recount = bool(d["evaluated"])

@@ -56,23 +56,42 @@ def make_info(iteration, terms, grad_norm, min_jacobian, step_size, evaluations,
 
 class IterativeSolver:
     """What every solver shares: the stopping rule and the loop. Subclasses set ``max_iter``, ``grad_tol``
-    and implement ``step(state) -> info``."""
+    and implement ``step(state) -> info`` and ``report(state) -> info`` (the report at the current iterate,
+    no step)."""
 
     max_iter: int
     grad_tol: float
 
+    def failed(self, info: dict) -> bool:
+        """True on a non-finite objective or gradient norm: the iteration broke down."""
+        return not (math.isfinite(info["objective"]) and math.isfinite(info["grad_norm"]))
+
     def converged(self, info: dict) -> bool:
-        """True at ``max_iter``, at ``grad_norm <= grad_tol`` (if > 0), or on a non-finite objective."""
-        return (info["iteration"] >= self.max_iter or not math.isfinite(info["objective"])
-                or (self.grad_tol > 0 and info["grad_norm"] <= self.grad_tol))
+        """True when ``grad_norm <= grad_tol`` (``grad_tol > 0``) at a finite iterate."""
+        return self.grad_tol > 0 and not self.failed(info) and info["grad_norm"] <= self.grad_tol
+
+    def status(self, info: dict):
+        """Why the loop stops after ``info``: "failed", "converged", "completed" (``max_iter``), or None."""
+        if self.failed(info):
+            return "failed"
+        if self.converged(info):
+            return "converged"
+        return "completed" if info["iteration"] >= self.max_iter else None
 
     def run(self, state: SolverState, callback=None) -> dict:
-        """Iterate ``step`` until ``converged``; ``callback(state, info)`` after every step. Returns the last report."""
-        info = None
-        while state.iteration < self.max_iter:
+        """Iterate ``step`` until ``status`` is not None; ``callback(state, info)`` after every step.
+
+        Returns the last report with ``status`` added; without any step (``state.iteration >= max_iter``)
+        the report of the current iterate (``report(state)``). Never raises on a non-finite objective: check
+        ``info["status"] == "failed"``.
+        """
+        if state.iteration >= self.max_iter:
+            info = self.report(state)
+            return dict(info, status="failed" if self.failed(info) else "completed")
+        while True:
             info = self.step(state)
             if callback is not None:
                 callback(state, info)
-            if self.converged(info):
-                break
-        return info
+            status = self.status(info)
+            if status is not None:
+                return dict(info, status=status)

@@ -59,7 +59,10 @@ class TorchOptimSolver(IterativeSolver):
         **optimizer_kwargs: passed to the optimizer.
 
     Evaluations (forward + backward of W and T) are counted by the closure; a closure call at a point
-    already evaluated (L-BFGS re-evaluates the accepted line-search point) reuses the stored result.
+    already evaluated (L-BFGS re-evaluates the accepted line-search point) reuses the stored result. After
+    ``load_state_dict`` the first evaluation recomputes the stored result at the saved parameter and is not
+    counted, so ``evaluations`` continues as in an uninterrupted run. ``report(state)`` is the report at the
+    current iterate without a step.
     """
 
     def __init__(self, problem: IndirectRegistration, optimizer="lbfgs", lr: float | None = None,
@@ -88,6 +91,7 @@ class TorchOptimSolver(IterativeSolver):
         self.evaluations = 0
         self._cache = None      # (p clone, terms, grad, h, nu) of the last evaluation
         self._synced = None     # (momentum tensor, its _version) written by the last step
+        self._recount = None    # a saved parameter whose evaluation was already counted
 
     def __repr__(self):
         return (f"TorchOptimSolver(optimizer={type(self.optimizer).__name__}, lr={self.lr}, "
@@ -108,7 +112,9 @@ class TorchOptimSolver(IterativeSolver):
         m = m.detach()
         h = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m
         terms = {k: float(v.detach()) for k, v in terms.items()}
-        self.evaluations += 1
+        recount = self._recount is not None and torch.equal(self._recount, p.detach())
+        self.evaluations += int(not recount)
+        self._recount = None
         self._cache = (p.detach().clone(), terms, grad, h, nu.detach())
         return self._cache[1:]
 
@@ -127,6 +133,14 @@ class TorchOptimSolver(IterativeSolver):
         if not torch.equal(self.scale * p, m):
             with torch.no_grad():
                 p.copy_(m / self.scale)
+
+    def report(self, state: SolverState) -> dict:
+        """The report at ``state.momentum`` (no step; ``min_jacobian`` always computed)."""
+        self._sync(state)
+        terms, _, h, nu = self._evaluate()
+        min_jac = self.problem.min_jacobian(nu)
+        return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, self.lr,
+                         self.evaluations, False, problems(terms["objective"], min_jac))
 
     def step(self, state: SolverState) -> dict:
         """One ``optimizer.step``; mutates ``state``; returns the report at the new iterate."""
@@ -150,7 +164,8 @@ class TorchOptimSolver(IterativeSolver):
     def state_dict(self) -> dict:
         """Optimizer internals (Adam moments, L-BFGS history), the parameter ``p`` and the evaluation counter."""
         return {"optimizer": copy.deepcopy(self.optimizer.state_dict()),
-                "parameter": self.parameter.detach().clone(), "evaluations": self.evaluations}
+                "parameter": self.parameter.detach().clone(), "evaluations": self.evaluations,
+                "evaluated": self._cache is not None and torch.equal(self._cache[0], self.parameter.detach())}
 
     def load_state_dict(self, d: dict) -> None:
         with torch.no_grad():
@@ -159,3 +174,4 @@ class TorchOptimSolver(IterativeSolver):
         self.evaluations = int(d["evaluations"])
         self._cache = None
         self._synced = None
+        self._recount = self.parameter.detach().clone() if d["evaluated"] else None

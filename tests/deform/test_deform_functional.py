@@ -134,3 +134,47 @@ def test_sample_in_row_bands_is_exact(padding_mode):
         torch.set_num_threads(threads)
     assert torch.equal(banded[0], single[0]) and torch.equal(banded[2], single[2])
     torch.testing.assert_close(banded[1], single[1], rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("dtype", (torch.float32, torch.float64))
+def test_jacobian_determinant_of_affine_maps_is_exact(dtype):
+    # finite differences (central inside, one-sided at the border) are exact for affine maps, on any cell sides
+    dom = ImageDomain((12, 9), (-3.0, 1.0), (5.0, 4.0))
+    a = torch.tensor([[[1.3, -0.4], [0.7, 0.2]], [[0.0, 1.0], [-1.0, 0.0]], [[-0.5, 0.1], [0.3, 2.0]]],
+                     dtype=torch.float64)  # (3, 2, 2): a general map, a rotation by 90 deg, an orientation flip
+    x = dom.points()
+    points = torch.einsum("bij,jxy->bixy", a, x) + torch.tensor([0.5, -2.0], dtype=torch.float64).view(2, 1, 1)
+    det = Fd.jacobian_determinant(points.to(dtype).expand(2, 3, 2, 12, 9), dom)
+    assert det.shape == (2, 3, 12, 9) and det.dtype == dtype
+    expected = torch.linalg.det(a).to(dtype).view(3, 1, 1).expand(2, 3, 12, 9)
+    torch.testing.assert_close(det, expected, rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-12)
+    assert torch.equal(Fd.jacobian_determinant(dom.points(dtype), dom), torch.ones(12, 9, dtype=dtype))
+
+
+def test_jacobian_determinant_matches_independent_differences():
+    # a smooth nonlinear map: the same values as torch.gradient's differences of phi itself
+    dom = ImageDomain((20, 15), (-2.0, -1.0), (2.0, 2.0))
+    x, y = dom.points()
+    phi = torch.stack([x + 0.3 * torch.sin(2 * y) * x, y - 0.2 * torch.cos(x * y)])
+    (dx1, dy1), (dx2, dy2) = (torch.gradient(phi[k], spacing=dom.cell_sides, edge_order=1) for k in range(2))
+    torch.testing.assert_close(Fd.jacobian_determinant(phi, dom), dx1 * dy2 - dy1 * dx2, rtol=1e-12, atol=1e-12)
+    small = ImageDomain((6, 5))  # the in-place products keep autograd's derivative correct
+    noise = torch.randn(2, 6, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    points = (small.points() + 0.1 * noise).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: Fd.jacobian_determinant(p, small), (points,))
+    # a single cell along an axis: no difference there (the map's derivative along it is taken as 1)
+    thin = ImageDomain((1, 15), (0.0, -1.0), (1.0, 2.0))
+    pts = thin.points() * torch.tensor([1.0, 3.0], dtype=torch.float64).view(2, 1, 1)
+    torch.testing.assert_close(Fd.jacobian_determinant(pts, thin), torch.full((1, 15), 3.0, dtype=torch.float64))
+
+
+def test_displacement_10_is_the_last_composed_displacement():
+    dom = ImageDomain((16, 12))
+    v = torch.randn(5, 2, 16, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    v[2] = 0  # a skipped step
+    last = Fd.displacements_t0(v, dom)[-1] / Fd._grid_units(dom, torch.float64, None)
+    torch.testing.assert_close(Fd.displacement_10(v, dom), last, rtol=1e-12, atol=1e-12)
+    vr = v.clone().requires_grad_()
+    recorded = Fd.displacement_10(vr, dom)
+    assert recorded.requires_grad
+    torch.testing.assert_close(recorded.detach(), last, rtol=1e-12, atol=1e-12)

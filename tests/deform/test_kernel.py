@@ -4,6 +4,7 @@ import torch
 
 from indreg import ImageDomain
 from indreg.deform import GaussianKernel
+from indreg.deform.kernel import SIGMA_MIN
 
 METHODS = ("matrix", "fft")
 
@@ -82,8 +83,26 @@ def test_bad_input():
             GaussianKernel(dom, sigma)
     with pytest.raises(ValueError, match="method"):
         GaussianKernel(dom, 1.0, method="direct")
+    for sigma in (1e-300, SIGMA_MIN / 2):  # sigma^2 underflows: the kernel would be NaN
+        with pytest.raises(ValueError, match=r"sigma must be >= 1.49e-154 \(below, sigma\^2 underflows"):
+            GaussianKernel(dom, sigma)
+    with pytest.raises(TypeError, match="sigma must be a positive number, got 'a'"):
+        GaussianKernel(dom, "a")
     K = GaussianKernel(dom, 1.0)
     with pytest.raises(ValueError, match=r"\(\.\.\., 2, 8, 8\)"):
         K(torch.zeros(3, 8, 8))
     with pytest.raises(ValueError, match="non-finite"):
         K(torch.full((2, 8, 8), float("nan")))
+    for dtype in (torch.float16, torch.bfloat16):
+        with pytest.raises(TypeError, match=f"vector field must be float32 or float64, got {dtype}"):
+            K(torch.zeros(2, 8, 8, dtype=dtype))
+
+
+@pytest.mark.parametrize("method", ("matrix", "fft"))
+def test_extreme_sigmas_are_representable(method):
+    # the smallest accepted sigma is the discrete delta, a huge one the constant kernel: both finite
+    dom = ImageDomain.paper(8)
+    m = torch.randn(2, 8, 8, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(GaussianKernel(dom, SIGMA_MIN, method)(m), dom.cell_volume * m)
+    constant = dom.cell_volume * m.sum(dim=(-2, -1), keepdim=True).expand(2, 8, 8)
+    torch.testing.assert_close(GaussianKernel(dom, 1e300, method)(m), constant)

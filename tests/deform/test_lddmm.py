@@ -116,11 +116,115 @@ def test_deformation_and_min_jacobian():
     v = torch.stack([torch.full_like(x, 2.0), torch.zeros_like(y)]).expand(9, 2, 32, 32)
     W = LDDMMDeformation(dom, 8)
     torch.testing.assert_close(W.deformation(v), dom.points() - torch.tensor([2.0, 0.0]).view(2, 1, 1))
-    # a contraction field v = -a x has div = -2a, |D phi_{1,0}| = exp(2a) > 1; a strong expansion folds
+    # a contraction field v = -a x has div = -2a, |D phi_{1,0}| = exp(2a) > 1
     assert float(W.min_jacobian(-0.1 * torch.stack([x, y]).expand(9, 2, 32, 32))) > 1.1
+    # one step Id - v/N = (3/8) Id: the first-order factor 1 - div(v)/N = 1 - 10/8 < 0, the map does not fold
+    shrink = torch.zeros(9, 2, 32, 32, dtype=torch.float64)
+    shrink[-1] = 5.0 * torch.stack([x, y])
+    assert float(W.jacobian(shrink).amin()) < 0 and float(W.min_jacobian(shrink)) == pytest.approx(9 / 64, abs=1e-12)
     folding = torch.zeros(9, 2, 32, 32, dtype=torch.float64)
-    folding[-1] = 5.0 * torch.stack([x, y])  # one step with 1 - div(v)/N = 1 - 10/8 < 0
-    assert float(W.min_jacobian(folding)) < 0
+    folding[-1, 0] = 12.0 * x  # one step x -> -x / 2: an orientation flip
+    assert float(W.min_jacobian(folding)) == pytest.approx(-0.5, abs=1e-12)
+
+
+def swirl(domain, amplitude, num_steps, dtype=torch.float64):
+    """The cellular swirl ``amplitude (sin(x/4) cos(y/4), -cos(x/4) sin(y/4))``, constant in time."""
+    x, y = domain.points(dtype)
+    v = amplitude * torch.stack([torch.sin(x / 4) * torch.cos(y / 4), -torch.cos(x / 4) * torch.sin(y / 4)])
+    return v.expand(num_steps + 1, 2, *domain.shape)
+
+
+def independent_deformation(v, domain):
+    """``phi_{1,0}`` by eq:ODEflow1b written with ``warp`` on physical points (no grid-unit steps)."""
+    points, n = domain.points(v.dtype), v.shape[-4] - 1
+    u = torch.zeros_like(points)
+    for i in range(1, n + 1):
+        step = points - v[i] / n
+        u = torch.stack([Fd.warp(u[k], step, domain, "border") for k in range(2)]) - v[i] / n
+    return points + u
+
+
+def test_jacobian_determinant_of_affine_velocity_is_exact():
+    # nu(x) = B x with Id - B/N mapping the cell centres' hull into itself (|c| <= b): every step is affine
+    # and reproduced exactly by bilinear interpolation, phi_{1,0} = (Id - B/N)^N, det = det(Id - B/N)^N
+    dom, n = ImageDomain.paper(32), 8
+    x, y = dom.points()
+    b, c, b2 = 0.8, -0.5, 0.4
+    v = torch.stack([b * x + c * y, b2 * y]).expand(n + 1, 2, 32, 32)
+    for interpolation in INTERP:
+        W = LDDMMDeformation(dom, n, interpolation=interpolation)
+        exact = ((1 - b / n) * (1 - b2 / n)) ** n
+        torch.testing.assert_close(W.jacobian_determinant(v), torch.full_like(x, exact), rtol=0, atol=1e-12)
+        # the first-order product says (1 - (b + b2)/N)^N instead
+        torch.testing.assert_close(W.jacobian(v), torch.full_like(x, (1 - (b + b2) / n) ** n), rtol=0, atol=1e-12)
+
+
+def test_jacobian_determinant_of_rotation():
+    # nu = w (-y, x): each step is the linear map Id - w J / N with det 1 + (w/N)^2, so the discrete map's
+    # determinant is (1 + (w/N)^2)^N -> 1 (a rotation) where no step reaches the border's padding
+    dom = ImageDomain.paper(32)
+    x, y = dom.points()
+    inner = (x ** 2 + y ** 2) < 8 ** 2
+    for n in (8, 20):
+        v = 0.5 * torch.stack([-y, x]).expand(n + 1, 2, 32, 32)
+        det = LDDMMDeformation(dom, n).jacobian_determinant(v)
+        torch.testing.assert_close(det[inner], torch.full_like(det[inner], (1 + (0.5 / n) ** 2) ** n),
+                                   rtol=0, atol=1e-6)
+        assert float((det - 1).abs().max()) < 0.07
+
+
+@pytest.mark.parametrize("interpolation", INTERP)
+def test_swirl_folds_and_min_jacobian_says_so(interpolation):
+    dom = ImageDomain.paper(64)
+    for amplitude, n, expected in ((20.0, 4, -0.654), (80.0, 20, -74.16)):
+        v = swirl(dom, amplitude, n)
+        W = LDDMMDeformation(dom, n, interpolation=interpolation)
+        det = W.jacobian_determinant(v)
+        fraction = float((det <= 0).double().mean())
+        print(f"\nswirl {amplitude:g} N={n}: first-order product min {float(W.jacobian(v).amin()):.4f}, "
+              f"map det min {float(det.amin()):.4f}, {100 * fraction:.1f}% of pixels <= 0")
+        assert float(W.min_jacobian(v)) == pytest.approx(expected, abs=0.01) and fraction > 0.2
+        assert float(W.jacobian(v).amin()) > 0.9  # the first-order product does not see the folding
+
+
+@pytest.mark.parametrize("interpolation", INTERP)
+def test_jacobian_determinant_is_that_of_the_applied_map(interpolation):
+    dom = ImageDomain.paper(32)
+    v = swirl(dom, 6.0, 6)
+    W = LDDMMDeformation(dom, 6, interpolation=interpolation)
+    phi = independent_deformation(v, dom)
+    torch.testing.assert_close(W.deformation(v), phi, rtol=1e-12, atol=1e-12)
+    (dx1, dy1), (dx2, dy2) = (torch.gradient(phi[k], spacing=dom.cell_sides, edge_order=1) for k in range(2))
+    torch.testing.assert_close(W.jacobian_determinant(v), dx1 * dy2 - dy1 * dx2, rtol=1e-10, atol=1e-10)
+    template = bump(dom, (1.0, -2.0), 4.0)
+    applied = Fd.warp(template, phi, dom)  # I o phi_{1,0}: exact for "compose", up to the steps' blur otherwise
+    error = float(dom.norm(W(v, template) - applied) / dom.norm(applied))
+    # reinterpolation: 4.6% (the blur of 6 interpolations) where the template itself is 76% away
+    assert error < (1e-12 if interpolation == "compose" else 0.06)
+
+
+def test_smooth_field_determinant_is_close_to_first_order_product():
+    for n, steps in ((32, 8), (64, 16)):
+        dom, v, _, _ = smooth_problem(n, steps)
+        W = LDDMMDeformation(dom, steps)
+        det, product = W.jacobian_determinant(v), W.jacobian(v)
+        assert float(det.amin()) > 0.8
+        assert float(((det - product) / product).abs().amax()) < 0.005
+
+
+def test_jacobian_determinant_batch_dtypes_and_no_graph():
+    dom = ImageDomain.paper(16)
+    v = torch.stack([swirl(dom, a, 4) for a in (0.0, 3.0, 12.0)]).view(3, 1, 5, 2, 16, 16)
+    W = LDDMMDeformation(dom, 4)
+    det = W.jacobian_determinant(v)
+    assert det.shape == (3, 1, 16, 16) and W.min_jacobian(v).shape == (3, 1)
+    for b in range(3):
+        torch.testing.assert_close(det[b, 0], W.jacobian_determinant(v[b, 0]))
+    assert torch.equal(det[0, 0], torch.ones(16, 16, dtype=torch.float64))
+    det32 = W.jacobian_determinant(v.float())
+    assert det32.dtype == torch.float32
+    torch.testing.assert_close(det32.double(), det, rtol=0, atol=1e-5)
+    assert not W.jacobian_determinant(v.clone().requires_grad_()).requires_grad
 
 
 # ---------------------------------------------------------------------------------------------- gradients
@@ -396,6 +500,9 @@ def test_bad_input():
         LDDMMDeformation(dom, 0)
     with pytest.raises(TypeError, match="num_steps"):
         LDDMMDeformation(dom, 2.5)
+    for bad in (None, "a", math.nan, math.inf):
+        with pytest.raises(TypeError, match=f"num_steps must be an integer >= 1, got {bad!r}"):
+            LDDMMDeformation(dom, bad)
     with pytest.raises(ValueError, match="action"):
         LDDMMDeformation(dom, 4, action="affine")
     with pytest.raises(ValueError, match="backward"):
@@ -416,6 +523,13 @@ def test_bad_input():
         W(v, template.clone().fill_(float("inf")))
     with pytest.raises(TypeError, match="dtype"):
         W(v.float(), template)
+    for dtype in (torch.float16, torch.bfloat16):  # the projector refuses them too
+        with pytest.raises(TypeError, match=f"velocity must be float32 or float64, got {dtype}"):
+            W(v.to(dtype), template.to(dtype))
+        with pytest.raises(TypeError, match=f"template must be float32 or float64, got {dtype}"):
+            W(v, template.to(dtype))
+        with pytest.raises(TypeError, match=f"velocity must be float32 or float64, got {dtype}"):
+            W.min_jacobian(v.to(dtype))
 
 
 @pytest.mark.parametrize("backward", ("paper", "autograd"))

@@ -44,8 +44,20 @@ def rasterise(ellipses, domain, scale=16.0, supersample=4):
 
 def radon_ellipses(ellipses, geometry, scale=16.0):
     """Closed-form line integrals p(theta, s) = 2 v a b sqrt(r^2 - t^2) / r^2, t = s - c.w, float64."""
-    theta, s = geometry.angles[:, None], geometry.det_points[None, :]
-    p = torch.zeros(geometry.shape, dtype=torch.float64)
+    return line_integrals(ellipses, geometry.angles[:, None], geometry.det_points[None, :], scale)
+
+
+def fan_radon_ellipses(ellipses, geometry, scale=16.0):
+    """Closed-form fan-beam data: ray (beta, u) is the parallel line (beta - gamma, src_radius sin gamma),
+    gamma = atan(u / (src_radius + det_radius))."""
+    gamma = torch.atan(geometry.det_points[None, :] / (geometry.src_radius + geometry.det_radius))
+    return line_integrals(ellipses, geometry.angles[:, None] - gamma, geometry.src_radius * torch.sin(gamma), scale)
+
+
+def line_integrals(ellipses, theta, s, scale=16.0):
+    """Integrals of the ellipses over the lines {s w + t w_perp}, w = (cos theta, sin theta) (broadcast)."""
+    theta, s = torch.broadcast_tensors(theta, s)
+    p = torch.zeros(theta.shape, dtype=torch.float64)
     for v, a, b, cx, cy, phi in _physical(ellipses, scale):
         r2 = (a * torch.cos(theta - phi)) ** 2 + (b * torch.sin(theta - phi)) ** 2
         t = s - (cx * torch.cos(theta) + cy * torch.sin(theta))
@@ -60,4 +72,5 @@ def ellipses():
         shepp_logan = MODIFIED_SHEPP_LOGAN
     Ellipses.rasterise = staticmethod(rasterise)
     Ellipses.radon = staticmethod(radon_ellipses)
+    Ellipses.fan_radon = staticmethod(fan_radon_ellipses)
     return Ellipses

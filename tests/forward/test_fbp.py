@@ -6,7 +6,7 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio
 
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
-from indreg.forward import fbp
+from indreg.forward import FanBeamGeometry, fbp
 from indreg.forward.fbp import FILTERS, fbp_filter
 
 DISK = [(2.5, 0.5, 0.5, 0.0, 0.0, 0.0)]   # value 2.5, radius 8 on [-16, 16]^2
@@ -111,3 +111,75 @@ def test_invalid_data(op128):
         fbp(op128, torch.zeros(182, 180, dtype=torch.float64))
     with pytest.raises(TypeError, match="floating dtype"):
         fbp(op128, torch.zeros(180, 182, dtype=torch.int64))
+
+
+def test_limited_angle_scale_follows_the_covered_range(ellipses):
+    """Tilt series -60..60 degrees, step 1: each angle weighs its 1-degree cell, so a centred disk's centre is
+    (121 / 180) of its value (measured 1.687 vs 1.681), not inflated to the full value by pi / num_angles."""
+    dom = ImageDomain.paper(128)
+    T = RayTransform(dom, ParallelBeamGeometry.tilt_series(-60, 60, 1, 182, -24.0, 24.0))
+    rec = fbp(T, ellipses.radon(DISK, T.geometry), "ram-lak", 1.0)
+    centre = float(rec[dom.points().pow(2).sum(0) < 1].mean())
+    assert centre == pytest.approx(2.5 * 121 / 180, rel=0.01)
+
+
+def test_non_uniform_angles_are_weighted_by_their_cells(op128, ellipses):
+    """Explicit uniform angles reproduce the default geometry; a non-uniform full set (dense on one half,
+    sparse on the other) still reconstructs the disk's value, which equal weights would not."""
+    dom = op128.domain
+    uniform = torch.arange(180.0, dtype=torch.float64) * math.pi / 180
+    explicit = RayTransform(dom, ParallelBeamGeometry(angles=uniform, det_count=182, det_min=-24.0, det_max=24.0))
+    torch.testing.assert_close(explicit.geometry.angle_weights, op128.geometry.angle_weights, rtol=1e-13, atol=0)
+    y = ellipses.radon(DISK, explicit.geometry)
+    torch.testing.assert_close(fbp(explicit, y), fbp(op128, y), rtol=0, atol=1e-4)   # 45-degree rays may march
+    # either way when the angle is rounded differently: a different, equally valid discretisation
+    # 120 angles on [0, pi/2), 30 on [pi/2, pi), an off-centre elongated ellipse: relative L2 error 8.2% with
+    # the cells (its value 0.99 inside), 52% with equal weights pi / 150 (value 1.21)
+    angles = torch.cat([torch.arange(120, dtype=torch.float64) * (math.pi / 240),
+                        math.pi / 2 + torch.arange(30, dtype=torch.float64) * (math.pi / 60)])
+    phantom = [(1.0, 0.25, 0.6, 0.2, 0.1, 20.0)]
+    truth = ellipses.rasterise(phantom, dom)
+    errors = []
+    for weights in (None, torch.full((150,), math.pi / 150, dtype=torch.float64)):
+        T = RayTransform(dom, ParallelBeamGeometry(angles=angles, det_count=182, det_min=-24.0, det_max=24.0,
+                                                   angle_weights=weights))
+        rec = fbp(T, ellipses.radon(phantom, T.geometry), "ram-lak", 1.0)
+        errors.append(float((rec - truth).norm() / truth.norm()))
+    assert errors[0] < 0.1 and errors[1] > 0.4
+
+
+@pytest.mark.parametrize("src, det", [(40.0, 40.0), (30.0, 10.0)])
+def test_fan_beam_fbp_reconstructs_ellipses(ellipses, src, det):
+    """Fan beam (180 views over 2 pi, 256 bins, detector fitted to the domain) at 128^2, analytic data, rebinned:
+    relative L2 error against the raster 4.0% / 4.5% (ram-lak), 9.3% (hamming 0.4; the parallel FBP of the same
+    phantom: 2.3% and 9.0%); the disk's value is recovered to 1%."""
+    dom = ImageDomain.paper(128)
+    phantom = [(1.0, 0.5, 0.5, 0.1, 0.05, 0.0), (0.5, 0.3, 0.6, -0.1, 0.0, 30.0)]
+    truth = ellipses.rasterise(phantom, dom)
+    T = RayTransform(dom, FanBeamGeometry(180, 256, src_radius=src, det_radius=det))
+    y = ellipses.fan_radon(phantom, T.geometry)
+    rec = fbp(T, y, "ram-lak", 1.0)
+    assert float((rec - truth).norm() / truth.norm()) < 0.06
+    assert float((fbp(T, y) - truth).norm() / truth.norm()) < 0.11
+    inside = (dom.points() - torch.tensor([6.0, 4.0], dtype=torch.float64)[:, None, None]).pow(2).sum(0) < 2.25
+    assert bool((truth[inside] == 1.0).all())                   # a patch of the disk outside the other ellipse
+    assert float(rec[inside].mean()) == pytest.approx(1.0, rel=0.01)
+    assert torch.equal(fbp(T, y, "ram-lak", 1.0), rec)          # the rebinning plan is cached and reused
+
+
+def test_fan_beam_fbp_gradcheck_and_errors():
+    dom = ImageDomain((4, 4), (-2.0, -2.0), (2.0, 2.0))
+    T = RayTransform(dom, FanBeamGeometry(12, 6, src_radius=6.0, det_radius=2.0))
+    y = torch.randn(*T.range_shape, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda d: fbp(T, d, "hann", 0.8), (y,))
+    short = RayTransform(dom, FanBeamGeometry(angles=torch.linspace(0, math.pi, 12), det_count=6, src_radius=6.0))
+    with pytest.raises(ValueError, match="full turn.*largest gap"):
+        fbp(short, torch.zeros(12, 6, dtype=torch.float64))
+
+
+def test_fbp_needs_a_ray_transform():
+    class Blur:
+        domain, range_shape = ImageDomain.paper(8), (8, 8)
+
+    with pytest.raises(TypeError, match="fbp needs a RayTransform.*got Blur"):
+        fbp(Blur(), torch.zeros(8, 8, dtype=torch.float64))

@@ -1,11 +1,14 @@
-"""ParallelBeamGeometry: angles, detector bins, data weights (ODL's), validation."""
+"""Geometries: angles (units, arrays), detector bins and extent, tilt series, quadrature cells, data weights
+(ODL's), fan beam, validation."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from indreg import ImageDomain
-from indreg.forward import ParallelBeamGeometry
+from indreg.forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform
+from indreg.forward.geometry import midpoint_cells, parse_angles
 
 
 def test_default_angles_and_detector():
@@ -53,6 +56,8 @@ def test_data_to_image_weight_ratio_from_paper_notes(n, bins, ratio):
     (dict(num_angles=3, det_count=2.5), TypeError, "det_count"),
     (dict(num_angles=2, angles=[0.0, 1.0, 2.0], det_count=3), ValueError, "num_angles=2"),
     (dict(det_count=3), ValueError, "num_angles"),
+    (dict(num_angles=3, det_count=3, angle_weights=[1.0, 1.0]), ValueError, "angle_weights must be 3 finite positive"),
+    (dict(num_angles=2, det_count=3, angle_weights=[1.0, -1.0]), ValueError, "angle_weights"),
 ])
 def test_invalid_geometry(kwargs, error, match):
     with pytest.raises(error, match=match):
@@ -61,3 +66,120 @@ def test_invalid_geometry(kwargs, error, match):
 
 def test_repr():
     assert "num_angles=10" in repr(ParallelBeamGeometry.paper(10, 92))
+
+
+# --- angle units, angle arrays, detector extent, tilt series, quadrature cells, fan beam -----------------
+
+
+def test_degree_like_angles_need_a_unit():
+    with pytest.raises(ValueError, match="look like degrees.*angle_unit='deg'"):
+        ParallelBeamGeometry(angles=[0.0, 30.0, 60.0], det_count=3)
+    g = ParallelBeamGeometry(angles=[0.0, 30.0, 60.0], det_count=3, angle_unit="deg")
+    torch.testing.assert_close(g.angles, torch.tensor([0.0, math.pi / 6, math.pi / 3], dtype=torch.float64))
+    assert ParallelBeamGeometry(angles=[0.0, 7.0], det_count=3, angle_unit="rad").angles[1] == 7.0
+    assert ParallelBeamGeometry(angles=[0.0, -2 * math.pi], det_count=3).num_angles == 2   # 2 pi itself is fine
+    with pytest.raises(ValueError, match="angle_unit must be"):
+        ParallelBeamGeometry(angles=[0.0], det_count=3, angle_unit="degrees")
+
+
+@pytest.mark.parametrize("angles, error, match", [
+    ([[0.0, 0.5], [1.0, 1.5]], ValueError, r"1D list/array, got shape \(2, 2\)"),
+    (np.zeros((3, 1)), ValueError, r"1D list/array, got shape \(3, 1\)"),
+    ([0.0, 1.0 + 0.5j], TypeError, "real numbers.*complex"),
+    (torch.tensor([0.3 + 0.0j]), TypeError, "complex"),
+    (["0", "1"], TypeError, "real numbers"),
+    ([True, False], TypeError, "boolean"),
+])
+def test_angle_arrays_are_not_flattened_or_truncated(angles, error, match):
+    with pytest.raises(error, match=match):
+        parse_angles(angles, None)
+    with pytest.raises(error, match=match):
+        FanBeamGeometry(angles=angles, det_count=3, src_radius=10.0)
+
+
+def test_explicit_angles_keep_float64_values():
+    g = ParallelBeamGeometry(angles=[0.1, 0.7], det_count=2, det_min=-1.0, det_max=1.0)
+    assert float(g.angles[0]) == 0.1 and g.angles.dtype == torch.float64
+    assert ParallelBeamGeometry(angles=0.3, det_count=2).num_angles == 1           # a scalar is one angle
+
+
+def test_detector_extent_defaults_to_the_domain():
+    g = ParallelBeamGeometry(10, 92)
+    assert not g.is_resolved
+    with pytest.raises(ValueError, match="no detector extent.*resolve"):
+        g.det_cell
+    T = RayTransform(ImageDomain.paper(32), g)
+    assert (T.geometry.det_min, T.geometry.det_max) == pytest.approx((-16 * math.sqrt(2), 16 * math.sqrt(2)))
+    assert g.det_min is None and T.geometry is not g                 # the user's geometry is not changed
+    off = ImageDomain((8, 8), (0.0, -1.0), (4.0, 3.0))               # farthest corner (4, 3): radius 5
+    assert ParallelBeamGeometry(3, 5).resolve(off).det_max == pytest.approx(5.0)
+    fixed = ParallelBeamGeometry(3, 5, -2.0, 2.0)
+    assert fixed.resolve(off) is fixed
+    with pytest.raises(ValueError, match="both det_min and det_max, or neither"):
+        ParallelBeamGeometry(3, 5, det_min=-1.0)
+
+
+def test_tilt_series():
+    g = ParallelBeamGeometry.tilt_series(-60, 60, 2, det_count=64)
+    assert g.num_angles == 61
+    torch.testing.assert_close(g.angles[[0, 30, 60]] * 180 / math.pi,
+                               torch.tensor([-60.0, 0.0, 60.0], dtype=torch.float64))
+    torch.testing.assert_close(g.angle_weights, torch.full((61,), math.radians(2), dtype=torch.float64))
+    assert g.angle_cell == pytest.approx(math.pi / 61)             # the data weight is unchanged (ODL's)
+    with pytest.raises(ValueError, match="not a multiple of step_deg"):
+        ParallelBeamGeometry.tilt_series(-60, 61, 2, det_count=8)
+    with pytest.raises(ValueError, match="less than 180 degrees"):
+        ParallelBeamGeometry.tilt_series(-90, 90, 1, det_count=8)
+    with pytest.raises(ValueError, match="step_deg"):
+        ParallelBeamGeometry.tilt_series(-60, 60, 0, det_count=8)
+
+
+def test_midpoint_cells():
+    n = 12
+    uniform = torch.arange(n, dtype=torch.float64) * math.pi / n
+    torch.testing.assert_close(midpoint_cells(uniform, math.pi), torch.full((n,), math.pi / n, dtype=torch.float64))
+    # the paper's angles k pi / (n - 1/2): the wrap gap is half a step, so the end cells get 3/4 of a step
+    step = math.pi / (n - 0.5)
+    cells = midpoint_cells(torch.arange(n, dtype=torch.float64) * step, math.pi)
+    assert float(cells[0]) == pytest.approx(0.75 * step) and float(cells[5]) == pytest.approx(step)
+    assert float(cells.sum()) == pytest.approx(math.pi)
+    # non-uniform, unsorted: sorted 0, 0.2, 0.6, 1.0 -> 0.1+0.1, 0.1+0.2, 0.2+0.2, 0.2+0.2
+    torch.testing.assert_close(midpoint_cells(torch.tensor([0.6, 0.0, 1.0, 0.2], dtype=torch.float64), math.pi),
+                               torch.tensor([0.4, 0.2, 0.4, 0.3], dtype=torch.float64))
+    # a full turn measured by a parallel beam covers every line twice: pi / n each
+    full = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    torch.testing.assert_close(midpoint_cells(full, math.pi), torch.full((n,), math.pi / n, dtype=torch.float64))
+    assert ParallelBeamGeometry.paper(10, 92).angle_weights.eq(math.pi / 10).all()   # the authors' weights
+
+
+def test_fan_beam_geometry():
+    g = FanBeamGeometry(8, 10, src_radius=30.0, det_radius=10.0, det_min=-20.0, det_max=20.0)
+    torch.testing.assert_close(g.angles, torch.arange(8, dtype=torch.float64) * math.pi / 4)
+    assert g.magnification == pytest.approx(4 / 3) and g.det_cell == 4.0
+    assert g.angle_cell == pytest.approx(math.pi / 4) and g.data_weight == pytest.approx(math.pi)
+    torch.testing.assert_close(g.angle_weights, torch.full((8,), math.pi / 4, dtype=torch.float64))
+    # default detector: the fan through the farthest corner (radius 16 sqrt 2) of the domain
+    r = 16 * math.sqrt(2)
+    fitted = FanBeamGeometry(8, 10, src_radius=30.0, det_radius=10.0).resolve(ImageDomain.paper(16))
+    assert fitted.det_max == pytest.approx(40 * r / math.sqrt(30 ** 2 - r ** 2))
+    assert "src_radius=30.0" in repr(g)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(num_angles=4, det_count=3), ValueError, "src_radius.*required"),
+    (dict(num_angles=4, det_count=3, src_radius=-1.0), ValueError, "src_radius"),
+    (dict(num_angles=4, det_count=3, src_radius=10.0, det_radius=-1.0), ValueError, "det_radius"),
+    (dict(num_angles=4, det_count=3, src_radius=10.0, det_radius=math.nan), ValueError, "det_radius"),
+    (dict(angles=[0.0, 400.0], det_count=3, src_radius=10.0), ValueError, "look like degrees"),
+    (dict(num_angles=4, det_count=3, src_radius=10.0, det_min=2.0, det_max=1.0), ValueError, "det_min must be <"),
+])
+def test_invalid_fan_beam_geometry(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        FanBeamGeometry(**kwargs)
+
+
+def test_fan_source_inside_the_domain_is_rejected():
+    with pytest.raises(ValueError, match="src_radius=20.0 must exceed the domain radius 22.6"):
+        RayTransform(ImageDomain.paper(16), FanBeamGeometry(8, 10, src_radius=20.0))
+    with pytest.raises(ValueError, match="src_radius=20.0 must exceed"):
+        RayTransform(ImageDomain.paper(16), FanBeamGeometry(8, 10, src_radius=20.0, det_min=-30.0, det_max=30.0))

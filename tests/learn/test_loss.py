@@ -1,4 +1,6 @@
 """Tests of IndirectShootingLoss (indreg/learn/loss.py)."""
+import math
+
 import pytest
 import torch
 
@@ -84,3 +86,48 @@ def test_errors(setup):
         loss(m0, tmpl, data, torch.tensor([0, 1, 0]))
     with pytest.raises(ValueError, match=r"momentum must have shape \(B, 2, nx, ny\)"):
         IndirectShootingLoss(shoot, transforms[0], 1.0)(m0[0], tmpl, data)
+
+
+def test_data_is_validated_against_the_range(setup):
+    # each bad input fails before the shooting with a one-line error naming data (or data[b])
+    dom, shoot, m0, tmpl, transforms = setup
+    T = transforms[0]
+    loss = IndirectShootingLoss(shoot, T, 1.0)
+    good = T(tmpl)
+    nan = good.clone()
+    nan[1, 2, 3] = float("nan")
+    for bad, error, match in (
+            (good[:2], ValueError, r"data must have shape \(B=3, num_angles, det_count\), got \(2, 4, 24\)"),
+            (good[0], ValueError, r"data must have shape \(B=3, num_angles, det_count\), got \(4, 24\)"),
+            (good[..., :20], ValueError, r"data for transform 0 must have shape \(\.\.\., 4, 24\)"),
+            (good.float(), TypeError, "data has dtype torch.float32 but momentum has dtype torch.float64"),
+            (good.half(), TypeError, "data must be float32 or float64, got torch.float16"),
+            (good.long(), TypeError, "data must have a floating dtype"),
+            (nan, ValueError, "data contains non-finite values"),
+            (good.numpy(), TypeError, "data must be a tensor .* or a list of B tensors, got ndarray")):
+        with pytest.raises(error, match=match):
+            loss(m0, tmpl, bad)
+    per_sample = IndirectShootingLoss(shoot, transforms, 1.0)
+    index = [1, 0, 1]
+    data = [transforms[k](tmpl[b]) for b, k in enumerate(index)]
+    for b, bad, error, match in (
+            (0, data[1], ValueError, r"data\[0\] must have shape \(\.\.\., 6, 24\), got \(4, 24\)"),
+            (2, data[2][None], ValueError, r"data\[2\] must have shape \(6, 24\), got \(1, 6, 24\)"),
+            (1, data[1].float(), TypeError, r"data\[1\] has dtype torch.float32 but momentum"),
+            (1, data[1] * math.inf, ValueError, r"data\[1\] contains non-finite")):
+        with pytest.raises(error, match=match):
+            per_sample(m0, tmpl, [bad if j == b else d for j, d in enumerate(data)], index)
+    with pytest.raises(ValueError, match=r"data must hold one sinogram per sample \(3\), got 2"):
+        per_sample(m0, tmpl, data[:2], index)
+    with pytest.raises(TypeError, match="momentum must be float32 or float64, got torch.bfloat16"):
+        loss(m0.bfloat16(), tmpl, good)
+    # data_fit checks too, against the deformed templates
+    with pytest.raises(TypeError, match="data has dtype torch.float32 but deformed has dtype torch.float64"):
+        loss.data_fit(tmpl, good.float())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_data_on_another_device(setup):
+    dom, shoot, m0, tmpl, (T, _) = setup
+    with pytest.raises(ValueError, match="data is on cuda:0 but momentum is on cpu"):
+        IndirectShootingLoss(shoot, T, 1.0)(m0, tmpl, T(tmpl).cuda())

@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from indreg.experiments import checkpoint
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "train_momentum.py"
 TINY = ["domain.n=16", "geometry.num_angles=6", "geometry.det_count=24", "shooting.num_steps=3",
@@ -34,7 +36,7 @@ def scalars(run_dir, tag):
 
 
 def parameters(run_dir):
-    return torch.load(Path(run_dir) / "checkpoint.pt", map_location="cpu", weights_only=False)
+    return checkpoint.load(Path(run_dir) / "checkpoint.pt")
 
 
 @pytest.mark.slow

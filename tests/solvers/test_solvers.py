@@ -18,7 +18,9 @@ def test_algorithm1_descends_and_reports(problem):
     solver = Algorithm1(problem, step_size=0.02, max_iter=4)
     infos = []
     info = solver.run(state, callback=lambda s, i: infos.append(i))
-    assert state.iteration == 4 and len(infos) == 4 and solver.converged(info)
+    assert state.iteration == 4 and len(infos) == 4 and info["status"] == "completed"
+    assert not solver.converged(info) and not solver.failed(info)
+    assert info == dict(infos[-1], status="completed")
     start = problem.evaluate(problem.zero_momentum())["objective"]
     objectives = [i["objective"] for i in infos]
     assert objectives[0] < start and all(b < a for a, b in zip(objectives, objectives[1:]))
@@ -33,8 +35,45 @@ def test_algorithm1_descends_and_reports(problem):
 def test_algorithm1_grad_tol_stops(problem):
     solver = Algorithm1(problem, step_size=0.02, max_iter=50, grad_tol=1e30)
     state = SolverState(problem.zero_momentum())
-    solver.run(state)
-    assert state.iteration == 1
+    info = solver.run(state)
+    assert state.iteration == 1 and info["status"] == "converged" and solver.converged(info)
+
+
+def _solver(kind, problem, **kwargs):
+    if kind == "algorithm1":
+        return Algorithm1(problem, step_size=kwargs.pop("step_size", 0.02), **kwargs)
+    return TorchOptimSolver(problem, "lbfgs", **kwargs)
+
+
+@pytest.mark.parametrize("kind", ["algorithm1", "lbfgs"])
+def test_run_without_iterations_reports_the_current_iterate(problem, kind):
+    """max_iter = 0, or a state already at max_iter: the report of state.momentum, not None."""
+    from solver_problems import smooth_momentum
+
+    m = smooth_momentum(problem)
+    for max_iter, iteration in ((0, 0), (3, 3), (3, 5)):
+        state = SolverState(m.clone(), iteration)
+        solver = _solver(kind, problem, max_iter=max_iter)
+        info = solver.run(state)
+        terms = problem.evaluate(m)
+        assert info["iteration"] == iteration and state.iteration == iteration and torch.equal(state.momentum, m)
+        assert info["status"] == "completed" and info["evaluations"] == 1
+        for key in ("objective", "data_fit", "regulariser"):
+            assert info[key] == pytest.approx(terms[key], rel=1e-10), key
+        assert info["grad_norm"] > 0 and 0 < info["min_jacobian"] < 2 and info["warning"] == ""
+
+
+@pytest.mark.parametrize("kind", ["algorithm1", "lbfgs"])
+def test_non_finite_objective_is_a_failure_not_convergence(problem, kind):
+    """A step of 1e300 overflows the regulariser: status "failed" at once, grad_tol or not."""
+    for grad_tol in (0.0, 1e-3):
+        state = SolverState(problem.zero_momentum())
+        solver = (Algorithm1(problem, step_size=1e300, max_iter=5, grad_tol=grad_tol) if kind == "algorithm1"
+                  else TorchOptimSolver(problem, "sgd", lr=1e300, max_iter=5, grad_tol=grad_tol))
+        info = solver.run(state)
+        assert state.iteration == 1 and info["status"] == "failed"
+        assert not math.isfinite(info["objective"]) and "non-finite objective" in info["warning"]
+        assert solver.failed(info) and not solver.converged(info) and solver.status(info) == "failed"
 
 
 def test_step_halving_rejects_bad_steps(problem):
@@ -101,6 +140,7 @@ def _resume_matches(make_solver, problem, k=3):
     again = _run(resumed, resumed_state, k)
     assert torch.equal(resumed_state.momentum, state.momentum)
     assert [i["objective"] for i in again] == [i["objective"] for i in reference]
+    assert [i["evaluations"] for i in again] == [i["evaluations"] for i in reference]  # no recount on resume
     assert resumed_state.iteration == state.iteration == 2 * k
 
 
