@@ -47,8 +47,9 @@ class RegistrationResult:
     ``momentum`` and ``velocity`` ``(N+1, 2, nx, ny)`` (``nu = K m``, component 0 = x); ``deformation``
     ``(2, nx, ny)`` = phi_{1,0} (points, physical units); tensors in the run's dtype / device.
     ``residual`` = ``||T f - g|| / ||g||`` in the data norm; ``history``: one dict per iteration (the
-    solver's report plus ``seconds``); ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``
-    or a non-finite objective) or ``stopped`` (the callback returned True). ``ssim`` / ``psnr`` only with
+    solver's report plus ``seconds``); ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``),
+    ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the
+    callback returned True). ``ssim`` / ``psnr`` only with
     ``target=``.
     """
     deformed: torch.Tensor
@@ -202,7 +203,8 @@ class RegistrationLoop:
     Subclasses (the experiment app) hook in with :meth:`before_step` (may return a stop status),
     :meth:`after_step` (every iteration; may return a stop status) and :meth:`describe` (extra text for the
     log line printed every ``every`` iterations). ``run()`` returns the status: ``completed``,
-    ``converged``, or what a hook returned.
+    ``converged``, ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver
+    accepted), or what a hook returned.
     """
 
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
@@ -258,7 +260,13 @@ class RegistrationLoop:
                 if self._halved():
                     log.info("iteration %d: step size halved to %.4g (the longer step increased the objective or "
                              "folded)", it, info["step_size"])
-                done = self.solver.converged(info)
+                reason = self.solver.status(info)   # failed / converged / completed / None
+                if reason == "failed":              # non-finite: stop before any hook saves this iterate
+                    status = reason
+                    log.error("iteration %d: non-finite objective or gradient (%s); stopping", it,
+                              info.get("warning") or "grad_norm is not finite")
+                    break
+                done = reason is not None
                 stop = self.after_step(info, done)
                 if it % self.every == 0 and not done:
                     log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s", meter.line(it),
@@ -269,7 +277,7 @@ class RegistrationLoop:
                     status = stop
                     break
                 if done:
-                    status = "completed" if it >= self.max_iter else "converged"
+                    status = reason
                     break
         finally:
             bar.close()

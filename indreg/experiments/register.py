@@ -207,18 +207,18 @@ def run(cfg: DictConfig, output_dir) -> dict:
     from .tblog import RunWriter
 
     validate(cfg)
-    seed_everything(cfg.seed)
-    try:
-        exp = build(cfg)
-    except DataFileError:
-        raise
-    except (ValueError, TypeError) as e:  # the operators' input validation
-        raise ConfigError(f"invalid configuration: {e}") from e
     out = Path(output_dir)
     path = out / "checkpoint.pt"
     ckpt.check_location(path, cfg.resume)
     problem_cfg = _problem_config(to_plain(cfg))
     saved = _read_checkpoint(cfg, path, problem_cfg)
+    seed_everything(cfg.seed)
+    try:
+        exp = build(cfg)  # reads and checks the data (files) before any computing
+    except DataFileError:
+        raise
+    except (ValueError, TypeError) as e:  # the operators' input validation
+        raise ConfigError(f"invalid configuration: {e}") from e
     problem = exp.problem
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
     rec = baselines(cfg, exp, out)

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import phantoms
 from ..domain import ImageDomain
-from ..forward import ParallelBeamGeometry, RayTransform
+from ..forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform
 from .config import ConfigError
 
 SOURCES: dict = {}
@@ -79,29 +79,18 @@ def _angles(g) -> Optional[torch.Tensor]:
 
 def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch.Tensor] = None):
     """The geometry of ``g`` (the ``geometry`` group): explicit ``angles`` (radians) or ``num_angles`` of
-    ``partition``; ``det_min = det_max = null``: a parallel detector spans the domain's diagonal, a fan-beam one
-    is fitted by the geometry."""
+    ``partition``; ``det_min = det_max = null``: the ray transform fits the detector to the domain."""
     paper = angles is None and g.partition.value == "paper"
     if paper and g.kind.value == "parallel":
         return ParallelBeamGeometry.paper(g.num_angles, det_count, det_min=g.det_min, det_max=g.det_max)
     if paper:
         angles = torch.arange(g.num_angles, dtype=torch.float64) * (math.pi / (g.num_angles - 0.5))
     if g.kind.value == "fan_flat":
-        from .. import forward
-
-        if not hasattr(forward, "FanBeamGeometry"):
-            raise NotImplementedError("geometry.kind=fan_flat needs indreg.forward.FanBeamGeometry, which this "
-                                      "version of indreg lacks")
-        return forward.FanBeamGeometry(num_angles=None if angles is not None else g.num_angles,
+        return FanBeamGeometry(num_angles=None if angles is not None else g.num_angles,
                                        det_count=det_count, src_radius=g.src_radius, det_radius=g.det_radius,
                                        det_min=g.det_min, det_max=g.det_max, angles=angles)
-    det_min, det_max = g.det_min, g.det_max
-    if det_min is None:
-        det_max = math.hypot(*domain.max_pt)
-        det_min = -det_max
-    if angles is None:
-        return ParallelBeamGeometry(num_angles=g.num_angles, det_count=det_count, det_min=det_min, det_max=det_max)
-    return ParallelBeamGeometry(det_count=det_count, det_min=det_min, det_max=det_max, angles=angles)
+    return ParallelBeamGeometry(num_angles=None if angles is not None else g.num_angles, det_count=det_count,
+                                det_min=g.det_min, det_max=g.det_max, angles=angles)
 
 
 def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
@@ -125,6 +114,7 @@ def phantom_data(cfg: DictConfig) -> Data:
     domain = square_domain(p.size, p.half_width)
     geometry = make_geometry(cfg.geometry, domain, cfg.geometry.det_count, _angles(cfg.geometry))
     T = RayTransform(domain, geometry)
+    geometry = T.geometry                      # with the detector extent resolved
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)
     clean, noisy, snr = make_data(cfg, T, target)
@@ -192,5 +182,5 @@ def file_data(cfg: DictConfig) -> Data:
         T = RayTransform(domain, geometry)
     except ValueError as e:
         raise DataFileError(f"geometry: {e}") from None
-    return Data(domain=domain, geometry=geometry, operator=T, template_64=torch.from_numpy(template),
+    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=torch.from_numpy(template),
                 data_64=torch.from_numpy(sinogram), label=str(d.template).split("/")[-1], target_64=target)
