@@ -4,14 +4,14 @@ from . import _openmp
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 from .domain import ImageDomain
-from .forward import ParallelBeamGeometry, RayTransform
+from .forward import FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform
 from .deform import GaussianKernel, LDDMMDeformation
 from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 
-__all__ = ["ImageDomain", "ParallelBeamGeometry", "RayTransform", "GaussianKernel", "LDDMMDeformation",
-           "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+__all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
+           "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"
