@@ -22,6 +22,7 @@ See ``docs/file_formats.md`` for the table of formats and how to export data fro
 from __future__ import annotations
 
 import math
+import os
 import re
 import warnings
 from pathlib import Path
@@ -149,6 +150,13 @@ def _read_tif(path: Path, key) -> np.ndarray:
     return _grey(pixels, rgb)
 
 
+def _check_signature(path: Path, suffix: str) -> None:
+    signature = _SIGNATURE.get(suffix, b"")
+    with open(path, "rb") as f:
+        if f.read(len(signature)) != signature:
+            raise _Problem(f"unreadable as {suffix} (not a {suffix} file: wrong leading bytes)")
+
+
 _READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _read_h5,
             ".png": _read_png, ".tif": _read_tif, ".tiff": _read_tif,
             **{ext: _read_mrc for ext in MRC}}
@@ -166,11 +174,8 @@ def _load(spec, name: str) -> tuple:
         raise _fail(name, spec, "no such file")
     if not path.is_file():
         raise _fail(name, spec, "is not a file")
-    signature = _SIGNATURE.get(suffix, b"")
-    with open(path, "rb") as f:
-        if f.read(len(signature)) != signature:
-            raise _fail(name, spec, f"unreadable as {suffix} (not a {suffix} file: wrong leading bytes)")
     try:
+        _check_signature(path, suffix)
         raw = _READERS[suffix](path, key)
     except _Problem as problem:
         raise _fail(name, spec, problem) from None
@@ -297,7 +302,7 @@ def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
     """
     if unit not in ANGLE_UNITS:
         raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")
-    if isinstance(spec, (str, Path)):
+    if isinstance(spec, (str, os.PathLike)):
         values = _angle_file(Path(spec), name)
     else:
         values = _inline_angles(spec, name)

@@ -144,6 +144,16 @@ def test_rgb_picture_to_grey_by_luminance(tmp_path, ext, channels):
     np.testing.assert_allclose(np.rot90(read_image(path)), expected, rtol=0, atol=1e-12)
 
 
+def test_palette_png_to_grey(tmp_path):
+    from PIL import Image
+
+    Image.fromarray(picture()).convert("P", palette=Image.ADAPTIVE, colors=8).save(tmp_path / "p.png")
+    rgb = np.asarray(Image.open(tmp_path / "p.png").convert("RGB"), dtype=np.float64)
+    assert len(np.unique(rgb)) > 1
+    expected = rgb @ np.array([0.2125, 0.7154, 0.0721])
+    np.testing.assert_allclose(np.rot90(read_image(tmp_path / "p.png")), expected, rtol=0, atol=1e-12)
+
+
 def test_grey_alpha_png_drops_alpha(tmp_path):
     la = np.stack([picture(), np.full((5, 7), 9, np.uint8)], axis=-1)
     iio.imwrite(tmp_path / "la.png", la)
@@ -242,6 +252,9 @@ def test_angle_file_with_comments_and_blank_lines(tmp_path):
     path.write_text("# tilt angles\n  -60.0\n\n-30   # comment\n0\n 30.5\n\t\n60\n")
     np.testing.assert_allclose(read_angles(path), np.deg2rad([-60, -30, 0, 30.5, 60]), rtol=0, atol=1e-15)
     np.testing.assert_array_equal(read_angles(str(path), "rad"), [-60, -30, 0, 30.5, 60])
+    theta = np.array([0.1, 1.2, 2.9])
+    np.savetxt(tmp_path / "exported.tlt", np.rad2deg(theta))         # the export recipe of the docs
+    np.testing.assert_allclose(read_angles(tmp_path / "exported.tlt"), theta, rtol=1e-14)
 
 
 @pytest.mark.parametrize("junk,line", [("abc", 3), ("1.0 2.0", 3), ("nan", 3), ("1,5", 3)])
