@@ -180,9 +180,9 @@ def _load(spec, name: str) -> tuple:
     except _Problem as problem:
         raise _fail(name, spec, problem) from None
     except ValueError as err:
-        if "allow_pickle" not in str(err):   # numpy refusing an object array
-            raise _fail(name, spec, f"unreadable as {suffix} (ValueError: {err})") from None
-        raise _fail(name, spec, "holds Python objects (pickled data), not numbers") from None
+        if "allow_pickle" in str(err):   # numpy refusing an object array
+            raise _fail(name, spec, "holds Python objects (pickled data), not numbers") from None
+        raise _fail(name, spec, f"unreadable as {suffix} (ValueError: {err})") from None
     except Exception as err:   # any library's complaint about a broken file, as one line
         raise _fail(name, spec, f"unreadable as {suffix} ({type(err).__name__}: {err})") from None
     return np.asarray(raw), suffix
