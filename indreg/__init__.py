@@ -4,7 +4,7 @@ from . import _openmp
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 from .domain import ImageDomain
-from .forward import ParallelBeamGeometry, RayTransform
+from .forward import FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform
 from .deform import GaussianKernel, LDDMMDeformation
 from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
@@ -12,7 +12,8 @@ from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 from .api import RegistrationResult, register
 
-__all__ = ["ImageDomain", "ParallelBeamGeometry", "RayTransform", "GaussianKernel", "LDDMMDeformation",
-           "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult", "metrics", "noise", "phantoms"]
+__all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
+           "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
+           "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"

@@ -251,7 +251,7 @@ class RayTransform(nn.Module):
         - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` with
           ``data_weight = geometry.data_weight`` (as ODL).
         - ``transpose`` is the exact matrix transpose ``A^T``; the L2 adjoint for the weighted inner
-          products is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint`` = ``A_adjoint``), and
+          products is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``), and
           ``T^* q (x) ~ sum_k angle_cell * q(theta_k, x . w_k)``, the discrete backprojection.
         - Gradients: the forward is an autograd Function whose backward is ``A^T`` and vice versa, so the
           backward of ``A`` is exact and twice differentiable.
@@ -314,8 +314,10 @@ class RayTransform(nn.Module):
         return self.adjoint_scale * self.transpose(y)
 
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        """deepinv name of ``adjoint``."""
-        return self.adjoint(y)
+        """deepinv's ``A_adjoint``: the adjoint for plain (unweighted) sums, i.e. the transpose ``A^T y``.
+        For the L2 adjoint of the weighted inner products use ``adjoint``; to hand the operator to deepinv use
+        ``indreg.forward.deepinv.as_physics``."""
+        return self.transpose(y)
 
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
         """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the last two axes."""

@@ -8,27 +8,28 @@ from torch import nn
 
 from .._checks import check_positive, check_same, check_tensor
 from ..deform.shooting import GeodesicShooting
-from ..forward.ray_transform import RayTransform
+from ..forward.operator import LinearOperator, check_operator
 
 
 class IndirectShootingLoss(nn.Module):
     """``L(m0) = ||T(W(m0, I)) - g||^2_data + gamma <m0, K m0>_L2`` per sample (rem:AltLDDMM, indirect case).
 
     ``W(m0, I)`` is the template deformed along the geodesic shot from ``m0`` (``GeodesicShooting``), ``T``
-    the ray transform and ``||.||_data`` its weighted data norm (``RayTransform.norm_data``); on a geodesic
+    the forward operator (a ``RayTransform`` or any ``indreg.forward.LinearOperator``) and ``||.||_data`` its
+    weighted data norm (``inner_data``); on a geodesic
     ``<m0, K m0> = ||nu||^2_{L2([0,1], V)}``, so this is the paper's objective eq:OptimV restricted to
     geodesics, with the paper's ``gamma`` (twice the solvers' ``(gamma/2)||nu||^2 + (1/2)||T f - g||^2``:
     same minimiser, same gamma).
 
-    Geometry: ``ray_transform`` is one ``RayTransform`` shared by the batch, or a sequence of them
+    Geometry: ``ray_transform`` is one operator shared by the batch, or a sequence of them
     (per-sample geometry): then sample ``b`` uses ``ray_transform[index[b]]`` (``index`` a ``(B,)`` integer
     tensor/list), or ``ray_transform[b]`` when ``index`` is omitted (one transform per sample). Samples sharing
     a transform are projected in one batched call.
 
     Convention:
         ``momentum (B, 2, nx, ny)``, ``template (B, nx, ny)`` or ``(nx, ny)``, ``data`` a tensor
-        ``(B, num_angles, det_count)`` or (per-sample geometries of different sizes) a list of ``B`` tensors
-        ``(num_angles_b, det_count_b)``: each sinogram in the range of its sample's transform, finite, with the
+        ``(B, *range_shape)`` or (per-sample geometries of different sizes) a list of ``B`` tensors
+        ``range_shape_b``: each sinogram in the range of its sample's transform, finite, with the
         momentum's dtype (float32 / float64) and device (checked before shooting). ``reduction``: ``"mean"``
         (default), ``"sum"`` or ``"none"`` (``(B,)``).
 
@@ -42,20 +43,21 @@ class IndirectShootingLoss(nn.Module):
         super().__init__()
         if not isinstance(shooting, GeodesicShooting):
             raise TypeError(f"shooting must be a GeodesicShooting, got {type(shooting).__name__}")
-        transforms = [ray_transform] if isinstance(ray_transform, RayTransform) else ray_transform
-        if not isinstance(transforms, Sequence) or not transforms or not all(
-                isinstance(t, RayTransform) for t in transforms):
-            raise TypeError("ray_transform must be a RayTransform or a non-empty sequence of RayTransforms, "
-                            f"got {type(ray_transform).__name__}")
-        for t in transforms:
+        shared = isinstance(ray_transform, LinearOperator)
+        transforms = [ray_transform] if shared else ray_transform
+        if not isinstance(transforms, Sequence) or not transforms:
+            raise TypeError("ray_transform must be a linear operator (domain, range_shape, __call__, adjoint, "
+                            f"inner_data) or a non-empty sequence of them, got {type(ray_transform).__name__}")
+        for k, t in enumerate(transforms):
+            check_operator(t, "ray_transform" if shared else f"ray_transform[{k}]")
             if t.domain != shooting.domain:
                 raise ValueError(f"ray transform domain {t.domain!r} differs from the shooting domain "
                                  f"{shooting.domain!r}")
         if reduction not in ("mean", "sum", "none"):
             raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")
         self.shooting = shooting
-        self.transforms = nn.ModuleList(transforms)
-        self.shared = isinstance(ray_transform, RayTransform)
+        self.transforms = list(transforms)  # operators, not necessarily nn.Modules
+        self.shared = shared
         self.gamma = 0.0 if gamma == 0 else check_positive(gamma, "gamma")
         self.reduction = reduction
 
@@ -76,30 +78,28 @@ class IndirectShootingLoss(nn.Module):
         return index
 
     def _check_data(self, data, assignment: torch.Tensor, like: torch.Tensor, like_name: str) -> None:
-        """``data`` against the ranges of the samples' transforms: a tensor ``(B, num_angles, det_count)`` or a
-        list of ``B`` tensors ``(num_angles_b, det_count_b)``, finite, with the dtype and device of ``like``."""
+        """``data`` against the ranges of the samples' transforms: a tensor ``(B, *range_shape)`` or a list of
+        ``B`` tensors of shape ``range_shape_b``, finite, with the dtype and device of ``like``."""
         batch = assignment.numel()
         if isinstance(data, torch.Tensor):
             check_tensor(data, "data")
-            if data.dim() != 3 or len(data) != batch:
-                raise ValueError(f"data must have shape (B={batch}, num_angles, det_count), got {tuple(data.shape)}")
             for k in assignment.unique().tolist():
-                shape = self.transforms[k].range_shape
-                if tuple(data.shape[-2:]) != tuple(shape):
-                    raise ValueError(f"data for transform {k} must have shape (..., {shape[0]}, {shape[1]}), got "
-                                     f"{tuple(data.shape)}")
+                shape = tuple(self.transforms[k].range_shape)
+                if data.dim() != 1 + len(shape) or len(data) != batch or tuple(data.shape[1:]) != shape:
+                    raise ValueError(f"data must have shape (B={batch}, {', '.join(map(str, shape))}), "
+                                     f"got {tuple(data.shape)}")
             check_same(data, like, "data", like_name)
             return
         if not isinstance(data, (list, tuple)):
-            raise TypeError(f"data must be a tensor (B, num_angles, det_count) or a list of B tensors, "
+            raise TypeError(f"data must be a tensor (B, *range_shape) or a list of B tensors, "
                             f"got {type(data).__name__}")
         if len(data) != batch:
             raise ValueError(f"data must hold one sinogram per sample ({batch}), got {len(data)}")
         for b, (g, k) in enumerate(zip(data, assignment.tolist())):
-            shape = self.transforms[k].range_shape
+            shape = tuple(self.transforms[k].range_shape)
             check_tensor(g, f"data[{b}]", shape)
-            if g.dim() != 2:
-                raise ValueError(f"data[{b}] must have shape ({shape[0]}, {shape[1]}), got {tuple(g.shape)}")
+            if g.dim() != len(shape):
+                raise ValueError(f"data[{b}] must have shape {shape}, got {tuple(g.shape)}")
             check_same(g, like, f"data[{b}]", like_name)
 
     def data_fit(self, deformed: torch.Tensor, data, index=None) -> torch.Tensor:

@@ -1,6 +1,6 @@
 """The indirect registration objective (eq:OptimV / eq:RegOptim, optional TV term of eq:VarRegExactShape).
 
-Scale conventions follow the authors' code (see ``PAPER_NOTES.md``, "Update used") so that the paper's
+Scale conventions follow the authors' code (see docs/paper_notes.md, "Objective scale") so that the paper's
 step sizes and gammas work unchanged:
 
     E(nu) = (gamma / 2) sum_{i=0..N} (1/N) ||nu_i||_V^2  +  (1/2) ||T W(nu, I) - g||^2_data  (+ mu TV(W(nu, I)))
@@ -20,6 +20,7 @@ import math
 import torch
 
 from .._checks import check_same, check_tensor
+from ..forward.operator import check_operator
 from ..forward.tv import total_variation
 
 
@@ -40,11 +41,13 @@ class IndirectRegistration:
     ``E(nu) = (gamma/2) sum_{i=0..N} (1/N) ||nu_i||_V^2 + (1/2) ||T W(nu, I) - g||^2_data + tv_weight TV(W(nu, I))``
 
     Args:
-        ray_transform: ``indreg.RayTransform`` ``T`` (weighted data norm ``T.inner_data``).
+        ray_transform: the forward operator ``T``: ``indreg.RayTransform`` or any ``indreg.forward.LinearOperator``
+            (``domain``, ``range_shape``, ``__call__``, ``adjoint``, weighted data norm ``inner_data``).
         deformation: ``indreg.LDDMMDeformation`` ``W`` (geometric or mass-preserving action, eq:DeforOpX).
         kernel: ``indreg.GaussianKernel`` ``K`` of V.
         template: the template ``I`` (nx, ny).
-        data: the data ``g`` (num_angles, det_count), same dtype/device as ``template``.
+        data: the data ``g``, shape ``T.range_shape`` (``(num_angles, det_count)`` for a ray transform), same
+            dtype/device as ``template``.
         gamma: regularisation weight (>= 0), the code's ``lamb`` (see the module docstring for the factor 2).
         tv_weight: weight (>= 0) of the TV term on the deformed template (eq:VarRegExactShape). E is half
             the paper's printed objective, so the paper's ``mu`` is ``tv_weight = mu / 2`` (the TV baseline
@@ -56,13 +59,14 @@ class IndirectRegistration:
         ``L2([0,1], X)`` inner product is ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (the code's convention, N+1
         terms). The L2 gradient of E with respect to ``nu`` (``l2_gradient``) is
         ``h = gamma m + (N / cell_volume) dL/dnu`` with ``L`` the matching term (data fit + TV) and
-        ``dL/dnu`` the torch gradient of the deformation's backward (CONTRACTS "Gradient scale"); the
+        ``dL/dnu`` the torch gradient of the deformation's backward (``LDDMMDeformation``, "Gradient scale"); the
         V-gradient (eq:GradGoalFunctionalVRHKS(_mp), halved) is ``K h``.
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tv_weight=0.0,
                  tv_smoothing=1e-3):
         domain = kernel.domain
+        check_operator(ray_transform, "ray_transform")
         if ray_transform.domain != domain:
             raise ValueError(f"ray_transform.domain {ray_transform.domain} differs from kernel.domain {domain}")
         if deformation.domain != domain:
@@ -73,7 +77,7 @@ class IndirectRegistration:
                              f"got {tuple(template.shape)}")
         check_tensor(data, "data")
         if tuple(data.shape) != tuple(ray_transform.range_shape):
-            raise ValueError(f"data must have shape {tuple(ray_transform.range_shape)} (num_angles, det_count), "
+            raise ValueError(f"data must have shape {tuple(ray_transform.range_shape)} (the operator's range_shape), "
                              f"got {tuple(data.shape)}")
         check_same(template, data, "template", "data")
         self.ray_transform = ray_transform

@@ -34,7 +34,9 @@ def test_smoke_shapes(paper64):
     assert y.shape == (10, 92) and y.dtype == torch.float64
     torch.testing.assert_close(paper64.A(f), y)
     assert paper64.adjoint(y).shape == (64, 64)
-    torch.testing.assert_close(paper64.A_adjoint(y), paper64.adjoint(y))
+    torch.testing.assert_close(paper64.A_adjoint(y), paper64.transpose(y))  # deepinv: plain-sum adjoint
+    x = torch.rand(64, 64, dtype=torch.float64)
+    torch.testing.assert_close((paper64.A(x) * y).sum(), (x * paper64.A_adjoint(y)).sum())
     assert "nnz=" in repr(paper64)
 
 

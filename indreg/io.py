@@ -1,0 +1,363 @@
+"""Reading templates, sinograms and tilt angles from files; writing result images.
+
+Convention:
+    - Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y);
+      sinograms as float64 ``(num_angles, det_count)``; angles as float64 radians, 1D.
+    - Array formats (``.npy``, ``.npz``, ``.h5``/``.hdf5``, ``.mrc``/``.st``/``.ali``) hold indreg's arrays
+      as they are: images ``(x, y)``, sinograms ``(angle, bin)``.
+    - Picture formats (``.png``, ``.tif``/``.tiff``) are read as displayed (rows top to bottom, columns
+      left to right). An image is turned upright for indreg, ``f = np.rot90(displayed, k=-1)``, so that
+      ``np.rot90(f)`` (how indreg shows images) is the displayed picture: x to the right, y up.
+      A sinogram stored as a picture is taken as displayed: rows = angles, columns = bins (no rotation).
+    - Grey levels are kept as numbers (uint8 / uint16 values become floats, no rescaling). RGB(A) pictures
+      become grey by luminance ``0.2125 R + 0.7154 G + 0.0721 B`` (ITU-R BT.709, as ``skimage.color.rgb2gray``);
+      an alpha channel is ignored.
+    - Path syntax: ``file.npz`` (one array) or ``file.npz:key``; ``file.h5:/group/dataset`` (also ``.hdf5``),
+      the dataset may be omitted when the file holds exactly one.
+    - Every problem with a file raises :class:`DataFileError`, one line naming the file and the problem.
+      Problems with inline values (angle lists, ``angle_unit``) raise ``ValueError``.
+
+See ``docs/file_formats.md`` for the table of formats and how to export data from other packages.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+PICTURE = (".png", ".tif", ".tiff")
+MRC = (".mrc", ".st", ".ali")
+CONTAINER = (".npz", ".h5", ".hdf5")
+FORMATS = (".npy",) + CONTAINER + MRC + PICTURE
+WRITE_FORMATS = (".npy", ".mrc")
+ANGLE_UNITS = ("deg", "rad")
+#: ITU-R BT.709 luminance weights of R, G, B (``skimage.color.rgb2gray``).
+LUMINANCE = (0.2125, 0.7154, 0.0721)
+_KEYED = re.compile(r"^(.*\.(?:npy|npz|h5|hdf5|mrc|st|ali|png|tif|tiff)):(.*)$", re.IGNORECASE)
+#: Leading bytes of the formats whose readers give confusing messages on other files.
+_SIGNATURE = {".npy": b"\x93NUMPY", ".npz": b"PK", ".png": b"\x89PNG\r\n\x1a\n"}
+
+
+class DataFileError(ValueError):
+    """A file that cannot be used: the message is one line naming the file and the problem."""
+
+
+class _Problem(Exception):
+    """Internal: a problem found while reading, turned into a ``DataFileError`` naming the file."""
+
+
+def _one_line(text) -> str:
+    return re.sub(r"\s*[\r\n]+\s*", " ", str(text)).strip()
+
+
+def _fail(name: str, spec, problem) -> DataFileError:
+    return DataFileError(_one_line(f"{name} file {spec}: {problem}"))
+
+
+def split_path(spec) -> tuple:
+    """``(path, key)`` of a path ``file.npz:key`` / ``file.h5:/group/dataset`` (key ``None`` if not given)."""
+    text = str(spec)
+    match = _KEYED.match(text)
+    if match and not Path(text).exists():
+        return Path(match.group(1)), (match.group(2) or None)
+    return Path(text), None
+
+
+# --- reading raw arrays -------------------------------------------------------------------------------
+
+def _read_npy(path: Path, key) -> np.ndarray:
+    return np.load(path, allow_pickle=False)
+
+
+def _read_npz(path: Path, key) -> np.ndarray:
+    with np.load(path, allow_pickle=False) as archive:
+        keys = list(archive.files)
+        if key is None:
+            if len(keys) != 1:
+                raise _Problem(f"holds {len(keys)} arrays {keys}; name one as {path.name}:KEY")
+            key = keys[0]
+        if key not in keys:
+            raise _Problem(f"has no array {key!r} (keys: {keys})")
+        return archive[key]
+
+
+def _read_h5(path: Path, key) -> np.ndarray:
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if key is None:
+            found = []
+            f.visititems(lambda n, obj: found.append("/" + n) if isinstance(obj, h5py.Dataset) else None)
+            if len(found) != 1:
+                raise _Problem(f"holds {len(found)} datasets {found[:10]}; name one as {path.name}:/DATASET")
+            key = found[0]
+        obj = f.get(key)
+        if not isinstance(obj, h5py.Dataset):
+            what = "a group, not a dataset" if obj is not None else "missing"
+            raise _Problem(f"dataset {key!r} is {what}")
+        if obj.dtype.kind not in "biufc":
+            raise _Problem(f"dataset {key!r} has non-numeric dtype {obj.dtype}")
+        return obj[()]
+
+
+def _read_mrc(path: Path, key) -> np.ndarray:
+    import mrcfile
+
+    try:
+        with mrcfile.open(path, mode="r", permissive=False) as mrc:
+            return np.array(mrc.data)
+    except ValueError as strict_error:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                with mrcfile.open(path, mode="r", permissive=True) as mrc:
+                    data = None if mrc.data is None else np.array(mrc.data)
+            except (ValueError, OSError):
+                data = None
+        if data is None:
+            raise _Problem(f"not a readable MRC file ({strict_error})") from None
+        warnings.warn(_one_line(f"{path}: invalid MRC header ({strict_error}); data read in permissive mode"),
+                      stacklevel=4)
+        return data
+
+
+def _grey(pixels: np.ndarray, rgb: bool) -> np.ndarray:
+    """Grey values of a picture ``(rows, cols[, channels])``: luminance for RGB(A), alpha dropped."""
+    if pixels.ndim == 3 and rgb and pixels.shape[-1] in (3, 4):
+        return pixels[..., :3].astype(np.float64) @ np.asarray(LUMINANCE)
+    if pixels.ndim == 3 and not rgb and pixels.shape[-1] == 2:   # grey + alpha
+        return pixels[..., 0]
+    return pixels
+
+
+def _read_png(path: Path, key) -> np.ndarray:
+    import imageio.v3 as iio
+
+    pixels = np.asarray(iio.imread(path, plugin="pillow"))
+    return _grey(pixels, rgb=pixels.ndim == 3 and pixels.shape[-1] in (3, 4))
+
+
+def _read_tif(path: Path, key) -> np.ndarray:
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        pixels = tif.asarray()
+        rgb = tif.pages[0].photometric == tifffile.PHOTOMETRIC.RGB
+    return _grey(pixels, rgb)
+
+
+def _check_signature(path: Path, suffix: str) -> None:
+    signature = _SIGNATURE.get(suffix, b"")
+    with open(path, "rb") as f:
+        if f.read(len(signature)) != signature:
+            raise _Problem(f"unreadable as {suffix} (not a {suffix} file: wrong leading bytes)")
+
+
+_READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _read_h5,
+            ".png": _read_png, ".tif": _read_tif, ".tiff": _read_tif,
+            **{ext: _read_mrc for ext in MRC}}
+
+
+def _load(spec, name: str) -> tuple:
+    """``(raw array, suffix)`` of the file named by ``spec``; every failure is a ``DataFileError``."""
+    path, key = split_path(spec)
+    suffix = path.suffix.lower()
+    if suffix not in _READERS:
+        raise _fail(name, spec, f"unknown format {suffix or '(no extension)'!r}; supported: {', '.join(FORMATS)}")
+    if key is not None and suffix not in CONTAINER:
+        raise _fail(name, spec, f"a ':KEY' suffix is only for {', '.join(CONTAINER)} files")
+    if not path.exists():
+        raise _fail(name, spec, "no such file")
+    if not path.is_file():
+        raise _fail(name, spec, "is not a file")
+    try:
+        _check_signature(path, suffix)
+        raw = _READERS[suffix](path, key)
+    except _Problem as problem:
+        raise _fail(name, spec, problem) from None
+    except ValueError as err:
+        if "allow_pickle" in str(err):   # numpy refusing an object array
+            raise _fail(name, spec, "holds Python objects (pickled data), not numbers") from None
+        raise _fail(name, spec, f"unreadable as {suffix} (ValueError: {err})") from None
+    except Exception as err:   # any library's complaint about a broken file, as one line
+        raise _fail(name, spec, f"unreadable as {suffix} ({type(err).__name__}: {err})") from None
+    return np.asarray(raw), suffix
+
+
+def _numeric(raw: np.ndarray, name: str, spec) -> np.ndarray:
+    """Float64 copy of a 2D array after checking it is non-empty, real, numeric and finite."""
+    if raw.dtype.kind == "c":
+        raise _fail(name, spec, f"has complex values (dtype {raw.dtype}); give the real data")
+    if raw.dtype.kind not in "biuf":
+        raise _fail(name, spec, f"has non-numeric dtype {raw.dtype}")
+    if raw.size == 0:
+        raise _fail(name, spec, f"is empty (shape {raw.shape})")
+    if raw.ndim != 2:
+        raise _fail(name, spec, f"must hold a 2D array, got shape {raw.shape}")
+    out = np.array(raw, dtype=np.float64, order="C")
+    bad = int(np.count_nonzero(~np.isfinite(out)))
+    if bad:
+        raise _fail(name, spec, f"has {bad} non-finite values (NaN or Inf) of {out.size}")
+    return out
+
+
+# --- public readers -----------------------------------------------------------------------------------
+
+def read_image(path, *, name: str = "template") -> np.ndarray:
+    """Read a 2D image as float64 ``(nx, ny)``, axis 0 = x, axis 1 = y.
+
+    Convention:
+        - ``.npy``/``.npz``/``.h5``/``.mrc`` arrays are taken as they are (already ``(x, y)``); an MRC file
+          may also hold one section ``(1, nx, ny)``.
+        - ``.png``/``.tif`` pictures are read as displayed and rotated, ``f = np.rot90(displayed, k=-1)``,
+          so that ``np.rot90(f)`` shows the picture upright (x to the right, y up).
+        - Grey levels are not rescaled; RGB(A) is turned to grey by BT.709 luminance, alpha ignored.
+
+    Raises:
+        DataFileError: one line ``"{name} file {path}: {problem}"``.
+    """
+    raw, suffix = _load(path, name)
+    if suffix in MRC and raw.ndim == 3 and raw.shape[0] == 1:
+        raw = raw[0]
+    image = _numeric(raw, name, path)
+    if suffix in PICTURE:
+        image = np.ascontiguousarray(np.rot90(image, k=-1))
+    return image
+
+
+def read_sinogram(path, *, name: str = "sinogram") -> np.ndarray:
+    """Read 2D parallel-beam data as float64 ``(num_angles, det_count)``.
+
+    Convention:
+        - Arrays are ``(angle, bin)`` as they are; pictures are taken as displayed (rows = angles,
+          columns = bins, no rotation).
+        - An MRC tilt series may be a stack of one-row projections, ``(num_tilts, 1, det_count)`` or
+          ``(num_tilts, det_count, 1)``, or a 2D image ``(num_tilts, det_count)``.
+        - Values are line integrals in the image domain's physical units (see ``RayTransform``).
+
+    Raises:
+        DataFileError: one line ``"{name} file {path}: {problem}"``.
+    """
+    raw, suffix = _load(path, name)
+    if suffix in MRC and raw.ndim == 3 and 1 in raw.shape[1:]:
+        raw = raw[:, 0, :] if raw.shape[1] == 1 else raw[:, :, 0]
+    return _numeric(raw, name, path)
+
+
+def _angle_file(path: Path, name: str) -> list:
+    """Angles of a text file, one per line (IMOD ``.tlt``/``.rawtlt``); blank lines and ``#`` comments skipped."""
+    if not path.exists():
+        raise _fail(name, path, "no such file")
+    if not path.is_file():
+        raise _fail(name, path, "is not a file")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (UnicodeDecodeError, OSError) as err:
+        raise _fail(name, path, f"not a readable text file ({type(err).__name__}: {err})") from None
+    angles = []
+    for number, line in enumerate(lines, start=1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        try:
+            value = float(text)
+        except ValueError:
+            raise _fail(name, path, f"line {number} is not one angle: {text[:40]!r}") from None
+        if not math.isfinite(value):
+            raise _fail(name, path, f"line {number} is not a finite angle: {text!r}")
+        angles.append(value)
+    if not angles:
+        raise _fail(name, path, "holds no angles")
+    return angles
+
+
+def _inline_angles(values, name: str) -> list:
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(_one_line(f"{name} must be a list of numbers, got {values!r}"[:200])) from None
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"{name} must be a non-empty 1D list of numbers, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(_one_line(f"{name} must be finite, got {arr.tolist()}"))
+    return arr.tolist()
+
+
+def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
+    """Projection angles as float64 radians, 1D.
+
+    Convention:
+        - ``spec`` is a path to a text file (one angle per line, IMOD ``.tlt``/``.rawtlt`` style; blank
+          lines and ``#`` comments allowed) or an inline list/tuple/array of numbers.
+        - ``unit`` is ``"deg"`` or ``"rad"``: the unit of the given numbers. The angle ``theta`` is that of
+          the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``).
+
+    Raises:
+        DataFileError: a problem with the file (missing, junk line N, no angles, non-finite angle).
+        ValueError: bad inline values, or ``angle_unit`` not ``"deg"``/``"rad"``.
+    """
+    if unit not in ANGLE_UNITS:
+        raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")
+    if isinstance(spec, (str, os.PathLike)):
+        values = _angle_file(Path(spec), name)
+    else:
+        values = _inline_angles(spec, name)
+    angles = np.asarray(values, dtype=np.float64)
+    return np.deg2rad(angles) if unit == "deg" else angles
+
+
+def tilt_angles_for(sinogram_path) -> Path | None:
+    """The sibling angle file of a sinogram: ``stem.tlt``, else ``stem.rawtlt``, else ``None``.
+
+    A ``:key`` suffix (``data.h5:/sino``) is ignored: the sibling of ``data.h5`` is ``data.tlt``.
+    """
+    path, _ = split_path(sinogram_path)
+    for suffix in (".tlt", ".rawtlt"):
+        candidate = path.with_suffix(suffix)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+# --- writing ------------------------------------------------------------------------------------------
+
+def write_image(path, array) -> Path:
+    """Write a result array (numpy or torch, any shape for ``.npy``; 2D/3D for ``.mrc``) as it is.
+
+    Convention:
+        - No reorientation: an image ``(nx, ny)`` is stored ``(x, y)``, so :func:`read_image` gives it back.
+        - ``.npy`` keeps float64; ``.mrc`` stores float32 (MRC mode 2), overwriting an existing file.
+
+    Raises:
+        DataFileError: unknown extension, non-numeric or non-finite data, or the file cannot be written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in WRITE_FORMATS:
+        raise _fail("output", path, f"cannot write format {suffix or '(no extension)'!r}; use {WRITE_FORMATS}")
+    if hasattr(array, "detach"):   # torch tensor
+        array = array.detach().cpu().numpy()
+    data = np.asarray(array)
+    if data.dtype.kind not in "biuf" or data.size == 0:
+        raise _fail("output", path, f"needs a non-empty real numeric array, got dtype {data.dtype}, shape {data.shape}")
+    if not np.isfinite(data).all():
+        raise _fail("output", path, "array has non-finite values (NaN or Inf)")
+    try:
+        if suffix == ".npy":
+            np.save(path, np.asarray(data, dtype=np.float64))
+        else:
+            if data.ndim not in (2, 3):
+                raise _Problem(f"MRC needs a 2D or 3D array, got shape {data.shape}")
+            import mrcfile
+
+            with mrcfile.new(path, overwrite=True) as mrc:
+                mrc.set_data(np.asarray(data, dtype=np.float32))
+    except _Problem as problem:
+        raise _fail("output", path, problem) from None
+    except OSError as err:
+        raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
+    return path
