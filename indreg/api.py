@@ -150,14 +150,12 @@ class Setup:
 def setup(template, data, operator, **options) -> Setup:
     """Validate the inputs and build kernel, deformation, objective and solver (options as :func:`register`)."""
     from .deform import GaussianKernel, LDDMMDeformation
+    from .forward.operator import check_operator
     from .solvers import IndirectRegistration
 
     _unknown(options)
     o = {**DEFAULTS, **options}
-    for attr in ("domain", "range_shape", "inner_data"):
-        if not hasattr(operator, attr):
-            raise TypeError(f"operator must be a linear operator with domain, range_shape and inner_data "
-                            f"(e.g. indreg.RayTransform), got {type(operator).__name__} without {attr!r}")
+    check_operator(operator, "operator")
     dtype = _resolve_dtype(o["dtype"], template)
     device = _resolve_device(o["device"], template)
     domain = operator.domain
@@ -324,7 +322,8 @@ def register(template, data, operator, **options) -> RegistrationResult:
     Args:
         template: the template image I, ``operator.domain.shape`` (torch tensor or numpy array).
         data: the data g, ``operator.range_shape`` (e.g. a sinogram ``(num_angles, det_count)``).
-        operator: the forward operator T, e.g. ``indreg.RayTransform(domain, geometry)``.
+        operator: the forward operator T: ``indreg.RayTransform(domain, geometry)`` (parallel or fan beam) or
+            any ``indreg.LinearOperator`` (``domain``, ``range_shape``, ``__call__``, ``adjoint``, ``inner_data``).
         sigma: width of the Gaussian kernel of V (physical units), 6.0.
         gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
         action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose".
