@@ -238,3 +238,15 @@ def test_fan_beam_requires_src_radius(tmp_path):
     args, _, _ = write_format("npy", tmp_path)
     with pytest.raises(ConfigError, match="geometry.src_radius"):
         run_app([a if a != "geometry=parallel" else "geometry=fan_flat" for a in args] + QUICK, tmp_path / "run")
+
+
+def test_files_run_resumes_like_an_uninterrupted_one(tmp_path):
+    """A data=files run stopped after 2 iterations and resumed ends with the uninterrupted run's iterate."""
+    args, _, _ = write_format("npy", tmp_path)
+    f64 = args + QUICK + ["dtype=float64", "device=cpu"]
+    whole = run_app(f64, tmp_path / "whole")
+    assert run_app(f64 + ["stop_after=2"], tmp_path / "part")["status"] == "stopped"
+    resumed = run_app(f64 + ["resume=true"], tmp_path / "part")
+    assert resumed["iterations"] == whole["iterations"] == 4
+    np.testing.assert_allclose(np.load(tmp_path / "part" / "final.npy"), np.load(tmp_path / "whole" / "final.npy"),
+                               rtol=0, atol=1e-10)
