@@ -33,7 +33,7 @@ log = logging.getLogger("indreg")
 DEFAULTS = {
     "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": "reinterpolate",
     "backward": "paper", "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
-    "step_halving": True, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
+    "step_halving": True, "max_halvings": 20, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
     "dtype": None, "callback": None, "progress": False, "log_every": 10, "target": None,
 }
 ALGORITHM1_STEP = 0.02
@@ -118,8 +118,8 @@ def as_array(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devic
     return t
 
 
-def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving: bool, grad_tol: float,
-                optimizer_kwargs: dict | None):
+def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving: bool, max_halvings: int,
+                grad_tol: float, optimizer_kwargs: dict | None):
     """``Algorithm1`` (``solver="algorithm1"``, ``step_size``) or ``TorchOptimSolver`` (a ``torch.optim`` name,
     case-insensitive, ``lr``)."""
     from .solvers import Algorithm1, TorchOptimSolver
@@ -132,7 +132,8 @@ def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving
         if optimizer_kwargs:
             raise TypeError("optimizer_kwargs apply to torch.optim solvers, not solver='algorithm1'")
         return Algorithm1(problem, step_size=ALGORITHM1_STEP if step_size is None else step_size,
-                          max_iter=max_iter, grad_tol=grad_tol, step_halving=step_halving)
+                          max_iter=max_iter, grad_tol=grad_tol, step_halving=step_halving,
+                          max_halvings=max_halvings)
     if step_size is not None:
         raise TypeError(f"step_size is Algorithm 1's; solver={solver!r} (torch.optim) takes lr")
     return TorchOptimSolver(problem, optimizer=solver, lr=lr, max_iter=max_iter, grad_tol=grad_tol,
@@ -171,7 +172,7 @@ def setup(template, data, operator, **options) -> Setup:
     problem = IndirectRegistration(operator, deformation, kernel, template, data, o["gamma"],
                                    tv_weight=o["tv_weight"])
     solver = make_solver(problem, o["solver"], o["max_iter"], o["step_size"], o["lr"], o["step_halving"],
-                         o["grad_tol"], o["optimizer_kwargs"])
+                         o["max_halvings"], o["grad_tol"], o["optimizer_kwargs"])
     return Setup(problem, solver, o)
 
 
@@ -333,6 +334,8 @@ def register(template, data, operator, **options) -> RegistrationResult:
         step_size: Algorithm 1's step, 0.02. lr: the torch.optim learning rate (1.0 for L-BFGS; required
             for the others). optimizer_kwargs: passed to the torch.optim optimizer.
         step_halving: True (default): reject and halve steps that increase the objective or fold.
+        max_halvings: 20: halvings tried within one iteration (2^-20: intensities up to ~1000x the paper's
+            0..1 are handled in the first iteration); the halved step is kept for later iterations.
         tv_weight: weight of a TV term on the deformed template, 0.
         device, dtype: default the template's (numpy input: CPU; float64 arrays stay float64, others float32).
         callback: ``callback(state, info)`` after every iteration; returning True stops the run.

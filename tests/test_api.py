@@ -150,3 +150,13 @@ def test_progress_line():
     p.t0 -= 2.0
     line = p.line(40)
     assert line.startswith("iteration 40/100 (") and "ETA 00:00:0" in line
+
+
+def test_max_halvings_covers_large_intensity_scales(tiny):
+    """Grey levels 0..255: the default 20 halvings find an acceptable first step; 5 halvings do not (the step is
+    rejected, counted as a warning, and the iterate kept)."""
+    T, template, _, data = tiny
+    default = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1)
+    few = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, max_halvings=5)
+    assert not default.history[0]["rejected"] and default.objective < few.objective
+    assert few.history[0]["rejected"] and few.warnings == 1 and torch.count_nonzero(few.momentum) == 0

@@ -64,7 +64,7 @@ def options(cfg: DictConfig) -> dict:
     return {"sigma": cfg.kernel.sigma, "gamma": s.gamma, "tv_weight": s.tv_weight, "num_steps": d.num_steps,
             "action": d.action.value, "backward": d.backward.value, "interpolation": d.interpolation.value,
             "solver": "algorithm1" if algorithm1 else s.optimizer.value, "max_iter": s.max_iter,
-            "grad_tol": s.grad_tol, "step_halving": s.step_halving,
+            "grad_tol": s.grad_tol, "step_halving": s.step_halving, "max_halvings": s.max_halvings,
             "step_size": s.step_size if algorithm1 else None, "lr": None if algorithm1 else s.lr,
             "optimizer_kwargs": None if algorithm1 else dict(s.optimizer_kwargs)}
 

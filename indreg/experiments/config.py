@@ -175,6 +175,7 @@ class SolverConfig:
     max_iter: int = 200
     grad_tol: float = 0.0
     step_halving: bool = False
+    max_halvings: int = 20
     optimizer: Optimizer = Optimizer.lbfgs
     optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
 
@@ -302,6 +303,7 @@ def validate(cfg: DictConfig) -> None:
     _require(_finite(s.lr) and s.lr > 0, "solver.lr", "a number > 0", s.lr)
     _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
     _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
+    _require(s.max_halvings >= 0, "solver.max_halvings", "an integer >= 0", s.max_halvings)
     if s.name.value == "torch_optim":
         _check_optimizer_kwargs(s.optimizer.value, s.optimizer_kwargs)
     b = c.baseline
