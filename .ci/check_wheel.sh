@@ -12,7 +12,7 @@ python3 -m venv "$work/venv"
 cd "$work"
 export OMP_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE
 bin="$work/venv/bin"
-"$bin/indreg-register" --help | grep -q "experiment: suite1_jv, suite2_six_objects"
+"$bin/indreg-register" --help | grep -q "experiment: own_data_example, suite1_jv, suite2_six_objects"
 "$bin/indreg-register" solver=lbfgs phantom.size=32 deformation.num_steps=4 solver.max_iter=2 baseline=none \
     logging=quiet hydra.run.dir="$work/run_lbfgs"
 "$bin/indreg-register" deformation=mass_preserving noise=none phantom.size=32 deformation.num_steps=4 \
