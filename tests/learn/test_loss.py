@@ -99,9 +99,9 @@ def test_data_is_validated_against_the_range(setup):
     nan = good.clone()
     nan[1, 2, 3] = float("nan")
     for bad, error, match in (
-            (good[:2], ValueError, r"data must have shape \(B=3, num_angles, det_count\), got \(2, 4, 24\)"),
-            (good[0], ValueError, r"data must have shape \(B=3, num_angles, det_count\), got \(4, 24\)"),
-            (good[..., :20], ValueError, r"data for transform 0 must have shape \(\.\.\., 4, 24\)"),
+            (good[:2], ValueError, r"data must have shape \(B=3, 4, 24\), got \(2, 4, 24\)"),
+            (good[0], ValueError, r"data must have shape \(B=3, 4, 24\), got \(4, 24\)"),
+            (good[..., :20], ValueError, r"data must have shape \(B=3, 4, 24\), got \(3, 4, 20\)"),
             (good.float(), TypeError, "data has dtype torch.float32 but momentum has dtype torch.float64"),
             (good.half(), TypeError, "data must be float32 or float64, got torch.float16"),
             (good.long(), TypeError, "data must have a floating dtype"),
