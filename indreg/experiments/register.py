@@ -4,6 +4,9 @@ Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can b
 
     indreg-register                                   # suite 1 (J -> V), the default experiment
     indreg-register experiment=suite3_shepp_logan dtype=float64 device=cuda
+    indreg-register experiment=own_data_example       # the shipped example of your own data (files)
+    indreg-register data=files data.template=T.png data.sinogram=S.npy geometry=parallel geometry.angles=A.tlt \
+        geometry.det_min=-24 geometry.det_max=24 [data.target=G.npy]     # your files (docs/own_data.md)
     indreg-register hydra.run.dir=outputs/suite1      # a fixed run dir, so that it can be resumed:
     indreg-register hydra.run.dir=outputs/suite1 resume=true
     # the suite-3 table as one multirun: locally in 2 worker processes, or as a SLURM array job
@@ -17,14 +20,18 @@ Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can b
 A fixed ``hydra.run.dir`` / ``hydra.sweep.dir`` (the defaults contain the date and time) is what makes a run or
 a sweep resumable: rerun the same command with ``resume=true``. See configs/README.md.
 
-A run builds the problem (:mod:`indreg.experiments.build`), computes the FBP and TV baselines from the same
-data, then loops ``info = solver.step(state)`` for ``solver.max_iter`` iterations: scalars to TensorBoard every
-iteration; SSIM / PSNR and the deformed template every ``logging.every``; a checkpoint every
-``logging.checkpoint_every`` and on SIGINT / SIGTERM (then the process exits with 128 + signal number).
-``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends with the same numbers as an uninterrupted
-run. Outputs in the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``,
-``velocity.npy``, ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``,
-``data.npy``, ``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``.
+A run builds the problem (:mod:`indreg.experiments.build`: data from the ``data`` source, then the same setup as
+``indreg.register``), computes the FBP and TV baselines from the same data, then runs the loop shared with
+``indreg.register`` (``indreg.api.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
+every iteration; a progress line (``iteration i/total``, it/s, ETA), SSIM / PSNR (with a target) and the deformed
+template every ``logging.every``; a checkpoint every ``logging.checkpoint_every`` and on SIGINT / SIGTERM (then
+the process exits with 128 + signal number). ``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends
+with the same numbers as an uninterrupted run. In a multirun every log line starts with ``[job <n>]``. Outputs in
+the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``, ``velocity.npy``,
+``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``, ``data.npy``,
+``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``; measured data
+without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the relative data
+misfit, is always in metrics.json).
 """
 from __future__ import annotations
 

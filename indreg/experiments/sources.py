@@ -127,12 +127,12 @@ TILT_SERIES = (".mrc", ".st", ".ali")
 
 def _file_angles(cfg: DictConfig, num_rows: int) -> torch.Tensor:
     """Angles of a measured sinogram: ``geometry.angles``, else a .tlt / .rawtlt next to an MRC tilt series."""
-    from ..io import DataFileError, read_angles, tilt_angles_for
+    from ..io import DataFileError, read_angles, split_path, tilt_angles_for
 
     g, sinogram = cfg.geometry, cfg.data.sinogram
     angles, origin = _angles(g), "geometry.angles"
     if angles is None:
-        tilt = tilt_angles_for(sinogram) if sinogram.split(":")[0].lower().endswith(TILT_SERIES) else None
+        tilt = tilt_angles_for(sinogram) if split_path(sinogram)[0].suffix.lower() in TILT_SERIES else None
         if tilt is None:
             raise DataFileError("geometry.angles is required with data=files: a text file (one angle a line) or a "
                                 "list, in geometry.angle_unit (an .mrc/.st/.ali sinogram may instead have a "
@@ -155,7 +155,7 @@ def file_data(cfg: DictConfig) -> Data:
     a target of the template's shape; ``det_count`` is the sinogram's width (``geometry.det_count``, if set,
     must agree). No noise is added.
     """
-    from ..io import DataFileError, read_image, read_sinogram
+    from ..io import DataFileError, read_image, read_sinogram, split_path
 
     d, g = cfg.data, cfg.geometry
     template = read_image(d.template, name="data.template")
@@ -183,4 +183,4 @@ def file_data(cfg: DictConfig) -> Data:
     except ValueError as e:
         raise DataFileError(f"geometry: {e}") from None
     return Data(domain=domain, geometry=T.geometry, operator=T, template_64=torch.from_numpy(template),
-                data_64=torch.from_numpy(sinogram), label=str(d.template).split("/")[-1], target_64=target)
+                data_64=torch.from_numpy(sinogram), label=split_path(d.template)[0].name, target_64=target)
