@@ -11,7 +11,7 @@ Config groups (one sub-config each) and top-level keys::
     data         where template and data come from: ``phantom`` (simulated, the default) or ``files``
     phantom      template/target names (``indreg.phantoms.get``) and the grid size n (domain [-16, 16]^2)
     geometry     parallel- or fan-beam geometry: angles x detector bins (the authors' ODL partition by default)
-    noise        white noise at an SNR in dB ("code" convention, PAPER_NOTES) or with a fixed std
+    noise        white noise at an SNR in dB ("code" convention, docs/paper_notes.md) or with a fixed std
     deformation  LDDMM time steps N, group action, backward (gradient) scheme, interpolation scheme
     kernel       Gaussian RKHS kernel width sigma
     solver       gamma, step size, iterations; Algorithm 1 or a torch.optim parametrisation

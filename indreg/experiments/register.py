@@ -95,7 +95,7 @@ def _numpy(x) -> np.ndarray:
 
 
 def figures_of_merit(image, target_64) -> dict:
-    """SSIM / PSNR against the target: data range of the target, and the paper's convention (PAPER_NOTES)."""
+    """SSIM / PSNR against the target: data range of the target, and the paper's convention (docs/paper_notes.md)."""
     from .. import metrics
 
     x = image.detach().to("cpu", torch.float64)
