@@ -11,7 +11,7 @@ from ..domain import ImageDomain
 from . import functional as Fd
 
 ACTIONS = Fd.ACTIONS
-BACKWARDS = ("paper", "autograd")
+BACKWARDS = ("paper", "exact", "autograd")
 
 
 def _check_fast(x, name: str, trailing_shape: tuple) -> None:
@@ -72,6 +72,52 @@ class _PaperDeformation(torch.autograd.Function):
         grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
         grad_i = grad_i.sum_to_size(template.shape) if ctx.needs_input_grad[1] else None
         return grad_v, grad_i, None, None
+
+
+class _ExactDeformation(torch.autograd.Function):
+    """``W(nu, I)`` with the exact derivative of the discrete map as backward (``functional.exact_gradient``).
+
+    The forward runs the time loop without an autograd graph (bit for bit the values of the other modes) and
+    keeps ``functional.exact_record`` (the image trajectory and determinants, or the composed displacements:
+    one velocity-sized tensor), which the backward's reverse sweep (the hand-written discrete adjoint)
+    overwrites with the velocity gradient. As ``_PaperDeformation``: the record lives on ``ctx`` and is dropped
+    once consumed (a second backward through a retained graph recomputes it); once differentiable.
+    """
+
+    @staticmethod
+    def forward(ctx, velocity, template, config, moving):
+        deformed, record = _exact_record(velocity, template, config, moving)
+        ctx.save_for_backward(velocity, template)
+        ctx.config, ctx.moving, ctx.record = config, moving, record
+        ctx.set_materialize_grads(False)
+        return deformed
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        if grad_out is None:
+            return None, None, None, None
+        velocity, template = ctx.saved_tensors
+        c, (need_velocity, need_template) = ctx.config, ctx.needs_input_grad[:2]
+        record = ctx.record if ctx.record is not None else _exact_record(velocity, template, c, ctx.moving)[1]
+        if need_velocity:  # exact_gradient overwrites it
+            ctx.record = None
+        batch = grad_out.shape[:-2]
+        grad_v, grad_i = Fd.exact_gradient(
+            grad_out, template.expand(*batch, *template.shape[-2:]),
+            velocity.expand(*batch, *velocity.shape[-4:]), record, c.domain, c.action, c.interpolation, c.scheme,
+            need_velocity=need_velocity, need_template=need_template, moving=ctx.moving)
+        grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
+        grad_i = grad_i.sum_to_size(template.shape) if need_template else None
+        return grad_v, grad_i, None, None
+
+
+def _exact_record(velocity, template, config, moving) -> tuple:
+    """``functional.exact_record`` of the broadcast inputs."""
+    batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
+    return Fd.exact_record(template.expand(*batch, *template.shape[-2:]),
+                           velocity.expand(*batch, *velocity.shape[-4:]), config.domain, config.action,
+                           config.interpolation, config.scheme, moving)
 
 
 def _record(velocity, template, config, moving) -> torch.Tensor:
@@ -215,7 +261,10 @@ class LDDMMDeformation(torch.nn.Module):
     def forward(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """The deformed template ``W(nu, I)``, ``(..., nx, ny)``."""
         moving = self._check(velocity, template)
-        if self.backward == "paper" and torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
+        if self.backward != "autograd" and torch.is_grad_enabled() and (velocity.requires_grad
+                                                                        or template.requires_grad):
+            if self.backward == "exact":
+                return _ExactDeformation.apply(velocity, template, self._config, moving)
             return _PaperDeformation.apply(velocity, template, self._config, moving)[0]
         deformed = self._trajectory(velocity, template, moving)[..., -1, :, :]
         return deformed if self.backward == "autograd" else deformed.clone()  # not a view of the trajectory
