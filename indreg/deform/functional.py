@@ -585,36 +585,38 @@ _PADDING = {"zeros": 0, "border": 1}
 
 def divergence_adjoint(g: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> torch.Tensor:
     """The transpose of ``divergence``: ``(..., nx, ny)`` -> ``(..., 2, nx, ny)``, ``<div v, g> = <v, div^T g>``
-    (plain sums over the entries).
-
-    ``"forward"``: ``div`` is minus the transpose of the forward-difference ``gradient``, so
-    ``div^T g = -gradient(g, "forward")`` (zero padding). ``"central"``: the transpose of ``_central_diff`` per
-    axis (``_central_diff_adjoint``).
-    """
-    if scheme == "forward":
-        return gradient(g, domain, "forward").neg_()
-    if scheme != "central":
+    (plain sums over the entries). ``"forward"``: ``div`` is minus the transpose of the forward-difference
+    ``gradient``, so ``div^T g = -gradient(g, "forward")`` (zero padding); ``"central"``: per axis the
+    transpose of ``_central_diff``."""
+    if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-    hx, hy = domain.cell_sides
-    return torch.stack((_central_diff_adjoint(g, -2, hx), _central_diff_adjoint(g, -1, hy)), dim=-3)
+    out = g.new_zeros(*g.shape[:-2], 2, *g.shape[-2:])
+    return _add_divergence_adjoint(out, g, domain, scheme, 1.0)
 
 
-def _central_diff_adjoint(g: torch.Tensor, dim: int, h: float) -> torch.Tensor:
-    """The transpose of ``_central_diff(., dim, h)``: each output entry's difference quotient scattered back onto
-    the two samples it reads (``(f[k+1] - f[k-1]) / 2h`` inside, ``(f[1] - f[0]) / h`` and
-    ``(f[n-1] - f[n-2]) / h`` at the ends)."""
-    n, out = g.shape[dim], torch.zeros_like(g)
-    if n == 1:
-        return out
-    first, last = g.narrow(dim, 0, 1) / h, g.narrow(dim, n - 1, 1) / h
-    out.narrow(dim, 0, 1).sub_(first)
-    out.narrow(dim, 1, 1).add_(first)
-    out.narrow(dim, n - 1, 1).add_(last)
-    out.narrow(dim, n - 2, 1).sub_(last)
-    if n > 2:
-        inner = g.narrow(dim, 1, n - 2) / (2 * h)
-        out.narrow(dim, 0, n - 2).sub_(inner)
-        out.narrow(dim, 2, n - 2).add_(inner)
+def _add_divergence_adjoint(out: torch.Tensor, g: torch.Tensor, domain: ImageDomain, scheme: str,
+                            c: float) -> torch.Tensor:
+    """``out (..., 2, nx, ny) += c div^T g`` in place: each difference quotient of ``divergence`` scattered back
+    onto the samples it reads. ``"forward"``: ``(g[j] - g[j+1]) / h`` (``g`` 0 after the last sample);
+    ``"central"``: ``(g[j-1] - g[j+1]) / 2h`` from the inner quotients ``(f[k+1] - f[k-1]) / 2h`` plus the
+    one-sided ones at both ends, ``(f[1] - f[0]) / h`` and ``(f[n-1] - f[n-2]) / h`` (none for one sample)."""
+    for k, (dim, h) in enumerate(zip((-2, -1), domain.cell_sides)):
+        o, n, a = out[..., k, :, :], g.shape[dim], c / h
+        if scheme == "forward":
+            o.add_(g, alpha=a)
+            o.narrow(dim, 0, n - 1).sub_(g.narrow(dim, 1, n - 1), alpha=a)
+            continue
+        if n == 1:
+            continue
+        first, last = g.narrow(dim, 0, 1), g.narrow(dim, n - 1, 1)
+        o.narrow(dim, 0, 1).sub_(first, alpha=a)
+        o.narrow(dim, 1, 1).add_(first, alpha=a)
+        o.narrow(dim, n - 1, 1).add_(last, alpha=a)
+        o.narrow(dim, n - 2, 1).sub_(last, alpha=a)
+        if n > 2:
+            inner = g.narrow(dim, 1, n - 2)
+            o.narrow(dim, 0, n - 2).sub_(inner, alpha=0.5 * a)
+            o.narrow(dim, 2, n - 2).add_(inner, alpha=0.5 * a)
     return out
 
 
@@ -625,6 +627,8 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
     ``(..., C, nx, ny)`` and the grid gradient ``(..., nx, ny, 2)`` (``[..., 0]`` = y, ``[..., 1]`` = x, grid units:
     the one-sided slope of ``f`` across the cell each point falls in). Either is None when not needed."""
     batch, (c, nx, ny) = grad.shape[:-3], grad.shape[-3:]
+    if not (need_input or need_grid):
+        return None, None
     gi, gg = torch.ops.aten.grid_sampler_2d_backward(
         grad.reshape(-1, c, nx, ny), f.expand(*batch, c, nx, ny).reshape(-1, c, nx, ny),
         grid.expand(*batch, nx, ny, 2).reshape(-1, nx, ny, 2), 0, _PADDING[padding_mode], False,
@@ -640,11 +644,6 @@ def _step_adjoint(grad: torch.Tensor, f: torch.Tensor, steps: _Steps, i: int, pa
     moves = steps.moves(i)
     back, slope = _sample_adjoint(grad, f, steps.grid(i), padding_mode, need_input and moves, need_grid)
     return (back if moves else grad) if need_input else None, slope
-
-
-def _planar(slope: torch.Tensor) -> torch.Tensor:
-    """A grid gradient ``(..., nx, ny, 2)`` (y, x) as a planar field ``(..., 2, nx, ny)`` (x, y)."""
-    return slope.flip(-1).movedim(-1, -3)
 
 
 class ExactRecord:
@@ -779,11 +778,12 @@ def _reinterpolate_adjoint(grad_out, velocity, record, domain, action, scheme, s
         lam, slope = _step_adjoint(lam, images[i - 1].unsqueeze(-3), steps, i, "zeros", need_template or i > 1,
                                    need_velocity)
         if need_velocity:
-            extra = None
             if mass:
-                mu, slope_j, extra = _jacobian_step_adjoint(mu, jacobians[i - 1], velocity, steps, i, domain, scheme)
+                mu, slope_j, dc = _jacobian_step_adjoint(mu, jacobians[i - 1], velocity, steps, i, domain, scheme)
                 slope.add_(slope_j)
-            _write_velocity_gradient(slots[i], _planar(slope), steps.scale, extra)
+            _write_velocity_gradient(slots[i], slope, steps.scale)
+            if mass:  # c_i = 1 - div nu(t_i)/N
+                _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / (velocity.shape[-4] - 1))
     return lam.squeeze(-3) if need_template else None
 
 
@@ -799,38 +799,42 @@ def _compose_adjoint(grad_out, template, velocity, record, domain, action, schem
     if need_template and skipped:
         grad_i = lam.unsqueeze(-3)
     if need_velocity:
-        kappa = _planar(slope).contiguous()  # dL/du_i
+        kappa = torch.stack((slope[..., 1], slope[..., 0]), dim=-3)  # dL/du_N, planar (x, y)
         mu = grad_out * record.image if mass else None
         for i in range(n, 0, -1):
-            dw = kappa
-            if i > 1:  # u_0 = 0 has no slope
-                kappa_prev, slope_u = _step_adjoint(kappa, slots[i - 1], steps, i, "border", True, True)
-                dw = kappa + _planar(slope_u)
-            extra = None
+            # u_i = S_i u_{i-1} + w_i; u_0 = 0 has no slope
+            back, slope = _step_adjoint(kappa, slots[i - 1], steps, i, "border", i > 1, i > 1)
             if mass:
-                mu, slope_j, extra = _jacobian_step_adjoint(mu, record.jacobians[..., i - 1, :, :], velocity, steps,
-                                                            i, domain, scheme)
-                dw = dw + _planar(slope_j)
-            _write_velocity_gradient(slots[i], dw, steps.scale, extra)
-            kappa = kappa_prev if i > 1 else None
+                mu, slope_j, dc = _jacobian_step_adjoint(mu, record.jacobians[..., i - 1, :, :], velocity, steps, i,
+                                                         domain, scheme)
+                slope = slope_j if slope is None else slope.add_(slope_j)
+            _write_velocity_gradient(slots[i], slope, steps.scale, kappa)
+            if mass:
+                _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / n)
+            kappa = back
     return grad_i.squeeze(-3) if need_template else None
 
 
 def _jacobian_step_adjoint(mu, jacobian, velocity, steps, i, domain, scheme) -> tuple:
-    """The determinant's part of step ``i`` in reverse (``J_i = c_i S_i J_{i-1}``): ``(mu_{i-1}, grid gradient,
-    -(1/N) div^T(mu_i B_i))`` from ``mu_i = dL/dJ_i`` and ``J_{i-1}`` (``jacobian``)."""
-    n = velocity.shape[-4] - 1
-    growth = _growth_into(torch.empty_like(mu), velocity[..., i, :, :, :], domain, scheme, -1.0 / n)
-    moved = steps.move(jacobian.unsqueeze(-3), i, "border").squeeze(-3)  # B_i, recomputed
-    extra = divergence_adjoint(mu * moved, domain, scheme).mul_(-1.0 / n)
-    back, slope = _step_adjoint((mu * growth).unsqueeze(-3), jacobian.unsqueeze(-3), steps, i, "border", i > 1, True)
-    return (back.squeeze(-3) if i > 1 else None), slope, extra
+    """The determinant's part of step ``i`` in reverse (``J_i = c_i B_i``, ``B_i = S_i J_{i-1}``): from
+    ``mu_i = dL/dJ_i`` and ``J_{i-1}`` (``jacobian``), ``(mu_{i-1}, grid gradient, dL/dc_i = mu_i B_i)``."""
+    growth = _growth_into(torch.empty_like(mu), velocity[..., i, :, :, :], domain, scheme,
+                          -1.0 / (velocity.shape[-4] - 1))  # c_i, recomputed
+    dc = steps.move(jacobian.unsqueeze(-3), i, "border").squeeze(-3) * mu  # B_i recomputed
+    back, slope = _step_adjoint(growth.mul_(mu).unsqueeze(-3), jacobian.unsqueeze(-3), steps, i, "border", i > 1,
+                                True)
+    return (back.squeeze(-3) if i > 1 else None), slope, dc
 
 
-def _write_velocity_gradient(slot: torch.Tensor, dw: torch.Tensor, scale: tuple, extra) -> None:
-    """``slot (..., 2, nx, ny) = dL/dnu(t_i)``: ``dL/dw_i`` (planar, grid units) times ``-(1/N) 2 / extent`` per
-    component (``_Steps.scale``), plus ``extra`` (the determinant factor's term, or None)."""
+def _write_velocity_gradient(slot: torch.Tensor, slope, scale: tuple, planar: torch.Tensor | None = None) -> None:
+    """``slot (..., 2, nx, ny) = dL/dnu(t_i)`` from ``dL/dw_i``: the grid gradient ``slope (..., nx, ny, 2)``
+    (y, x; or None) plus ``planar (..., 2, nx, ny)`` (x, y; or None), grid units, times ``-(1/N) 2 / extent``
+    per component (``_Steps.scale``)."""
     for k in range(2):
-        torch.mul(dw[..., k, :, :], scale[k], out=slot[..., k, :, :])
-    if extra is not None:
-        slot.add_(extra)
+        out = slot[..., k, :, :]
+        if slope is None:
+            torch.mul(planar[..., k, :, :], scale[k], out=out)
+        elif planar is None:
+            torch.mul(slope[..., 1 - k], scale[k], out=out)
+        else:
+            torch.add(planar[..., k, :, :], slope[..., 1 - k], out=out).mul_(scale[k])
