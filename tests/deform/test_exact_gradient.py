@@ -193,3 +193,23 @@ def test_exact_gradient_consumes_the_record():
     assert gv is record.slots and torch.equal(gi, gi2)
     with pytest.raises(ValueError, match="record.slots must be shaped like the velocity"):
         Fd.exact_gradient(grad_out, template, v, Fd.ExactRecord(record.slots[:, 0]), dom)
+
+
+@pytest.mark.parametrize("action", ACTIONS)
+def test_geodesic_shooting_with_the_exact_backward(action):
+    """The shooting layer hands its velocities to the deformation: with backward="exact" the momentum
+    gradient is that of backward="autograd"."""
+    from indreg.deform import GaussianKernel
+    from indreg.deform.shooting import GeodesicShooting
+
+    dom = ImageDomain.paper(16)
+    kernel = GaussianKernel(dom, 5.0)
+    _, template, grad_out = random_problem(dom, 1, seed=13)
+    m0 = 0.05 * random_problem(dom, 0, seed=14)[0][0]
+    got = {}
+    for backward in ("exact", "autograd"):
+        shoot = GeodesicShooting(dom, kernel, 4, action=action, backward=backward)
+        m = m0.clone().requires_grad_()
+        (shoot(m, template) * grad_out).sum().backward()
+        got[backward] = m.grad
+    assert rel(got["exact"], got["autograd"]) < 1e-10
