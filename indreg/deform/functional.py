@@ -3,7 +3,9 @@
 Everything here is plain torch and device / dtype agnostic, so the deformation operator (``lddmm.py``) and
 later layers (geodesic shooting) share one implementation. The recursions are differentiable by autograd;
 without a graph to record they run in place (reused buffers, ``out=``), and ``gradient_record`` /
-``paper_gradient`` are the two halves of the paper's gradient (Algorithm 1, lines 7-10) without autograd.
+``paper_gradient`` are the two halves of the paper's gradient (Algorithm 1, lines 7-10) without autograd;
+``exact_record`` / ``exact_gradient`` those of the exact derivative of the discrete map (its discrete adjoint,
+hand-written).
 
 Convention:
     - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
@@ -748,6 +750,11 @@ def exact_gradient(grad_out: torch.Tensor, template: torch.Tensor, velocity: tor
     Memory: the reverse sweep reads the record (images / determinants, or the displacements) and holds a few
     image-sized fields (``lam``, ``mu``, ``k``); cost per step: one ``grid_sampler_2d_backward`` per transported
     field (the scatter dominates, about three interpolations), plus one interpolation for ``B_i``.
+
+    Convention:
+        ``grad_out (..., nx, ny)``, ``template (..., nx, ny)`` and ``velocity (..., N+1, 2, nx, ny)`` with the
+        same batch dims (broadcast first), physical units of ``domain``; derivatives w.r.t. tensor entries
+        (the scale of ``LDDMMDeformation``'s "Gradient scale"); float32 / float64, any device (the inputs').
     """
     _check_action(action)
     _check_interpolation(interpolation)

@@ -213,3 +213,15 @@ def test_geodesic_shooting_with_the_exact_backward(action):
         (shoot(m, template) * grad_out).sum().backward()
         got[backward] = m.grad
     assert rel(got["exact"], got["autograd"]) < 1e-10
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("action", ACTIONS)
+@pytest.mark.parametrize("interpolation", INTERP)
+def test_cuda_equals_autograd(action, interpolation):
+    dom = ImageDomain((20, 14), (-8.0, -5.0), (8.0, 9.0))
+    v, template, grad_out = (x.cuda() for x in random_problem(dom, 5, batch=(2,), seed=15))
+    kw = dict(action=action, interpolation=interpolation)
+    _, gv, gi = grads(LDDMMDeformation(dom, 5, backward="exact", **kw), v, template, grad_out)
+    _, gv_ref, gi_ref = grads(LDDMMDeformation(dom, 5, backward="autograd", **kw), v, template, grad_out)
+    assert gv.is_cuda and rel(gv, gv_ref) < 1e-10 and rel(gi, gi_ref) < 1e-10
