@@ -627,15 +627,24 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
     """The two transposes of ``sample(f, grid, padding_mode)`` applied to ``grad (..., C, nx, ny)``, in one pass:
     ``(S^T grad, d<grad, S(f)>/d grid)``, i.e. the scatter of ``grad`` with the bilinear weights
     ``(..., C, nx, ny)`` and the grid gradient ``(..., nx, ny, 2)`` (``[..., 0]`` = y, ``[..., 1]`` = x, grid units:
-    the one-sided slope of ``f`` across the cell each point falls in). Either is None when not needed."""
+    the one-sided slope of ``f`` across the cell each point falls in). Either is None when not needed.
+    ``grid_sampler_2d_backward`` parallelises over the batch only: a single image on a CPU with ``k`` threads
+    is done as ``k`` bands of rows (as ``sample``), whose ``k`` scatters are summed (the same values up to the
+    order of the sums)."""
     batch, (c, nx, ny) = grad.shape[:-3], grad.shape[-3:]
     if not (need_input or need_grid):
         return None, None
-    gi, gg = torch.ops.aten.grid_sampler_2d_backward(
-        grad.reshape(-1, c, nx, ny), f.expand(*batch, c, nx, ny).reshape(-1, c, nx, ny),
-        grid.expand(*batch, nx, ny, 2).reshape(-1, nx, ny, 2), 0, _PADDING[padding_mode], False,
-        [need_input, need_grid])
-    return (gi.reshape(grad.shape) if need_input else None), (gg.reshape(*batch, nx, ny, 2) if need_grid else None)
+    grad, f = grad.reshape(-1, c, nx, ny), f.expand(*batch, c, nx, ny).reshape(-1, c, nx, ny)
+    grid, bands = grid.expand(*batch, nx, ny, 2).reshape(-1, nx, ny, 2), _bands(grad, nx, ny)
+    if bands > 1:
+        grad, f, grid = grad.reshape(bands, c, nx // bands, ny), f.expand(bands, c, nx, ny), \
+            grid.reshape(bands, nx // bands, ny, 2)
+    gi, gg = torch.ops.aten.grid_sampler_2d_backward(grad, f, grid, 0, _PADDING[padding_mode], False,
+                                                     [need_input, need_grid])
+    if need_input and bands > 1:
+        gi = gi.sum(0)
+    return (gi.reshape(*batch, c, nx, ny) if need_input else None), \
+        (gg.reshape(*batch, nx, ny, 2) if need_grid else None)
 
 
 def _step_adjoint(grad: torch.Tensor, f: torch.Tensor, steps: _Steps, i: int, padding_mode: str,

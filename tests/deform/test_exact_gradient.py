@@ -225,3 +225,21 @@ def test_cuda_equals_autograd(action, interpolation):
     _, gv, gi = grads(LDDMMDeformation(dom, 5, backward="exact", **kw), v, template, grad_out)
     _, gv_ref, gi_ref = grads(LDDMMDeformation(dom, 5, backward="autograd", **kw), v, template, grad_out)
     assert gv.is_cuda and rel(gv, gv_ref) < 1e-10 and rel(gi, gi_ref) < 1e-10
+
+
+@pytest.mark.parametrize("action", ACTIONS)
+def test_row_bands_with_threads(action):
+    """With several CPU threads a single image's adjoint runs in row bands: the same gradient up to rounding."""
+    dom = ImageDomain.paper(128)  # large enough for bands (functional._bands)
+    v, template, grad_out = random_problem(dom, 3, seed=16)
+    W = LDDMMDeformation(dom, 3, action=action, backward="exact")
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        _, gv1, gi1 = grads(W, v, template, grad_out)
+        torch.set_num_threads(2)
+        assert Fd._bands(grad_out[None, None], 128, 128) == 2
+        _, gv2, gi2 = grads(W, v, template, grad_out)
+    finally:
+        torch.set_num_threads(threads)
+    assert rel(gv2, gv1) < 1e-13 and rel(gi2, gi1) < 1e-13
