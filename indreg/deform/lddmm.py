@@ -149,16 +149,14 @@ class LDDMMDeformation(torch.nn.Module):
       forward's record (image trajectory and determinants, or the composed displacements) becomes the
       velocity gradient. Equal to autograd up to rounding (1e-10 relative in float64, tests); use it for line
       searches (L-BFGS, nonlinear CG), which need the derivative of the function they evaluate. Measured
-      (``scripts/bench_deform.py --threads 1``, float32, N=20, all three modes interleaved in one run on a
-      shared 2-core machine, so noisy): geometric reinterpolate fwd+bwd exact / paper 1.12 / 1.35 / 1.40 and
-      exact / autograd 1.08 / 0.82 / 0.48 at 64^2 / 128^2 / 256^2, live memory exact / paper 1.02-1.04. The
-      mass-preserving action costs about 2x the paper mode: its exact adjoint also scatters the Jacobian's
-      adjoint every step (the paper's gradient transports one field), see ``functional.exact_gradient``.
-      Measured (``scripts/bench_deform.py``, 256^2, N=20, float32, 1 thread, modes interleaved in one
-      process): fwd+bwd paper 0.015-0.017 s vs autograd 0.035-0.042 s (2.15-2.75x over 5 runs); peak memory
-      of fwd+bwd 10-11 MB vs 42-55 MB resident (4.2-5.2x), 12.5 MB vs 31.5 MB of live tensors (2.5x; the
-      11 MB velocity gradient, returned by both, bounds this ratio below 31.5 / 11 = 2.9). With 2 threads
-      2.1-2.6x over 3 runs.
+      (``scripts/bench_deform.py --threads 1``, float32, N=20, the three modes interleaved in one process; a
+      shared 2-core machine at load 6-9, so noisy), fwd+bwd exact / paper: geometric reinterpolate 0.99-1.03 /
+      1.00-1.30 / 0.99-1.35 at 64^2 / 128^2 / 256^2 over 3 runs (exact / autograd 1.0 / 0.64-0.68 /
+      0.46-0.64), live memory 1.02-1.04x the paper mode's; geometric compose 0.5-0.7 (its record, the
+      displacements, is a third of the paper mode's compose trajectories). The mass-preserving action costs
+      about 2x the paper mode (reinterpolate 1.8-2.6, compose 1.4-2.1, still 0.5-0.9x autograd): its adjoint
+      also scatters the determinant's adjoint every step, where the paper's gradient transports one field,
+      and a scatter (``grid_sampler_2d_backward``) costs about 3.5 interpolations.
     - ``interpolation="reinterpolate"`` (the paper: re-interpolate the image every step) or ``"compose"``
       (compose the displacements, interpolate the template once per time: less numerical blur; the
       paper's gradient then transports ``G`` by composed displacements too). Measured
