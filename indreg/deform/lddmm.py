@@ -152,9 +152,10 @@ class LDDMMDeformation(torch.nn.Module):
       (``scripts/bench_deform.py --threads 1``, float32, N=20, the three modes interleaved in one process; a
       shared 2-core machine at load 6-9, so noisy), fwd+bwd exact / paper: geometric reinterpolate 0.99-1.03 /
       1.00-1.30 / 0.99-1.35 at 64^2 / 128^2 / 256^2 over 3 runs (exact / autograd 1.0 / 0.64-0.68 /
-      0.46-0.64), live memory 1.02-1.04x the paper mode's; geometric compose 0.5-0.7 (its record, the
-      displacements, is a third of the paper mode's compose trajectories). The mass-preserving action costs
-      about 2x the paper mode (reinterpolate 1.8-2.6, compose 1.4-2.1, still 0.5-0.9x autograd): its adjoint
+      0.46-0.64), live memory 1.02-1.04x the paper mode's; geometric compose 0.5-0.7 with a third of the paper
+      mode's live memory (the record is the displacements; the paper mode keeps the composed trajectories).
+      The mass-preserving action costs about 2x the paper mode (reinterpolate 1.8-2.6, compose 1.4-2.1; 0.5-1.2x
+      autograd, one run each): its adjoint
       also scatters the determinant's adjoint every step, where the paper's gradient transports one field,
       and a scatter (``grid_sampler_2d_backward``) costs about 3.5 interpolations.
     - ``interpolation="reinterpolate"`` (the paper: re-interpolate the image every step) or ``"compose"``
