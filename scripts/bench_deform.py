@@ -6,7 +6,8 @@
     python scripts/bench_deform.py --blur          # interpolation="reinterpolate" vs "compose" (J, Shepp-Logan)
 
 Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``; per
-size one fresh subprocess times the three backward modes and both phases in interleaved rounds (per round and combination one
+size one fresh subprocess times the three backward modes and both phases in interleaved rounds (per round and
+combination one
 untimed call, then three timed ones), so the ratios are measured in one run under the same machine state.
 Memory: every (size, mode, phase) in another fresh subprocess, after building the inputs and a warm-up,
 measured two ways over one call (the extra memory of that call over its inputs: trajectories, saved
@@ -172,7 +173,8 @@ def ratios(results, sizes):
     print("|---|---|---|---|")
     for n in sizes:
         ex, pa, au = (results[n, mode, "fwd+bwd"] for mode in ("exact", "paper", "autograd"))
-        r = lambda x, y: " / ".join(f"{x[k] / max(y[k], 1e-9):.2f}" for k in ("time", "rss_mb", "live_mb"))  # noqa: E731
+        keys = ("time", "rss_mb", "live_mb")
+        r = lambda x, y: " / ".join(f"{x[k] / max(y[k], 1e-9):.2f}" for k in keys)  # noqa: E731
         print(f"| {n}^2 | {r(ex, pa)} | {r(ex, au)} | {au['time'] / pa['time']:.2f} |")
 
 
