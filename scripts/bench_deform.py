@@ -7,8 +7,8 @@
 
 Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``; per
 size one fresh subprocess times the three backward modes and both phases in interleaved rounds (per round and
-combination one
-untimed call, then three timed ones), so the ratios are measured in one run under the same machine state.
+combination one untimed call, then three timed ones), so the ratios are measured in one run under the same
+machine state.
 Memory: every (size, mode, phase) in another fresh subprocess, after building the inputs and a warm-up,
 measured two ways over one call (the extra memory of that call over its inputs: trajectories, saved
 tensors / autograd graph, outputs, gradients; the velocity gradient alone is 11 MB at 256^2, N = 20):
