@@ -1,12 +1,14 @@
 """Benchmark of the LDDMM deformation operator (issue 3): time, memory, kernel crossover, interpolation blur.
 
-    python scripts/bench_deform.py                 # forward / forward+backward table, both backward modes
+    python scripts/bench_deform.py                 # forward / forward+backward table: paper, exact, autograd
+    python scripts/bench_deform.py --action mass_preserving --interpolation compose   # another variant
     python scripts/bench_deform.py --kernel        # GaussianKernel: matrix vs FFT (the "auto" crossover)
     python scripts/bench_deform.py --blur          # interpolation="reinterpolate" vs "compose" (J, Shepp-Logan)
 
 Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``; per
-size one fresh subprocess times both modes and phases in interleaved rounds (per round and combination one
-untimed call, then three timed ones), so the ratios are measured in one run under the same machine state.
+size one fresh subprocess times the three backward modes and both phases in interleaved rounds (per round and
+combination one untimed call, then three timed ones), so the ratios are measured in one run under the same
+machine state.
 Memory: every (size, mode, phase) in another fresh subprocess, after building the inputs and a warm-up,
 measured two ways over one call (the extra memory of that call over its inputs: trajectories, saved
 tensors / autograd graph, outputs, gradients; the velocity gradient alone is 11 MB at 256^2, N = 20):
@@ -44,13 +46,17 @@ def smooth_velocity(domain, num_steps, displacement, sigma=2.0, dtype=torch.floa
     return v.expand(num_steps + 1, 2, *domain.shape).to(dtype).contiguous()
 
 
+MODES = ("paper", "exact", "autograd")
+VARIANT = {"action": "geometric", "interpolation": "reinterpolate"}  # set from the command line
+
+
 def problem(n, num_steps, mode):
     domain = ImageDomain.paper(n)
     x, y = domain.points(torch.float32)
     template = torch.exp(-(x ** 2 + y ** 2) / 50) * (1 + 0.3 * torch.cos(x / 2))
     velocity = smooth_velocity(domain, num_steps, 2.0).requires_grad_()
     grad_out = torch.sin(y / 3) * domain.cell_volume
-    return LDDMMDeformation(domain, num_steps, backward=mode), velocity, template, grad_out
+    return LDDMMDeformation(domain, num_steps, backward=mode, **VARIANT), velocity, template, grad_out
 
 
 def call(W, velocity, template, grad_out, phase):
@@ -61,13 +67,13 @@ def call(W, velocity, template, grad_out, phase):
     return out
 
 
-COMBOS = [(mode, phase) for mode in ("paper", "autograd") for phase in ("fwd", "fwd+bwd")]
+COMBOS = [(mode, phase) for mode in MODES for phase in ("fwd", "fwd+bwd")]
 
 
 def time_worker(n, num_steps, repeats, threads):
-    """Median times of both modes and phases, interleaved call by call (the ratios see the same machine state)."""
+    """Median times of all modes and phases, interleaved call by call (the ratios see the same machine state)."""
     torch.set_num_threads(threads)
-    problems = {mode: problem(n, num_steps, mode) for mode in ("paper", "autograd")}
+    problems = {mode: problem(n, num_steps, mode) for mode in MODES}
     for mode, phase in COMBOS:
         call(*problem(16, num_steps, mode), phase)  # warm-up of the code paths
         call(*problems[mode], phase)
@@ -135,7 +141,8 @@ def _disable_huge_pages():
 
 def run(a, *worker_args):
     cmd = [sys.executable, __file__, "--worker", *map(str, worker_args), "--steps", str(a.steps),
-           "--repeats", str(a.repeats), "--threads", str(a.threads)]
+           "--repeats", str(a.repeats), "--threads", str(a.threads), "--action", a.action,
+           "--interpolation", a.interpolation]
     done = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -147,21 +154,28 @@ def main_table(a):
         for mode, phase in COMBOS:
             results[n, mode, phase] = {"time": times[f"{mode} {phase}"], **run(a, "memory", n, mode, phase)}
             print(f"  {n}^2 {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
-    print(f"\n### LDDMMDeformation, N = {a.steps}, float32, {a.threads} thread(s), geometric, reinterpolate\n")
+    print(f"\n### LDDMMDeformation, N = {a.steps}, float32, {a.threads} thread(s), {a.action}, {a.interpolation}\n")
     print("| size | backward | forward (s) | fwd+bwd (s) | fwd: RSS / live (MB) | fwd+bwd: RSS / live (MB) |")
     print("|---|---|---|---|---|---|")
     for n in a.sizes:
-        for mode in ("paper", "autograd"):
+        for mode in MODES:
             f, b = results[n, mode, "fwd"], results[n, mode, "fwd+bwd"]
             print(f"| {n}^2 | {mode} | {f['time']:.4f} | {b['time']:.4f} | {f['rss_mb']:.1f} / {f['live_mb']:.1f} "
                   f"| {b['rss_mb']:.1f} / {b['live_mb']:.1f} |")
     if len(a.sizes) > 1:
         exponents(results, a.sizes)
-    if 256 in a.sizes:
-        pa, au = results[256, "paper", "fwd+bwd"], results[256, "autograd", "fwd+bwd"]
-        ratio = lambda key: au[key] / max(pa[key], 1e-9)  # noqa: E731
-        print(f"\nAt 256^2 fwd+bwd, autograd / paper: time {ratio('time'):.2f}x, memory RSS {ratio('rss_mb'):.2f}x, "
-              f"live {ratio('live_mb'):.2f}x")
+    ratios(results, a.sizes)
+
+
+def ratios(results, sizes):
+    """fwd+bwd ratios between the modes, measured in the same run."""
+    print("\n| size | exact / paper: time, RSS, live | exact / autograd: time, RSS, live | autograd / paper: time |")
+    print("|---|---|---|---|")
+    for n in sizes:
+        ex, pa, au = (results[n, mode, "fwd+bwd"] for mode in ("exact", "paper", "autograd"))
+        keys = ("time", "rss_mb", "live_mb")
+        r = lambda x, y: " / ".join(f"{x[k] / max(y[k], 1e-9):.2f}" for k in keys)  # noqa: E731
+        print(f"| {n}^2 | {r(ex, pa)} | {r(ex, au)} | {au['time'] / pa['time']:.2f} |")
 
 
 def exponents(results, sizes):
@@ -169,7 +183,7 @@ def exponents(results, sizes):
     print("\n| backward | exponent fwd (time ~ pixels^p) | exponent fwd+bwd |")
     print("|---|---|---|")
     pixels = np.log([n * n for n in sizes])
-    for mode in ("paper", "autograd"):
+    for mode in MODES:
         p = [np.polyfit(pixels, np.log([results[n, mode, ph]["time"] for n in sizes]), 1)[0]
              for ph in ("fwd", "fwd+bwd")]
         print(f"| {mode} | {p[0]:.2f} | {p[1]:.2f} |")
@@ -228,11 +242,14 @@ def main():
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--action", default="geometric", choices=Fd.ACTIONS)
+    p.add_argument("--interpolation", default="reinterpolate", choices=Fd.INTERPOLATIONS)
     p.add_argument("--kernel", action="store_true", help="also the kernel matrix/FFT table")
     p.add_argument("--blur", action="store_true", help="also the reinterpolate/compose table")
     p.add_argument("--no-main", action="store_true", help="skip the time/memory table")
     p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args()
+    VARIANT.update(action=a.action, interpolation=a.interpolation)
     if a.worker:
         if a.worker[0] == "time":
             time_worker(int(a.worker[1]), a.steps, a.repeats, a.threads)

@@ -3,7 +3,9 @@
 Everything here is plain torch and device / dtype agnostic, so the deformation operator (``lddmm.py``) and
 later layers (geodesic shooting) share one implementation. The recursions are differentiable by autograd;
 without a graph to record they run in place (reused buffers, ``out=``), and ``gradient_record`` /
-``paper_gradient`` are the two halves of the paper's gradient (Algorithm 1, lines 7-10) without autograd.
+``paper_gradient`` are the two halves of the paper's gradient (Algorithm 1, lines 7-10) without autograd;
+``exact_record`` / ``exact_gradient`` those of the exact derivative of the discrete map (its discrete adjoint,
+hand-written).
 
 Convention:
     - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
@@ -576,3 +578,279 @@ def _weigh_into(out: torch.Tensor, differences: torch.Tensor, weight: torch.Tens
     scaled = [weight.squeeze(-3) * c for c in (cx, cy)]
     for o, d, w in zip(out.unbind(-3), differences.unbind(-3), scaled):
         torch.mul(d, w, out=o)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the exact derivative of the discrete map (a hand-written discrete adjoint of the recursions above)
+_PADDING = {"zeros": 0, "border": 1}
+
+
+def divergence_adjoint(g: torch.Tensor, domain: ImageDomain, scheme: str = "central") -> torch.Tensor:
+    """The transpose of ``divergence``: ``(..., nx, ny)`` -> ``(..., 2, nx, ny)``, ``<div v, g> = <v, div^T g>``
+    (plain sums over the entries). ``"forward"``: ``div`` is minus the transpose of the forward-difference
+    ``gradient``, so ``div^T g = -gradient(g, "forward")`` (zero padding); ``"central"``: per axis the
+    transpose of ``_central_diff``."""
+    if scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    out = g.new_zeros(*g.shape[:-2], 2, *g.shape[-2:])
+    return _add_divergence_adjoint(out, g, domain, scheme, 1.0)
+
+
+def _add_divergence_adjoint(out: torch.Tensor, g: torch.Tensor, domain: ImageDomain, scheme: str,
+                            c: float) -> torch.Tensor:
+    """``out (..., 2, nx, ny) += c div^T g`` in place: each difference quotient of ``divergence`` scattered back
+    onto the samples it reads. ``"forward"``: ``(g[j] - g[j+1]) / h`` (``g`` 0 after the last sample);
+    ``"central"``: ``(g[j-1] - g[j+1]) / 2h`` from the inner quotients ``(f[k+1] - f[k-1]) / 2h`` plus the
+    one-sided ones at both ends, ``(f[1] - f[0]) / h`` and ``(f[n-1] - f[n-2]) / h`` (none for one sample)."""
+    for k, (dim, h) in enumerate(zip((-2, -1), domain.cell_sides)):
+        o, n, a = out[..., k, :, :], g.shape[dim], c / h
+        if scheme == "forward":
+            o.add_(g, alpha=a)
+            o.narrow(dim, 0, n - 1).sub_(g.narrow(dim, 1, n - 1), alpha=a)
+            continue
+        if n == 1:
+            continue
+        first, last = g.narrow(dim, 0, 1), g.narrow(dim, n - 1, 1)
+        o.narrow(dim, 0, 1).sub_(first, alpha=a)
+        o.narrow(dim, 1, 1).add_(first, alpha=a)
+        o.narrow(dim, n - 1, 1).add_(last, alpha=a)
+        o.narrow(dim, n - 2, 1).sub_(last, alpha=a)
+        if n > 2:
+            inner = g.narrow(dim, 1, n - 2)
+            o.narrow(dim, 0, n - 2).sub_(inner, alpha=0.5 * a)
+            o.narrow(dim, 2, n - 2).add_(inner, alpha=0.5 * a)
+    return out
+
+
+def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, padding_mode: str,
+                    need_input: bool, need_grid: bool) -> tuple:
+    """The two transposes of ``sample(f, grid, padding_mode)`` applied to ``grad (..., C, nx, ny)``, in one pass:
+    ``(S^T grad, d<grad, S(f)>/d grid)``, i.e. the scatter of ``grad`` with the bilinear weights
+    ``(..., C, nx, ny)`` and the grid gradient ``(..., nx, ny, 2)`` (``[..., 0]`` = y, ``[..., 1]`` = x, grid units:
+    the one-sided slope of ``f`` across the cell each point falls in). Either is None when not needed.
+    ``grid_sampler_2d_backward`` parallelises over the batch only: a single image on a CPU with ``k`` threads
+    is done as ``k`` bands of rows (as ``sample``), whose ``k`` scatters are summed (the same values up to the
+    order of the sums)."""
+    batch, (c, nx, ny) = grad.shape[:-3], grad.shape[-3:]
+    if not (need_input or need_grid):
+        return None, None
+    grad, f = grad.reshape(-1, c, nx, ny), f.expand(*batch, c, nx, ny).reshape(-1, c, nx, ny)
+    grid, bands = grid.expand(*batch, nx, ny, 2).reshape(-1, nx, ny, 2), _bands(grad, nx, ny)
+    if bands > 1:
+        grad, f, grid = grad.reshape(bands, c, nx // bands, ny), f.expand(bands, c, nx, ny), \
+            grid.reshape(bands, nx // bands, ny, 2)
+    gi, gg = torch.ops.aten.grid_sampler_2d_backward(grad, f, grid, 0, _PADDING[padding_mode], False,
+                                                     [need_input, need_grid])
+    if need_input and bands > 1:
+        gi = gi.sum(0)
+    return (gi.reshape(*batch, c, nx, ny) if need_input else None), \
+        (gg.reshape(*batch, nx, ny, 2) if need_grid else None)
+
+
+def _step_adjoint(grad: torch.Tensor, f: torch.Tensor, steps: _Steps, i: int, padding_mode: str,
+                  need_input: bool, need_grid: bool) -> tuple:
+    """``_sample_adjoint`` of the step ``f o (Id + w_i)``. A skipped (zero) step is the identity in the forward
+    pass: its transpose is the identity, its grid gradient still the slope at the cell centres (the discrete
+    map's derivative at ``nu(t_i) = 0``)."""
+    moves = steps.moves(i)
+    back, slope = _sample_adjoint(grad, f, steps.grid(i), padding_mode, need_input and moves, need_grid)
+    return (back if moves else grad) if need_input else None, slope
+
+
+class ExactRecord:
+    """What the reverse sweep of ``exact_gradient`` needs from the forward pass (``exact_record``).
+
+    ``slots``, shaped like the velocity ``(..., N+1, 2, nx, ny)``: for ``"reinterpolate"`` the images
+    ``I o phi_{t_i,0}`` in ``slots[..., i, 0]`` and, mass-preserving, ``|D phi_{t_i,0}|`` in ``slots[..., i, 1]``;
+    for ``"compose"`` the displacements ``u_i = phi_{t_i,0} - Id`` (grid units). ``exact_gradient`` overwrites
+    ``slots`` with the velocity gradient. ``"compose"`` with the mass-preserving action also keeps the
+    determinants ``jacobians (..., N+1, nx, ny)`` and the last image ``image = I o phi_{1,0} (..., nx, ny)``.
+    """
+
+    def __init__(self, slots, jacobians=None, image=None):
+        self.slots, self.jacobians, self.image = slots, jacobians, image
+
+
+def exact_record(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain, action: str = "geometric",
+                 interpolation: str = "reinterpolate", scheme: str = "central",
+                 moving: list | None = None) -> tuple:
+    """The forward pass for ``exact_gradient``: ``(W(nu, I), ExactRecord)``, no autograd.
+
+    ``W(nu, I)`` is bit for bit that of ``deformed_trajectory`` and of ``gradient_record`` (the same operations on
+    the same values). Memory: the record is one velocity-sized tensor (mass-preserving ``"compose"``: plus one
+    ``(..., N+1, nx, ny)`` tensor of determinants), which ``exact_gradient`` turns into the velocity gradient.
+    """
+    _check_action(action)
+    _check_interpolation(interpolation)
+    batch = torch.broadcast_shapes(template.shape[:-2], velocity.shape[:-4])
+    slots = velocity.new_empty(batch + velocity.shape[-4:])
+    geometric = action == "geometric"
+    if interpolation == "reinterpolate":
+        frames, jacobians = slots.unbind(-3)
+        template_trajectory(template, velocity, domain, interpolation, moving, out=frames)
+        if geometric:
+            return frames[..., -1, :, :].clone(), ExactRecord(slots)
+        jacobian_trajectory(velocity, domain, scheme, moving, out=jacobians)
+        return frames[..., -1, :, :] * jacobians[..., -1, :, :], ExactRecord(slots)
+    _displacements_into(slots, velocity, domain, moving)
+    last = slots[..., -1, :, :, :]
+    if bool(last.ne(0).any()) or bool(slots.ne(0).any()):  # as _sample_displaced: identity iff all u_i = 0
+        image = sample(template.expand(*batch, *template.shape[-2:]).unsqueeze(-3), displaced_grid(last, domain),
+                       "zeros").squeeze(-3)
+    else:
+        image = template.expand(*batch, *template.shape[-2:]).clone()
+    if geometric:
+        return image, ExactRecord(slots)
+    jacobians = jacobian_trajectory(velocity, domain, scheme, moving)
+    return image * jacobians[..., -1, :, :], ExactRecord(slots, jacobians, image)
+
+
+def _displacements_into(slots: torch.Tensor, velocity: torch.Tensor, domain: ImageDomain, moving: list | None) -> None:
+    """``displacements_t0`` written into ``slots (..., N+1, 2, nx, ny)`` (the same operations, no stack)."""
+    steps, u = _Steps(velocity, domain, -1.0, moving), slots.unbind(-4)
+    u[0].zero_()
+    for i in range(1, len(u)):
+        if steps.moves(i):
+            torch.add(steps.move(u[i - 1], i, "border"), steps.w(i), out=u[i])
+        else:
+            u[i].copy_(u[i - 1])
+
+
+def exact_gradient(grad_out: torch.Tensor, template: torch.Tensor, velocity: torch.Tensor, record: ExactRecord,
+                   domain: ImageDomain, action: str = "geometric", interpolation: str = "reinterpolate",
+                   scheme: str = "central", need_velocity: bool = True, need_template: bool = True,
+                   moving: list | None = None) -> tuple:
+    """The exact derivative of the discrete map ``(nu, I) -> W(nu, I)``, transposed: ``(dL/dnu, dL/dI)``.
+
+    Given ``G = dL/dW`` (``grad_out (..., nx, ny)``, torch entries), the inputs (broadcast to one batch) and the
+    forward pass's ``exact_record``, a reverse sweep over the time steps (the discrete adjoint; no autograd
+    graph). Equal to autograd through the forward recursions up to rounding. Returns
+    ``(grad_velocity, grad_template)``, each None unless ``need_velocity`` / ``need_template``;
+    ``grad_velocity`` is ``record.slots`` overwritten (step ``i`` writes slot ``i`` after reading slot ``i-1``).
+
+    Derivation. Write ``w_i = -nu(t_i)/N`` (grid units: times ``2 / extent``) and ``S_i f = f o (Id + w_i)``
+    (bilinear, ``sample``). One step ``(f, w_i) -> S_i f`` has the derivative
+    ``d(S_i f) = S_i df + (grad_b f)(Id + w_i) . dw_i``, where ``grad_b f`` is the gradient of the piecewise
+    bilinear interpolant of ``f``: at a point, the one-sided slopes across the cell it falls in (the upwind
+    difference, not the central one of the paper). Its adjoint maps ``lam`` to
+    ``(S_i^T lam, lam (grad_b f)(Id + w_i))``: ``S_i^T`` scatters ``lam`` with the bilinear weights (the transpose
+    of ``grid_sample``); the second part is pointwise. Both come from one ``grid_sampler_2d_backward`` call.
+    A step skipped because ``nu(t_i) = 0`` is the identity, whose transpose is the identity; its second part
+    is still evaluated (the derivative at ``nu(t_i) = 0`` exists).
+
+    - ``"reinterpolate"``, geometric (eq:ODEflow1b, Algorithm 1 line 7): ``f_0 = I``, ``f_i = S_i f_{i-1}``,
+      ``W = f_N``. With ``lam_N = G``, for ``i = N..1``:
+      ``dL/dw_i = lam_i (grad_b f_{i-1})(Id + w_i)``, ``lam_{i-1} = S_i^T lam_i``; then ``dL/dI = lam_0``.
+    - mass-preserving (eq:DeforOpMP): also ``J_0 = 1``, ``J_i = c_i B_i`` with ``B_i = S_i J_{i-1}`` (border
+      padding) and ``c_i = 1 - div nu(t_i)/N``; ``W = J_N f_N``. Hence ``lam_N = G J_N`` and the determinant's
+      adjoint ``mu_N = G f_N``; per step ``dL/dc_i = mu_i B_i``, ``mu_{i-1} = S_i^T (c_i mu_i)`` and
+      ``dL/dw_i`` gains ``c_i mu_i (grad_b J_{i-1})(Id + w_i)``; ``c_i`` adds
+      ``dL/dnu(t_i) += -(1/N) div^T(mu_i B_i)`` (``divergence_adjoint``). ``B_i`` is recomputed (one
+      interpolation per step), ``c_i`` too.
+    - ``"compose"``: ``u_0 = 0``, ``u_i = S_i u_{i-1} + w_i`` (border padding, ``displacements_t0``),
+      ``f = I o (Id + u_N)``, ``W = f`` (mass-preserving: ``J_N f``, ``J`` as above). With ``lam = G`` (``G J_N``):
+      ``dL/dI = T^T lam`` (the scatter at ``Id + u_N``), ``k_N = lam (grad_b I)(Id + u_N)`` (a vector field);
+      for ``i = N..1``: ``dL/dw_i = k_i + sum_c k_{i,c} (grad_b u_{i-1,c})(Id + w_i)``,
+      ``k_{i-1} = S_i^T k_i`` (two channels; ``u_0 = 0`` contributes nothing).
+
+    Finally ``dL/dnu(t_i) = -(1/N) (2 / extent) dL/dw_i`` (plus the ``c_i`` term) for ``i >= 1`` and
+    ``dL/dnu(t_0) = 0`` (the discrete map does not use ``nu(t_0)``).
+
+    Memory: the reverse sweep reads the record (images / determinants, or the displacements) and holds a few
+    image-sized fields (``lam``, ``mu``, ``k``); cost per step: one ``grid_sampler_2d_backward`` per transported
+    field (the scatter dominates, about three interpolations), plus one interpolation for ``B_i``.
+
+    Convention:
+        ``grad_out (..., nx, ny)``, ``template (..., nx, ny)`` and ``velocity (..., N+1, 2, nx, ny)`` with the
+        same batch dims (broadcast first), physical units of ``domain``; derivatives w.r.t. tensor entries
+        (the scale of ``LDDMMDeformation``'s "Gradient scale"); float32 / float64, any device (the inputs').
+    """
+    _check_action(action)
+    _check_interpolation(interpolation)
+    if record.slots.shape[-4:] != velocity.shape[-4:]:
+        raise ValueError(f"record.slots must be shaped like the velocity (exact_record), got "
+                         f"{tuple(record.slots.shape)}")
+    steps = _Steps(velocity, domain, -1.0, moving)
+    if interpolation == "reinterpolate":
+        grad_i = _reinterpolate_adjoint(grad_out, velocity, record, domain, action, scheme, steps, need_velocity,
+                                        need_template)
+    else:
+        grad_i = _compose_adjoint(grad_out, template, velocity, record, domain, action, scheme, steps, need_velocity,
+                                  need_template)
+    if not need_velocity:
+        return None, grad_i
+    record.slots[..., 0, :, :, :].zero_()
+    return record.slots, grad_i
+
+
+def _reinterpolate_adjoint(grad_out, velocity, record, domain, action, scheme, steps, need_velocity, need_template):
+    """The reverse sweep of ``exact_gradient`` for ``"reinterpolate"``; returns ``dL/dI`` (or None)."""
+    slots, n = record.slots.unbind(-4), velocity.shape[-4] - 1
+    images, jacobians = [s[..., 0, :, :] for s in slots], [s[..., 1, :, :] for s in slots]
+    mass = action == "mass_preserving"
+    lam = (grad_out * jacobians[n] if mass else grad_out).unsqueeze(-3)  # dL/df_i
+    mu = grad_out * images[n] if mass and need_velocity else None  # dL/dJ_i
+    for i in range(n, 0, -1):
+        lam, slope = _step_adjoint(lam, images[i - 1].unsqueeze(-3), steps, i, "zeros", need_template or i > 1,
+                                   need_velocity)
+        if need_velocity:
+            if mass:
+                mu, slope_j, dc = _jacobian_step_adjoint(mu, jacobians[i - 1], velocity, steps, i, domain, scheme)
+                slope.add_(slope_j)
+            _write_velocity_gradient(slots[i], slope, steps.scale)
+            if mass:  # c_i = 1 - div nu(t_i)/N
+                _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / (velocity.shape[-4] - 1))
+    return lam.squeeze(-3) if need_template else None
+
+
+def _compose_adjoint(grad_out, template, velocity, record, domain, action, scheme, steps, need_velocity,
+                     need_template):
+    """The reverse sweep of ``exact_gradient`` for ``"compose"``; returns ``dL/dI`` (or None)."""
+    slots, n = record.slots.unbind(-4), velocity.shape[-4] - 1
+    mass = action == "mass_preserving"
+    lam = grad_out * record.jacobians[..., n, :, :] if mass else grad_out
+    skipped = not bool(slots[n].ne(0).any()) and not bool(record.slots.ne(0).any())  # exact_record's identity
+    grad_i, slope = _sample_adjoint(lam.unsqueeze(-3), template.unsqueeze(-3), displaced_grid(slots[n], domain),
+                                    "zeros", need_template and not skipped, need_velocity)
+    if need_template and skipped:
+        grad_i = lam.unsqueeze(-3)
+    if need_velocity:
+        kappa = torch.stack((slope[..., 1], slope[..., 0]), dim=-3)  # dL/du_N, planar (x, y)
+        mu = grad_out * record.image if mass else None
+        for i in range(n, 0, -1):
+            # u_i = S_i u_{i-1} + w_i; u_0 = 0 has no slope
+            back, slope = _step_adjoint(kappa, slots[i - 1], steps, i, "border", i > 1, i > 1)
+            if mass:
+                mu, slope_j, dc = _jacobian_step_adjoint(mu, record.jacobians[..., i - 1, :, :], velocity, steps, i,
+                                                         domain, scheme)
+                slope = slope_j if slope is None else slope.add_(slope_j)
+            _write_velocity_gradient(slots[i], slope, steps.scale, kappa)
+            if mass:
+                _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / n)
+            kappa = back
+    return grad_i.squeeze(-3) if need_template else None
+
+
+def _jacobian_step_adjoint(mu, jacobian, velocity, steps, i, domain, scheme) -> tuple:
+    """The determinant's part of step ``i`` in reverse (``J_i = c_i B_i``, ``B_i = S_i J_{i-1}``): from
+    ``mu_i = dL/dJ_i`` and ``J_{i-1}`` (``jacobian``), ``(mu_{i-1}, grid gradient, dL/dc_i = mu_i B_i)``."""
+    growth = _growth_into(torch.empty_like(mu), velocity[..., i, :, :, :], domain, scheme,
+                          -1.0 / (velocity.shape[-4] - 1))  # c_i, recomputed
+    dc = steps.move(jacobian.unsqueeze(-3), i, "border").squeeze(-3) * mu  # B_i recomputed
+    back, slope = _step_adjoint(growth.mul_(mu).unsqueeze(-3), jacobian.unsqueeze(-3), steps, i, "border", i > 1,
+                                True)
+    return (back.squeeze(-3) if i > 1 else None), slope, dc
+
+
+def _write_velocity_gradient(slot: torch.Tensor, slope, scale: tuple, planar: torch.Tensor | None = None) -> None:
+    """``slot (..., 2, nx, ny) = dL/dnu(t_i)`` from ``dL/dw_i``: the grid gradient ``slope (..., nx, ny, 2)``
+    (y, x; or None) plus ``planar (..., 2, nx, ny)`` (x, y; or None), grid units, times ``-(1/N) 2 / extent``
+    per component (``_Steps.scale``)."""
+    for k in range(2):
+        out = slot[..., k, :, :]
+        if slope is None:
+            torch.mul(planar[..., k, :, :], scale[k], out=out)
+        elif planar is None:
+            torch.mul(slope[..., 1 - k], scale[k], out=out)
+        else:
+            torch.add(planar[..., k, :, :], slope[..., 1 - k], out=out).mul_(scale[k])

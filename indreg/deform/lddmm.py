@@ -11,7 +11,7 @@ from ..domain import ImageDomain
 from . import functional as Fd
 
 ACTIONS = Fd.ACTIONS
-BACKWARDS = ("paper", "autograd")
+BACKWARDS = ("paper", "exact", "autograd")
 
 
 def _check_fast(x, name: str, trailing_shape: tuple) -> None:
@@ -74,6 +74,52 @@ class _PaperDeformation(torch.autograd.Function):
         return grad_v, grad_i, None, None
 
 
+class _ExactDeformation(torch.autograd.Function):
+    """``W(nu, I)`` with the exact derivative of the discrete map as backward (``functional.exact_gradient``).
+
+    The forward runs the time loop without an autograd graph (bit for bit the values of the other modes) and
+    keeps ``functional.exact_record`` (the image trajectory and determinants, or the composed displacements:
+    one velocity-sized tensor), which the backward's reverse sweep (the hand-written discrete adjoint)
+    overwrites with the velocity gradient. As ``_PaperDeformation``: the record lives on ``ctx`` and is dropped
+    once consumed (a second backward through a retained graph recomputes it); once differentiable.
+    """
+
+    @staticmethod
+    def forward(ctx, velocity, template, config, moving):
+        deformed, record = _exact_record(velocity, template, config, moving)
+        ctx.save_for_backward(velocity, template)
+        ctx.config, ctx.moving, ctx.record = config, moving, record
+        ctx.set_materialize_grads(False)
+        return deformed
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        if grad_out is None:
+            return None, None, None, None
+        velocity, template = ctx.saved_tensors
+        c, (need_velocity, need_template) = ctx.config, ctx.needs_input_grad[:2]
+        record = ctx.record if ctx.record is not None else _exact_record(velocity, template, c, ctx.moving)[1]
+        if need_velocity:  # exact_gradient overwrites it
+            ctx.record = None
+        batch = grad_out.shape[:-2]
+        grad_v, grad_i = Fd.exact_gradient(
+            grad_out, template.expand(*batch, *template.shape[-2:]),
+            velocity.expand(*batch, *velocity.shape[-4:]), record, c.domain, c.action, c.interpolation, c.scheme,
+            need_velocity=need_velocity, need_template=need_template, moving=ctx.moving)
+        grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
+        grad_i = grad_i.sum_to_size(template.shape) if need_template else None
+        return grad_v, grad_i, None, None
+
+
+def _exact_record(velocity, template, config, moving) -> tuple:
+    """``functional.exact_record`` of the broadcast inputs."""
+    batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
+    return Fd.exact_record(template.expand(*batch, *template.shape[-2:]),
+                           velocity.expand(*batch, *velocity.shape[-4:]), config.domain, config.action,
+                           config.interpolation, config.scheme, moving)
+
+
 def _record(velocity, template, config, moving) -> torch.Tensor:
     """``functional.gradient_record`` of the broadcast inputs."""
     batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
@@ -97,11 +143,21 @@ class LDDMMDeformation(torch.nn.Module):
       ``O(N n^2)``, about one velocity field. Without a graph to record (``torch.no_grad()``, no input
       requiring grad) the plain forward runs. ``backward="autograd"``: plain autograd through the discrete
       forward (the exact derivative of the discrete map; keeps the graph of the time loop).
-      Measured (``scripts/bench_deform.py``, 256^2, N=20, float32, 1 thread, modes interleaved in one
-      process): fwd+bwd paper 0.015-0.017 s vs autograd 0.035-0.042 s (2.15-2.75x over 5 runs); peak memory
-      of fwd+bwd 10-11 MB vs 42-55 MB resident (4.2-5.2x), 12.5 MB vs 31.5 MB of live tensors (2.5x; the
-      11 MB velocity gradient, returned by both, bounds this ratio below 31.5 / 11 = 2.9). With 2 threads
-      2.1-2.6x over 3 runs.
+      ``backward="exact"``: the same exact derivative from a hand-written discrete adjoint of the forward
+      recursions (``functional.exact_gradient``: the transposed bilinear interpolations, i.e. scatters, and
+      the one-sided cell slopes, step by step in reverse), with the paper mode's memory: no graph, the
+      forward's record (image trajectory and determinants, or the composed displacements) becomes the
+      velocity gradient. Equal to autograd up to rounding (1e-10 relative in float64, tests); use it for line
+      searches (L-BFGS, nonlinear CG), which need the derivative of the function they evaluate. Measured
+      (``scripts/bench_deform.py --threads 1``, float32, N=20, the three modes interleaved in one process; a
+      shared 2-core machine at load 6-9, so noisy), fwd+bwd exact / paper: geometric reinterpolate 0.99-1.03 /
+      1.00-1.30 / 0.99-1.35 at 64^2 / 128^2 / 256^2 over 3 runs (exact / autograd 1.0 / 0.64-0.68 /
+      0.46-0.64), live memory 1.02-1.04x the paper mode's; geometric compose 0.5-0.7 with a third of the paper
+      mode's live memory (the record is the displacements; the paper mode keeps the composed trajectories).
+      The mass-preserving action costs about 2x the paper mode (reinterpolate 1.8-2.6, compose 1.4-2.1; 0.5-1.2x
+      autograd, one run each): its adjoint
+      also scatters the determinant's adjoint every step, where the paper's gradient transports one field,
+      and a scatter (``grid_sampler_2d_backward``) costs about 3.5 interpolations.
     - ``interpolation="reinterpolate"`` (the paper: re-interpolate the image every step) or ``"compose"``
       (compose the displacements, interpolate the template once per time: less numerical blur; the
       paper's gradient then transports ``G`` by composed displacements too). Measured
@@ -115,7 +171,8 @@ class LDDMMDeformation(torch.nn.Module):
       autograd graph of the velocity is recorded; see ``functional._Steps``).
     - ``scheme``: finite differences, ``"central"`` (default) or ``"forward"`` (the authors' code).
 
-    Gradient scale (``backward="paper"``; torch's convention, derivatives w.r.t. tensor entries):
+    Gradient scale (``backward="paper"``; torch's convention, derivatives w.r.t. tensor entries; the exact
+    modes have the same scale):
     with ``G = dL/dW`` (entries, so the L2 gradient is ``G / cell_volume``),
     ``dL/dnu[..., i, :, :, :] = (1/N) * cell_volume * (L2 gradient at t_i before the kernel)``, i.e.
     geometric ``-(1/N) |D phi_{t_i,1}| (G o phi_{t_i,1}) grad(I o phi_{t_i,0})``, mass-preserving
@@ -215,7 +272,10 @@ class LDDMMDeformation(torch.nn.Module):
     def forward(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
         """The deformed template ``W(nu, I)``, ``(..., nx, ny)``."""
         moving = self._check(velocity, template)
-        if self.backward == "paper" and torch.is_grad_enabled() and (velocity.requires_grad or template.requires_grad):
+        if self.backward != "autograd" and torch.is_grad_enabled() and (velocity.requires_grad
+                                                                        or template.requires_grad):
+            if self.backward == "exact":
+                return _ExactDeformation.apply(velocity, template, self._config, moving)
             return _PaperDeformation.apply(velocity, template, self._config, moving)[0]
         deformed = self._trajectory(velocity, template, moving)[..., -1, :, :]
         return deformed if self.backward == "autograd" else deformed.clone()  # not a view of the trajectory
