@@ -25,6 +25,15 @@ from .torch_optim import TorchOptimSolver
 INNER = ("lbfgs", "algorithm1")
 
 
+def options() -> tuple:
+    """The keyword options of ``MultilevelSolver`` besides ``problem``, ``max_iter`` and ``grad_tol`` (what
+    ``solver="fast"`` takes in ``optimizer_kwargs``)."""
+    import inspect
+
+    skip = ("self", "problem", "max_iter", "grad_tol")
+    return tuple(k for k in inspect.signature(MultilevelSolver.__init__).parameters if k not in skip)
+
+
 def resample_time(m: torch.Tensor, num_steps: int) -> torch.Tensor:
     """``m (N+1, ...)`` at ``t_i = i/N`` linearly interpolated to ``t_j = j/num_steps``, ``(num_steps+1, ...)``."""
     n_old = m.shape[0] - 1
@@ -107,8 +116,9 @@ class MultilevelSolver(IterativeSolver):
         level_iter: iteration budget of each coarse level.
         max_iter: iterations in all (coarse levels included).
         grad_tol: stop when the gradient norm of the problem's grid is ``<= grad_tol`` (0: never).
-        rtol: a level ends (the last one: the run converges) when its objective decreased by less than
-            ``rtol`` (relative) per iteration on average over its last ``window`` iterations; 0 disables it.
+        rtol: a level ends (the last one: the run converges) when its objective decreased at every one of
+            its last ``window`` iterations, by less than ``rtol`` (relative) per iteration on average; 0
+            disables it.
         window: see ``rtol``.
         inner: "lbfgs" (``TorchOptimSolver`` with a strong Wolfe line search; needs the exact gradient of
             the discrete map, ``backward``) or "algorithm1" (fixed step ``step_size``, the paper's gradient).
@@ -123,10 +133,11 @@ class MultilevelSolver(IterativeSolver):
     last two axes (x, y), ``resample_time`` on axis 0 (``t_i = i/N``).
     """
 
-    def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=None, level_iter=(30, 40),
-                 max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 0.0, window: int = 5,
-                 inner: str = "lbfgs", backward: str = "autograd", step_size: float = 0.02,
-                 history_size: int = 10, min_size: int = 16, jacobian_every: int = 1):
+    def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 20),
+                 max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 5e-4, window: int = 5,
+                 inner: str = "algorithm1", step_size: float = 0.08, step_halving: bool = True,
+                 max_halvings: int = 10, backward: str = "autograd", history_size: int = 10, min_size: int = 16,
+                 jacobian_every: int = 1):
         if not isinstance(problem, IndirectRegistration):
             raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
         if inner not in INNER:
@@ -135,7 +146,7 @@ class MultilevelSolver(IterativeSolver):
             raise ValueError(f"backward must be one of {tuple(b for b in BACKWARDS if b != 'paper')} (the exact "
                              f"gradient a line search needs), got {backward!r}")
         levels, level_iter = tuple(levels), tuple(level_iter)
-        level_steps = tuple(level_steps) if level_steps is not None else (problem.num_steps,) * len(levels)
+        level_steps = tuple(level_steps)
         if not len(levels) == len(level_steps) == len(level_iter):
             raise ValueError(f"levels, level_steps and level_iter must have one entry per coarse level, got "
                              f"{len(levels)}, {len(level_steps)} and {len(level_iter)} entries")
@@ -149,6 +160,8 @@ class MultilevelSolver(IterativeSolver):
         self.window = check_int(window, "window", 1)
         self.inner, self.backward = inner, backward
         self.step_size = check_positive(step_size, "step_size")
+        self.step_halving = bool(step_halving)
+        self.max_halvings = check_int(max_halvings, "max_halvings", 0)
         self.history_size = check_int(history_size, "history_size", 1)
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
         min_size = check_int(min_size, "min_size", 1)
@@ -181,7 +194,8 @@ class MultilevelSolver(IterativeSolver):
         shape, n, _ = self.schedule[level]
         if self.inner == "algorithm1":
             p = coarse_problem(self.problem, shape, n, self.problem.deformation.backward)
-            return Algorithm1(p, step_size=self.step_size, max_iter=self.max_iter, jacobian_every=self.jacobian_every)
+            return Algorithm1(p, step_size=self.step_size, max_iter=self.max_iter, step_halving=self.step_halving,
+                              max_halvings=self.max_halvings, jacobian_every=self.jacobian_every)
         p = coarse_problem(self.problem, shape, n, self.backward)
         # TorchOptimSolver's backward="paper" keeps the level problem's deformation (built with self.backward)
         return TorchOptimSolver(p, "lbfgs", max_iter=self.max_iter,
@@ -212,10 +226,10 @@ class MultilevelSolver(IterativeSolver):
         return self._state.iteration >= budget or self._stalled()
 
     def _stalled(self) -> bool:
-        e, w = self._objectives, self.window
+        e, w = self._objectives[-self.window - 1:], self.window
         if self.rtol <= 0 or len(e) <= w:
             return False
-        return e[-w - 1] - e[-1] < self.rtol * w * abs(e[-1])
+        return all(b <= a for a, b in zip(e, e[1:])) and e[0] - e[-1] < self.rtol * w * abs(e[-1])
 
     def _sync(self, state: SolverState) -> None:
         """Start the first level from ``state.momentum`` (restricted), or check that it is still the solver's."""

@@ -74,13 +74,12 @@ def test_fast_decreases_the_objective_and_ends_on_the_fine_grid(inner):
     assert state.momentum.shape == problem.momentum_shape
     start = problem.evaluate(problem.zero_momentum())["objective"]
     final = problem.evaluate(state.momentum)["objective"]
-    assert final < 0.5 * start
+    assert final < 0.6 * start
     # on the fine grid the report is the problem's objective at state.momentum
     assert info["objective"] == pytest.approx(final, rel=1e-10)
-    if inner == "lbfgs":    # L-BFGS is monotone within each level
-        for level in range(3):
-            e = [i["objective"] for i in infos if i["level"] == level]
-            assert all(b <= a for a, b in zip(e, e[1:]))
+    for level in range(3):  # descent within each level
+        e = [i["objective"] for i in infos if i["level"] == level]
+        assert all(b <= a for a, b in zip(e, e[1:])), (level, e)
 
 
 def test_every_coarse_iterate_is_a_fine_momentum():
@@ -131,7 +130,7 @@ def test_fast_bad_input():
     with pytest.raises(ValueError, match="levels must be coarsening factors"):
         MultilevelSolver(problem, levels=(2, 4), level_iter=(3, 3))
     with pytest.raises(ValueError, match="backward must be"):
-        MultilevelSolver(problem, backward="paper")
+        MultilevelSolver(problem, inner="lbfgs", backward="paper")
     with pytest.raises(ValueError, match="inner must be"):
         MultilevelSolver(problem, inner="adam")
     with pytest.raises(TypeError, match="problem must be"):
@@ -146,5 +145,5 @@ def test_fast_bad_input():
 
 def test_levels_below_min_size_are_skipped():
     problem = make_problem(n=32)
-    solver = MultilevelSolver(problem, levels=(8, 4, 2), level_iter=(1, 1, 1), min_size=8)
+    solver = MultilevelSolver(problem, levels=(8, 4, 2), level_steps=(2, 3, 4), level_iter=(1, 1, 1), min_size=8)
     assert [s[0] for s in solver.schedule] == [(8, 8), (16, 16), (32, 32)]
