@@ -87,7 +87,8 @@ def _resolve_dtype(dtype, template) -> torch.dtype:
     return d
 
 
-def _resolve_device(device, template) -> torch.device:
+def resolve_device(device, template=None) -> torch.device:
+    """``None``: the template's device (the CPU for arrays); ``"auto"``: CUDA when available, else the CPU."""
     if device is None:
         return template.device if isinstance(template, torch.Tensor) else torch.device("cpu")
     if device == "auto":
@@ -168,7 +169,7 @@ def setup(template, data, operator, **options) -> Setup:
     o = {**DEFAULTS, **options}
     check_operator(operator, "operator")
     dtype = _resolve_dtype(o["dtype"], template)
-    device = _resolve_device(o["device"], template)
+    device = resolve_device(o["device"], template)
     domain = operator.domain
     template = as_array(template, "template", domain.shape, dtype, device)
     data = as_array(data, "data", operator.range_shape, dtype, device)

@@ -40,16 +40,6 @@ class Experiment:
     snr_db: Optional[float] = None
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto``: CUDA when available, else the CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device={name!r} was requested but CUDA is not available (use device=auto or cpu)")
-    return device
-
-
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (all devices)."""
     random.seed(seed)
@@ -73,7 +63,7 @@ def options(cfg: DictConfig) -> dict:
 def build(cfg: DictConfig) -> Experiment:
     """The data source's data and operator, then kernel, deformation, problem and solver (``api.setup``)."""
     dtype = getattr(torch, cfg.dtype.value)
-    device = resolve_device(cfg.device)
+    device = api.resolve_device(cfg.device)
     data = sources.load(cfg)
     template = data.template_64.to(dtype=dtype, device=device)
     g = data.data_64.to(dtype=dtype, device=device)

@@ -88,8 +88,12 @@ def joseph_matrix(domain: ImageDomain, geometry: ParallelBeamGeometry) -> sp.csr
         counts.append(cnt)
         cols.append(col)
         vals.append(val)
+    return _csr(counts, cols, vals, (geometry.num_angles * geometry.det_count, nx * ny))
+
+
+def _csr(counts, cols, vals, shape) -> sp.csr_matrix:
+    """The system matrix from per-angle blocks of row counts, column indices and values (rays in row order)."""
     indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
-    shape = (geometry.num_angles * geometry.det_count, nx * ny)
     mat = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=shape)
     mat.sort_indices()
     return mat
@@ -153,11 +157,7 @@ def fan_joseph_matrix(domain: ImageDomain, geometry: FanBeamGeometry) -> sp.csr_
         counts.append(cnt)
         cols.append(col)
         vals.append(val)
-    indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
-    shape = (geometry.num_angles * geometry.det_count, nx * ny)
-    mat = sp.csr_matrix((np.concatenate(vals), np.concatenate(cols), indptr), shape=shape)
-    mat.sort_indices()
-    return mat
+    return _csr(counts, cols, vals, (geometry.num_angles * geometry.det_count, nx * ny))
 
 
 register_projector(ParallelBeamGeometry, joseph_matrix)
