@@ -8,8 +8,6 @@ the discrete map) or by Algorithm 1, and its momentum is prolongated to the next
 """
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 
@@ -66,6 +64,14 @@ def prolong(f: torch.Tensor, shape: tuple) -> torch.Tensor:
     return out.reshape(*lead, *shape)
 
 
+def _check_rebuildable(T) -> None:
+    from ..forward import RayTransform
+
+    if not isinstance(T, RayTransform):
+        raise TypeError(f"coarse levels rebuild the forward operator as RayTransform(coarse domain, geometry); "
+                        f"got a {type(T).__name__}: use levels=() (no coarse level) with this operator")
+
+
 def coarse_problem(problem: IndirectRegistration, shape: tuple, num_steps: int, backward: str) -> IndirectRegistration:
     """``problem`` on a ``shape`` grid of the same rectangle with ``num_steps`` time steps: the template's area
     averages, the same data, the ray transform rebuilt on the coarse grid with the same geometry, the same
@@ -76,9 +82,7 @@ def coarse_problem(problem: IndirectRegistration, shape: tuple, num_steps: int, 
     if tuple(shape) == tuple(d.shape):
         domain, T_level, template, K = d, T, problem.template, problem.kernel
     else:
-        if not isinstance(T, RayTransform):
-            raise TypeError(f"coarse levels rebuild the forward operator as RayTransform(coarse domain, geometry); "
-                            f"got a {type(T).__name__}: use levels=() (no coarse level) with this operator")
+        _check_rebuildable(T)
         domain = ImageDomain(tuple(shape), d.min_pt, d.max_pt)
         T_level = RayTransform(domain, T.geometry)
         template = restrict(problem.template, shape)
@@ -104,15 +108,15 @@ class MultilevelSolver(IterativeSolver):
     level, sets ``state.momentum`` to the current momentum prolongated to the problem's grid and N (so a
     checkpoint, the deformed template and the outputs are always those of the problem), and returns the
     level's report (objective, data_fit, ... of the level's problem: the same objective discretised on the
-    level's grid, comparable across levels) with ``level`` (0 = coarsest; ``len(levels)`` = the problem's
-    grid) and ``grid`` (its size on axis 0) added; ``evaluations`` counts all levels.
+    level's grid, comparable across levels) with ``level`` (0 = coarsest; the last = the problem's grid) and
+    ``grid`` (its size on axis 0) added; ``evaluations`` counts all levels.
 
     Args:
         problem: an ``IndirectRegistration`` whose ``ray_transform`` is a ``RayTransform`` when there are
             coarse levels.
         levels: coarsening factors of the coarse levels, coarse to fine (e.g. ``(4, 2)``: 64^2 and 128^2 for a
             256^2 problem); ``()`` is the problem's grid only.
-        level_steps: time steps N of each coarse level (default the problem's N).
+        level_steps: time steps N of each coarse level.
         level_iter: iteration budget of each coarse level.
         max_iter: iterations in all (coarse levels included).
         grad_tol: stop when the gradient norm of the problem's grid is ``<= grad_tol`` (0: never).
@@ -120,11 +124,15 @@ class MultilevelSolver(IterativeSolver):
             its last ``window`` iterations, by less than ``rtol`` (relative) per iteration on average; 0
             disables it.
         window: see ``rtol``.
-        inner: "lbfgs" (``TorchOptimSolver`` with a strong Wolfe line search; needs the exact gradient of
-            the discrete map, ``backward``) or "algorithm1" (fixed step ``step_size``, the paper's gradient).
+        inner: "algorithm1" (``Algorithm1`` on every level with ``step_size``, ``step_halving``,
+            ``max_halvings`` and the problem's deformation backward) or "lbfgs" (``TorchOptimSolver``, strong
+            Wolfe line search, with the exact gradient of the discrete map, ``backward``, and ``history_size``).
+        step_size: Algorithm 1's step (the same on every level: the domain is physical); a new level starts
+            at this step again.
+        step_halving, max_halvings: Algorithm 1's safeguard (a step that increases the objective or folds is
+            halved and the halved step kept for the level).
         backward: the deformation's backward for "lbfgs" (an entry of ``LDDMMDeformation``'s ``BACKWARDS``
-            other than "paper"); "algorithm1" uses the problem's deformation backward.
-        step_size: Algorithm 1's step for ``inner="algorithm1"``.
+            other than "paper").
         history_size: L-BFGS memory.
         min_size: smallest grid of a coarse level.
         jacobian_every: compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
@@ -172,6 +180,8 @@ class MultilevelSolver(IterativeSolver):
                 self.schedule.append((shape, check_int(n, "level_steps entry", 1),
                                       check_int(it, "level_iter entry", 0)))
         self.schedule.append((tuple(problem.domain.shape), problem.num_steps, None))
+        if len(self.schedule) > 1:
+            _check_rebuildable(problem.ray_transform)
         self.level = -1          # index into schedule of the running level (-1: not started)
         self.level_start = 0     # the global iteration at which it started
         self.evaluations = 0     # of the finished levels (the running level's solver counts its own)
