@@ -31,7 +31,7 @@ log = logging.getLogger("indreg")
 
 #: Options of :func:`register` and their defaults (``None``: see :func:`register`).
 DEFAULTS = {
-    "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": "reinterpolate",
+    "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": None,
     "backward": "paper", "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
     "step_halving": True, "max_halvings": 20, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
     "dtype": None, "callback": None, "progress": False, "log_every": 10, "target": None,
@@ -123,10 +123,20 @@ def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving
                 grad_tol: float, optimizer_kwargs: dict | None):
     """``Algorithm1`` (``solver="algorithm1"``, ``step_size``) or ``TorchOptimSolver`` (a ``torch.optim`` name,
     case-insensitive, ``lr``)."""
-    from .solvers import Algorithm1, TorchOptimSolver
+    from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
+    from .solvers.multilevel import options as fast_options
 
     if not isinstance(solver, str):
-        raise TypeError(f"solver must be 'algorithm1' or a torch.optim optimizer name, got {solver!r}")
+        raise TypeError(f"solver must be 'algorithm1', 'fast' or a torch.optim optimizer name, got {solver!r}")
+    if solver.lower() == "fast":
+        if lr is not None or step_size is not None:
+            raise TypeError("solver='fast' takes neither lr nor step_size (its options go in optimizer_kwargs: "
+                            f"{', '.join(fast_options())})")
+        unknown = sorted(set(optimizer_kwargs or {}) - set(fast_options()))
+        if unknown:
+            raise TypeError(f"unknown optimizer_kwargs for solver='fast': {', '.join(unknown)}; valid: "
+                            f"{', '.join(fast_options())}")
+        return MultilevelSolver(problem, max_iter=max_iter, grad_tol=grad_tol, **(optimizer_kwargs or {}))
     if solver.lower() == "algorithm1":
         if lr is not None:
             raise TypeError("lr is the torch.optim learning rate; solver='algorithm1' takes step_size")
@@ -167,6 +177,9 @@ def setup(template, data, operator, **options) -> Setup:
         o["target"] = as_array(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
     if o["callback"] is not None and not callable(o["callback"]):
         raise TypeError(f"callback must be callable(state, info), got {o['callback']!r}")
+    if o["interpolation"] is None:
+        fast = isinstance(o["solver"], str) and o["solver"].lower() == "fast"
+        o["interpolation"] = "compose" if fast else "reinterpolate"
     kernel = GaussianKernel(domain, o["sigma"])
     deformation = LDDMMDeformation(domain, num_steps=o["num_steps"], action=o["action"], backward=o["backward"],
                                    interpolation=o["interpolation"])
@@ -328,9 +341,12 @@ def register(template, data, operator, **options) -> RegistrationResult:
             any ``indreg.LinearOperator`` (``domain``, ``range_shape``, ``__call__``, ``adjoint``, ``inner_data``).
         sigma: width of the Gaussian kernel of V (physical units), 6.0.
         gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
-        action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose".
+        action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose" (default
+            "compose" with ``solver="fast"``, else "reinterpolate", the paper's).
         backward: "paper" (Algorithm 1's gradient) or "autograd".
-        solver: "algorithm1" (default), "lbfgs", or any ``torch.optim`` optimizer name (case-insensitive).
+        solver: "algorithm1" (default), "fast" (coarse-to-fine L-BFGS, ``indreg.solvers.MultilevelSolver``;
+            its options in ``optimizer_kwargs``), "lbfgs", or any ``torch.optim``
+            optimizer name (case-insensitive).
         max_iter: 200. grad_tol: stop when the gradient norm is below it (0: never).
         step_size: Algorithm 1's step, 0.02. lr: the torch.optim learning rate (1.0 for L-BFGS; required
             for the others). optimizer_kwargs: passed to the torch.optim optimizer.

@@ -50,12 +50,13 @@ def seed_everything(seed: int) -> None:
 def options(cfg: DictConfig) -> dict:
     """The ``indreg.register`` options of the config (kernel, deformation and solver groups)."""
     s, d = cfg.solver, cfg.deformation
-    algorithm1 = s.name.value == "algorithm1"
+    name = s.name.value
+    algorithm1 = name == "algorithm1"
     return {"sigma": cfg.kernel.sigma, "gamma": s.gamma, "tv_weight": s.tv_weight, "num_steps": d.num_steps,
             "action": d.action.value, "backward": d.backward.value, "interpolation": d.interpolation.value,
-            "solver": "algorithm1" if algorithm1 else s.optimizer.value, "max_iter": s.max_iter,
+            "solver": s.optimizer.value if name == "torch_optim" else name, "max_iter": s.max_iter,
             "grad_tol": s.grad_tol, "step_halving": s.step_halving, "max_halvings": s.max_halvings,
-            "step_size": s.step_size if algorithm1 else None, "lr": None if algorithm1 else s.lr,
+            "step_size": s.step_size if algorithm1 else None, "lr": s.lr if name == "torch_optim" else None,
             "optimizer_kwargs": None if algorithm1 else dict(s.optimizer_kwargs)}
 
 

@@ -79,6 +79,7 @@ Interpolation = Enum("Interpolation", {name: name for name in _Fd.INTERPOLATIONS
 class SolverName(str, Enum):
     algorithm1 = "algorithm1"
     torch_optim = "torch_optim"
+    fast = "fast"            # indreg.solvers.MultilevelSolver (optimizer_kwargs: its options)
 
 
 class Optimizer(str, Enum):
@@ -306,6 +307,8 @@ def validate(cfg: DictConfig) -> None:
     _require(s.max_halvings >= 0, "solver.max_halvings", "an integer >= 0", s.max_halvings)
     if s.name.value == "torch_optim":
         _check_optimizer_kwargs(s.optimizer.value, s.optimizer_kwargs)
+    if s.name.value == "fast":
+        _check_fast_kwargs(s.optimizer_kwargs)
     b = c.baseline
     _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
              "a number in (0, 1]", b.fbp_frequency_scaling)
@@ -365,6 +368,15 @@ def _check_optimizer_kwargs(optimizer: str, kwargs) -> None:
         _require(key in allowed, f"solver.optimizer_kwargs.{key}",
                  f"a keyword of torch.optim {_optimizer_class(optimizer).__name__} ({', '.join(sorted(allowed))})",
                  kwargs[key])
+
+
+def _check_fast_kwargs(kwargs) -> None:
+    """``solver=fast``: every ``solver.optimizer_kwargs`` key must be an option of ``MultilevelSolver``."""
+    from ..solvers.multilevel import options
+
+    for key in kwargs:
+        _require(key in options(), f"solver.optimizer_kwargs.{key}",
+                 f"an option of solver=fast (indreg.solvers.MultilevelSolver: {', '.join(options())})", kwargs[key])
 
 
 def path_component(name) -> str:

@@ -20,7 +20,7 @@ from torch.utils.tensorboard.summary import hparams
 
 SCALARS = {"objective": "loss/objective", "data_fit": "loss/data_fit", "regulariser": "loss/regulariser",
            "grad_norm": "optim/grad_norm", "step_size": "optim/step_size",
-           "min_jacobian": "deformation/min_jacobian"}
+           "min_jacobian": "deformation/min_jacobian", "grid": "optim/grid"}   # grid: solver=fast's level
 METRICS = ("ssim", "psnr", "ssim_paper", "psnr_paper")
 
 

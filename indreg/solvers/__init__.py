@@ -1,7 +1,8 @@
 """Objective and solvers of indirect registration: Algorithm 1 and any torch.optim optimizer."""
 from .algorithm1 import Algorithm1
+from .multilevel import MultilevelSolver
 from .objective import IndirectRegistration, total_variation
 from .state import SolverState
 from .torch_optim import TorchOptimSolver
 
-__all__ = ["IndirectRegistration", "Algorithm1", "TorchOptimSolver", "SolverState", "total_variation"]
+__all__ = ["IndirectRegistration", "Algorithm1", "TorchOptimSolver", "MultilevelSolver", "SolverState", "total_variation"]
