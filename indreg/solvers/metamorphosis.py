@@ -1,0 +1,411 @@
+"""Indirect metamorphosis (eq:Metam:ODE / eq:DirectMatchingMetamorphosisPDE): objective and solvers.
+
+In the scale of ``objective.IndirectRegistration`` (half the printed objective, so the paper's gammas and step
+sizes work unchanged):
+
+    E(nu, zeta) = (gamma/2) sum_{i=0..N} (1/N) ||nu_i||_V^2 + (tau/2) sum_{i=0..N} (1/N) ||zeta_i||_L2^2
+                  + (1/2) ||T f(1) - g||^2_data  (+ tv_weight TV(f(1)))
+
+with ``f(1) = M(nu, zeta, I)`` the metamorphosis image path (``indreg.deform.MetamorphosisDeformation``) and
+``nu = K m``. Large ``tau`` forbids intensity changes (LDDMM); small ``tau`` lets the source reconstruct the
+image freely (a reconstruction with an ``L2`` penalty on the intensity change).
+
+L2 gradients (``L`` = data fit + TV of ``f(1)``, ``dL/d.`` the deformation's backward, torch entries):
+``h_nu = gamma m + (N / cell_volume) dL/dnu`` (the V-gradient is ``K h_nu``, as Algorithm 1) and
+``h_zeta = tau zeta + (N / cell_volume) dL/dzeta``, i.e. ``h_zeta(t_i) = tau zeta_i + lambda_i / cell_volume``
+with ``lambda_i ~ |D phi_{t_i,1}| (T^*(T f(1) - g) o phi_{t_i,1})`` (the data gradient carried back to
+``t_i``).
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .._checks import check_int, check_positive, check_same, check_tensor
+from ..deform.metamorphosis import MetamorphosisDeformation
+from ..forward.operator import operator_norm
+from .objective import IndirectRegistration, check_nonnegative
+from .state import IterativeSolver, SolverState, make_info, problems
+from .torch_optim import _DEFAULTS, _optimizer_class
+
+
+class MetamorphosisRegistration:
+    """Indirect metamorphosis ``min_{m, zeta} E(K m, zeta)`` (eq:Metam:ODE in the code's scale, module docstring).
+
+    Args:
+        ray_transform, kernel, template, data, gamma, tv_weight, tv_smoothing: as ``IndirectRegistration``.
+        deformation: a ``MetamorphosisDeformation``.
+        tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``).
+
+    ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
+    is the pure-deformation part ``W(nu, I)``.
+
+    Convention:
+        momentum / velocity ``(N+1, 2, nx, ny)``, source ``(N+1, nx, ny)`` at ``t_i = i/N``; the discrete
+        ``L2([0,1], X)`` inner products are ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (N+1 terms, as LDDMM's);
+        ``zeta_0`` does not enter ``f(1)`` (right Riemann sum), so it only feels the penalty and stays 0.
+    """
+
+    def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,
+                 tv_smoothing=1e-3):
+        if not isinstance(deformation, MetamorphosisDeformation):
+            raise TypeError(f"deformation must be a MetamorphosisDeformation, got {type(deformation).__name__}")
+        self.lddmm = IndirectRegistration(ray_transform, deformation.lddmm, kernel, template, data, gamma,
+                                          tv_weight, tv_smoothing)
+        self.deformation = deformation
+        self.tau = check_nonnegative(tau, "tau")
+        for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
+                     "tv_smoothing", "num_steps", "momentum_shape", "time_weight"):
+            setattr(self, name, getattr(self.lddmm, name))
+
+    def __repr__(self):
+        return (f"MetamorphosisRegistration(domain={self.domain}, N={self.num_steps}, gamma={self.gamma}, "
+                f"tau={self.tau}, tv_weight={self.tv_weight})")
+
+    def with_deformation(self, deformation: MetamorphosisDeformation) -> "MetamorphosisRegistration":
+        """The same problem with another metamorphosis operator (e.g. ``backward="autograd"``)."""
+        return MetamorphosisRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
+                                         self.gamma, self.tau, self.tv_weight, self.tv_smoothing)
+
+    @property
+    def source_shape(self) -> tuple:
+        """``(N+1, nx, ny)``."""
+        return (self.num_steps + 1, *self.domain.shape)
+
+    def zero_momentum(self) -> torch.Tensor:
+        return self.lddmm.zero_momentum()
+
+    def zero_source(self) -> torch.Tensor:
+        """``zeta = 0`` (no intensity change), ``(N+1, nx, ny)`` in the template's dtype/device."""
+        return torch.zeros(self.source_shape, dtype=self.template.dtype, device=self.template.device)
+
+    def check(self, m, zeta) -> None:
+        """Validate a momentum ``(N+1, 2, nx, ny)`` and a source ``(N+1, nx, ny)`` (the template's dtype/device)."""
+        self.lddmm.check_momentum(m)
+        check_tensor(zeta, "source", self.source_shape)
+        check_same(zeta, self.template, "source", "template")
+
+    def velocity(self, m: torch.Tensor) -> torch.Tensor:
+        """``nu = K m`` (differentiable)."""
+        return self.kernel.apply(m)
+
+    def image(self, m: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
+        """``f(1) = M(K m, zeta, I)``, ``(nx, ny)``."""
+        with torch.no_grad():
+            return self.deformation(self.velocity(m), zeta, self.template)
+
+    def parts(self, m: torch.Tensor, zeta: torch.Tensor) -> tuple:
+        """``(W(nu, I), f(1) - W(nu, I))``: the pure deformation of the template and the intensity part."""
+        return self.deformation.parts(self.velocity(m), zeta, self.template)
+
+    def trajectory(self, m: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
+        """``f(t_i)`` for ``i = 0..N``, ``(N+1, nx, ny)``."""
+        with torch.no_grad():
+            return self.deformation.trajectory(self.velocity(m), zeta, self.template)
+
+    def source_regulariser(self, zeta: torch.Tensor) -> torch.Tensor:
+        """``(tau/2) sum_i (1/N) ||zeta_i||_L2^2 = (tau/2) (cell_volume/N) sum zeta^2``."""
+        flat = zeta.reshape(-1)
+        return 0.5 * self.tau * self.time_weight * torch.dot(flat, flat)
+
+    def terms(self, m: torch.Tensor, zeta: torch.Tensor, nu: torch.Tensor | None = None) -> dict:
+        """All terms as 0-dim tensors (differentiable; ``nu = K m`` if not given): ``data_fit``, ``tv``,
+        ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
+        nu = self.velocity(m) if nu is None else nu
+        out = self.lddmm.matching(self.deformation(nu, zeta, self.template))
+        out["regulariser"] = self.lddmm.regulariser(m, nu)
+        out["source_regulariser"] = self.source_regulariser(zeta)
+        out["objective"] = out["data_fit"] + out["tv"] + out["regulariser"] + out["source_regulariser"]
+        return out
+
+    def evaluate(self, m: torch.Tensor, zeta: torch.Tensor) -> dict:
+        """All terms as python floats (no gradient)."""
+        self.check(m, zeta)
+        with torch.no_grad():
+            return {k: float(v) for k, v in self.terms(m, zeta).items()}
+
+    def l2_gradient(self, m: torch.Tensor, zeta: torch.Tensor) -> tuple:
+        """Terms (python floats) and the L2 gradients ``(h_nu, h_zeta)`` at ``(m, zeta)``; one forward/backward.
+
+        Returns ``(terms, h_nu, h_zeta, nu)`` (detached tensors, ``nu = K m``); ``K h_nu`` is the V-gradient.
+        """
+        with torch.no_grad():
+            nu = self.velocity(m)
+        with torch.enable_grad():
+            nu_leaf, zeta_leaf = nu.detach().requires_grad_(True), zeta.detach().requires_grad_(True)
+            match = self.lddmm.matching(self.deformation(nu_leaf, zeta_leaf, self.template))
+            dl_dnu, dl_dzeta = torch.autograd.grad(match["data_fit"] + match["tv"], (nu_leaf, zeta_leaf))
+        h_nu = dl_dnu.div_(self.time_weight).add_(m, alpha=self.gamma)
+        h_zeta = dl_dzeta.div_(self.time_weight).add_(zeta, alpha=self.tau)
+        terms = {"data_fit": float(match["data_fit"].detach()), "tv": float(match["tv"].detach()),
+                 "regulariser": float(self.lddmm.regulariser(m, nu)),
+                 "source_regulariser": float(self.source_regulariser(zeta))}
+        terms["objective"] = sum(terms.values())
+        return terms, h_nu, h_zeta, nu
+
+    def gradient_norm(self, h: torch.Tensor) -> float:
+        """``||h||_{L2([0,1], L2)}`` (velocity or source gradient)."""
+        return self.lddmm.gradient_norm(h)
+
+    def min_jacobian(self, nu: torch.Tensor) -> float:
+        return self.lddmm.min_jacobian(nu)
+
+    def source_lipschitz(self, num_iter: int = 30) -> float:
+        """``tau + ||T||^2``: the Lipschitz constant of ``h_zeta`` in ``zeta`` at ``nu = 0`` (``f(1)`` depends
+        on ``zeta`` through the average ``(1/N) sum zeta_i``, an operator of norm 1 in ``L2([0,1], L2)``); the
+        step ``1 / source_lipschitz()`` is the ``"auto"`` source step size."""
+        return self.tau + operator_norm(self.ray_transform, num_iter, self.template.dtype,
+                                        self.template.device) ** 2
+
+
+@dataclass
+class MetamorphosisState(SolverState):
+    """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source ``zeta`` (``(N+1, nx, ny)``),
+    iteration count. Solvers replace both tensors at every accepted step (never in place)."""
+
+    source: torch.Tensor | None = None
+
+    def state_dict(self) -> dict:
+        return dict(super().state_dict(), source=self.source.detach().clone())
+
+    def load_state_dict(self, d: dict) -> None:
+        super().load_state_dict(d)
+        self.source = d["source"].detach().clone()
+
+    @classmethod
+    def zeros(cls, problem: MetamorphosisRegistration) -> "MetamorphosisState":
+        return cls(problem.zero_momentum(), 0, problem.zero_source())
+
+
+def _info(iteration, terms, h_nu, h_zeta, problem, min_jac, step_sizes, evaluations, rejected, warnings) -> dict:
+    """``state.make_info`` plus the source's regulariser, gradient norm and step size."""
+    info = make_info(iteration, terms, problem.gradient_norm(h_nu), min_jac, step_sizes[0], evaluations, rejected,
+                     warnings)
+    info.update(source_regulariser=terms["source_regulariser"], source_grad_norm=problem.gradient_norm(h_zeta),
+                source_step_size=float(step_sizes[1]))
+    info["grad_norm"] = math.hypot(info["grad_norm"], info["source_grad_norm"])
+    info["velocity_grad_norm"] = problem.gradient_norm(h_nu)
+    return info
+
+
+def _check_problem(problem):
+    if not isinstance(problem, MetamorphosisRegistration):
+        raise TypeError(f"problem must be a MetamorphosisRegistration, got {type(problem).__name__}")
+
+
+def _check_state(state):
+    if not isinstance(state, MetamorphosisState) or state.source is None:
+        raise TypeError(f"state must be a MetamorphosisState with a source, got {type(state).__name__}")
+
+
+class MetamorphosisDescent(IterativeSolver):
+    """Gradient descent in the spirit of Algorithm 1 with separate step sizes for ``nu`` and ``zeta``:
+
+        m <- m - alpha h_nu        (nu = K m: nu <- nu - alpha grad_V E, as Algorithm 1)
+        zeta <- zeta - beta h_zeta (L2 gradient step on the source)
+
+    Args:
+        problem: a ``MetamorphosisRegistration``.
+        step_size: ``alpha > 0`` (the paper's Algorithm 1 step sizes work unchanged).
+        source_step_size: ``beta > 0``, or ``"auto"``: ``1 / (tau + ||T||^2)`` (``problem.source_lipschitz``).
+        max_iter, grad_tol: as ``Algorithm1``; ``grad_norm`` is ``sqrt(|h_nu|^2 + |h_zeta|^2)`` (both
+            ``L2([0,1], L2)`` norms), also reported separately (``velocity_grad_norm``, ``source_grad_norm``).
+        step_halving: reject a step whose objective is non-finite, larger than the current one, or folds;
+            halve both step sizes and retry, at most ``max_halvings`` times (as ``Algorithm1``).
+        jacobian_every: compute ``min_jacobian`` every this many iterations (always with ``step_halving``).
+
+    ``step(state)`` (a ``MetamorphosisState``) returns ``Algorithm1``'s report plus ``source_regulariser``,
+    ``source_grad_norm``, ``velocity_grad_norm`` and ``source_step_size``; one evaluation per iteration.
+    """
+
+    def __init__(self, problem: MetamorphosisRegistration, step_size: float = 0.02, source_step_size="auto",
+                 max_iter: int = 200, grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
+                 jacobian_every: int = 1):
+        _check_problem(problem)
+        self.problem = problem
+        self.step_size = check_positive(step_size, "step_size")
+        if source_step_size == "auto":
+            source_step_size = 1.0 / problem.source_lipschitz()
+        self.source_step_size = check_positive(source_step_size, "source_step_size")
+        self.max_iter = check_int(max_iter, "max_iter", 0)
+        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
+        self.step_halving = bool(step_halving)
+        self.max_halvings = check_int(max_halvings, "max_halvings", 0)
+        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
+        self.evaluations = 0
+        self._current = None  # (momentum, source, their versions, terms, h_nu, h_zeta, nu) of the iterate
+
+    def __repr__(self):
+        return (f"MetamorphosisDescent(step_size={self.step_size}, source_step_size={self.source_step_size:.4g}, "
+                f"max_iter={self.max_iter}, step_halving={self.step_halving})")
+
+    def _evaluate(self, m, zeta):
+        self.evaluations += 1
+        return self.problem.l2_gradient(m, zeta)
+
+    def _at(self, state: MetamorphosisState):
+        _check_state(state)
+        m, z = state.momentum, state.source
+        c = self._current
+        if c is None or c[0] is not m or c[1] is not z or c[2] != (m._version, z._version):
+            self.problem.check(m, z)
+            self._current = (m, z, (m._version, z._version), *self._evaluate(m, z))
+        return self._current[3:]
+
+    def _min_jacobian(self, nu, iteration: int) -> float:
+        if self.step_halving or iteration % self.jacobian_every == 0:
+            return self.problem.min_jacobian(nu)
+        return math.nan
+
+    def report(self, state: MetamorphosisState) -> dict:
+        """The report at the current iterate (no step; ``min_jacobian`` always computed)."""
+        terms, h_nu, h_zeta, nu = self._at(state)
+        min_jac = self.problem.min_jacobian(nu)
+        return _info(state.iteration, terms, h_nu, h_zeta, self.problem, min_jac,
+                     (self.step_size, self.source_step_size), self.evaluations, False,
+                     problems(terms["objective"], min_jac))
+
+    def step(self, state: MetamorphosisState) -> dict:
+        """One iteration (with optional step halving); mutates ``state``; returns the report at the new iterate."""
+        terms, h_nu, h_zeta, nu = self._at(state)
+        for attempt in range(1 + (self.max_halvings if self.step_halving else 0)):
+            alpha, beta = self.step_size, self.source_step_size
+            m_new, z_new = torch.add(state.momentum, h_nu, alpha=-alpha), torch.add(state.source, h_zeta, alpha=-beta)
+            new = self._evaluate(m_new, z_new)
+            min_jac = self._min_jacobian(new[3], state.iteration + 1)
+            warnings = problems(new[0]["objective"], min_jac, terms["objective"])
+            if not (self.step_halving and warnings):
+                break
+            if attempt < self.max_halvings:
+                self.step_size, self.source_step_size = alpha / 2, beta / 2
+        rejected = bool(self.step_halving and warnings)
+        if rejected:
+            warnings = [f"step rejected after {self.max_halvings} halvings (kept the iterate): " + "; ".join(warnings)]
+            new = (terms, h_nu, h_zeta, nu)
+        else:
+            state.momentum, state.source = m_new, z_new
+            self._current = (m_new, z_new, (m_new._version, z_new._version), *new)
+        state.iteration += 1
+        return _info(state.iteration, new[0], new[1], new[2], self.problem, min_jac, (alpha, beta),
+                     self.evaluations, rejected, warnings)
+
+    def state_dict(self) -> dict:
+        return {"step_size": self.step_size, "source_step_size": self.source_step_size,
+                "evaluations": self.evaluations}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.step_size = check_positive(d["step_size"], "step_size")
+        self.source_step_size = check_positive(d["source_step_size"], "source_step_size")
+        self.evaluations = int(d["evaluations"])
+        self._current = None
+
+
+class MetamorphosisTorchOptim(IterativeSolver):
+    """Any ``torch.optim`` optimizer on ``(p, q)`` with ``nu = K(s p)``, ``zeta = s q``, ``s = N / cell_volume``.
+
+    As ``TorchOptimSolver``: with this scaling autograd's gradients are ``dE/dp = K h_nu`` (the V-gradient)
+    and ``dE/dq = h_zeta`` (the L2 gradient of the source), so E is an honest function of the parameters and
+    a line search (L-BFGS ``strong_wolfe``) sees consistent values. ``lr`` applies to ``p``, ``source_lr``
+    (default ``lr``) to ``q`` (two parameter groups; L-BFGS takes a single group, so it needs ``source_lr``
+    unset or equal to ``lr``). ``backward``: "adjoint" (default, the exact custom backward) or "autograd".
+    Reports as ``MetamorphosisDescent``; ``step(state)`` takes a ``MetamorphosisState``.
+    """
+
+    def __init__(self, problem: MetamorphosisRegistration, optimizer="lbfgs", lr: float | None = None,
+                 source_lr: float | None = None, max_iter: int = 100, grad_tol: float = 0.0,
+                 backward: str = "adjoint", jacobian_every: int = 1, **optimizer_kwargs):
+        _check_problem(problem)
+        if backward != problem.deformation.backward:
+            M = problem.deformation
+            problem = problem.with_deformation(MetamorphosisDeformation(M.domain, M.num_steps, backward,
+                                                                        M.interpolation))
+        self.problem = problem
+        self.max_iter = check_int(max_iter, "max_iter", 0)
+        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
+        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
+        self.scale = problem.num_steps / problem.domain.cell_volume
+        cls = _optimizer_class(optimizer)
+        if lr is None and cls is not torch.optim.LBFGS:
+            raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
+        self.lr = check_positive(1.0 if lr is None else lr, "lr")
+        self.source_lr = self.lr if source_lr is None else check_positive(source_lr, "source_lr")
+        if cls is torch.optim.LBFGS and self.source_lr != self.lr:
+            raise ValueError(f"source_lr must equal lr for LBFGS (one parameter group), got {source_lr} and {lr}")
+        self.p = torch.nn.Parameter(problem.zero_momentum())
+        self.q = torch.nn.Parameter(problem.zero_source())
+        groups = [{"params": [self.p, self.q]}] if cls is torch.optim.LBFGS else \
+            [{"params": [self.p], "lr": self.lr}, {"params": [self.q], "lr": self.source_lr}]
+        self.optimizer = cls(groups, lr=self.lr, **{**_DEFAULTS.get(cls, {}), **optimizer_kwargs})
+        self.evaluations = 0
+        self._cache = None
+
+    def __repr__(self):
+        return f"MetamorphosisTorchOptim(optimizer={type(self.optimizer).__name__}, lr={self.lr}, " \
+               f"source_lr={self.source_lr}, max_iter={self.max_iter})"
+
+    def _evaluate(self):
+        """Terms, parameter gradients, L2 gradients and ``nu`` at the current parameters (cached by value)."""
+        c = self._cache
+        if c is not None and torch.equal(c[0], self.p.detach()) and torch.equal(c[1], self.q.detach()):
+            return c[2:]
+        with torch.enable_grad():
+            m, zeta = self.scale * self.p, self.scale * self.q
+            nu = self.problem.velocity(m)
+            terms = self.problem.terms(m, zeta, nu)
+            grad_p, grad_q, dnu = torch.autograd.grad(terms["objective"], (self.p, self.q, nu))
+        h_nu = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m.detach()
+        self.evaluations += 1
+        terms = {k: float(v.detach()) for k, v in terms.items()}
+        self._cache = (self.p.detach().clone(), self.q.detach().clone(), terms, grad_p, grad_q, h_nu,
+                       grad_q, nu.detach())  # dE/dq is h_zeta
+        return self._cache[2:]
+
+    def _closure(self):
+        terms, grad_p, grad_q, *_ = self._evaluate()
+        self.p.grad, self.q.grad = grad_p.clone(), grad_q.clone()
+        return torch.tensor(terms["objective"], dtype=self.p.dtype)
+
+    def _sync(self, state: MetamorphosisState) -> None:
+        _check_state(state)
+        self.problem.check(state.momentum, state.source)
+        with torch.no_grad():
+            if not torch.equal(self.scale * self.p, state.momentum):
+                self.p.copy_(state.momentum / self.scale)
+            if not torch.equal(self.scale * self.q, state.source):
+                self.q.copy_(state.source / self.scale)
+
+    def _report(self, iteration, previous=None, min_jac=None) -> dict:
+        terms, _, _, h_nu, h_zeta, nu = self._evaluate()
+        if min_jac is None:
+            min_jac = self.problem.min_jacobian(nu)
+        return _info(iteration, terms, h_nu, h_zeta, self.problem, min_jac, (self.lr, self.source_lr),
+                     self.evaluations, False, problems(terms["objective"], min_jac, previous))
+
+    def report(self, state: MetamorphosisState) -> dict:
+        self._sync(state)
+        return self._report(state.iteration)
+
+    def step(self, state: MetamorphosisState) -> dict:
+        """One ``optimizer.step``; mutates ``state``; returns the report at the new iterate."""
+        self._sync(state)
+        previous = self._evaluate()[0]["objective"]
+        self.optimizer.step(self._closure)
+        state.iteration += 1
+        state.momentum, state.source = (self.scale * self.p).detach(), (self.scale * self.q).detach()
+        min_jac = None if state.iteration % self.jacobian_every == 0 else math.nan
+        return self._report(state.iteration, previous, min_jac)
+
+    def state_dict(self) -> dict:
+        return {"optimizer": copy.deepcopy(self.optimizer.state_dict()), "p": self.p.detach().clone(),
+                "q": self.q.detach().clone(), "evaluations": self.evaluations}
+
+    def load_state_dict(self, d: dict) -> None:
+        with torch.no_grad():
+            self.p.copy_(d["p"])
+            self.q.copy_(d["q"])
+        self.optimizer.load_state_dict(copy.deepcopy(d["optimizer"]))
+        self.evaluations = int(d["evaluations"])
+        self._cache = None
