@@ -12,12 +12,16 @@ python3 -m venv "$work/venv"
 cd "$work"
 export OMP_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE
 bin="$work/venv/bin"
-"$bin/indreg-register" --help | grep -q "experiment: suite1_jv, suite2_six_objects"
+"$bin/indreg-register" --help | grep -q "experiment: own_data_example, suite1_jv, suite2_six_objects"
 "$bin/indreg-register" solver=lbfgs phantom.size=32 deformation.num_steps=4 solver.max_iter=2 baseline=none \
     logging=quiet hydra.run.dir="$work/run_lbfgs"
 "$bin/indreg-register" deformation=mass_preserving noise=none phantom.size=32 deformation.num_steps=4 \
     solver.max_iter=2 baseline=none logging=quiet hydra.run.dir="$work/run_mp"
 test -f "$work/run_lbfgs/metrics.json" && test -f "$work/run_mp/metrics.json"
+# the shipped own-data example (files in the wheel's indreg/data, read through ${indreg_data:...})
+"$bin/indreg-register" experiment=own_data_example solver.max_iter=5 baseline=none logging=quiet \
+    hydra.run.dir="$work/run_own_data"
+grep -q '"source": "files"' "$work/run_own_data/metrics.json"
 "$bin/indreg-train-momentum" --help > /dev/null
 "$bin/indreg-train-momentum" domain.n=16 geometry.num_angles=6 geometry.det_count=24 shooting.num_steps=3 \
     data.num_train=4 data.num_val=2 model.width=4 model.levels=2 train.batch_size=2 train.steps=2 \

@@ -10,8 +10,10 @@ from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
+from .api import RegistrationResult, register
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "metrics", "noise", "phantoms"]
+           "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
+           "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"

@@ -1,38 +1,43 @@
 """Build one indirect registration experiment (domain, data, operators, problem, solver) from its config.
 
-The data are generated device- and dtype-independently: phantoms and ``T f_true`` in float64 on the CPU, noise
-drawn on the CPU by ``indreg.noise.add_white_noise`` with the run's seed; only then are template and data cast
-to ``cfg.dtype`` / ``cfg.device``. The same config therefore gives the same data everywhere.
+The data come from the config's data source (:mod:`indreg.experiments.sources`: simulated phantoms or files), in
+float64 on the CPU; only then are template and data cast to ``cfg.dtype`` / ``cfg.device``. Simulated data are
+generated device- and dtype-independently (noise drawn on the CPU with the run's seed), so the same config gives
+the same data everywhere. Kernel, deformation, objective and solver are built by :func:`indreg.api.setup`, the
+same code as ``indreg.register``.
 """
 from __future__ import annotations
 
 import random
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from .. import phantoms
+from .. import api
 from ..domain import ImageDomain
-from ..forward import ParallelBeamGeometry, RayTransform
+from . import sources
 
 
 @dataclass
 class Experiment:
     """Everything a run needs. Images ``(nx, ny)``, data ``(num_angles, det_count)``: float64 on the CPU
-    (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device."""
+    (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
+    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth."""
     domain: ImageDomain
-    geometry: ParallelBeamGeometry
-    ray_transform: RayTransform
+    geometry: object
+    ray_transform: object
     template: torch.Tensor
-    target_64: torch.Tensor
     template_64: torch.Tensor
-    clean_data_64: torch.Tensor
     noisy_data_64: torch.Tensor
-    snr_db: float
     problem: object
     solver: object
+    label: str
+    target_64: Optional[torch.Tensor] = None
+    clean_data_64: Optional[torch.Tensor] = None
+    snr_db: Optional[float] = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -52,59 +57,26 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_geometry(cfg: DictConfig) -> ParallelBeamGeometry:
-    g = cfg.geometry
-    if g.partition.value == "paper":
-        return ParallelBeamGeometry.paper(g.num_angles, g.det_count, det_min=g.det_min, det_max=g.det_max)
-    return ParallelBeamGeometry(num_angles=g.num_angles, det_count=g.det_count, det_min=g.det_min, det_max=g.det_max)
-
-
-def make_data(cfg: DictConfig, T: RayTransform, target_64: torch.Tensor) -> tuple:
-    """Noise-free and noisy data (float64, CPU) and the realised SNR in dB (``cfg.noise.convention``)."""
-    from ..noise import add_white_noise, snr_db
-
-    clean = T(target_64)
-    n = cfg.noise
-    if n.snr_db is None and n.std is None:
-        return clean, clean.clone(), float("inf")
-    seed = cfg.seed if n.seed is None else n.seed
-    noisy, noise = add_white_noise(clean, snr_db=n.snr_db, std=n.std, convention=n.convention.value, seed=seed)
-    return clean, noisy, float(snr_db(clean, noise, convention=n.convention.value))
-
-
-def make_solver(cfg: DictConfig, problem):
-    from ..solvers import Algorithm1, TorchOptimSolver
-
-    s = cfg.solver
-    if s.name.value == "algorithm1":
-        return Algorithm1(problem, step_size=s.step_size, max_iter=s.max_iter, grad_tol=s.grad_tol,
-                          step_halving=s.step_halving)
-    return TorchOptimSolver(problem, optimizer=s.optimizer.value, lr=s.lr, max_iter=s.max_iter,
-                            grad_tol=s.grad_tol, **dict(s.optimizer_kwargs))
+def options(cfg: DictConfig) -> dict:
+    """The ``indreg.register`` options of the config (kernel, deformation and solver groups)."""
+    s, d = cfg.solver, cfg.deformation
+    algorithm1 = s.name.value == "algorithm1"
+    return {"sigma": cfg.kernel.sigma, "gamma": s.gamma, "tv_weight": s.tv_weight, "num_steps": d.num_steps,
+            "action": d.action.value, "backward": d.backward.value, "interpolation": d.interpolation.value,
+            "solver": "algorithm1" if algorithm1 else s.optimizer.value, "max_iter": s.max_iter,
+            "grad_tol": s.grad_tol, "step_halving": s.step_halving, "max_halvings": s.max_halvings,
+            "step_size": s.step_size if algorithm1 else None, "lr": None if algorithm1 else s.lr,
+            "optimizer_kwargs": None if algorithm1 else dict(s.optimizer_kwargs)}
 
 
 def build(cfg: DictConfig) -> Experiment:
-    """Domain, geometry, ray transform, phantoms, noisy data, kernel, deformation, problem and solver."""
-    from ..deform import GaussianKernel, LDDMMDeformation
-    from ..solvers import IndirectRegistration
-
+    """The data source's data and operator, then kernel, deformation, problem and solver (``api.setup``)."""
     dtype = getattr(torch, cfg.dtype.value)
     device = resolve_device(cfg.device)
-    p = cfg.phantom
-    domain = ImageDomain((p.size, p.size), (-p.half_width,) * 2, (p.half_width,) * 2)
-    geometry = make_geometry(cfg)
-    T = RayTransform(domain, geometry)
-    target_64 = phantoms.get(p.target.value, domain)
-    template_64 = phantoms.get(p.template.value, domain)
-    clean, noisy, snr = make_data(cfg, T, target_64)
-    template = template_64.to(dtype=dtype, device=device)
-    data = noisy.to(dtype=dtype, device=device)
-    kernel = GaussianKernel(domain, cfg.kernel.sigma)
-    d = cfg.deformation
-    deformation = LDDMMDeformation(domain, num_steps=d.num_steps, action=d.action.value,
-                                   backward=d.backward.value, interpolation=d.interpolation.value)
-    problem = IndirectRegistration(T, deformation, kernel, template, data, cfg.solver.gamma,
-                                   tv_weight=cfg.solver.tv_weight)
-    return Experiment(domain=domain, geometry=geometry, ray_transform=T, template=template, target_64=target_64,
-                      template_64=template_64, clean_data_64=clean, noisy_data_64=noisy, snr_db=snr,
-                      problem=problem, solver=make_solver(cfg, problem))
+    data = sources.load(cfg)
+    template = data.template_64.to(dtype=dtype, device=device)
+    g = data.data_64.to(dtype=dtype, device=device)
+    s = api.setup(template, g, data.operator, dtype=dtype, device=device, **options(cfg))
+    return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator, template=template,
+                      template_64=data.template_64, noisy_data_64=data.data_64, problem=s.problem, solver=s.solver,
+                      label=data.label, target_64=data.target_64, clean_data_64=data.clean_64, snr_db=data.snr_db)

@@ -8,9 +8,10 @@ Range checks that a type cannot express (``solver.gamma >= 0``, ``kernel.sigma >
 
 Config groups (one sub-config each) and top-level keys::
 
+    data         where template and data come from: ``phantom`` (simulated, the default) or ``files``
     phantom      template/target names (``indreg.phantoms.get``) and the grid size n (domain [-16, 16]^2)
-    geometry     parallel-beam geometry: angles x detector bins (the authors' ODL partition by default)
-    noise        white noise at an SNR in dB ("code" convention, PAPER_NOTES) or with a fixed std
+    geometry     parallel- or fan-beam geometry: angles x detector bins (the authors' ODL partition by default)
+    noise        white noise at an SNR in dB ("code" convention, docs/paper_notes.md) or with a fixed std
     deformation  LDDMM time steps N, group action, backward (gradient) scheme, interpolation scheme
     kernel       Gaussian RKHS kernel width sigma
     solver       gamma, step size, iterations; Algorithm 1 or a torch.optim parametrisation
@@ -53,6 +54,17 @@ class AnglePartition(str, Enum):
     uniform = "uniform"
 
 
+class GeometryKind(str, Enum):
+    """``parallel``: ``ParallelBeamGeometry``; ``fan_flat``: ``FanBeamGeometry`` (flat detector)."""
+    parallel = "parallel"
+    fan_flat = "fan_flat"
+
+
+class AngleUnit(str, Enum):
+    deg = "deg"
+    rad = "rad"
+
+
 class NoiseConvention(str, Enum):
     code = "code"
     paper = "paper"
@@ -93,13 +105,37 @@ class PhantomConfig:
 
 
 @dataclass
+class DataConfig:
+    """Where template and data come from: ``source`` names an entry of ``indreg.experiments.sources.SOURCES``.
+
+    ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
+    ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
+    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
+    """
+    source: str = "phantom"
+    template: Optional[str] = None
+    sinogram: Optional[str] = None
+    target: Optional[str] = None
+    half_width: float = 16.0
+
+
+@dataclass
 class GeometryConfig:
-    """Parallel-beam geometry: ``num_angles`` directions in [0, pi), ``det_count`` bins on [det_min, det_max]."""
-    num_angles: int = 10
-    det_count: int = 92
-    det_min: float = -24.0
-    det_max: float = 24.0
+    """Acquisition geometry. ``kind``: ``parallel`` or ``fan_flat``. Angles: ``angles`` (a text-file path or a
+    list, in ``angle_unit``) or else ``num_angles`` of ``partition``. Detector: ``det_count`` bins on
+    ``[det_min, det_max]`` (at the detector; ``null`` both: fitted to the domain). ``data=files`` takes
+    ``det_count`` (and ``num_angles``) from the sinogram. Fan beam: ``src_radius`` (source to origin),
+    ``det_radius`` (origin to detector)."""
+    kind: GeometryKind = GeometryKind.parallel
+    num_angles: Optional[int] = 10
+    det_count: Optional[int] = 92
+    det_min: Optional[float] = -24.0
+    det_max: Optional[float] = 24.0
     partition: AnglePartition = AnglePartition.paper
+    angles: Optional[Any] = None
+    angle_unit: AngleUnit = AngleUnit.deg
+    src_radius: Optional[float] = None
+    det_radius: float = 0.0
 
 
 @dataclass
@@ -139,6 +175,7 @@ class SolverConfig:
     max_iter: int = 200
     grad_tol: float = 0.0
     step_halving: bool = False
+    max_halvings: int = 20
     optimizer: Optimizer = Optimizer.lbfgs
     optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
 
@@ -173,6 +210,7 @@ class RegisterConfig:
     device: str = "auto"
     resume: bool = False
     stop_after: Optional[int] = None
+    data: DataConfig = field(default_factory=DataConfig)
     phantom: PhantomConfig = field(default_factory=PhantomConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
@@ -191,8 +229,13 @@ SCHEMA_NAME = "indreg_schema"
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
+#: Example data shipped with the package, named in configs as ``${indreg_data:<file name>}``.
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+
+
 def register_schema() -> None:
-    """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from."""
+    """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
+    resolver ``${indreg_data:name}`` (the path of a file shipped in ``indreg/data``)."""
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RegisterConfig)
@@ -243,11 +286,7 @@ def validate(cfg: DictConfig) -> None:
     _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
     _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
              c.phantom.half_width)
-    g = c.geometry
-    _require(g.num_angles >= 1, "geometry.num_angles", "an integer >= 1", g.num_angles)
-    _require(g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)
-    _require(_finite(g.det_min) and _finite(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
-             "finite det_min < det_max", (g.det_min, g.det_max))
+    _validate_data(c)
     n = c.noise
     _require(n.snr_db is None or n.std is None, "noise.snr_db", "at most one of noise.snr_db and noise.std",
              (n.snr_db, n.std))
@@ -264,6 +303,7 @@ def validate(cfg: DictConfig) -> None:
     _require(_finite(s.lr) and s.lr > 0, "solver.lr", "a number > 0", s.lr)
     _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
     _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
+    _require(s.max_halvings >= 0, "solver.max_halvings", "an integer >= 0", s.max_halvings)
     if s.name.value == "torch_optim":
         _check_optimizer_kwargs(s.optimizer.value, s.optimizer_kwargs)
     b = c.baseline
@@ -274,6 +314,32 @@ def validate(cfg: DictConfig) -> None:
     lg = c.logging
     _require(lg.every >= 1, "logging.every", "an integer >= 1", lg.every)
     _require(lg.checkpoint_every >= 1, "logging.checkpoint_every", "an integer >= 1", lg.checkpoint_every)
+
+
+def _validate_data(c: DictConfig) -> None:
+    """The ``data`` and ``geometry`` groups (which keys a source needs is its own business, checked here)."""
+    from .sources import SOURCES
+
+    d, g = c.data, c.geometry
+    _require(d.source in SOURCES, "data.source", f"one of {sorted(SOURCES)}", d.source)
+    if d.source == "files":
+        for key in ("template", "sinogram"):
+            _require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
+        _require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
+    else:
+        _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None, "geometry.num_angles",
+                 "an integer >= 1 (or geometry.angles)", g.num_angles)
+        _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1",
+                 g.det_count)
+    _require((g.det_min is None) == (g.det_max is None), "geometry.det_min",
+             "both det_min and det_max, or neither (fitted to the domain)", (g.det_min, g.det_max))
+    if g.det_min is not None:
+        _require(_finite(g.det_min) and _finite(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
+                 "finite det_min < det_max", (g.det_min, g.det_max))
+    if g.kind.value == "fan_flat":
+        _require(_finite(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
+                 "a number > 0 (source to origin) for geometry.kind=fan_flat", g.src_radius)
+    _require(_finite(g.det_radius) and g.det_radius >= 0, "geometry.det_radius", "a number >= 0", g.det_radius)
 
 
 def _check_cuda(device: str) -> None:
@@ -311,6 +377,7 @@ def path_component(name) -> str:
 
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("indreg_path", path_component, replace=True)
+    OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
 
 
 def to_plain(cfg: DictConfig) -> dict:

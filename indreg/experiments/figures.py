@@ -27,27 +27,34 @@ def show_image(ax, image: np.ndarray, title: str, vmin=None, vmax=None, extent=N
 
 
 def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_data0, fbp=None, tv=None,
-                 extent=None, title: str = ""):
+                 extent=None, title: str = "", angle_deg: float = 0.0):
     """The 3 x 3 layout of the paper's figures 1-2 and 4.
 
-    Row 1: template, t = 0.25, t = 0.5; row 2: t = 0.75, t = 1.0, target; row 3: data at 0 degrees
-    (noise-free blue, noisy red, against the detector coordinate), FBP, TV. ``trajectory`` is
-    ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of the target.
+    Row 1: template, t = 0.25, t = 0.5; row 2: t = 0.75, t = 1.0, target; row 3: data at the first angle
+    ``angle_deg`` (noise-free blue, noisy red, against the detector coordinate), FBP, TV. ``trajectory`` is
+    ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of the target. Measured data:
+    ``target=None`` leaves its panel empty (grey scale of the template), ``clean_data0=None`` plots the data only.
     """
     trajectory = np.asarray(trajectory)
     n = trajectory.shape[0] - 1
-    vmin, vmax = float(np.min(target)), float(np.max(target))
+    scale = template if target is None else target
+    vmin, vmax = float(np.min(scale)), float(np.max(scale))
     fig = Figure(figsize=(10.5, 10.5), layout="constrained")
     axes = fig.subplots(3, 3)
     panels = [(template, "Template")]
     panels += [(trajectory[i], f"$t={i / n:.2f}$") for i in time_indices(n)]
     panels += [(target, "Target")]
     for ax, (img, label) in zip(axes.flat[:6], panels):
-        show_image(ax, img, label, vmin, vmax, extent)
+        if img is None:
+            ax.set_axis_off()
+        else:
+            show_image(ax, img, label, vmin, vmax, extent)
     ax = axes[2, 0]
-    ax.plot(np.asarray(det_points), np.asarray(clean_data0), color="tab:blue", lw=1.5, label="noise-free")
-    ax.plot(np.asarray(det_points), np.asarray(noisy_data0), color="tab:red", lw=0.8, label="noisy")
-    ax.set_title(r"Data at $0^{\circ}$")
+    if clean_data0 is not None:
+        ax.plot(np.asarray(det_points), np.asarray(clean_data0), color="tab:blue", lw=1.5, label="noise-free")
+    ax.plot(np.asarray(det_points), np.asarray(noisy_data0), color="tab:red", lw=0.8,
+            label="noisy" if clean_data0 is not None else "data")
+    ax.set_title(rf"Data at ${angle_deg:.4g}^{{\circ}}$")
     ax.set_xlabel("detector coordinate")
     ax.legend(loc="upper right", fontsize="small")
     ax.set_box_aspect(1)

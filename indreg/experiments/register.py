@@ -4,6 +4,9 @@ Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can b
 
     indreg-register                                   # suite 1 (J -> V), the default experiment
     indreg-register experiment=suite3_shepp_logan dtype=float64 device=cuda
+    indreg-register experiment=own_data_example       # the shipped example of your own data (files)
+    indreg-register data=files data.template=T.png data.sinogram=S.npy geometry=parallel geometry.angles=A.tlt \
+        geometry.det_min=-24 geometry.det_max=24 [data.target=G.npy]     # your files (docs/own_data.md)
     indreg-register hydra.run.dir=outputs/suite1      # a fixed run dir, so that it can be resumed:
     indreg-register hydra.run.dir=outputs/suite1 resume=true
     # the suite-3 table as one multirun: locally in 2 worker processes, or as a SLURM array job
@@ -17,14 +20,18 @@ Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can b
 A fixed ``hydra.run.dir`` / ``hydra.sweep.dir`` (the defaults contain the date and time) is what makes a run or
 a sweep resumable: rerun the same command with ``resume=true``. See configs/README.md.
 
-A run builds the problem (:mod:`indreg.experiments.build`), computes the FBP and TV baselines from the same
-data, then loops ``info = solver.step(state)`` for ``solver.max_iter`` iterations: scalars to TensorBoard every
-iteration; SSIM / PSNR and the deformed template every ``logging.every``; a checkpoint every
-``logging.checkpoint_every`` and on SIGINT / SIGTERM (then the process exits with 128 + signal number).
-``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends with the same numbers as an uninterrupted
-run. Outputs in the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``,
-``velocity.npy``, ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``,
-``data.npy``, ``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``.
+A run builds the problem (:mod:`indreg.experiments.build`: data from the ``data`` source, then the same setup as
+``indreg.register``), computes the FBP and TV baselines from the same data, then runs the loop shared with
+``indreg.register`` (``indreg.api.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
+every iteration; a progress line (``iteration i/total``, it/s, ETA), SSIM / PSNR (with a target) and the deformed
+template every ``logging.every``; a checkpoint every ``logging.checkpoint_every`` and on SIGINT / SIGTERM (then
+the process exits with 128 + signal number). ``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends
+with the same numbers as an uninterrupted run. In a multirun every log line starts with ``[job <n>]``. Outputs in
+the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``, ``velocity.npy``,
+``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``, ``data.npy``,
+``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``; measured data
+without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the relative data
+misfit, is always in metrics.json).
 """
 from __future__ import annotations
 
@@ -41,6 +48,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from ..api import RegistrationLoop, count_warnings, relative_residual
+from ..io import DataFileError
 from . import checkpoint as ckpt
 from .build import build, seed_everything
 from .config import CONFIG_DIR, ConfigError, register_schema, to_plain, validate
@@ -86,7 +95,7 @@ def _numpy(x) -> np.ndarray:
 
 
 def figures_of_merit(image, target_64) -> dict:
-    """SSIM / PSNR against the target: data range of the target, and the paper's convention (PAPER_NOTES)."""
+    """SSIM / PSNR against the target: data range of the target, and the paper's convention (docs/paper_notes.md)."""
     from .. import metrics
 
     x = image.detach().to("cpu", torch.float64)
@@ -128,13 +137,13 @@ def _problem_config(plain: dict) -> dict:
     return out
 
 
-def hyperparameters(cfg: DictConfig) -> dict:
+def hyperparameters(cfg: DictConfig, exp) -> dict:
     """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
     return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
             "N": int(cfg.deformation.num_steps),
             "step_size": float(cfg.solver.step_size if cfg.solver.name.value == "algorithm1" else cfg.solver.lr),
             "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
-            "template": cfg.phantom.template.value, "size": int(cfg.phantom.size),
+            "template": exp.label, "size": int(exp.domain.shape[0]),
             "max_iter": int(cfg.solver.max_iter), "dtype": cfg.dtype.value, "seed": int(cfg.seed)}
 
 
@@ -144,6 +153,53 @@ def _json_float(v):
     return v
 
 
+class AppLoop(RegistrationLoop):
+    """The shared registration loop plus the app's outputs: TensorBoard scalars every iteration; SSIM / PSNR
+    (with a target) and the deformed template every ``logging.every``; a checkpoint every
+    ``logging.checkpoint_every``; ``stop_after`` and SIGINT / SIGTERM stop it (``stopped`` / ``interrupted``)."""
+
+    def __init__(self, cfg, exp, state, writer, path: Path, problem_cfg: dict, history, seconds):
+        super().__init__(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
+                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds)
+        self.cfg, self.exp, self.writer, self.path, self.problem_cfg = cfg, exp, writer, path, problem_cfg
+        self.stop = StopRequest()
+        self._fom = ""
+
+    def save_checkpoint(self) -> None:
+        ckpt.save(self.path, {"iteration": self.state.iteration, "state": self.state.state_dict(),
+                              "solver": self.solver.state_dict(), "rng": ckpt.rng_state(), "history": self.history,
+                              "seconds": self.seconds, "problem": self.problem_cfg})
+
+    def before_step(self):
+        stop_after = self.cfg.stop_after
+        return "stopped" if stop_after is not None and self.state.iteration >= stop_after else None
+
+    def after_step(self, info: dict, done: bool):
+        it, lg, exp = self.state.iteration, self.cfg.logging, self.exp
+        self.writer.scalars(info, it)
+        self._fom = ""
+        if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
+            deformed = self.problem.deformed(self.state.momentum)
+            if exp.target_64 is not None:
+                fom = figures_of_merit(deformed, exp.target_64)
+                self.writer.metrics(fom, it)
+                self._fom = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
+            self.writer.image("images/deformed_template", deformed, it)
+        if it % lg.checkpoint_every == 0:
+            self.save_checkpoint()
+        return "interrupted" if self.stop.signum is not None else None
+
+    def describe(self, info: dict) -> str:
+        return self._fom
+
+    def run(self) -> str:
+        self.stop.install()
+        try:
+            return super().run()
+        finally:
+            self.stop.restore()
+
+
 def run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
@@ -151,11 +207,9 @@ def run(cfg: DictConfig, output_dir) -> dict:
     ``failed`` (a non-finite objective or gradient: ``metrics.json`` and ``history.json`` hold the status, the
     iteration and the warning; the checkpoint keeps the last finite iterate), ``stopped`` (``stop_after``) or
     ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed`` and ``converged`` runs write the
-    final outputs. A bad config value, a bad run directory or a damaged / foreign / mismatched checkpoint raises
-    ``ConfigError`` or ``CheckpointError`` before any computing.
+    final outputs. A bad config value, a bad data file, a bad run directory or a damaged / foreign / mismatched
+    checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
     """
-    from tqdm import tqdm
-
     from ..solvers import SolverState
     from .tblog import RunWriter
 
@@ -167,11 +221,13 @@ def run(cfg: DictConfig, output_dir) -> dict:
     saved = _read_checkpoint(cfg, path, problem_cfg)
     seed_everything(cfg.seed)
     try:
-        exp = build(cfg)
+        exp = build(cfg)  # reads and checks the data (files) before any computing
+    except DataFileError:
+        raise
     except (ValueError, TypeError) as e:  # the operators' input validation
         raise ConfigError(f"invalid configuration: {e}") from e
-    problem, solver = exp.problem, exp.solver
-    log.info("%s | %s | %s", cfg.name, problem, solver)
+    problem = exp.problem
+    log.info("%s | %s | %s", cfg.name, problem, exp.solver)
     rec = baselines(cfg, exp, out)
 
     state = SolverState(momentum=problem.zero_momentum(), iteration=0)
@@ -181,85 +237,36 @@ def run(cfg: DictConfig, output_dir) -> dict:
             state.load_state_dict(saved["state"])
             state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
             problem.check_momentum(state.momentum)
-            solver.load_state_dict(saved["solver"])
+            exp.solver.load_state_dict(saved["solver"])
             ckpt.set_rng_state(saved["rng"])
             history, seconds = list(saved["history"]), float(saved["seconds"])
         log.info("resumed from %s at iteration %d", path, state.iteration)
 
-    def save_checkpoint() -> None:
-        ckpt.save(path, {"iteration": state.iteration, "state": state.state_dict(), "solver": solver.state_dict(),
-                         "rng": ckpt.rng_state(), "history": history, "seconds": seconds,
-                         "problem": problem_cfg})
-
-    lg = cfg.logging
-    vmin, vmax = float(exp.target_64.min()), float(exp.target_64.max())
+    shown = exp.target_64 if exp.target_64 is not None else exp.template_64
     # a resumed run drops the events an interrupted one logged after its checkpoint
-    writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None, vmin, vmax,
-                       enabled=lg.tensorboard)
+    writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None,
+                       float(shown.min()), float(shown.max()), enabled=cfg.logging.tensorboard)
     if state.iteration == 0:
         writer.image("images/template", exp.template_64, 0)
-        writer.image("images/target", exp.target_64, 0)
+        if exp.target_64 is not None:
+            writer.image("images/target", exp.target_64, 0)
         for k, v in rec.items():
             writer.image(f"images/{k}", v, 0)
         writer.image("images/deformed_template", exp.template_64, 0)
-        writer.metrics(figures_of_merit(exp.template_64, exp.target_64), 0)
+        if exp.target_64 is not None:
+            writer.metrics(figures_of_merit(exp.template_64, exp.target_64), 0)
 
-    max_iter, stop_after = cfg.solver.max_iter, cfg.stop_after
-    stop = StopRequest()
-    stop.install()
-    bar = tqdm(total=max_iter, initial=state.iteration, desc=cfg.name, dynamic_ncols=True,
-               disable=not (lg.progress and sys.stderr.isatty()))
-    status, warnings = "completed", sum(1 for h in history if h.get("warning"))
-    try:
-        while state.iteration < max_iter:
-            if stop_after is not None and state.iteration >= stop_after:
-                status = "stopped"
-                break
-            t0 = time.perf_counter()
-            info = solver.step(state)
-            dt = time.perf_counter() - t0
-            seconds += dt
-            it = state.iteration
-            history.append(dict(info, iteration=it, seconds=dt))
-            writer.scalars(info, it)
-            if info.get("warning"):  # logged the first time and then every k iterations (counted in metrics)
-                warnings += 1
-                if warnings == 1 or it % lg.every == 0:
-                    log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], warnings)
-            reason = solver.status(info)
-            done = reason is not None
-            if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
-                deformed = problem.deformed(state.momentum)
-                fom = figures_of_merit(deformed, exp.target_64)
-                writer.metrics(fom, it)
-                writer.image("images/deformed_template", deformed, it)
-                log.info("iteration %d: objective %.6g, data fit %.6g, min Jacobian %.4g, SSIM %.4f, PSNR %.2f",
-                         it, info["objective"], info["data_fit"], info["min_jacobian"], fom["ssim"], fom["psnr"])
-            bar.update(1)
-            bar.set_postfix(objective=f"{info['objective']:.4g}")
-            if reason == "failed":  # keep the last checkpoint: its iterate is finite
-                status = reason
-                break
-            if it % lg.checkpoint_every == 0:
-                save_checkpoint()
-            if stop.signum is not None:
-                status = "interrupted"
-                break
-            if done:
-                status = reason
-                break
-    finally:
-        bar.close()
-        stop.restore()
-    if status == "failed":
+    loop = AppLoop(cfg, exp, state, writer, path, problem_cfg, history, seconds)
+    status = loop.run()
+    if status == "failed":  # keep the last checkpoint: its iterate is finite
         writer.close()
-        return _failed(out, history)
-    save_checkpoint()
+        return _failed(out, loop.history)
+    loop.save_checkpoint()
     if status in ("stopped", "interrupted"):
         writer.close()
         log.warning("%s at iteration %d; continue with resume=true (same run dir %s)", status, state.iteration, out)
-        return {"status": status, "iteration": state.iteration, "signal": stop.signum}
-    result = finish(cfg, exp, state, rec, history, seconds, out, writer, status)
+        return {"status": status, "iteration": state.iteration, "signal": loop.stop.signum}
+    result = finish(cfg, exp, state, rec, loop.history, loop.seconds, out, writer, status)
     writer.close()
     return result
 
@@ -301,7 +308,10 @@ def _failed(out: Path, history: list) -> dict:
 
 
 def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: str) -> dict:
-    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams."""
+    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams.
+
+    Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
+    data residual ``residual = ||T f - g|| / ||g||`` is always reported."""
     from . import figures
     from .tblog import METRICS
 
@@ -313,22 +323,29 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         phi = problem.deformation.deformation(velocity)
     terms = problem.evaluate(m)
     target = exp.target_64
-    result = figures_of_merit(final, target)
-    for name, image in rec.items():
-        result.update({f"{name}_{k}": v for k, v in figures_of_merit(image, target).items()})
-    result.update({f"template_{k}": v for k, v in figures_of_merit(exp.template_64, target).items()})
+    result = {}
+    if target is not None:
+        result.update(figures_of_merit(final, target))
+        for name, image in rec.items():
+            result.update({f"{name}_{k}": v for k, v in figures_of_merit(image, target).items()})
+        result.update({f"template_{k}": v for k, v in figures_of_merit(exp.template_64, target).items()})
     result.update(terms)
     result.update({
-        "status": status, "snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value, "iterations": it,
+        "status": status, "residual": relative_residual(exp.ray_transform, final, problem.data), "iterations": it,
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds,
         "min_jacobian": problem.min_jacobian(velocity),
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": sum(1 for h in history if h.get("warning")),
-        "device": str(exp.template.device), "hparams": hyperparameters(cfg), "config": to_plain(cfg)})
+        "warnings": count_warnings(history), "rejected_steps": sum(1 for h in history if h.get("rejected")),
+        "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
+    if exp.snr_db is not None:
+        result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
     arrays = {"final": final, "trajectory": trajectory, "velocity": velocity, "momentum": m, "deformation": phi,
-              "target": target, "template": exp.template_64, "data": exp.noisy_data_64,
-              "data_clean": exp.clean_data_64, **rec}
+              "template": exp.template_64, "data": exp.noisy_data_64, **rec}
+    if target is not None:
+        arrays["target"] = target
+    if exp.clean_data_64 is not None:
+        arrays["data_clean"] = exp.clean_data_64
     for name, a in arrays.items():
         np.save(out / f"{name}.npy", _numpy(a))
     with open(out / "history.json", "w") as f:
@@ -337,23 +354,31 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
 
     traj = _numpy(trajectory)
-    extent = domain_extent(exp.domain)
     if cfg.logging.figure:
-        fig = figures.paper_figure(exp.template_64.numpy(), traj, target.numpy(), exp.geometry.det_points.numpy(),
-                                   exp.clean_data_64[0].numpy(), exp.noisy_data_64[0].numpy(),
+        quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
+                   else f"relative data residual {result['residual']:.4f}")
+        fig = figures.paper_figure(exp.template_64.numpy(), traj, None if target is None else target.numpy(),
+                                   exp.geometry.det_points.numpy(),
+                                   None if exp.clean_data_64 is None else exp.clean_data_64[0].numpy(),
+                                   exp.noisy_data_64[0].numpy(),
                                    _numpy(rec["fbp"]) if "fbp" in rec else None,
-                                   _numpy(rec["tv"]) if "tv" in rec else None, extent=extent,
-                                   title=f"{cfg.name}: SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB")
+                                   _numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
+                                   title=f"{cfg.name}: {quality}",
+                                   angle_deg=float(exp.geometry.angles[0]) * 180 / math.pi)
         figures.save(fig, out / "figure.png")
     n = traj.shape[0] - 1
     writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
     writer.image("images/deformed_template", final, it)
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(_numpy(phi)), it)
     writer.metrics(result, it)
-    writer.hparams(hyperparameters(cfg), {k: result[k] for k in METRICS})
-    log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s",
-             it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
-             _pair(result, "fbp"), _pair(result, "tv"))
+    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
+    if target is not None:
+        log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
+                 "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
+                 _pair(result, "fbp"), _pair(result, "tv"), result["warnings"])
+    else:
+        log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
+                 it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
     return result
 
 
@@ -373,15 +398,29 @@ _CONFIG_NAME = "config"
 register_schema()
 
 
+def _prefix_job_logs(cfg_hydra) -> None:
+    """In a multirun, prefix every log line of this job with ``[job <hydra.job.num>]``."""
+    from hydra.types import RunMode
+
+    if cfg_hydra.mode != RunMode.MULTIRUN:
+        return
+    for handler in logging.getLogger().handlers:
+        fmt = handler.formatter._fmt if handler.formatter is not None else "%(message)s"
+        datefmt = handler.formatter.datefmt if handler.formatter is not None else None
+        handler.setFormatter(logging.Formatter(f"[job {cfg_hydra.job.num}] {fmt}", datefmt))
+
+
 def _task(cfg: DictConfig):
     """The Hydra task. Exit status: 0 done (completed, converged, stopped); 1 a user error (``ConfigError``,
-    ``CheckpointError``) or a failed run, with one line ``indreg-register: error: ...`` on stderr;
+    ``DataFileError``, ``CheckpointError``) or a failed run, with one line ``indreg-register: error: ...`` on stderr;
     128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
 
+    hc = HydraConfig.get()
+    _prefix_job_logs(hc)
     try:
-        result = run(cfg, HydraConfig.get().runtime.output_dir)
-    except (ConfigError, ckpt.CheckpointError) as e:  # user errors: one line, no traceback
+        result = run(cfg, hc.runtime.output_dir)
+    except (ConfigError, DataFileError, ckpt.CheckpointError) as e:  # user errors: one line, no traceback
         _exit_error(str(e))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))

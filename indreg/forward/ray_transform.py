@@ -20,6 +20,7 @@ is not. 32-bit indices are used when they fit (about 1.5x faster than 64-bit on 
 """
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 
@@ -187,6 +188,16 @@ class _SystemMatrix:
                                             val.to(device, dtype), shape, check_invariants=False)
                     for (crow, col, val), shape in zip(self.master, (self.shape, self.shape[::-1])))
         return self._cache[key]
+
+    def __deepcopy__(self, memo):
+        """Copies share the immutable master arrays and start with an empty cache (sparse CSR tensors cannot be
+        deep-copied; the cached copies are rebuilt on first use)."""
+        new = copy.copy(self)
+        new._cache = {}
+        return new
+
+    def __getstate__(self):
+        return dict(self.__dict__, _cache={})  # pickling: the cache is rebuilt on first use
 
     def nbytes(self, dtype: torch.dtype = torch.float64) -> int:
         """Memory of one cached ``(A, A^T)`` pair in bytes."""

@@ -30,10 +30,10 @@ import torch
 import torch.distributed as dist
 
 from ..deform.kernel import GaussianKernel
-from ..experiments import checkpoint as ckpt
 from ..deform.lddmm import LDDMMDeformation
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
+from ..experiments import checkpoint as ckpt
 from ..forward.fbp import fbp
 from ..forward.geometry import ParallelBeamGeometry
 from ..forward.ray_transform import RayTransform
@@ -274,9 +274,16 @@ def train(cfg, run_dir) -> dict:
 
 
 def _task(cfg) -> None:
+    """The Hydra task; a damaged or foreign checkpoint ends in one line on stderr and exit status 1."""
+    import sys
+
     from hydra.core.hydra_config import HydraConfig
 
-    train(cfg, HydraConfig.get().runtime.output_dir)
+    try:
+        train(cfg, HydraConfig.get().runtime.output_dir)
+    except ckpt.CheckpointError as e:
+        print("indreg-train-momentum: error: " + " ".join(str(e).split()), file=sys.stderr, flush=True)
+        sys.exit(1)
 
 
 def main() -> None:

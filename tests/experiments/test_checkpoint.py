@@ -204,9 +204,10 @@ def test_cli_damaged_checkpoint_exits_1_with_one_line(tmp_path, stopped):
 
 @pytest.mark.slow
 def test_cli_user_errors_and_failed_runs_exit_1_with_one_line(tmp_path):
-    """A bad name, an option the optimizer rejects (raised while building), a run whose objective overflows."""
+    """A bad name, an option the optimizer does not take (refused by the config check), a run whose objective
+    overflows."""
     cases = [(["name=../../x"], "invalid config value name='../../x'"),
-             (["solver=adam", "+solver.optimizer_kwargs.foo=1"], "invalid configuration"),
+             (["solver=adam", "+solver.optimizer_kwargs.foo=1"], "solver.optimizer_kwargs.foo=1: expected a keyword"),
              (["solver.step_size=1e300"], "the run failed at iteration 1: non-finite objective")]
     for i, (overrides, message) in enumerate(cases):
         out = tmp_path / f"run{i}"

@@ -196,3 +196,15 @@ def test_constructor_errors():
         RayTransform((64, 64), ParallelBeamGeometry.paper(10, 92))
     with pytest.raises(TypeError, match="ParallelBeamGeometry"):
         RayTransform(ImageDomain.paper(64), None)
+
+
+def test_copy_and_pickle_after_use(paper64):
+    """A used transform (cached CSR tensors) can be deep-copied and pickled; the copy computes the same."""
+    import copy
+    import pickle
+
+    f = torch.rand(64, 64, dtype=torch.float64)
+    y = paper64(f)
+    for clone in (copy.deepcopy(paper64), pickle.loads(pickle.dumps(paper64))):
+        torch.testing.assert_close(clone(f), y)
+        torch.testing.assert_close(clone.adjoint(y), paper64.adjoint(y))

@@ -74,3 +74,15 @@ def test_ddp_two_processes_keep_replicas_identical(tmp_path):
     assert parameters(tmp_path)["model"]["head.weight"].abs().sum() > 0
     _, steps = scalars(tmp_path, "train/loss")
     assert steps == [1, 2, 3]
+
+
+@pytest.mark.slow
+def test_damaged_checkpoint_ends_in_one_line(tmp_path):
+    """A damaged checkpoint.pt with train.resume=true: one line on stderr, exit status 1, no traceback."""
+    (tmp_path / "checkpoint.pt").write_bytes(b"indreg-checkpoint 2 sha256=00 bytes=3\nabc")
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, str(SCRIPT), *TINY, "train.steps=1", f"hydra.run.dir={tmp_path}"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines[-1].startswith("indreg-train-momentum: error: checkpoint") and "Traceback" not in proc.stderr

@@ -1,0 +1,162 @@
+"""indreg.register: one call from Python on a tiny problem (24^2, N = 4)."""
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import indreg
+from indreg import api, noise, phantoms
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    domain = indreg.ImageDomain.paper(24)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 36))
+    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
+    data, _ = noise.add_white_noise(T(target), snr_db=15.0, seed=0)
+    return T, template, target, data
+
+
+FAST = {"num_steps": 4, "max_iter": 8}
+
+
+def test_objective_decreases_and_result_fields(tiny):
+    T, template, target, data = tiny
+    r = indreg.register(template, data, T, **FAST)
+    n = T.domain.shape
+    assert r.deformed.shape == n and r.trajectory.shape == (5, *n)
+    assert r.momentum.shape == r.velocity.shape == (5, 2, *n) and r.deformation.shape == (2, *n)
+    assert r.deformed.dtype == torch.float64 and r.status == "completed" and r.iterations == 8
+    assert len(r.history) == 8 and r.history[-1]["iteration"] == 8
+    assert r.objective < r.history[0]["objective"] and r.objective == pytest.approx(r.history[-1]["objective"])
+    # step halving (the default) never accepts an increase
+    objectives = [h["objective"] for h in r.history]
+    assert all(b <= a for a, b in zip(objectives, objectives[1:]))
+    assert r.ssim is None and r.psnr is None and r.min_jacobian > 0 and r.warnings == 0
+    # residual: ||T f - g|| / ||g|| in the data norm, computed independently
+    res = T(r.deformed) - data
+    assert r.residual == pytest.approx(math.sqrt(float(T.inner_data(res, res)) / float(T.inner_data(data, data))))
+    assert torch.allclose(r.trajectory[-1], r.deformed)
+    assert torch.allclose(r.velocity, r.problem.velocity(r.momentum))
+
+
+def test_numpy_input_and_target(tiny):
+    T, template, target, data = tiny
+    r = indreg.register(template.numpy().astype(np.float32), data.numpy(), T, target=target.numpy(), **FAST)
+    assert r.deformed.dtype == torch.float32
+    assert r.ssim == pytest.approx(indreg.metrics.ssim(r.deformed, target))
+    assert r.psnr == pytest.approx(indreg.metrics.psnr(r.deformed, target))
+    assert r.ssim > indreg.metrics.ssim(template, target)      # the J moved towards the V
+
+
+def test_same_iterates_as_algorithm1(tiny):
+    """register() with step_halving=False is Algorithm 1 with the paper's fixed step."""
+    T, template, target, data = tiny
+    r = indreg.register(template, data, T, step_halving=False, **FAST)
+    K = indreg.GaussianKernel(T.domain, 6.0)
+    W = indreg.LDDMMDeformation(T.domain, num_steps=4)
+    problem = indreg.IndirectRegistration(T, W, K, template, data, 1e-6)
+    state = indreg.solvers.SolverState(problem.zero_momentum())
+    indreg.Algorithm1(problem, step_size=0.02, max_iter=8).run(state)
+    assert torch.equal(state.momentum, r.momentum)
+
+
+@pytest.mark.parametrize("solver, options", [("lbfgs", {}), ("Adam", {"lr": 1e-3}), ("SGD", {"lr": 1e-4})])
+def test_torch_optimizer_names(tiny, solver, options):
+    T, template, target, data = tiny
+    r = indreg.register(template, data, T, solver=solver, num_steps=4, max_iter=3, **options)
+    assert r.iterations == 3 and math.isfinite(r.objective)
+    assert r.objective < r.problem.evaluate(r.problem.zero_momentum())["objective"]
+
+
+def test_unknown_option_lists_the_valid_ones(tiny):
+    T, template, _, data = tiny
+    with pytest.raises(TypeError, match=r"unknown option\(s\) stepsize; valid options: .*step_size"):
+        indreg.register(template, data, T, stepsize=0.1)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"solver": "nadam2"}, "optimizer must be"),
+    ({"solver": "adam", "step_size": 0.1}, "takes lr"),
+    ({"lr": 0.1}, "takes step_size"),
+    ({"dtype": "float16"}, "dtype must be"),
+    ({"sigma": -1}, "sigma"),
+    ({"callback": 3}, "callback must be callable"),
+])
+def test_bad_options(tiny, kwargs, match):
+    T, template, _, data = tiny
+    with pytest.raises((TypeError, ValueError), match=match):
+        indreg.register(template, data, T, **kwargs)
+
+
+@pytest.mark.parametrize("which, bad, match", [
+    ("template", torch.zeros(20, 24), r"template has shape \(20, 24\), expected \(24, 24\)"),
+    ("data", torch.zeros(8, 30), r"data has shape \(8, 30\), expected \(8, 36\)"),
+    ("template", np.full((24, 24), np.nan), "template contains non-finite"),
+    ("data", np.zeros((8, 36), complex), "data must be real"),
+    ("template", np.array([["a"] * 24] * 24), "template must be a numeric array"),
+    ("target", np.zeros((3, 3)), r"target has shape \(3, 3\)"),
+])
+def test_bad_inputs_name_the_argument(tiny, which, bad, match):
+    T, template, target, data = tiny
+    args = {"template": template, "data": data, "target": None}
+    args[which] = bad
+    with pytest.raises((TypeError, ValueError), match=match):
+        indreg.register(args["template"], args["data"], T, target=args["target"])
+
+
+def test_not_an_operator(tiny):
+    _, template, _, data = tiny
+    with pytest.raises(TypeError, match="operator must be a linear operator .* lacks domain"):
+        indreg.register(template, data, lambda f: f)
+
+
+def test_callback_sees_every_iteration_and_can_stop(tiny):
+    T, template, _, data = tiny
+    seen = []
+    r = indreg.register(template, data, T, num_steps=4, max_iter=8,
+                        callback=lambda state, info: seen.append(info["iteration"]) or info["iteration"] == 3)
+    assert seen == [1, 2, 3] and r.status == "stopped" and r.iterations == 3
+
+
+def test_step_halving_at_ten_times_the_intensity(tiny):
+    """x10 intensities: the paper's fixed step folds; the default step halving does not and matches x1."""
+    T, template, target, data = tiny
+    options = dict(num_steps=4, max_iter=15, target=10 * target)
+    fixed = indreg.register(10 * template, 10 * data, T, step_halving=False, **options)
+    halving = indreg.register(10 * template, 10 * data, T, **options)
+    assert fixed.warnings > 0 and fixed.min_jacobian <= 0
+    assert halving.min_jacobian > 0 and halving.ssim > fixed.ssim + 0.2
+    assert halving.history[-1]["step_size"] < 0.02
+
+
+def test_warnings_and_progress_go_through_logging(tiny, caplog):
+    T, template, _, data = tiny
+    with caplog.at_level(logging.INFO, logger="indreg"):
+        r = indreg.register(10 * template, 10 * data, T, num_steps=4, max_iter=10, step_halving=False,
+                            log_every=5)
+    warnings = [rec for rec in caplog.records if rec.levelno == logging.WARNING and rec.name == "indreg"]
+    assert r.warnings > 0 and warnings
+    assert f"{r.warnings} of 10 iterations reported a warning" in warnings[-1].getMessage()
+    progress = [rec.getMessage() for rec in caplog.records if "iteration 5/10" in rec.getMessage()]
+    assert progress and "it/s" in progress[0] and "ETA" in progress[0]
+
+
+def test_progress_line():
+    p = api.Progress(total=100, start=20)
+    assert p.line(20).startswith("iteration 20/100 (nan it/s, ETA ?)")
+    p.t0 -= 2.0
+    line = p.line(40)
+    assert line.startswith("iteration 40/100 (") and "ETA 00:00:0" in line
+
+
+def test_max_halvings_covers_large_intensity_scales(tiny):
+    """Grey levels 0..255: the default 20 halvings find an acceptable first step; 5 halvings do not (the step is
+    rejected, counted as a warning, and the iterate kept)."""
+    T, template, _, data = tiny
+    default = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1)
+    few = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, max_halvings=5)
+    assert not default.history[0]["rejected"] and default.objective < few.objective
+    assert few.history[0]["rejected"] and few.warnings == 1 and torch.count_nonzero(few.momentum) == 0
