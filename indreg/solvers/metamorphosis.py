@@ -10,6 +10,12 @@ with ``f(1) = M(nu, zeta, I)`` the metamorphosis image path (``indreg.deform.Met
 ``nu = K m``. Large ``tau`` forbids intensity changes (LDDMM); small ``tau`` lets the source reconstruct the
 image freely (a reconstruction with an ``L2`` penalty on the intensity change).
 
+Optionally (``source_kernel``, a Gaussian kernel ``K_s`` of width ``source_sigma``) the source lives in an RKHS
+like the velocity: ``zeta = K_s s`` and ``||zeta_i||^2`` is replaced by the RKHS norm ``<s_i, K_s s_i>_L2``,
+which penalises rough intensity changes (noise and streaks of sparse-view data) more than smooth ones; the
+iterate is then the source momentum ``s`` (``h_s = tau s + (N / cell_volume) dL/dzeta``, update ``s <- s - beta
+h_s``, i.e. ``zeta <- zeta - beta K_s h_s``). Without it (the paper's ``L2([0,1], X)`` norm) ``s = zeta``.
+
 L2 gradients (``L`` = data fit + TV of ``f(1)``, ``dL/d.`` the deformation's backward, torch entries):
 ``h_nu = gamma m + (N / cell_volume) dL/dnu`` (the V-gradient is ``K h_nu``, as Algorithm 1) and
 ``h_zeta = tau zeta + (N / cell_volume) dL/dzeta``, i.e. ``h_zeta(t_i) = tau zeta_i + lambda_i / cell_volume``
@@ -39,6 +45,8 @@ class MetamorphosisRegistration:
         ray_transform, kernel, template, data, gamma, tv_weight, tv_smoothing: as ``IndirectRegistration``.
         deformation: a ``MetamorphosisDeformation``.
         tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``).
+        source_kernel: None (the paper's L2 norm) or a ``GaussianKernel`` ``K_s`` on the domain: RKHS source
+            ``zeta = K_s s`` (module docstring).
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
@@ -50,25 +58,29 @@ class MetamorphosisRegistration:
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,
-                 tv_smoothing=1e-3):
+                 tv_smoothing=1e-3, source_kernel=None):
         if not isinstance(deformation, MetamorphosisDeformation):
             raise TypeError(f"deformation must be a MetamorphosisDeformation, got {type(deformation).__name__}")
         self.lddmm = IndirectRegistration(ray_transform, deformation.lddmm, kernel, template, data, gamma,
                                           tv_weight, tv_smoothing)
         self.deformation = deformation
         self.tau = check_nonnegative(tau, "tau")
+        if source_kernel is not None and getattr(source_kernel, "domain", None) != kernel.domain:
+            raise ValueError(f"source_kernel must be a GaussianKernel on the kernel's domain {kernel.domain}, got "
+                             f"{source_kernel!r}")
+        self.source_kernel = source_kernel
         for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
                      "tv_smoothing", "num_steps", "momentum_shape", "time_weight"):
             setattr(self, name, getattr(self.lddmm, name))
 
     def __repr__(self):
         return (f"MetamorphosisRegistration(domain={self.domain}, N={self.num_steps}, gamma={self.gamma}, "
-                f"tau={self.tau}, tv_weight={self.tv_weight})")
+                f"tau={self.tau}, tv_weight={self.tv_weight}, source_kernel={self.source_kernel!r})")
 
     def with_deformation(self, deformation: MetamorphosisDeformation) -> "MetamorphosisRegistration":
         """The same problem with another metamorphosis operator (e.g. ``backward="autograd"``)."""
         return MetamorphosisRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
-                                         self.gamma, self.tau, self.tv_weight, self.tv_smoothing)
+                                         self.gamma, self.tau, self.tv_weight, self.tv_smoothing, self.source_kernel)
 
     @property
     def source_shape(self) -> tuple:
@@ -92,57 +104,66 @@ class MetamorphosisRegistration:
         """``nu = K m`` (differentiable)."""
         return self.kernel.apply(m)
 
-    def image(self, m: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
-        """``f(1) = M(K m, zeta, I)``, ``(nx, ny)``."""
+    def source(self, s: torch.Tensor) -> torch.Tensor:
+        """``zeta = K_s s`` (RKHS source) or ``s`` (L2 source), differentiable."""
+        return s if self.source_kernel is None else self.source_kernel.apply(s)
+
+    def image(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """``f(1) = M(K m, zeta, I)``, ``(nx, ny)`` (``s``: the source iterate, ``zeta = source(s)``)."""
         with torch.no_grad():
-            return self.deformation(self.velocity(m), zeta, self.template)
+            return self.deformation(self.velocity(m), self.source(s), self.template)
 
-    def parts(self, m: torch.Tensor, zeta: torch.Tensor) -> tuple:
+    def parts(self, m: torch.Tensor, s: torch.Tensor) -> tuple:
         """``(W(nu, I), f(1) - W(nu, I))``: the pure deformation of the template and the intensity part."""
-        return self.deformation.parts(self.velocity(m), zeta, self.template)
+        with torch.no_grad():
+            return self.deformation.parts(self.velocity(m), self.source(s), self.template)
 
-    def trajectory(self, m: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
+    def trajectory(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """``f(t_i)`` for ``i = 0..N``, ``(N+1, nx, ny)``."""
         with torch.no_grad():
-            return self.deformation.trajectory(self.velocity(m), zeta, self.template)
+            return self.deformation.trajectory(self.velocity(m), self.source(s), self.template)
 
-    def source_regulariser(self, zeta: torch.Tensor) -> torch.Tensor:
-        """``(tau/2) sum_i (1/N) ||zeta_i||_L2^2 = (tau/2) (cell_volume/N) sum zeta^2``."""
-        flat = zeta.reshape(-1)
-        return 0.5 * self.tau * self.time_weight * torch.dot(flat, flat)
+    def source_regulariser(self, s: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
+        """``(tau/2) sum_i (1/N) <s_i, zeta_i>_L2``: ``||zeta||^2`` in ``L2([0,1], L2)`` (``s = zeta``) or in the
+        source RKHS (``zeta = K_s s``)."""
+        return 0.5 * self.tau * self.time_weight * torch.dot(s.reshape(-1), zeta.reshape(-1))
 
-    def terms(self, m: torch.Tensor, zeta: torch.Tensor, nu: torch.Tensor | None = None) -> dict:
-        """All terms as 0-dim tensors (differentiable; ``nu = K m`` if not given): ``data_fit``, ``tv``,
-        ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
+    def terms(self, m: torch.Tensor, s: torch.Tensor, nu: torch.Tensor | None = None,
+              zeta: torch.Tensor | None = None) -> dict:
+        """All terms as 0-dim tensors (differentiable; ``nu = K m``, ``zeta = source(s)`` if not given):
+        ``data_fit``, ``tv``, ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
         nu = self.velocity(m) if nu is None else nu
+        zeta = self.source(s) if zeta is None else zeta
         out = self.lddmm.matching(self.deformation(nu, zeta, self.template))
         out["regulariser"] = self.lddmm.regulariser(m, nu)
-        out["source_regulariser"] = self.source_regulariser(zeta)
+        out["source_regulariser"] = self.source_regulariser(s, zeta)
         out["objective"] = out["data_fit"] + out["tv"] + out["regulariser"] + out["source_regulariser"]
         return out
 
-    def evaluate(self, m: torch.Tensor, zeta: torch.Tensor) -> dict:
+    def evaluate(self, m: torch.Tensor, s: torch.Tensor) -> dict:
         """All terms as python floats (no gradient)."""
-        self.check(m, zeta)
+        self.check(m, s)
         with torch.no_grad():
-            return {k: float(v) for k, v in self.terms(m, zeta).items()}
+            return {k: float(v) for k, v in self.terms(m, s).items()}
 
-    def l2_gradient(self, m: torch.Tensor, zeta: torch.Tensor) -> tuple:
-        """Terms (python floats) and the L2 gradients ``(h_nu, h_zeta)`` at ``(m, zeta)``; one forward/backward.
+    def l2_gradient(self, m: torch.Tensor, s: torch.Tensor) -> tuple:
+        """Terms (python floats) and the L2 gradients ``(h_nu, h_s)`` at ``(m, s)``; one forward/backward.
 
-        Returns ``(terms, h_nu, h_zeta, nu)`` (detached tensors, ``nu = K m``); ``K h_nu`` is the V-gradient.
+        ``h_s = tau s + (N / cell_volume) dL/dzeta`` (the L2 gradient in ``zeta`` for the L2 source; ``K_s h_s`` is
+        the RKHS gradient otherwise). Returns ``(terms, h_nu, h_s, nu)`` (detached tensors, ``nu = K m``);
+        ``K h_nu`` is the V-gradient.
         """
         with torch.no_grad():
-            nu = self.velocity(m)
+            nu, zeta = self.velocity(m), self.source(s)
         with torch.enable_grad():
             nu_leaf, zeta_leaf = nu.detach().requires_grad_(True), zeta.detach().requires_grad_(True)
             match = self.lddmm.matching(self.deformation(nu_leaf, zeta_leaf, self.template))
             dl_dnu, dl_dzeta = torch.autograd.grad(match["data_fit"] + match["tv"], (nu_leaf, zeta_leaf))
         h_nu = dl_dnu.div_(self.time_weight).add_(m, alpha=self.gamma)
-        h_zeta = dl_dzeta.div_(self.time_weight).add_(zeta, alpha=self.tau)
+        h_zeta = dl_dzeta.div_(self.time_weight).add_(s, alpha=self.tau)
         terms = {"data_fit": float(match["data_fit"].detach()), "tv": float(match["tv"].detach()),
                  "regulariser": float(self.lddmm.regulariser(m, nu)),
-                 "source_regulariser": float(self.source_regulariser(zeta))}
+                 "source_regulariser": float(self.source_regulariser(s, zeta))}
         terms["objective"] = sum(terms.values())
         return terms, h_nu, h_zeta, nu
 
@@ -154,17 +175,26 @@ class MetamorphosisRegistration:
         return self.lddmm.min_jacobian(nu)
 
     def source_lipschitz(self, num_iter: int = 30) -> float:
-        """``tau + ||T||^2``: the Lipschitz constant of ``h_zeta`` in ``zeta`` at ``nu = 0`` (``f(1)`` depends
-        on ``zeta`` through the average ``(1/N) sum zeta_i``, an operator of norm 1 in ``L2([0,1], L2)``); the
-        step ``1 / source_lipschitz()`` is the ``"auto"`` source step size."""
-        return self.tau + operator_norm(self.ray_transform, num_iter, self.template.dtype,
-                                        self.template.device) ** 2
+        """``(tau + ||T||^2) ||K_s||``: the Lipschitz constant of the source update at ``nu = 0`` (``f(1)`` depends
+        on ``zeta`` through the average ``(1/N) sum zeta_i``, of norm 1 in ``L2([0,1], L2)``; ``||K_s|| = 1``
+        for the L2 source, else the kernel's largest eigenvalue, at most ``K_s`` applied to ones); the step
+        ``1 / source_lipschitz()`` is the ``"auto"`` source step size."""
+        norm_t = operator_norm(self.ray_transform, num_iter, self.template.dtype, self.template.device)
+        return (self.tau + norm_t ** 2) * self.source_kernel_norm()
+
+    def source_kernel_norm(self) -> float:
+        """``||K_s||`` bounded by its largest row sum (1 for the L2 source)."""
+        if self.source_kernel is None:
+            return 1.0
+        ones = torch.ones(self.domain.shape, dtype=self.template.dtype, device=self.template.device)
+        return float(self.source_kernel.apply(ones).max())
 
 
 @dataclass
 class MetamorphosisState(SolverState):
-    """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source ``zeta`` (``(N+1, nx, ny)``),
-    iteration count. Solvers replace both tensors at every accepted step (never in place)."""
+    """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source iterate ``s`` (``(N+1, nx, ny)``;
+    ``zeta = problem.source(s)``: ``s`` itself for the L2 source), iteration count. Solvers replace both tensors
+    at every accepted step (never in place)."""
 
     source: torch.Tensor | None = None
 
@@ -205,12 +235,12 @@ class MetamorphosisDescent(IterativeSolver):
     """Gradient descent in the spirit of Algorithm 1 with separate step sizes for ``nu`` and ``zeta``:
 
         m <- m - alpha h_nu        (nu = K m: nu <- nu - alpha grad_V E, as Algorithm 1)
-        zeta <- zeta - beta h_zeta (L2 gradient step on the source)
+        s <- s - beta h_s          (L2 gradient step on zeta = s; with ``source_kernel`` zeta <- zeta - beta K_s h_s)
 
     Args:
         problem: a ``MetamorphosisRegistration``.
         step_size: ``alpha > 0`` (the paper's Algorithm 1 step sizes work unchanged).
-        source_step_size: ``beta > 0``, or ``"auto"``: ``1 / (tau + ||T||^2)`` (``problem.source_lipschitz``).
+        source_step_size: ``beta > 0``, or ``"auto"``: ``1 / ((tau + ||T||^2) ||K_s||)`` (``problem.source_lipschitz``).
         max_iter, grad_tol: as ``Algorithm1``; ``grad_norm`` is ``sqrt(|h_nu|^2 + |h_zeta|^2)`` (both
             ``L2([0,1], L2)`` norms), also reported separately (``velocity_grad_norm``, ``source_grad_norm``).
         step_halving: reject a step whose objective is non-finite, larger than the current one, or folds;
@@ -304,10 +334,11 @@ class MetamorphosisDescent(IterativeSolver):
 
 
 class MetamorphosisTorchOptim(IterativeSolver):
-    """Any ``torch.optim`` optimizer on ``(p, q)`` with ``nu = K(s p)``, ``zeta = s q``, ``s = N / cell_volume``.
+    """Any ``torch.optim`` optimizer on ``(p, q)``: ``nu = K(c p)``, source iterate ``c q``, ``c = N / cell_volume``.
 
     As ``TorchOptimSolver``: with this scaling autograd's gradients are ``dE/dp = K h_nu`` (the V-gradient)
-    and ``dE/dq = h_zeta`` (the L2 gradient of the source), so E is an honest function of the parameters and
+    and ``dE/dq = K_s h_s`` (the source's L2 gradient, or its RKHS gradient with ``source_kernel``), so E is an
+    honest function of the parameters and
     a line search (L-BFGS ``strong_wolfe``) sees consistent values. ``lr`` applies to ``p``, ``source_lr``
     (default ``lr``) to ``q`` (two parameter groups; L-BFGS takes a single group, so it needs ``source_lr``
     unset or equal to ``lr``). ``backward``: "adjoint" (default, the exact custom backward) or "autograd".
@@ -352,15 +383,18 @@ class MetamorphosisTorchOptim(IterativeSolver):
         if c is not None and torch.equal(c[0], self.p.detach()) and torch.equal(c[1], self.q.detach()):
             return c[2:]
         with torch.enable_grad():
-            m, zeta = self.scale * self.p, self.scale * self.q
-            nu = self.problem.velocity(m)
-            terms = self.problem.terms(m, zeta, nu)
-            grad_p, grad_q, dnu = torch.autograd.grad(terms["objective"], (self.p, self.q, nu))
+            m, s = self.scale * self.p, self.scale * self.q
+            nu, zeta = self.problem.velocity(m), self.problem.source(s)
+            terms = self.problem.terms(m, s, nu, zeta)
+            grad_p, grad_q, dnu, dzeta = torch.autograd.grad(terms["objective"], (self.p, self.q, nu, zeta))
+        # dE/dnu at fixed m (dE/dzeta at fixed s) holds half the regulariser's gradient; dE/dq = K_s h_s
         h_nu = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m.detach()
+        h_s = grad_q if self.problem.source_kernel is None else \
+            dzeta / self.problem.time_weight + 0.5 * self.problem.tau * s.detach()
         self.evaluations += 1
         terms = {k: float(v.detach()) for k, v in terms.items()}
-        self._cache = (self.p.detach().clone(), self.q.detach().clone(), terms, grad_p, grad_q, h_nu,
-                       grad_q, nu.detach())  # dE/dq is h_zeta
+        self._cache = (self.p.detach().clone(), self.q.detach().clone(), terms, grad_p, grad_q, h_nu, h_s,
+                       nu.detach())
         return self._cache[2:]
 
     def _closure(self):
