@@ -39,7 +39,7 @@ METAMORPHOSIS_TAU = 1.0
 DEFAULTS = {
     "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": "reinterpolate",
     "backward": None, "model": "lddmm", "tau": METAMORPHOSIS_TAU, "source_sigma": None, "source_step_size": None,
-    "source_lr": None, "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
+    "source_lr": None, "source_start": 0, "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
     "step_halving": True, "max_halvings": 20, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
     "dtype": None, "callback": None, "progress": False, "log_every": 10, "target": None,
 }
@@ -130,7 +130,8 @@ def as_array(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devic
 
 
 def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving: bool, max_halvings: int,
-                grad_tol: float, optimizer_kwargs: dict | None, source_step_size=None, source_lr=None):
+                grad_tol: float, optimizer_kwargs: dict | None, source_step_size=None, source_lr=None,
+                source_start: int = 0):
     """``Algorithm1`` (``solver="algorithm1"``, ``step_size``) or ``TorchOptimSolver`` (a ``torch.optim`` name,
     case-insensitive, ``lr``); for a metamorphosis problem ``MetamorphosisDescent`` (``source_step_size``, None:
     ``1 / (tau + ||T||^2)``) or ``MetamorphosisTorchOptim`` (``source_lr``, None: ``lr``)."""
@@ -148,11 +149,14 @@ def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving
         if is_metamorphosis(problem):
             return MetamorphosisDescent(problem, step_size=step, max_iter=max_iter, grad_tol=grad_tol,
                                         source_step_size="auto" if source_step_size is None else source_step_size,
-                                        step_halving=step_halving, max_halvings=max_halvings)
+                                        step_halving=step_halving, max_halvings=max_halvings,
+                                        source_start=source_start)
         return Algorithm1(problem, step_size=step, max_iter=max_iter, grad_tol=grad_tol, step_halving=step_halving,
                           max_halvings=max_halvings)
     if step_size is not None:
         raise TypeError(f"step_size is Algorithm 1's; solver={solver!r} (torch.optim) takes lr")
+    if source_start:
+        raise TypeError("source_start is an option of solver='algorithm1' (metamorphosis)")
     if is_metamorphosis(problem):
         return MetamorphosisTorchOptim(problem, optimizer=solver, lr=lr, source_lr=source_lr, max_iter=max_iter,
                                        grad_tol=grad_tol, **(optimizer_kwargs or {}))
@@ -201,7 +205,7 @@ def setup(template, data, operator, **options) -> Setup:
                                        tv_weight=o["tv_weight"])
     solver = make_solver(problem, o["solver"], o["max_iter"], o["step_size"], o["lr"], o["step_halving"],
                          o["max_halvings"], o["grad_tol"], o["optimizer_kwargs"], o["source_step_size"],
-                         o["source_lr"])
+                         o["source_lr"], o["source_start"])
     return Setup(problem, solver, o)
 
 
@@ -210,8 +214,8 @@ def _check_model(o: dict) -> None:
     if o["model"] not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {o['model']!r}")
     if o["model"] == "lddmm":
-        for key in ("source_sigma", "source_step_size", "source_lr"):
-            if o[key] is not None:
+        for key in ("source_sigma", "source_step_size", "source_lr", "source_start"):
+            if o[key]:
                 raise TypeError(f"{key} is an option of model='metamorphosis' (the source term's step)")
     elif o["action"] != "geometric":
         raise ValueError(f"model='metamorphosis' uses the geometric action, got action={o['action']!r}")
@@ -419,6 +423,7 @@ def register(template, data, operator, **options) -> RegistrationResult:
             None (the paper's L2 source) or the width of a Gaussian RKHS for the source (smooth intensity changes).
         source_step_size: metamorphosis with Algorithm 1: the source's step (default ``1 / (tau + ||T||^2)``).
         source_lr: metamorphosis with torch.optim: the source's learning rate (default ``lr``).
+        source_start: metamorphosis with Algorithm 1: iterations with the source frozen (0: none).
         solver: "algorithm1" (default), "lbfgs", or any ``torch.optim`` optimizer name (case-insensitive).
         max_iter: 200. grad_tol: stop when the gradient norm is below it (0: never).
         step_size: Algorithm 1's step, 0.02. lr: the torch.optim learning rate (1.0 for L-BFGS; required

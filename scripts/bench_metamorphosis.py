@@ -62,30 +62,37 @@ def scores(image, target, mask) -> dict:
 def quality(args) -> list:
     dom, T, template, target, data = problem_data(args.case, args.size)
     K, mask, rows = GaussianKernel(dom, args.sigma), ventricle_mask(dom), []
-    lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, args.gamma)
-    state = SolverState(lddmm.zero_momentum())
-    t0 = time.perf_counter()
-    Algorithm1(lddmm, step_size=args.step, max_iter=args.iters).run(state)
-    rows.append({"case": args.case, "model": "lddmm", "iters": args.iters,
-                 "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
-                 **scores(lddmm.deformed(state.momentum), target, mask)})
-    rows.append({"case": args.case, "model": "template", **scores(template, target, mask)})
+    if not args.no_lddmm:
+        lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, args.gamma)
+        state = SolverState(lddmm.zero_momentum())
+        t0 = time.perf_counter()
+        Algorithm1(lddmm, step_size=args.step, max_iter=args.iters).run(state)
+        rows.append({"case": args.case, "model": "lddmm", "size": args.size, "iters": args.iters,
+                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
+                     **scores(lddmm.deformed(state.momentum), target, mask)})
+        rows.append({"case": args.case, "model": "template", **scores(template, target, mask)})
+        if args.save:
+            torch.save({"lddmm": lddmm.deformed(state.momentum)}, f"{args.save}_lddmm.pt")
     for tau in args.taus:
         M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
         Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
         problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
                                             source_kernel=Ks)
         state = MetamorphosisState.zeros(problem)
-        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters)
+        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start)
         t0 = time.perf_counter()
         info = solver.run(state)
         deformed, intensity = problem.parts(state.momentum, state.source)
-        rows.append({"case": args.case, "model": "metamorphosis", "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
+        rows.append({"case": args.case, "model": "metamorphosis", "size": args.size, "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
+                     "source_start": args.source_start,
                      "iters": args.iters,
                      "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
                      "source_regulariser": info["source_regulariser"],
                      **scores(deformed + intensity, target, mask),
                      "deformation_part": scores(deformed, target, mask)["ssim"]})
+        if args.save:
+            torch.save({"deformation_part": deformed, "intensity_part": intensity, "target": target},
+                       f"{args.save}_tau{tau:g}.pt")
     return rows
 
 
@@ -137,9 +144,12 @@ def main(argv=None):
     p.add_argument("--gamma", type=float, default=1e-7)
     p.add_argument("--sigma", type=float, default=2.0)
     p.add_argument("--step", type=float, default=0.02)
-    p.add_argument("--taus", type=float, nargs="+", default=[1.0])
+    p.add_argument("--taus", type=float, nargs="*", default=[1.0])
+    p.add_argument("--no-lddmm", action="store_true", help="metamorphosis runs only")
+    p.add_argument("--save", default=None, help="prefix of .pt files with the resulting images")
     p.add_argument("--interpolation", default="reinterpolate")
     p.add_argument("--source-sigma", type=float, default=0.0, help="RKHS source kernel width (0: L2 source)")
+    p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
     p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)

@@ -193,6 +193,7 @@ class SolverConfig:
     optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
     source_step_size: Optional[float] = None  # metamorphosis, algorithm1: null = 1 / (tau + ||T||^2)
     source_lr: Optional[float] = None         # metamorphosis, torch_optim: null = lr
+    source_start: int = 0                     # metamorphosis, algorithm1: iterations with the source frozen
 
 
 @dataclass
@@ -347,6 +348,7 @@ def _validate_model(c: DictConfig) -> None:
     for key in ("source_step_size", "source_lr"):
         v = s[key]
         _require(v is None or (_finite(v) and v > 0), f"solver.{key}", "null or a number > 0", v)
+    _require(s.source_start >= 0, "solver.source_start", "an integer >= 0", s.source_start)
 
 
 def _validate_data(c: DictConfig) -> None:

@@ -245,6 +245,9 @@ class MetamorphosisDescent(IterativeSolver):
             ``L2([0,1], L2)`` norms), also reported separately (``velocity_grad_norm``, ``source_grad_norm``).
         step_halving: reject a step whose objective is non-finite, larger than the current one, or folds;
             halve both step sizes and retry, at most ``max_halvings`` times (as ``Algorithm1``).
+        source_start: the source is kept fixed for the first ``source_start`` iterations (Algorithm 1 on
+            ``nu`` alone: the deformation first explains what it can, then the source the remainder); 0
+            (default) updates both from the start.
         jacobian_every: compute ``min_jacobian`` every this many iterations (always with ``step_halving``).
 
     ``step(state)`` (a ``MetamorphosisState``) returns ``Algorithm1``'s report plus ``source_regulariser``,
@@ -253,7 +256,7 @@ class MetamorphosisDescent(IterativeSolver):
 
     def __init__(self, problem: MetamorphosisRegistration, step_size: float = 0.02, source_step_size="auto",
                  max_iter: int = 200, grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
-                 jacobian_every: int = 1):
+                 jacobian_every: int = 1, source_start: int = 0):
         _check_problem(problem)
         self.problem = problem
         self.step_size = check_positive(step_size, "step_size")
@@ -265,12 +268,13 @@ class MetamorphosisDescent(IterativeSolver):
         self.step_halving = bool(step_halving)
         self.max_halvings = check_int(max_halvings, "max_halvings", 0)
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
+        self.source_start = check_int(source_start, "source_start", 0)
         self.evaluations = 0
         self._current = None  # (momentum, source, their versions, terms, h_nu, h_zeta, nu) of the iterate
 
     def __repr__(self):
         return (f"MetamorphosisDescent(step_size={self.step_size}, source_step_size={self.source_step_size:.4g}, "
-                f"max_iter={self.max_iter}, step_halving={self.step_halving})")
+                f"max_iter={self.max_iter}, step_halving={self.step_halving}, source_start={self.source_start})")
 
     def _evaluate(self, m, zeta):
         self.evaluations += 1
@@ -303,7 +307,9 @@ class MetamorphosisDescent(IterativeSolver):
         terms, h_nu, h_zeta, nu = self._at(state)
         for attempt in range(1 + (self.max_halvings if self.step_halving else 0)):
             alpha, beta = self.step_size, self.source_step_size
-            m_new, z_new = torch.add(state.momentum, h_nu, alpha=-alpha), torch.add(state.source, h_zeta, alpha=-beta)
+            m_new = torch.add(state.momentum, h_nu, alpha=-alpha)
+            z_new = state.source if state.iteration < self.source_start else \
+                torch.add(state.source, h_zeta, alpha=-beta)
             new = self._evaluate(m_new, z_new)
             min_jac = self._min_jacobian(new[3], state.iteration + 1)
             warnings = problems(new[0]["objective"], min_jac, terms["objective"])
