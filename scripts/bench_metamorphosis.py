@@ -4,6 +4,7 @@ cost per iteration / memory at 256^2, N = 20.
     python scripts/bench_metamorphosis.py quality --case missing --iters 300 --taus 0.1 1 10
     python scripts/bench_metamorphosis.py quality --case contrast --iters 300 --taus 1
     python scripts/bench_metamorphosis.py cost --size 256 --steps 20 --repeat 5
+    python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR --figure tau.png
 
 ``quality`` runs LDDMM (Algorithm 1, the suite's gamma / sigma / step) and metamorphosis (``MetamorphosisDescent``,
 the same gamma / sigma / velocity step, source step ``1 / (tau + ||T||^2)``) on the same noisy data (10 angles x
@@ -77,9 +78,10 @@ def quality(args) -> list:
         M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
         Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
         problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
-                                            source_kernel=Ks)
+                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks)
         state = MetamorphosisState.zeros(problem)
-        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start)
+        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start,
+                                      step_halving=args.halving)
         t0 = time.perf_counter()
         info = solver.run(state)
         deformed, intensity = problem.parts(state.momentum, state.source)
@@ -124,6 +126,48 @@ def cost(args) -> list:
     return rows
 
 
+def tau_rows(source: str) -> list:
+    """Rows of a ``quality`` JSON-lines file, or of a Hydra multirun (``sweep=metamorphosis_tau``: one
+    ``metrics.json`` per job, ``deformation.tau`` from its config)."""
+    from pathlib import Path
+
+    path = Path(source)
+    if path.is_file():
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = []
+    for f in sorted(path.glob("*/metrics.json")):
+        m = json.loads(f.read_text())
+        if m.get("status") in ("completed", "converged"):
+            rows.append({"model": "metamorphosis", "tau": m["config"]["deformation"]["tau"], "ssim": m["ssim"],
+                         "psnr": m["psnr"], "deformation_part": m["deformation_part_ssim"],
+                         "source_regulariser": m["source_regulariser"]})
+    return rows
+
+
+def tau_figure(args) -> list:
+    """SSIM / PSNR of f(1) and SSIM of W(nu, I) against tau (log scale), LDDMM as a horizontal line."""
+    from matplotlib.figure import Figure
+
+    rows = tau_rows(args.source)
+    meta = sorted((r for r in rows if r["model"] == "metamorphosis"), key=lambda r: r["tau"])
+    lddmm = [r for r in rows if r["model"] == "lddmm"]
+    fig = Figure(figsize=(10, 3.6), layout="constrained")
+    axes = fig.subplots(1, 3 if meta and "ventricle_rms" in meta[0] else 2)
+    panels = [("ssim", "SSIM (honest)"), ("psnr", "PSNR (dB)"), ("ventricle_rms", "RMS error in the ventricle")]
+    for ax, (key, label) in zip(axes, panels):
+        ax.semilogx([r["tau"] for r in meta], [r[key] for r in meta], "o-", label="metamorphosis f(1)")
+        if key == "ssim":
+            ax.semilogx([r["tau"] for r in meta], [r["deformation_part"] for r in meta], "s--",
+                        label=r"its part $W(\nu, I)$")
+        for r in lddmm[:1]:
+            ax.axhline(r[key], color="k", lw=1, label="LDDMM")
+        ax.set_xlabel(r"$\tau$")
+        ax.set_title(label)
+    axes[0].legend(fontsize="small")
+    fig.savefig(args.figure, dpi=100)
+    return meta + lddmm
+
+
 def _peak_bytes(prof) -> int:
     """Peak of the running sum of allocations minus frees over the profiled events (live tensor memory)."""
     events = sorted((e.time_range.start, e.cpu_memory_usage) for e in prof.events() if e.cpu_memory_usage)
@@ -136,7 +180,9 @@ def _peak_bytes(prof) -> int:
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("mode", choices=("quality", "cost"))
+    p.add_argument("mode", choices=("quality", "cost", "tau-figure"))
+    p.add_argument("source", nargs="?", help="tau-figure: a quality JSON-lines file or a multirun dir")
+    p.add_argument("--figure", default="tau_sweep.png", help="tau-figure: output image")
     p.add_argument("--case", choices=sorted(CASES), default="missing")
     p.add_argument("--size", type=int, default=256)
     p.add_argument("--steps", type=int, default=20)
@@ -150,12 +196,14 @@ def main(argv=None):
     p.add_argument("--interpolation", default="reinterpolate")
     p.add_argument("--source-sigma", type=float, default=0.0, help="RKHS source kernel width (0: L2 source)")
     p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
+    p.add_argument("--tv-smoothing", type=float, default=1e-3)
+    p.add_argument("--halving", action="store_true", help="metamorphosis: step halving")
     p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    rows = quality(args) if args.mode == "quality" else cost(args)
+    rows = {"quality": quality, "cost": cost, "tau-figure": tau_figure}[args.mode](args)
     for r in rows:
         line = json.dumps(r)
         print(line, flush=True)
