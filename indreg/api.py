@@ -38,7 +38,7 @@ METAMORPHOSIS_TAU = 1.0
 #: Options of :func:`register` and their defaults (``None``: see :func:`register`).
 DEFAULTS = {
     "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": "reinterpolate",
-    "backward": None, "model": "lddmm", "tau": METAMORPHOSIS_TAU, "source_sigma": None, "source_step_size": None,
+    "backward": None, "model": "lddmm", "tau": METAMORPHOSIS_TAU, "source_sigma": None, "source_mask": None, "source_step_size": None,
     "source_lr": None, "source_start": 0, "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
     "step_halving": True, "max_halvings": 20, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
     "dtype": None, "callback": None, "progress": False, "log_every": 10, "target": None,
@@ -197,7 +197,8 @@ def setup(template, data, operator, **options) -> Setup:
                                                interpolation=o["interpolation"])
         source_kernel = None if o["source_sigma"] is None else GaussianKernel(domain, o["source_sigma"])
         problem = MetamorphosisRegistration(operator, deformation, kernel, template, data, o["gamma"], o["tau"],
-                                            tv_weight=o["tv_weight"], source_kernel=source_kernel)
+                                            tv_weight=o["tv_weight"], source_kernel=source_kernel,
+                                            source_mask=_source_mask(o["source_mask"], template, domain))
     else:
         deformation = LDDMMDeformation(domain, num_steps=o["num_steps"], action=o["action"],
                                        backward=o["backward"] or "paper", interpolation=o["interpolation"])
@@ -214,11 +215,24 @@ def _check_model(o: dict) -> None:
     if o["model"] not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {o['model']!r}")
     if o["model"] == "lddmm":
-        for key in ("source_sigma", "source_step_size", "source_lr", "source_start"):
-            if o[key]:
+        for key in ("source_sigma", "source_mask", "source_step_size", "source_lr", "source_start"):
+            if o[key] is not DEFAULTS[key] and o[key] != DEFAULTS[key]:
                 raise TypeError(f"{key} is an option of model='metamorphosis' (the source term's step)")
     elif o["action"] != "geometric":
         raise ValueError(f"model='metamorphosis' uses the geometric action, got action={o['action']!r}")
+
+
+def _source_mask(mask, template: torch.Tensor, domain):
+    """``source_mask`` option: None, ``"template"`` (the template's support, ``template_support``) or an array."""
+    from .solvers.metamorphosis import template_support
+
+    if mask is None:
+        return None
+    if isinstance(mask, str):
+        if mask != "template":
+            raise ValueError(f"source_mask must be None, 'template' or an array (nx, ny), got {mask!r}")
+        return template_support(template, domain)
+    return as_array(mask, "source_mask", domain.shape, template.dtype, template.device)
 
 
 def is_metamorphosis(problem) -> bool:
@@ -420,7 +434,9 @@ def register(template, data, operator, **options) -> RegistrationResult:
             exact gradient of its discrete map) or "autograd".
         model: "lddmm" (default) or "metamorphosis": the image path ``d/dt f + <grad f, nu> = zeta`` also
             changes intensities (eq:Metam:ODE); ``tau``: weight of the source's penalty, 1.0; ``source_sigma``:
-            None (the paper's L2 source) or the width of a Gaussian RKHS for the source (smooth intensity changes).
+            None (the paper's L2 source) or the width of a Gaussian RKHS for the source (smooth intensity changes);
+            ``source_mask``: None, ``"template"`` (intensities change only on the template's support, dilated by
+            1 unit) or an array ``(nx, ny)`` in [0, 1].
         source_step_size: metamorphosis with Algorithm 1: the source's step (default ``1 / (tau + ||T||^2)``).
         source_lr: metamorphosis with torch.optim: the source's learning rate (default ``lr``).
         source_start: metamorphosis with Algorithm 1: iterations with the source frozen (0: none).

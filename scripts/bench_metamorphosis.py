@@ -28,6 +28,7 @@ from indreg.deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeforma
 from indreg.forward import ParallelBeamGeometry, RayTransform
 from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
                             MetamorphosisState, SolverState)
+from indreg.solvers.metamorphosis import template_support
 
 CASES = {  # template, SNR (dB, code convention) of the suite
     "missing": ("shepp_logan_template_missing", 7.06),
@@ -78,7 +79,8 @@ def quality(args) -> list:
         M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
         Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
         problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
-                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks)
+                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks,
+                                            source_mask=template_support(template, dom) if args.mask else None)
         state = MetamorphosisState.zeros(problem)
         solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start,
                                       step_halving=args.halving)
@@ -86,7 +88,7 @@ def quality(args) -> list:
         info = solver.run(state)
         deformed, intensity = problem.parts(state.momentum, state.source)
         rows.append({"case": args.case, "model": "metamorphosis", "size": args.size, "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
-                     "source_start": args.source_start,
+                     "source_start": args.source_start, "mask": args.mask,
                      "iters": args.iters,
                      "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
                      "source_regulariser": info["source_regulariser"],
@@ -198,6 +200,7 @@ def main(argv=None):
     p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
     p.add_argument("--tv-smoothing", type=float, default=1e-3)
     p.add_argument("--halving", action="store_true", help="metamorphosis: step halving")
+    p.add_argument("--mask", action="store_true", help="metamorphosis: source confined to the template's support")
     p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)

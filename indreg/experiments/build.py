@@ -75,7 +75,7 @@ def _model_options(cfg: DictConfig) -> dict:
     if d.model.value != "metamorphosis":
         return {}
     algorithm1 = s.name.value == "algorithm1"
-    return {"model": "metamorphosis", "tau": d.tau, "source_sigma": d.source_sigma,
+    return {"model": "metamorphosis", "tau": d.tau, "source_sigma": d.source_sigma, "source_mask": d.source_mask,
             "source_step_size": s.source_step_size if algorithm1 else None,
             "source_lr": None if algorithm1 else s.source_lr, "source_start": s.source_start if algorithm1 else 0}
 

@@ -159,7 +159,8 @@ class DeformationConfig:
     """LDDMM flow with N time steps (t_i = i / N), group action and derivative scheme (``LDDMMDeformation``).
     ``model=metamorphosis`` (``deformation=metamorphosis``): the image path also changes intensities
     (``MetamorphosisDeformation``, geometric action, backward ``adjoint`` or ``autograd``); ``tau`` weighs the
-    source term's penalty; ``source_sigma`` (null: the paper's L2 source) the width of an RKHS for the source."""
+    source term's penalty; ``source_sigma`` (null: the paper's L2 source) the width of an RKHS for the source;
+    ``source_mask=template`` confines the intensity changes to the template's support."""
     num_steps: int = 20
     action: Action = Action.geometric
     backward: Backward = Backward.paper
@@ -167,6 +168,7 @@ class DeformationConfig:
     model: Model = Model.lddmm
     tau: float = 1.0
     source_sigma: Optional[float] = None
+    source_mask: Optional[str] = None
 
 
 @dataclass
@@ -343,6 +345,7 @@ def _validate_model(c: DictConfig) -> None:
         _require(d.action.value == "geometric", "deformation.action", "geometric for deformation.model=metamorphosis",
                  d.action.value)
     _require(_finite(d.tau) and d.tau >= 0, "deformation.tau", "a number >= 0", d.tau)
+    _require(d.source_mask in (None, "template"), "deformation.source_mask", "null or template", d.source_mask)
     _require(d.source_sigma is None or (_finite(d.source_sigma) and d.source_sigma > 0), "deformation.source_sigma",
              "null or a number > 0", d.source_sigma)
     for key in ("source_step_size", "source_lr"):

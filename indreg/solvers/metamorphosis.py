@@ -15,6 +15,9 @@ like the velocity: ``zeta = K_s s`` and ``||zeta_i||^2`` is replaced by the RKHS
 which penalises rough intensity changes (noise and streaks of sparse-view data) more than smooth ones; the
 iterate is then the source momentum ``s`` (``h_s = tau s + (N / cell_volume) dL/dzeta``, update ``s <- s - beta
 h_s``, i.e. ``zeta <- zeta - beta K_s h_s``). Without it (the paper's ``L2([0,1], X)`` norm) ``s = zeta``.
+A ``source_mask`` ``chi`` (values in [0, 1]) confines the intensity changes: ``zeta = chi K_s s`` (or ``chi s``),
+the penalty unchanged, ``h_s = tau s + chi (N / cell_volume) dL/dzeta`` (e.g. ``template_support``: no intensity
+is created where the template and its surroundings are empty).
 
 L2 gradients (``L`` = data fit + TV of ``f(1)``, ``dL/d.`` the deformation's backward, torch entries):
 ``h_nu = gamma m + (N / cell_volume) dL/dnu`` (the V-gradient is ``K h_nu``, as Algorithm 1) and
@@ -47,6 +50,8 @@ class MetamorphosisRegistration:
         tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``).
         source_kernel: None (the paper's L2 norm) or a ``GaussianKernel`` ``K_s`` on the domain: RKHS source
             ``zeta = K_s s`` (module docstring).
+        source_mask: None or a ``(nx, ny)`` tensor with values in [0, 1] (the template's dtype / device): the
+            source is multiplied by it (module docstring; ``template_support`` builds one).
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
@@ -58,20 +63,26 @@ class MetamorphosisRegistration:
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,
-                 tv_smoothing=1e-3, source_kernel=None):
+                 tv_smoothing=1e-3, source_kernel=None, source_mask=None):
         if not isinstance(deformation, MetamorphosisDeformation):
             raise TypeError(f"deformation must be a MetamorphosisDeformation, got {type(deformation).__name__}")
         self.lddmm = IndirectRegistration(ray_transform, deformation.lddmm, kernel, template, data, gamma,
                                           tv_weight, tv_smoothing)
         self.deformation = deformation
         self.tau = check_nonnegative(tau, "tau")
+        for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
+                     "tv_smoothing", "num_steps", "momentum_shape", "time_weight"):
+            setattr(self, name, getattr(self.lddmm, name))
         if source_kernel is not None and getattr(source_kernel, "domain", None) != kernel.domain:
             raise ValueError(f"source_kernel must be a GaussianKernel on the kernel's domain {kernel.domain}, got "
                              f"{source_kernel!r}")
         self.source_kernel = source_kernel
-        for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
-                     "tv_smoothing", "num_steps", "momentum_shape", "time_weight"):
-            setattr(self, name, getattr(self.lddmm, name))
+        if source_mask is not None:
+            check_tensor(source_mask, "source_mask", tuple(self.domain.shape))
+            check_same(source_mask, template, "source_mask", "template")
+            if bool((source_mask < 0).any() | (source_mask > 1).any()):
+                raise ValueError("source_mask must have values in [0, 1]")
+        self.source_mask = source_mask
 
     def __repr__(self):
         return (f"MetamorphosisRegistration(domain={self.domain}, N={self.num_steps}, gamma={self.gamma}, "
@@ -80,7 +91,8 @@ class MetamorphosisRegistration:
     def with_deformation(self, deformation: MetamorphosisDeformation) -> "MetamorphosisRegistration":
         """The same problem with another metamorphosis operator (e.g. ``backward="autograd"``)."""
         return MetamorphosisRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
-                                         self.gamma, self.tau, self.tv_weight, self.tv_smoothing, self.source_kernel)
+                                         self.gamma, self.tau, self.tv_weight, self.tv_smoothing, self.source_kernel,
+                                         self.source_mask)
 
     @property
     def source_shape(self) -> tuple:
@@ -104,9 +116,15 @@ class MetamorphosisRegistration:
         """``nu = K m`` (differentiable)."""
         return self.kernel.apply(m)
 
-    def source(self, s: torch.Tensor) -> torch.Tensor:
-        """``zeta = K_s s`` (RKHS source) or ``s`` (L2 source), differentiable."""
+    def unmasked_source(self, s: torch.Tensor) -> torch.Tensor:
+        """``K_s s`` (RKHS source) or ``s`` (L2 source), differentiable: the field whose pairing with ``s`` is the
+        source's squared norm."""
         return s if self.source_kernel is None else self.source_kernel.apply(s)
+
+    def source(self, s: torch.Tensor) -> torch.Tensor:
+        """``zeta = chi K_s s`` (``chi`` the ``source_mask``, ``K_s`` the source kernel; each 1 when not given)."""
+        u = self.unmasked_source(s)
+        return u if self.source_mask is None else u * self.source_mask
 
     def image(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """``f(1) = M(K m, zeta, I)``, ``(nx, ny)`` (``s``: the source iterate, ``zeta = source(s)``)."""
@@ -123,20 +141,21 @@ class MetamorphosisRegistration:
         with torch.no_grad():
             return self.deformation.trajectory(self.velocity(m), self.source(s), self.template)
 
-    def source_regulariser(self, s: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
-        """``(tau/2) sum_i (1/N) <s_i, zeta_i>_L2``: ``||zeta||^2`` in ``L2([0,1], L2)`` (``s = zeta``) or in the
-        source RKHS (``zeta = K_s s``)."""
-        return 0.5 * self.tau * self.time_weight * torch.dot(s.reshape(-1), zeta.reshape(-1))
+    def source_regulariser(self, s: torch.Tensor, unmasked: torch.Tensor) -> torch.Tensor:
+        """``(tau/2) sum_i (1/N) <s_i, u_i>_L2``, ``u = unmasked_source(s)``: ``||zeta||^2`` in ``L2([0,1], L2)``
+        (``u = s = zeta``) or in the source RKHS (``u = K_s s``)."""
+        return 0.5 * self.tau * self.time_weight * torch.dot(s.reshape(-1), unmasked.reshape(-1))
 
     def terms(self, m: torch.Tensor, s: torch.Tensor, nu: torch.Tensor | None = None,
-              zeta: torch.Tensor | None = None) -> dict:
-        """All terms as 0-dim tensors (differentiable; ``nu = K m``, ``zeta = source(s)`` if not given):
-        ``data_fit``, ``tv``, ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
+              unmasked: torch.Tensor | None = None) -> dict:
+        """All terms as 0-dim tensors (differentiable; ``nu = K m``, ``unmasked = unmasked_source(s)`` if not
+        given): ``data_fit``, ``tv``, ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
         nu = self.velocity(m) if nu is None else nu
-        zeta = self.source(s) if zeta is None else zeta
+        unmasked = self.unmasked_source(s) if unmasked is None else unmasked
+        zeta = unmasked if self.source_mask is None else unmasked * self.source_mask
         out = self.lddmm.matching(self.deformation(nu, zeta, self.template))
         out["regulariser"] = self.lddmm.regulariser(m, nu)
-        out["source_regulariser"] = self.source_regulariser(s, zeta)
+        out["source_regulariser"] = self.source_regulariser(s, unmasked)
         out["objective"] = out["data_fit"] + out["tv"] + out["regulariser"] + out["source_regulariser"]
         return out
 
@@ -154,16 +173,19 @@ class MetamorphosisRegistration:
         ``K h_nu`` is the V-gradient.
         """
         with torch.no_grad():
-            nu, zeta = self.velocity(m), self.source(s)
+            nu, unmasked = self.velocity(m), self.unmasked_source(s)
+            zeta = unmasked if self.source_mask is None else unmasked * self.source_mask
         with torch.enable_grad():
             nu_leaf, zeta_leaf = nu.detach().requires_grad_(True), zeta.detach().requires_grad_(True)
             match = self.lddmm.matching(self.deformation(nu_leaf, zeta_leaf, self.template))
             dl_dnu, dl_dzeta = torch.autograd.grad(match["data_fit"] + match["tv"], (nu_leaf, zeta_leaf))
         h_nu = dl_dnu.div_(self.time_weight).add_(m, alpha=self.gamma)
+        if self.source_mask is not None:
+            dl_dzeta.mul_(self.source_mask)
         h_zeta = dl_dzeta.div_(self.time_weight).add_(s, alpha=self.tau)
         terms = {"data_fit": float(match["data_fit"].detach()), "tv": float(match["tv"].detach()),
                  "regulariser": float(self.lddmm.regulariser(m, nu)),
-                 "source_regulariser": float(self.source_regulariser(s, zeta))}
+                 "source_regulariser": float(self.source_regulariser(s, unmasked))}
         terms["objective"] = sum(terms.values())
         return terms, h_nu, h_zeta, nu
 
@@ -188,6 +210,14 @@ class MetamorphosisRegistration:
             return 1.0
         ones = torch.ones(self.domain.shape, dtype=self.template.dtype, device=self.template.device)
         return float(self.source_kernel.apply(ones).max())
+
+
+def template_support(template: torch.Tensor, domain, margin: float = 1.0, threshold: float = 0.01) -> torch.Tensor:
+    """A ``source_mask``: 1 where ``|I| > threshold max |I|`` or within ``margin`` (physical units, a square
+    neighbourhood) of such a pixel, else 0; ``(nx, ny)`` in the template's dtype / device."""
+    kx, ky = (2 * max(int(round(margin / h)), 0) + 1 for h in domain.cell_sides)
+    inside = (template.abs() > threshold * template.abs().max()).to(template.dtype)[None, None]
+    return torch.nn.functional.max_pool2d(inside, (kx, ky), stride=1, padding=(kx // 2, ky // 2))[0, 0]
 
 
 @dataclass
@@ -390,13 +420,14 @@ class MetamorphosisTorchOptim(IterativeSolver):
             return c[2:]
         with torch.enable_grad():
             m, s = self.scale * self.p, self.scale * self.q
-            nu, zeta = self.problem.velocity(m), self.problem.source(s)
-            terms = self.problem.terms(m, s, nu, zeta)
-            grad_p, grad_q, dnu, dzeta = torch.autograd.grad(terms["objective"], (self.p, self.q, nu, zeta))
-        # dE/dnu at fixed m (dE/dzeta at fixed s) holds half the regulariser's gradient; dE/dq = K_s h_s
+            nu, unmasked = self.problem.velocity(m), self.problem.unmasked_source(s)
+            terms = self.problem.terms(m, s, nu, unmasked)
+            grad_p, grad_q, dnu, du = torch.autograd.grad(terms["objective"], (self.p, self.q, nu, unmasked))
+        # dE/dnu at fixed m (dE/du at fixed s) holds half the regulariser's gradient; dE/dq = K_s h_s (L2
+        # source: u is s itself, and dE/dq = h_s)
         h_nu = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m.detach()
         h_s = grad_q if self.problem.source_kernel is None else \
-            dzeta / self.problem.time_weight + 0.5 * self.problem.tau * s.detach()
+            du / self.problem.time_weight + 0.5 * self.problem.tau * s.detach()
         self.evaluations += 1
         terms = {k: float(v.detach()) for k, v in terms.items()}
         self._cache = (self.p.detach().clone(), self.q.detach().clone(), terms, grad_p, grad_q, h_nu, h_s,

@@ -9,17 +9,21 @@ from indreg.deform import GaussianKernel, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform
 from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
                             MetamorphosisState, MetamorphosisTorchOptim, SolverState)
+from indreg.solvers.metamorphosis import template_support
 
 
-def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None):
+def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,
+                 mask=False):
     """J -> V with the target's grey values scaled and offset (an intensity change LDDMM cannot make)."""
     dom = ImageDomain.paper(n)
     T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(n * 92 / 64))))
     target = 0.6 * phantoms.get("v", dom).double() + 0.3 * (phantoms.get("v", dom).double() > 0.5)
     M = MetamorphosisDeformation(dom, num_steps, interpolation=interpolation)
     source_kernel = None if source_sigma is None else GaussianKernel(dom, source_sigma)
-    return MetamorphosisRegistration(T, M, GaussianKernel(dom, 6.0), phantoms.get("j", dom).double(), T(target),
-                                     gamma, tau, source_kernel=source_kernel), target
+    template = phantoms.get("j", dom).double()
+    return MetamorphosisRegistration(T, M, GaussianKernel(dom, 6.0), template, T(target), gamma, tau,
+                                     source_kernel=source_kernel,
+                                     source_mask=template_support(template, dom, 2.0) if mask else None), target
 
 
 def random_point(problem, seed=0):
@@ -41,12 +45,13 @@ def test_terms_at_zero_are_lddmm_terms():
     assert terms["source_regulariser"] == pytest.approx(expected, rel=1e-12)
 
 
-@pytest.mark.parametrize("interpolation,source_sigma", (("reinterpolate", None), ("compose", None),
-                                                        ("reinterpolate", 2.0)))
-def test_l2_gradients_match_finite_differences(interpolation, source_sigma):
+@pytest.mark.parametrize("interpolation,source_sigma,mask", (("reinterpolate", None, False), ("compose", None, False),
+                                                             ("reinterpolate", 2.0, False),
+                                                             ("reinterpolate", None, True), ("compose", 2.0, True)))
+def test_l2_gradients_match_finite_differences(interpolation, source_sigma, mask):
     """dE(m + e dm, s + e ds)/de = time_weight (<K h_nu, dm> + <K_s h_s, ds>) (E in m and s; nu = K m, zeta = K_s s;
     K_s = identity for the L2 source)."""
-    problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1)
+    problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1, mask=mask)
     m, z = random_point(problem)
     _, h_nu, h_zeta, _ = problem.l2_gradient(m, z)
     dm, dz = random_point(problem, seed=1)
@@ -56,7 +61,7 @@ def test_l2_gradients_match_finite_differences(interpolation, source_sigma):
         numeric = (problem.evaluate(m + eps * direction[0], z + eps * direction[1])["objective"]
                    - problem.evaluate(m - eps * direction[0], z - eps * direction[1])["objective"]) / (2 * eps)
         analytic = w * float((problem.kernel.apply(h_nu) * direction[0]).sum()
-                             + (problem.source(h_zeta) * direction[1]).sum())
+                             + (problem.unmasked_source(h_zeta) * direction[1]).sum())
         assert numeric == pytest.approx(analytic, rel=1e-6)
 
 
@@ -103,10 +108,11 @@ def test_step_halving_rejects_an_increase():
     assert info["objective"] <= start and solver.step_size < 1e3 and solver.source_step_size < 1e3
 
 
-@pytest.mark.parametrize("optimizer,kwargs,source_sigma", (("adam", {"lr": 1e-3, "source_lr": 2e-2}, None),
-                                                          ("lbfgs", {}, None), ("lbfgs", {}, 2.0)))
-def test_torch_optim_decreases_and_its_gradients_are_the_l2_gradients(optimizer, kwargs, source_sigma):
-    problem, _ = make_problem(source_sigma=source_sigma)
+@pytest.mark.parametrize("optimizer,kwargs,source_sigma,mask", (("adam", {"lr": 1e-3, "source_lr": 2e-2}, None, False),
+                                                               ("lbfgs", {}, None, False), ("lbfgs", {}, 2.0, False),
+                                                               ("lbfgs", {}, 2.0, True)))
+def test_torch_optim_decreases_and_its_gradients_are_the_l2_gradients(optimizer, kwargs, source_sigma, mask):
+    problem, _ = make_problem(source_sigma=source_sigma, mask=mask)
     solver = MetamorphosisTorchOptim(problem, optimizer, max_iter=5, **kwargs)
     state = MetamorphosisState.zeros(problem)
     start = solver.report(state)["objective"]
@@ -115,7 +121,7 @@ def test_torch_optim_decreases_and_its_gradients_are_the_l2_gradients(optimizer,
     _, grad_p, grad_q, *_ = solver._evaluate()
     _, h_nu, h_zeta, _ = problem.l2_gradient(state.momentum, state.source)
     torch.testing.assert_close(grad_p, problem.kernel.apply(h_nu), rtol=1e-8, atol=1e-12)
-    torch.testing.assert_close(grad_q, problem.source(h_zeta), rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(grad_q, problem.unmasked_source(h_zeta), rtol=1e-8, atol=1e-12)
 
 
 def test_rkhs_source_is_smooth_and_its_regulariser_is_the_rkhs_norm():
@@ -130,6 +136,19 @@ def test_rkhs_source_is_smooth_and_its_regulariser_is_the_rkhs_norm():
     l2_state = MetamorphosisState.zeros(l2)
     MetamorphosisDescent(l2, step_size=0.02, max_iter=5).run(l2_state)
     assert rough(zeta) < 0.75 * rough(l2_state.source)  # measured 0.32 vs 0.52
+
+
+def test_source_mask_confines_the_intensity_change():
+    problem, _ = make_problem(mask=True, tau=0.1)
+    mask = problem.source_mask
+    assert 0 < float(mask.mean()) < 1 and bool((mask[problem.template > 0.01] == 1).all())
+    state = MetamorphosisState.zeros(problem)
+    MetamorphosisDescent(problem, step_size=0.02, max_iter=3).run(state)
+    assert float(state.source.abs().max()) > 0
+    assert not bool(problem.source(state.source)[:, mask == 0].ne(0).any())
+    with pytest.raises(ValueError, match="source_mask must have values in"):
+        MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                  problem.data, 1e-5, 0.1, source_mask=2 * mask)
 
 
 def test_state_dict_round_trip():
