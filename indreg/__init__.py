@@ -5,15 +5,17 @@ _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of 
 
 from .domain import ImageDomain
 from .forward import FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform
-from .deform import GaussianKernel, LDDMMDeformation
+from .deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
+from .solvers import MetamorphosisRegistration, MetamorphosisDescent, MetamorphosisTorchOptim
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 from .api import RegistrationResult, register
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+           "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
            "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"

@@ -2,6 +2,9 @@
 
 It builds the Gaussian kernel of V, the LDDMM deformation, the objective (``IndirectRegistration``) and a
 solver from keyword options, iterates, and returns the deformed template with the deformation and a report.
+``model="metamorphosis"`` (with ``tau``) builds the metamorphosis operator, objective and solvers instead
+(``indreg.deform.MetamorphosisDeformation``, ``indreg.solvers.MetamorphosisRegistration``): the result's image
+is then ``f(1)``, with its pure-deformation and intensity parts.
 The ``indreg-register`` app runs the same code (:func:`setup`, :class:`RegistrationLoop`), adding checkpoints,
 TensorBoard, figures and files.
 
@@ -29,10 +32,14 @@ import torch
 
 log = logging.getLogger("indreg")
 
+MODELS = ("lddmm", "metamorphosis")
+#: Default ``tau`` of ``model="metamorphosis"`` (the source penalty, in the objective's scale).
+METAMORPHOSIS_TAU = 1.0
 #: Options of :func:`register` and their defaults (``None``: see :func:`register`).
 DEFAULTS = {
     "sigma": 6.0, "gamma": 1e-6, "num_steps": 20, "action": "geometric", "interpolation": None,
-    "backward": "paper", "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
+    "backward": None, "model": "lddmm", "tau": METAMORPHOSIS_TAU, "source_sigma": None, "source_mask": None, "source_step_size": None,
+    "source_lr": None, "source_start": 0, "solver": "algorithm1", "max_iter": 200, "step_size": None, "lr": None,
     "step_halving": True, "max_halvings": 20, "grad_tol": 0.0, "tv_weight": 0.0, "optimizer_kwargs": None, "device": None,
     "dtype": None, "callback": None, "progress": False, "log_every": 10, "target": None,
 }
@@ -50,7 +57,8 @@ class RegistrationResult:
     solver's report plus ``seconds``); ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``),
     ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the
     callback returned True). ``ssim`` / ``psnr`` only with
-    ``target=``.
+    ``target=``. ``model="metamorphosis"``: ``deformed`` = f(1), ``trajectory`` = f(t_i), ``source`` = zeta
+    ``(N+1, nx, ny)``, ``deformation_part`` = W(nu, I) and ``intensity_part`` = f(1) - W(nu, I) (else None).
     """
     deformed: torch.Tensor
     momentum: torch.Tensor
@@ -68,6 +76,9 @@ class RegistrationResult:
     problem: object = field(repr=False)
     ssim: Optional[float] = None
     psnr: Optional[float] = None
+    source: Optional[torch.Tensor] = None
+    deformation_part: Optional[torch.Tensor] = None
+    intensity_part: Optional[torch.Tensor] = None
 
 
 def _unknown(options: dict) -> None:
@@ -120,15 +131,20 @@ def as_array(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devic
 
 
 def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving: bool, max_halvings: int,
-                grad_tol: float, optimizer_kwargs: dict | None):
-    """``Algorithm1`` (``solver="algorithm1"``, ``step_size``) or ``TorchOptimSolver`` (a ``torch.optim`` name,
-    case-insensitive, ``lr``)."""
-    from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
+                grad_tol: float, optimizer_kwargs: dict | None, source_step_size=None, source_lr=None,
+                source_start: int = 0):
+    """``Algorithm1`` (``solver="algorithm1"``, ``step_size``), ``MultilevelSolver`` (``solver="fast"``) or
+    ``TorchOptimSolver`` (a ``torch.optim`` name, case-insensitive, ``lr``); for a metamorphosis problem
+    ``MetamorphosisDescent`` (``source_step_size``, None: ``1 / (tau + ||T||^2)``) or ``MetamorphosisTorchOptim``
+    (``source_lr``, None: ``lr``)."""
+    from .solvers import Algorithm1, MetamorphosisDescent, MetamorphosisTorchOptim, MultilevelSolver, TorchOptimSolver
     from .solvers.multilevel import options as fast_options
 
     if not isinstance(solver, str):
         raise TypeError(f"solver must be 'algorithm1', 'fast' or a torch.optim optimizer name, got {solver!r}")
     if solver.lower() == "fast":
+        if is_metamorphosis(problem):
+            raise TypeError("solver='fast' is for model='lddmm'; metamorphosis takes 'algorithm1' or a torch.optim name")
         if lr is not None or step_size is not None:
             raise TypeError("solver='fast' takes neither lr nor step_size (its options go in optimizer_kwargs: "
                             f"{', '.join(fast_options())})")
@@ -142,12 +158,24 @@ def make_solver(problem, solver: str, max_iter: int, step_size, lr, step_halving
             raise TypeError("lr is the torch.optim learning rate; solver='algorithm1' takes step_size")
         if optimizer_kwargs:
             raise TypeError("optimizer_kwargs apply to torch.optim solvers, not solver='algorithm1'")
-        return Algorithm1(problem, step_size=ALGORITHM1_STEP if step_size is None else step_size,
-                          max_iter=max_iter, grad_tol=grad_tol, step_halving=step_halving,
+        step = ALGORITHM1_STEP if step_size is None else step_size
+        if is_metamorphosis(problem):
+            return MetamorphosisDescent(problem, step_size=step, max_iter=max_iter, grad_tol=grad_tol,
+                                        source_step_size="auto" if source_step_size is None else source_step_size,
+                                        step_halving=step_halving, max_halvings=max_halvings,
+                                        source_start=source_start)
+        return Algorithm1(problem, step_size=step, max_iter=max_iter, grad_tol=grad_tol, step_halving=step_halving,
                           max_halvings=max_halvings)
     if step_size is not None:
         raise TypeError(f"step_size is Algorithm 1's; solver={solver!r} (torch.optim) takes lr")
-    return TorchOptimSolver(problem, optimizer=solver, lr=lr, max_iter=max_iter, grad_tol=grad_tol,
+    if source_start:
+        raise TypeError("source_start is an option of solver='algorithm1' (metamorphosis)")
+    if is_metamorphosis(problem):
+        return MetamorphosisTorchOptim(problem, optimizer=solver, lr=lr, source_lr=source_lr, max_iter=max_iter,
+                                       grad_tol=grad_tol, **(optimizer_kwargs or {}))
+    # a line search needs the gradient of the function it evaluates: the paper's backward becomes "exact"
+    backward = "exact" if problem.deformation.backward == "paper" else problem.deformation.backward
+    return TorchOptimSolver(problem, optimizer=solver, lr=lr, max_iter=max_iter, grad_tol=grad_tol, backward=backward,
                             **(optimizer_kwargs or {}))
 
 
@@ -161,9 +189,9 @@ class Setup:
 
 def setup(template, data, operator, **options) -> Setup:
     """Validate the inputs and build kernel, deformation, objective and solver (options as :func:`register`)."""
-    from .deform import GaussianKernel, LDDMMDeformation
+    from .deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
     from .forward.operator import check_operator
-    from .solvers import IndirectRegistration
+    from .solvers import IndirectRegistration, MetamorphosisRegistration
 
     _unknown(options)
     o = {**DEFAULTS, **options}
@@ -180,14 +208,84 @@ def setup(template, data, operator, **options) -> Setup:
     if o["interpolation"] is None:
         fast = isinstance(o["solver"], str) and o["solver"].lower() == "fast"
         o["interpolation"] = "compose" if fast else "reinterpolate"
+    _check_model(o)
     kernel = GaussianKernel(domain, o["sigma"])
-    deformation = LDDMMDeformation(domain, num_steps=o["num_steps"], action=o["action"], backward=o["backward"],
-                                   interpolation=o["interpolation"])
-    problem = IndirectRegistration(operator, deformation, kernel, template, data, o["gamma"],
-                                   tv_weight=o["tv_weight"])
+    if o["model"] == "metamorphosis":
+        deformation = MetamorphosisDeformation(domain, num_steps=o["num_steps"], backward=o["backward"] or "adjoint",
+                                               interpolation=o["interpolation"])
+        source_kernel = None if o["source_sigma"] is None else GaussianKernel(domain, o["source_sigma"])
+        problem = MetamorphosisRegistration(operator, deformation, kernel, template, data, o["gamma"], o["tau"],
+                                            tv_weight=o["tv_weight"], source_kernel=source_kernel,
+                                            source_mask=_source_mask(o["source_mask"], template, domain))
+    else:
+        deformation = LDDMMDeformation(domain, num_steps=o["num_steps"], action=o["action"],
+                                       backward=o["backward"] or "paper", interpolation=o["interpolation"])
+        problem = IndirectRegistration(operator, deformation, kernel, template, data, o["gamma"],
+                                       tv_weight=o["tv_weight"])
     solver = make_solver(problem, o["solver"], o["max_iter"], o["step_size"], o["lr"], o["step_halving"],
-                         o["max_halvings"], o["grad_tol"], o["optimizer_kwargs"])
+                         o["max_halvings"], o["grad_tol"], o["optimizer_kwargs"], o["source_step_size"],
+                         o["source_lr"], o["source_start"])
     return Setup(problem, solver, o)
+
+
+def _check_model(o: dict) -> None:
+    """``model`` and the options that only one model takes."""
+    if o["model"] not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {o['model']!r}")
+    if o["model"] == "lddmm":
+        for key in ("source_sigma", "source_mask", "source_step_size", "source_lr", "source_start"):
+            if o[key] is not DEFAULTS[key] and o[key] != DEFAULTS[key]:
+                raise TypeError(f"{key} is an option of model='metamorphosis' (the source term's step)")
+    elif o["action"] != "geometric":
+        raise ValueError(f"model='metamorphosis' uses the geometric action, got action={o['action']!r}")
+
+
+def _source_mask(mask, template: torch.Tensor, domain):
+    """``source_mask`` option: None, ``"template"`` (the template's support, ``template_support``) or an array."""
+    from .solvers.metamorphosis import template_support
+
+    if mask is None:
+        return None
+    if isinstance(mask, str):
+        if mask != "template":
+            raise ValueError(f"source_mask must be None, 'template' or an array (nx, ny), got {mask!r}")
+        return template_support(template, domain)
+    return as_array(mask, "source_mask", domain.shape, template.dtype, template.device)
+
+
+def is_metamorphosis(problem) -> bool:
+    """Whether ``problem`` is a metamorphosis problem (iterate: momentum and source)."""
+    from .solvers import MetamorphosisRegistration
+
+    return isinstance(problem, MetamorphosisRegistration)
+
+
+def initial_state(problem):
+    """The solvers' starting iterate: ``m = 0`` (and ``zeta = 0`` for metamorphosis)."""
+    from .solvers import MetamorphosisState, SolverState
+
+    return MetamorphosisState.zeros(problem) if is_metamorphosis(problem) else SolverState(problem.zero_momentum())
+
+
+def final_image(problem, state) -> torch.Tensor:
+    """The reconstruction at ``state``: ``W(nu, I)`` (LDDMM) or ``f(1)`` (metamorphosis)."""
+    if is_metamorphosis(problem):
+        return problem.image(state.momentum, state.source)
+    return problem.deformed(state.momentum)
+
+
+def image_trajectory(problem, state) -> torch.Tensor:
+    """``W(nu, I)(t_i)`` or ``f(t_i)``, ``(N+1, nx, ny)``."""
+    if is_metamorphosis(problem):
+        return problem.trajectory(state.momentum, state.source)
+    return problem.trajectory(state.momentum)
+
+
+def evaluate(problem, state) -> dict:
+    """The objective's terms at ``state`` (python floats)."""
+    if is_metamorphosis(problem):
+        return problem.evaluate(state.momentum, state.source)
+    return problem.evaluate(state.momentum)
 
 
 def count_warnings(history) -> int:
@@ -282,8 +380,9 @@ class RegistrationLoop:
                 done = reason is not None
                 stop = self.after_step(info, done)
                 if it % self.every == 0 and not done:
-                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s", meter.line(it),
-                             info["objective"], info["data_fit"], info["min_jacobian"], self.describe(info))
+                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s", meter.line(it),
+                             info["objective"], info["data_fit"], info["min_jacobian"], _source_terms(info),
+                             self.describe(info))
                 bar.update(1)
                 bar.set_postfix(objective=f"{info['objective']:.4g}")
                 if stop:
@@ -299,6 +398,13 @@ class RegistrationLoop:
             log.warning("%d of %d iterations reported a warning (%d rejected steps)", self.warnings,
                         len(self.history), rejected)
         return status
+
+
+def _source_terms(info: dict) -> str:
+    """Metamorphosis: both regularisers for the log line."""
+    if "source_regulariser" not in info:
+        return ""
+    return f", regularisers nu {info['regulariser']:.4g} / zeta {info['source_regulariser']:.4g}"
 
 
 class _ApiLoop(RegistrationLoop):
@@ -343,10 +449,20 @@ def register(template, data, operator, **options) -> RegistrationResult:
         gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
         action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose" (default
             "compose" with ``solver="fast"``, else "reinterpolate", the paper's).
-        backward: "paper" (Algorithm 1's gradient) or "autograd".
-        solver: "algorithm1" (default), "fast" (coarse-to-fine L-BFGS, ``indreg.solvers.MultilevelSolver``;
-            its options in ``optimizer_kwargs``), "lbfgs", or any ``torch.optim``
-            optimizer name (case-insensitive).
+        backward: LDDMM: "paper" (Algorithm 1's gradient, the default), "exact" (the exact gradient of the
+            discrete map by its hand-written adjoint, about the paper's cost; torch.optim solvers use it in
+            place of "paper") or "autograd" (the same exact gradient, about 2x the cost); metamorphosis:
+            "adjoint" (default, its exact gradient) or "autograd".
+        model: "lddmm" (default) or "metamorphosis": the image path ``d/dt f + <grad f, nu> = zeta`` also
+            changes intensities (eq:Metam:ODE); ``tau``: weight of the source's penalty, 1.0; ``source_sigma``:
+            None (the paper's L2 source) or the width of a Gaussian RKHS for the source (smooth intensity changes);
+            ``source_mask``: None, ``"template"`` (intensities change only on the template's support, dilated by
+            1 unit) or an array ``(nx, ny)`` in [0, 1].
+        source_step_size: metamorphosis with Algorithm 1: the source's step (default ``1 / (tau + ||T||^2)``).
+        source_lr: metamorphosis with torch.optim: the source's learning rate (default ``lr``).
+        source_start: metamorphosis with Algorithm 1: iterations with the source frozen (0: none).
+        solver: "algorithm1" (default), "fast" (coarse-to-fine, ``indreg.solvers.MultilevelSolver``; its
+            options in ``optimizer_kwargs``), "lbfgs", or any ``torch.optim`` optimizer name (case-insensitive).
         max_iter: 200. grad_tol: stop when the gradient norm is below it (0: never).
         step_size: Algorithm 1's step, 0.02. lr: the torch.optim learning rate (1.0 for L-BFGS; required
             for the others). optimizer_kwargs: passed to the torch.optim optimizer.
@@ -365,11 +481,10 @@ def register(template, data, operator, **options) -> RegistrationResult:
         ValueError: a shape mismatch, non-finite values, an invalid value; the message names the argument.
     """
     from . import metrics
-    from .solvers import SolverState
 
     s = setup(template, data, operator, **options)
     o, problem = s.options, s.problem
-    state = SolverState(problem.zero_momentum())
+    state = initial_state(problem)
     handler = _console_handler(o["progress"])
     try:
         log.info("%s | %s", problem, s.solver)
@@ -380,15 +495,18 @@ def register(template, data, operator, **options) -> RegistrationResult:
         if handler is not None:
             log.removeHandler(handler)
     m = state.momentum
-    deformed = problem.deformed(m)
+    deformed = final_image(problem, state)
     with torch.no_grad():
         velocity = problem.velocity(m)
         phi = problem.deformation.deformation(velocity)
     result = RegistrationResult(
-        deformed=deformed, momentum=m, velocity=velocity, deformation=phi, trajectory=problem.trajectory(m),
-        history=loop.history, iterations=state.iteration, objective=problem.evaluate(m)["objective"],
+        deformed=deformed, momentum=m, velocity=velocity, deformation=phi, trajectory=image_trajectory(problem, state),
+        history=loop.history, iterations=state.iteration, objective=evaluate(problem, state)["objective"],
         min_jacobian=problem.min_jacobian(velocity), residual=relative_residual(operator, deformed, problem.data),
         status=status, warnings=loop.warnings, seconds=loop.seconds, problem=problem)
+    if is_metamorphosis(problem):
+        result.source = state.source
+        result.deformation_part, result.intensity_part = problem.parts(m, state.source)
     if o["target"] is not None:
         result.ssim, result.psnr = metrics.ssim(deformed, o["target"]), metrics.psnr(deformed, o["target"])
     return result

@@ -1,4 +1,4 @@
-"""The image domain: a physical rectangle sampled at cell centres, with L2 inner products."""
+"""The image domain: a physical rectangle (2D) or box (3D) sampled at cell centres, with L2 inner products."""
 from __future__ import annotations
 
 import math
@@ -9,14 +9,17 @@ import torch
 from ._checks import check_int, check_tensor
 
 
-def _corner(point, name: str) -> tuple:
-    """A corner ``(x, y)`` of the rectangle as 2 finite floats (an infinite extent has no cells to sample)."""
+AXES = "xyz"
+
+
+def _corner(point, name: str, ndim: int) -> tuple:
+    """A corner of the box as ``ndim`` finite floats (an infinite extent has no cells to sample)."""
     try:
         values = tuple(float(v) for v in point)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be 2 finite numbers (x, y), got {point!r}") from None
-    if len(values) != 2:
-        raise ValueError(f"{name} must have 2 entries (x, y), got {point!r}")
+        raise TypeError(f"{name} must be {ndim} finite numbers ({', '.join(AXES[:ndim])}), got {point!r}") from None
+    if len(values) != ndim:
+        raise ValueError(f"{name} must have {ndim} entries ({', '.join(AXES[:ndim])}) like shape, got {point!r}")
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"{name} must be finite, got {point!r}")
     return values
@@ -24,36 +27,41 @@ def _corner(point, name: str) -> tuple:
 
 @dataclass(frozen=True)
 class ImageDomain:
-    """A rectangle ``[min_pt, max_pt]`` in R^2 discretised by ``shape`` cells, sampled at cell centres.
+    """A box ``[min_pt, max_pt]`` in R^d (d = 2 or 3) discretised by ``shape`` cells, sampled at cell centres.
 
     Convention:
-        - An image is a tensor ``(..., nx, ny)``: array axis 0 is x, axis 1 is y ("ij" indexing),
-          any leading batch dims.
-        - Pixel ``(i, j)`` sits at the cell centre
-          ``x_i = min_pt[0] + (i + 1/2) * cell_sides[0]``, ``y_j = min_pt[1] + (j + 1/2) * cell_sides[1]``.
-        - ``min_pt < max_pt`` are finite corners ``(x, y)`` with a finite extent.
+        - d = ``len(shape)``. An image is a tensor ``(..., nx, ny)`` (2D) or ``(..., nx, ny, nz)`` (3D): array
+          axis 0 is x, axis 1 is y, axis 2 is z ("ij" indexing), any leading batch dims.
+        - Cell ``(i, j[, k])`` sits at the cell centre
+          ``x_i = min_pt[0] + (i + 1/2) * cell_sides[0]``, ``y_j = min_pt[1] + (j + 1/2) * cell_sides[1]``, ...
+        - ``min_pt < max_pt`` are finite corners with d entries and a finite extent; default ``(-16, ..., -16)``
+          and ``(16, ..., 16)``.
         - Units are physical (the paper's domain is ``[-16, 16]^2``), so the paper's kernel width sigma,
           regularisation gamma and step size mean the same at every resolution.
-        - Inner products and norms are L2: ``<f, g> = cell_volume * sum_ij f_ij g_ij``, so adjoints of
-          operators defined on this domain are L2 adjoints.
+        - Inner products and norms are L2: ``<f, g> = cell_volume * sum f g`` over the last d axes, so adjoints
+          of operators defined on this domain are L2 adjoints.
 
     Example:
         >>> dom = ImageDomain((64, 64), (-16.0, -16.0), (16.0, 16.0))
         >>> dom.cell_volume
         0.25
+        >>> ImageDomain((32, 32, 32)).cell_volume
+        1.0
     """
 
     shape: tuple
-    min_pt: tuple = (-16.0, -16.0)
-    max_pt: tuple = (16.0, 16.0)
+    min_pt: tuple | None = None
+    max_pt: tuple | None = None
 
     def __post_init__(self):
         shape = tuple(self.shape) if hasattr(self.shape, "__len__") else (self.shape, self.shape)
-        if len(shape) != 2:
-            raise ValueError(f"shape must have 2 entries (nx, ny), got {self.shape!r}")
+        if len(shape) not in (2, 3):
+            raise ValueError(f"shape must have 2 entries (nx, ny) or 3 (nx, ny, nz), got {self.shape!r}")
         shape = tuple(check_int(n, "shape entry", 1) for n in shape)
-        lo, hi = _corner(self.min_pt, "min_pt"), _corner(self.max_pt, "max_pt")
-        for a, b, ax in zip(lo, hi, "xy"):
+        d = len(shape)
+        lo = _corner((-16.0,) * d if self.min_pt is None else self.min_pt, "min_pt", d)
+        hi = _corner((16.0,) * d if self.max_pt is None else self.max_pt, "max_pt", d)
+        for a, b, ax in zip(lo, hi, AXES):
             if not b > a:
                 raise ValueError(f"min_pt must be < max_pt on axis {ax}, got {a} >= {b}")
             if not math.isfinite(b - a):
@@ -63,9 +71,19 @@ class ImageDomain:
         object.__setattr__(self, "max_pt", hi)
 
     @classmethod
-    def paper(cls, n: int) -> "ImageDomain":
-        """The paper's domain ``[-16, 16]^2`` with ``n x n`` pixels."""
-        return cls((n, n), (-16.0, -16.0), (16.0, 16.0))
+    def paper(cls, n: int, ndim: int = 2) -> "ImageDomain":
+        """The paper's domain ``[-16, 16]^d`` with ``n`` cells per axis."""
+        return cls((n,) * ndim, (-16.0,) * ndim, (16.0,) * ndim)
+
+    @property
+    def ndim(self) -> int:
+        """The dimension d (2 or 3)."""
+        return len(self.shape)
+
+    @property
+    def dims(self) -> tuple:
+        """The image axes of a tensor ``(..., *shape)``: ``(-2, -1)`` or ``(-3, -2, -1)``."""
+        return tuple(range(-self.ndim, 0))
 
     @property
     def extent(self) -> tuple:
@@ -74,47 +92,45 @@ class ImageDomain:
 
     @property
     def cell_sides(self) -> tuple:
-        """Pixel side lengths ``(hx, hy)`` in physical units."""
+        """Cell side lengths ``(hx, hy[, hz])`` in physical units."""
         return tuple(e / n for e, n in zip(self.extent, self.shape))
 
     @property
     def cell_volume(self) -> float:
-        """Pixel area ``hx * hy``: the weight of the L2 inner product."""
-        hx, hy = self.cell_sides
-        return hx * hy
+        """Cell area ``hx * hy`` (2D) or volume ``hx * hy * hz`` (3D): the weight of the L2 inner product."""
+        return math.prod(self.cell_sides)
 
     def axes(self, dtype=torch.float64, device=None) -> tuple:
-        """Cell-centre coordinates ``(x, y)``, 1D tensors of lengths ``nx`` and ``ny``."""
+        """Cell-centre coordinates ``(x, y[, z])``, 1D tensors of lengths ``nx``, ``ny``[, ``nz``]."""
         return tuple(
             a + (torch.arange(n, dtype=dtype, device=device) + 0.5) * h
             for a, n, h in zip(self.min_pt, self.shape, self.cell_sides))
 
     def points(self, dtype=torch.float64, device=None) -> torch.Tensor:
-        """Cell centres as a tensor ``(2, nx, ny)``: ``[0]`` holds x, ``[1]`` holds y."""
-        x, y = self.axes(dtype, device)
-        return torch.stack(torch.meshgrid(x, y, indexing="ij"))
+        """Cell centres as a tensor ``(d, *shape)``: ``[0]`` holds x, ``[1]`` holds y, ``[2]`` holds z."""
+        return torch.stack(torch.meshgrid(*self.axes(dtype, device), indexing="ij"))
 
     def zeros(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
-        """An all-zero image ``(*batch, nx, ny)``."""
+        """An all-zero image ``(*batch, *shape)``."""
         return torch.zeros(*batch, *self.shape, dtype=dtype, device=device)
 
     def check_image(self, f, name: str = "image") -> torch.Tensor:
-        """Validate an image ``(..., nx, ny)``: floating dtype, finite values, this domain's shape."""
+        """Validate an image ``(..., *shape)``: floating dtype, finite values, this domain's shape."""
         return check_tensor(f, name, self.shape)
 
     def inner(self, f: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        """L2 inner product over the last two axes, ``cell_volume * sum(f * g)``; batch dims kept."""
-        return self.cell_volume * (f * g).sum(dim=(-2, -1))
+        """L2 inner product over the last d axes, ``cell_volume * sum(f * g)``; batch dims kept."""
+        return self.cell_volume * (f * g).sum(dim=self.dims)
 
     def norm(self, f: torch.Tensor) -> torch.Tensor:
-        """L2 norm over the last two axes."""
+        """L2 norm over the last d axes."""
         return self.inner(f, f).sqrt()
 
     def to_grid(self, x: torch.Tensor) -> torch.Tensor:
-        """Map physical points ``(..., 2)`` (x, y) to ``grid_sample`` coordinates (``align_corners=False``).
+        """Map physical points ``(..., d)`` (x, y[, z]) to ``grid_sample`` coordinates (``align_corners=False``).
 
-        ``grid_sample`` on a tensor ``(..., nx, ny)`` reads ``grid[..., 0]`` along the last axis (y) and
-        ``grid[..., 1]`` along axis -2 (x), both normalised so that -1 and 1 are the domain's edges.
+        ``grid_sample`` on a tensor ``(..., *shape)`` reads ``grid[..., 0]`` along the last axis, ``grid[..., 1]``
+        along the one before, ... (the reverse of (x, y, z)), all normalised so that -1 and 1 are the edges.
         """
         lo = torch.tensor(self.min_pt, dtype=x.dtype, device=x.device)
         ext = torch.tensor(self.extent, dtype=x.dtype, device=x.device)

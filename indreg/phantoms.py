@@ -16,7 +16,7 @@ Convention:
 
 Names for :func:`get`: ``"j"``, ``"v"`` (suite 1), ``"six_objects_target"``, ``"six_objects_template"``
 (suite 2), ``"shepp_logan"``, ``"shepp_logan_template"`` (suite 3), ``"shepp_logan_template_missing"``,
-``"shepp_logan_template_extra"`` (suite 4).
+``"shepp_logan_template_extra"`` (suite 4), ``"shepp_logan_template_contrast"`` (metamorphosis).
 """
 from __future__ import annotations
 
@@ -127,6 +127,15 @@ def shepp_logan_template_extra(domain: ImageDomain) -> torch.Tensor:
     return ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_EXTRA_ELLIPSES)
 
 
+def shepp_logan_template_contrast(domain: ImageDomain) -> torch.Tensor:
+    """The suite-3 template with other grey values (an atlas or a scan of another contrast): ``0.6 I + 0.1``
+    on the head (where the head's outer ellipse covers the pixel), 0 outside. Skull 0.7, brain 0.22,
+    ventricles 0.1 where the target has 1.0, 0.2, 0.0: a case for metamorphosis (LDDMM cannot change them)."""
+    template = shepp_logan_template(domain)
+    head = ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_ELLIPSES[:1]) / SHEPP_LOGAN_TEMPLATE_ELLIPSES[0][0]
+    return 0.6 * template + 0.1 * head
+
+
 @lru_cache(maxsize=None)
 def _raster(filename: str) -> np.ndarray:
     """Package data as float64 with axis 0 = x (read-only, cached)."""
@@ -191,6 +200,7 @@ _REGISTRY = {
     "shepp_logan_template": shepp_logan_template,
     "shepp_logan_template_missing": shepp_logan_template_missing,
     "shepp_logan_template_extra": shepp_logan_template_extra,
+    "shepp_logan_template_contrast": shepp_logan_template_contrast,
 }
 
 

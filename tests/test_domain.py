@@ -35,6 +35,28 @@ def test_inner_is_riemann_sum_of_integral():
     assert dom.norm(x).item() ** 2 == pytest.approx(4.0 / 3.0, rel=1e-4)
 
 
+def test_3d_cells_points_and_inner():
+    dom = ImageDomain((4, 6, 8), (0.0, -3.0, -2.0), (2.0, 3.0, 2.0))
+    assert dom.ndim == 3 and dom.dims == (-3, -2, -1)
+    assert dom.cell_sides == (0.5, 1.0, 0.5) and dom.cell_volume == 0.25
+    p = dom.points()
+    assert p.shape == (3, 4, 6, 8)
+    assert torch.equal(p[2, 0, 0, :], torch.linspace(-1.75, 1.75, 8, dtype=torch.float64))
+    # integral of z^2 over the box: 2 * 6 * (2^3 / 3 * 2 / 2) = 32, midpoint rule on z^2 is exact up to h^2/12
+    z = p[2]
+    assert dom.norm(z).item() ** 2 == pytest.approx(2 * 6 * (16 / 3 - 4 * 0.25 / 12), rel=1e-12)
+    assert ImageDomain((4, 4, 4)).min_pt == (-16.0, -16.0, -16.0)
+    assert ImageDomain.paper(8, ndim=3).shape == (8, 8, 8)
+
+
+def test_3d_to_grid_matches_grid_sample_at_cell_centres():
+    dom = ImageDomain((3, 5, 4), (-2.0, 0.0, 1.0), (3.0, 14.0, 2.0))
+    f = torch.randn(3, 5, 4, dtype=torch.float64)
+    grid = dom.to_grid(dom.points().movedim(0, -1))
+    sampled = torch.nn.functional.grid_sample(f[None, None], grid[None], align_corners=False)[0, 0]
+    assert torch.allclose(sampled, f, atol=1e-12)
+
+
 def test_inner_keeps_batch_dims():
     dom = ImageDomain.paper(8)
     f = torch.randn(3, 2, 8, 8, dtype=torch.float64)
@@ -53,7 +75,8 @@ def test_to_grid_matches_grid_sample_at_cell_centres():
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(shape=(0, 4)), "shape entry"),
-    (dict(shape=(4, 4, 4)), "2 entries"),
+    (dict(shape=(4, 4, 4, 4)), r"shape must have 2 entries \(nx, ny\) or 3"),
+    (dict(shape=(4, 4, 4), min_pt=(0.0, 0.0)), r"min_pt must have 3 entries \(x, y, z\)"),
     (dict(shape=(4, 4), min_pt=(1.0, 0.0), max_pt=(1.0, 1.0)), "min_pt must be < max_pt"),
     (dict(shape=(4.5, 4)), "integer"),
     (dict(shape=(None, 4)), r"shape entry must be an integer >= 1, got None"),

@@ -57,7 +57,18 @@ def options(cfg: DictConfig) -> dict:
             "solver": s.optimizer.value if name == "torch_optim" else name, "max_iter": s.max_iter,
             "grad_tol": s.grad_tol, "step_halving": s.step_halving, "max_halvings": s.max_halvings,
             "step_size": s.step_size if algorithm1 else None, "lr": s.lr if name == "torch_optim" else None,
-            "optimizer_kwargs": None if algorithm1 else dict(s.optimizer_kwargs)}
+            "optimizer_kwargs": None if algorithm1 else dict(s.optimizer_kwargs), **_model_options(cfg)}
+
+
+def _model_options(cfg: DictConfig) -> dict:
+    """``model`` and, for metamorphosis, ``tau`` and the source's step (``indreg.register``'s options)."""
+    d, s = cfg.deformation, cfg.solver
+    if d.model.value != "metamorphosis":
+        return {}
+    algorithm1 = s.name.value == "algorithm1"
+    return {"model": "metamorphosis", "tau": d.tau, "source_sigma": d.source_sigma, "source_mask": d.source_mask,
+            "source_step_size": s.source_step_size if algorithm1 else None,
+            "source_lr": None if algorithm1 else s.source_lr, "source_start": s.source_start if algorithm1 else 0}
 
 
 def build(cfg: DictConfig) -> Experiment:

@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from .. import phantoms as _phantoms
 from ..deform import functional as _Fd
 from ..deform import lddmm as _lddmm
+from ..deform import metamorphosis as _metamorphosis
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
 Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
@@ -72,8 +73,14 @@ class NoiseConvention(str, Enum):
 
 # the deformation operator's choices, from the one place that defines them
 Action = Enum("Action", {name: name for name in _Fd.ACTIONS}, type=str)
-Backward = Enum("Backward", {name: name for name in _lddmm.BACKWARDS}, type=str)
+Backward = Enum("Backward", {name: name for name in (*_lddmm.BACKWARDS, *_metamorphosis.BACKWARDS)}, type=str)
 Interpolation = Enum("Interpolation", {name: name for name in _Fd.INTERPOLATIONS}, type=str)
+
+
+class Model(str, Enum):
+    """``lddmm``: ``LDDMMDeformation``; ``metamorphosis``: ``MetamorphosisDeformation`` (intensities change too)."""
+    lddmm = "lddmm"
+    metamorphosis = "metamorphosis"
 
 
 class SolverName(str, Enum):
@@ -150,11 +157,19 @@ class NoiseConfig:
 
 @dataclass
 class DeformationConfig:
-    """LDDMM flow with N time steps (t_i = i / N), group action and derivative scheme (``LDDMMDeformation``)."""
+    """LDDMM flow with N time steps (t_i = i / N), group action and derivative scheme (``LDDMMDeformation``).
+    ``model=metamorphosis`` (``deformation=metamorphosis``): the image path also changes intensities
+    (``MetamorphosisDeformation``, geometric action, backward ``adjoint`` or ``autograd``); ``tau`` weighs the
+    source term's penalty; ``source_sigma`` (null: the paper's L2 source) the width of an RKHS for the source;
+    ``source_mask=template`` confines the intensity changes to the template's support."""
     num_steps: int = 20
     action: Action = Action.geometric
     backward: Backward = Backward.paper
     interpolation: Interpolation = Interpolation.reinterpolate
+    model: Model = Model.lddmm
+    tau: float = 1.0
+    source_sigma: Optional[float] = None
+    source_mask: Optional[str] = None
 
 
 @dataclass
@@ -179,6 +194,9 @@ class SolverConfig:
     max_halvings: int = 20
     optimizer: Optimizer = Optimizer.lbfgs
     optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
+    source_step_size: Optional[float] = None  # metamorphosis, algorithm1: null = 1 / (tau + ||T||^2)
+    source_lr: Optional[float] = None         # metamorphosis, torch_optim: null = lr
+    source_start: int = 0                     # metamorphosis, algorithm1: iterations with the source frozen
 
 
 @dataclass
@@ -296,6 +314,7 @@ def validate(cfg: DictConfig) -> None:
     _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
     _require(n.seed is None or 0 <= n.seed < 2 ** 32, "noise.seed", "null or an integer in [0, 2**32)", n.seed)
     _require(c.deformation.num_steps >= 1, "deformation.num_steps", "an integer >= 1", c.deformation.num_steps)
+    _validate_model(c)
     _require(_finite(c.kernel.sigma) and c.kernel.sigma > 0, "kernel.sigma", "a number > 0", c.kernel.sigma)
     s = c.solver
     _require(_finite(s.gamma) and s.gamma >= 0, "solver.gamma", "a number >= 0", s.gamma)
@@ -317,6 +336,25 @@ def validate(cfg: DictConfig) -> None:
     lg = c.logging
     _require(lg.every >= 1, "logging.every", "an integer >= 1", lg.every)
     _require(lg.checkpoint_every >= 1, "logging.checkpoint_every", "an integer >= 1", lg.checkpoint_every)
+
+
+def _validate_model(c: DictConfig) -> None:
+    """``deformation.model`` and the keys whose valid values depend on it."""
+    d, s = c.deformation, c.solver
+    backwards = _metamorphosis.BACKWARDS if d.model.value == "metamorphosis" else _lddmm.BACKWARDS
+    _require(d.backward.value in backwards, "deformation.backward",
+             f"one of {', '.join(backwards)} for deformation.model={d.model.value}", d.backward.value)
+    if d.model.value == "metamorphosis":
+        _require(d.action.value == "geometric", "deformation.action", "geometric for deformation.model=metamorphosis",
+                 d.action.value)
+    _require(_finite(d.tau) and d.tau >= 0, "deformation.tau", "a number >= 0", d.tau)
+    _require(d.source_mask in (None, "template"), "deformation.source_mask", "null or template", d.source_mask)
+    _require(d.source_sigma is None or (_finite(d.source_sigma) and d.source_sigma > 0), "deformation.source_sigma",
+             "null or a number > 0", d.source_sigma)
+    for key in ("source_step_size", "source_lr"):
+        v = s[key]
+        _require(v is None or (_finite(v) and v > 0), f"solver.{key}", "null or a number > 0", v)
+    _require(s.source_start >= 0, "solver.source_start", "an integer >= 0", s.source_start)
 
 
 def _validate_data(c: DictConfig) -> None:

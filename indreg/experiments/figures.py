@@ -85,5 +85,25 @@ def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"
     return fig
 
 
+def metamorphosis_figure(final, deformation_part, intensity_part, target=None, extent=None, title: str = ""):
+    """Metamorphosis: f(1), its pure-deformation part W(nu, I), its intensity part f(1) - W(nu, I) (own symmetric
+    grey scale, 0 = mid grey) and the target; f(1), W(nu, I) and the target share the target's grey scale."""
+    scale = final if target is None else target
+    vmin, vmax = float(np.min(scale)), float(np.max(scale))
+    bound = max(float(np.max(np.abs(intensity_part))), 1e-12)
+    fig = Figure(figsize=(14, 3.9), layout="constrained")
+    axes = fig.subplots(1, 4)
+    show_image(axes[0], final, "$f(1)$", vmin, vmax, extent)
+    show_image(axes[1], deformation_part, r"$W(\nu, I)$ (deformation part)", vmin, vmax, extent)
+    show_image(axes[2], intensity_part, rf"$f(1) - W(\nu, I)$ ($\pm${bound:.3g})", -bound, bound, extent)
+    if target is None:
+        axes[3].set_axis_off()
+    else:
+        show_image(axes[3], target, "Target", vmin, vmax, extent)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
 def save(fig, path, dpi: int = 100) -> None:
     fig.savefig(path, dpi=dpi)

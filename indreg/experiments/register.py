@@ -48,7 +48,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from ..api import RegistrationLoop, count_warnings, relative_residual
+from ..api import (RegistrationLoop, count_warnings, evaluate, final_image, image_trajectory, initial_state,
+                   is_metamorphosis, relative_residual)
 from ..io import DataFileError
 from . import checkpoint as ckpt
 from .build import build, seed_everything
@@ -140,7 +141,8 @@ def _problem_config(plain: dict) -> dict:
 def hyperparameters(cfg: DictConfig, exp) -> dict:
     """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
     return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
-            "N": int(cfg.deformation.num_steps),
+            "N": int(cfg.deformation.num_steps), "model": cfg.deformation.model.value,
+            "tau": float(cfg.deformation.tau) if cfg.deformation.model.value == "metamorphosis" else 0.0,
             "step_size": float(cfg.solver.step_size if cfg.solver.name.value == "algorithm1" else cfg.solver.lr),
             "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
             "template": exp.label, "size": int(exp.domain.shape[0]),
@@ -179,7 +181,7 @@ class AppLoop(RegistrationLoop):
         self.writer.scalars(info, it)
         self._fom = ""
         if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
-            deformed = self.problem.deformed(self.state.momentum)
+            deformed = final_image(self.problem, self.state)
             if exp.target_64 is not None:
                 fom = figures_of_merit(deformed, exp.target_64)
                 self.writer.metrics(fom, it)
@@ -210,7 +212,6 @@ def run(cfg: DictConfig, output_dir) -> dict:
     final outputs. A bad config value, a bad data file, a bad run directory or a damaged / foreign / mismatched
     checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
     """
-    from ..solvers import SolverState
     from .tblog import RunWriter
 
     validate(cfg)
@@ -230,13 +231,17 @@ def run(cfg: DictConfig, output_dir) -> dict:
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
     rec = baselines(cfg, exp, out)
 
-    state = SolverState(momentum=problem.zero_momentum(), iteration=0)
+    state = initial_state(problem)
     history, seconds = [], 0.0
     if saved is not None:
         with ckpt.restoring(path):
             state.load_state_dict(saved["state"])
             state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
-            problem.check_momentum(state.momentum)
+            if is_metamorphosis(problem):
+                state.source = state.source.to(device=exp.template.device, dtype=exp.template.dtype)
+                problem.check(state.momentum, state.source)
+            else:
+                problem.check_momentum(state.momentum)
             exp.solver.load_state_dict(saved["solver"])
             ckpt.set_rng_state(saved["rng"])
             history, seconds = list(saved["history"]), float(saved["seconds"])
@@ -316,12 +321,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, m, it = exp.problem, state.momentum, state.iteration
-    final = problem.deformed(m)
-    trajectory = problem.trajectory(m)
+    final = final_image(problem, state)
+    trajectory = image_trajectory(problem, state)
     with torch.no_grad():
         velocity = problem.velocity(m)
         phi = problem.deformation.deformation(velocity)
-    terms = problem.evaluate(m)
+    terms = evaluate(problem, state)
     target = exp.target_64
     result = {}
     if target is not None:
@@ -346,6 +351,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         arrays["target"] = target
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
+    parts = None
+    if is_metamorphosis(problem):
+        parts = problem.parts(m, state.source)
+        arrays.update(source=state.source, deformation_part=parts[0], intensity_part=parts[1])
+        if target is not None:
+            result.update({f"deformation_part_{k}": v for k, v in figures_of_merit(parts[0], target).items()})
     for name, a in arrays.items():
         np.save(out / f"{name}.npy", _numpy(a))
     with open(out / "history.json", "w") as f:
@@ -366,10 +377,17 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
                                    title=f"{cfg.name}: {quality}",
                                    angle_deg=float(exp.geometry.angles[0]) * 180 / math.pi)
         figures.save(fig, out / "figure.png")
+        if parts is not None:
+            figures.save(_parts_figure(exp, final, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
     n = traj.shape[0] - 1
     writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
     writer.image("images/deformed_template", final, it)
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(_numpy(phi)), it)
+    if parts is not None:
+        writer.image("images/deformation_part", parts[0], it)
+        bound = max(float(parts[1].abs().max()), 1e-12)
+        writer.image_scaled("images/intensity_part", parts[1], it, -bound, bound)
+        writer.figure("images/metamorphosis_parts", _parts_figure(exp, final, parts), it)
     writer.metrics(result, it)
     writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
     if target is not None:
@@ -380,6 +398,15 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
                  it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
     return result
+
+
+def _parts_figure(exp, final, parts, title: str = ""):
+    """``figures.metamorphosis_figure`` of a run: f(1), W(nu, I), f(1) - W(nu, I), target."""
+    from . import figures
+
+    return figures.metamorphosis_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]),
+                                        None if exp.target_64 is None else exp.target_64.numpy(),
+                                        extent=domain_extent(exp.domain), title=title)
 
 
 def domain_extent(domain) -> tuple:

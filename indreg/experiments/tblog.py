@@ -3,10 +3,13 @@
 Tags::
 
     scalars  loss/objective, loss/data_fit, loss/regulariser, optim/grad_norm, optim/step_size,
-             deformation/min_jacobian (every iteration); metrics/ssim, metrics/psnr, metrics/ssim_paper,
+             deformation/min_jacobian (every iteration; metamorphosis adds loss/source_regulariser,
+             optim/source_grad_norm, optim/source_step_size); metrics/ssim, metrics/psnr, metrics/ssim_paper,
              metrics/psnr_paper (every k iterations and at the end)
     images   images/deformed_template (every k), images/trajectory (t_i strip), images/template,
-             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0})
+             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}); metamorphosis:
+             images/deformed_template is f(1), plus images/deformation_part (W(nu, I)) and
+             images/intensity_part (f(1) - W(nu, I), its own grey scale) at the end
     hparams  gamma, sigma, N, step_size, action, solver, phantom -> hparam/ssim, hparam/psnr, ... (HParams tab)
 
 View: ``tensorboard --logdir outputs`` (or a multirun dir to compare a sweep).
@@ -20,7 +23,9 @@ from torch.utils.tensorboard.summary import hparams
 
 SCALARS = {"objective": "loss/objective", "data_fit": "loss/data_fit", "regulariser": "loss/regulariser",
            "grad_norm": "optim/grad_norm", "step_size": "optim/step_size",
-           "min_jacobian": "deformation/min_jacobian", "grid": "optim/grid"}   # grid: solver=fast's level
+           "min_jacobian": "deformation/min_jacobian", "source_regulariser": "loss/source_regulariser",
+           "source_grad_norm": "optim/source_grad_norm", "source_step_size": "optim/source_step_size",
+           "grid": "optim/grid"}   # grid: solver=fast's level
 METRICS = ("ssim", "psnr", "ssim_paper", "psnr_paper")
 
 
@@ -56,6 +61,11 @@ class RunWriter:
     def image(self, tag: str, image, step: int) -> None:
         if self.enabled:
             self.writer.add_image(tag, to_display(image, self.vmin, self.vmax), step, dataformats="CHW")
+
+    def image_scaled(self, tag: str, image, step: int, vmin: float, vmax: float) -> None:
+        """An image on its own grey scale ``[vmin, vmax]`` (e.g. a signed intensity change)."""
+        if self.enabled:
+            self.writer.add_image(tag, to_display(image, vmin, vmax), step, dataformats="CHW")
 
     def strip(self, tag: str, images, step: int) -> None:
         """Images side by side (e.g. W(nu, I)(t_i) at t = 0, 0.25, ..., 1) with a 2-pixel white gap."""

@@ -144,7 +144,7 @@ class MultilevelSolver(IterativeSolver):
     def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 20),
                  max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 5e-4, window: int = 5,
                  inner: str = "algorithm1", step_size: float = 0.08, step_halving: bool = True,
-                 max_halvings: int = 10, backward: str = "autograd", history_size: int = 10, min_size: int = 16,
+                 max_halvings: int = 10, backward: str = "exact", history_size: int = 10, min_size: int = 16,
                  jacobian_every: int = 1):
         if not isinstance(problem, IndirectRegistration):
             raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
@@ -207,9 +207,7 @@ class MultilevelSolver(IterativeSolver):
             return Algorithm1(p, step_size=self.step_size, max_iter=self.max_iter, step_halving=self.step_halving,
                               max_halvings=self.max_halvings, jacobian_every=self.jacobian_every)
         p = coarse_problem(self.problem, shape, n, self.backward)
-        # TorchOptimSolver's backward="paper" keeps the level problem's deformation (built with self.backward)
-        return TorchOptimSolver(p, "lbfgs", max_iter=self.max_iter,
-                                backward="autograd" if self.backward == "autograd" else "paper",
+        return TorchOptimSolver(p, "lbfgs", max_iter=self.max_iter, backward=self.backward,
                                 jacobian_every=self.jacobian_every, history_size=self.history_size)
 
     def _to_level(self, m: torch.Tensor, level: int) -> torch.Tensor:

@@ -177,3 +177,23 @@ def test_jacobian_every_skips_the_jacobian(problem):
     infos = _run(Algorithm1(problem, step_size=0.02, jacobian_every=2), state, 2)
     assert math.isnan(infos[0]["min_jacobian"]) and infos[1]["min_jacobian"] > 0
     assert infos[0]["warning"] == ""
+
+
+@pytest.mark.parametrize("backward", ["exact", "autograd", "paper"])
+def test_torch_optim_backward_rebuilds_the_deformation(problem, backward):
+    # default "exact": the line search sees the exact gradient of the discrete map at the paper's cost
+    solver = TorchOptimSolver(problem, "lbfgs", max_iter=1, backward=backward)
+    assert solver.problem.deformation.backward == backward
+    assert TorchOptimSolver(problem, "lbfgs", max_iter=1).problem.deformation.backward == "exact"
+
+
+def test_torch_optim_exact_and_autograd_take_the_same_steps(problem):
+    states = []
+    for backward in ("exact", "autograd"):
+        solver = TorchOptimSolver(problem, "lbfgs", max_iter=3, backward=backward)
+        states.append(SolverState(problem.zero_momentum()))
+        solver.run(states[-1])
+    assert states[0].iteration == 3
+    assert torch.allclose(states[0].momentum, states[1].momentum, rtol=1e-8, atol=1e-12)
+    with pytest.raises(ValueError, match="backward must be one of"):
+        TorchOptimSolver(problem, "lbfgs", backward="adjoint")

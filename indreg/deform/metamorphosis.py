@@ -1,0 +1,349 @@
+"""Metamorphosis: the image path of eq:FlowEq:Intensity / eq:DirectMatchingMetamorphosisPDE, with its exact gradient.
+
+Metamorphosis lets the flow of ``nu`` also change intensities: the image path ``f(t)`` solves
+
+    d/dt f(t, x) + <grad f(t, x), nu(t, x)> = zeta(t, x),   f(0) = I          (eq:DirectMatchingMetamorphosisPDE)
+
+whose solution is the template transported by the flow plus the source accumulated along the flow,
+
+    f(1) = I o phi_{1,0} + int_0^1 zeta(t) o phi_{1,t} dt                       (eq:FlowEq:Intensity, eq:Metam:ODE)
+
+(``phi_{1,t}`` carries a point at time 1 back to where it was at time ``t``; ``nu = 0`` gives
+``f(1) = I + int zeta``, ``zeta = 0`` gives LDDMM's geometric action ``W(nu, I) = I o phi_{1,0}``).
+
+Discretisation (``t_i = i / N``, the small steps ``b_i = Id - nu(t_i)/N`` of eq:ODEflow1b):
+
+    f_0 = I,   f_i = f_{i-1} o b_i + (1/N) zeta_i,   i = 1..N                   ("reinterpolate")
+
+i.e. ``f_N = I o b_1 o .. o b_N + (1/N) sum_{i=1..N} zeta_i o b_{i+1} o .. o b_N``: a right Riemann sum of
+the source, each ``zeta_i`` transported from its time ``t_i`` to 1 (``zeta_0`` and ``nu(t_0)`` do not enter).
+``"compose"`` splits ``f_N = P + S_N``: the template part ``P = I o (Id + u_N)`` with the composed
+displacement ``u_N = phi_{1,0} - Id`` of ``functional.displacements_t0`` (LDDMM's compose mode, no
+accumulated blur), the source part by the recursion ``S_0 = 0``, ``S_i = S_{i-1} o b_i + (1/N) zeta_i``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
+
+from .._checks import check_int, check_same, check_tensor
+from ..domain import ImageDomain
+from . import functional as Fd
+from .lddmm import LDDMMDeformation
+
+BACKWARDS = ("adjoint", "autograd")
+_PADDING = {"zeros": 0, "border": 1}
+
+
+@dataclass(frozen=True)
+class _Config:
+    domain: ImageDomain
+    interpolation: str
+
+
+# ----------------------------------------------------------------------------------------------------------
+# forward recursions
+def _transport(start: torch.Tensor, source: torch.Tensor, steps: "Fd._Steps", n: int, out: list | None = None):
+    """``x_i = x_{i-1} o b_i + (1/N) zeta_i`` from ``x_0 = start``; returns ``x_N`` (and appends ``x_0..x_{N-1}``
+    to ``out``). Differentiable by autograd when ``steps`` records."""
+    x, zeta = start, source.unbind(-3)
+    for i in range(1, n + 1):
+        if out is not None:
+            out.append(x)
+        x = torch.add(steps.move(x.unsqueeze(-3), i, "zeros").squeeze(-3), zeta[i], alpha=1.0 / n)
+    return x
+
+
+def metamorphosis_trajectory(template: torch.Tensor, velocity: torch.Tensor, source: torch.Tensor,
+                             domain: ImageDomain, interpolation: str = "reinterpolate",
+                             moving: list | None = None) -> torch.Tensor:
+    """``f_i`` for ``i = 0..N``, ``(..., N+1, nx, ny)``, for inputs whose batch dims already agree.
+
+    ``"reinterpolate"``: the recursion ``f_i = f_{i-1} o b_i + zeta_i / N``; ``"compose"``: ``f_i = I o (Id + u_i)
+    + S_i`` (module docstring). Differentiable by plain autograd.
+    """
+    Fd._check_interpolation(interpolation)
+    n = velocity.shape[-4] - 1
+    steps = Fd._Steps(velocity, domain, -1.0, moving)
+    frames = []
+    if interpolation == "reinterpolate":
+        frames.append(_transport(template, source, steps, n, frames))
+        return torch.stack(frames, dim=-3)
+    accumulated = []
+    accumulated.append(_transport(torch.zeros_like(template), source, steps, n, accumulated))
+    return Fd.template_trajectory(template, velocity, domain, "compose", moving) + torch.stack(accumulated, dim=-3)
+
+
+def _forward_record(template, velocity, source, config, moving) -> tuple:
+    """``f_N`` and what the backward reads: the transported images ``x_0..x_{N-1}`` and, for ``"compose"``,
+    the displacements ``u_0..u_N`` (grid units). No autograd."""
+    n = velocity.shape[-4] - 1
+    steps = Fd._Steps(velocity, config.domain, -1.0, moving)
+    frames = []
+    if config.interpolation == "reinterpolate":
+        return _transport(template, source, steps, n, frames), torch.stack(frames, dim=-3), None
+    displacements = Fd.displacements_t0(velocity, config.domain)
+    part = Fd._sample_displaced(template.unsqueeze(-3), displacements[..., -1, :, :, :], config.domain,
+                                "zeros").squeeze(-3)
+    accumulated = _transport(torch.zeros_like(template), source, steps, n, frames)
+    return part + accumulated, torch.stack(frames, dim=-3), displacements
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the adjoint recursion (backward)
+def _sample_vjp(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> tuple:
+    """Exact vector-Jacobian product of ``functional.sample(f, grid)``, ``f (..., C, nx, ny)``, ``grid (..., nx, ny,
+    2)``: ``(A^T grad, d<grad, f o grid>/d grid)``, the bilinear scatter and the cell slopes of ``f`` at the points
+    times ``grad`` (``grid_sample``'s own backward), the grid derivative returned planar ``(..., 2, nx, ny)`` in
+    grid units with component 0 = x."""
+    batch, (c, nx, ny) = f.shape[:-3], f.shape[-3:]
+    grad_f, grad_grid = torch.ops.aten.grid_sampler_2d_backward(
+        grad.reshape(-1, c, nx, ny).contiguous(), f.reshape(-1, c, nx, ny).contiguous(),
+        grid.reshape(-1, nx, ny, 2).contiguous(), 0, _PADDING[padding_mode], False, [True, True])
+    return grad_f.reshape(*batch, c, nx, ny), grad_grid.reshape(*batch, nx, ny, 2).movedim(-1, -3).flip(-3)
+
+
+def _node_slopes(grad: torch.Tensor, f: torch.Tensor, padding_mode: str) -> torch.Tensor:
+    """``_sample_vjp``'s grid derivative at the identity grid (a step with ``nu_i = 0``), where bilinear
+    interpolation has a kink at every node: the mean of the two one-sided slopes, i.e. central differences of
+    ``f (..., C, nx, ny)`` continued by ``padding_mode``, times ``grad``, summed over channels, in grid units."""
+    shape = f.shape
+    p = F.pad(f.reshape(-1, *shape[-3:]), (1, 1, 1, 1), mode="constant" if padding_mode == "zeros" else "replicate")
+    p = p.reshape(*shape[:-2], shape[-2] + 2, shape[-1] + 2)
+    nx, ny = shape[-2:]
+    dx = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * (0.25 * nx)  # d/d(grid x) = (extent / 2) d/dx, h = extent / nx
+    dy = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * (0.25 * ny)
+    return torch.stack(((grad * dx).sum(-3), (grad * dy).sum(-3)), dim=-3)
+
+
+def _step_vjp(grad, f, steps, i, padding_mode) -> tuple:
+    """VJP of ``f o b_i`` (``f (..., C, nx, ny)``): ``(A_i^T grad, d/dw_i)`` with ``w_i = -nu(t_i)/N`` in grid units."""
+    if steps.moves(i):
+        return _sample_vjp(grad, f, steps.grid(i), padding_mode)
+    return grad, _node_slopes(grad, f, padding_mode)
+
+
+def _grid_to_velocity(grad_w: torch.Tensor, domain: ImageDomain, n: int) -> torch.Tensor:
+    """``dL/dnu_i`` from ``dL/dw_i``, ``w_i = -(nu_i / N) (2 / extent)`` (grid units), ``(..., 2, nx, ny)``."""
+    return grad_w * Fd._grid_units(domain, grad_w.dtype, grad_w.device) * (-1.0 / n)
+
+
+def adjoint_gradient(grad_out, template, velocity, source, frames, displacements, domain, moving) -> tuple:
+    """``(dL/dnu, dL/dzeta, dL/dI)`` (torch entries) from ``G = dL/df_N`` by the adjoint recursion
+    (equations in ``MetamorphosisDeformation``'s docstring). ``frames``: ``x_0..x_{N-1}`` of the transport
+    recursion, ``(..., N, nx, ny)``; ``displacements``: ``u_0..u_N`` (``"compose"``) or None. No autograd."""
+    n = velocity.shape[-4] - 1
+    steps = Fd._Steps(velocity, domain, -1.0, moving)
+    grad_w, grad_z = torch.zeros_like(velocity), torch.zeros_like(source)
+    lam, x = grad_out.unsqueeze(-3), frames.unbind(-3)
+    for i in range(n, 0, -1):  # lambda_{i-1} = A_i^T lambda_i; dL/dzeta_i = lambda_i / N
+        torch.div(lam.squeeze(-3), n, out=grad_z[..., i, :, :])
+        lam, grad_w[..., i, :, :, :] = _step_vjp(lam, x[i - 1].unsqueeze(-3), steps, i, "zeros")
+    grad_i = lam.squeeze(-3)
+    if displacements is not None:
+        grad_i = _template_part_adjoint(grad_out, template, displacements, grad_w, steps, domain)
+    return _grid_to_velocity(grad_w, domain, n), grad_z, grad_i
+
+
+def _template_part_adjoint(grad_out, template, displacements, grad_w, steps, domain) -> torch.Tensor:
+    """Adds the template part ``P = I o (Id + u_N)`` of ``"compose"`` to ``grad_w`` (in place); returns ``dL/dI``.
+
+    ``dL/du_N = G (D I)(Id + u_N)``, then the displacement recursion ``u_i = u_{i-1} o (Id + w_i) + w_i``
+    backwards: ``dL/dw_i += ubar_i + (D u_{i-1})(Id + w_i)^T ubar_i``, ``ubar_{i-1} = A_i^T ubar_i`` (border
+    padding, as the forward)."""
+    u = displacements.unbind(-4)
+    g, image = grad_out.unsqueeze(-3), template.unsqueeze(-3)
+    if bool(u[-1].ne(0).any()):
+        grad_i, ubar = _sample_vjp(g, image, Fd.displaced_grid(u[-1], domain), "zeros")
+    else:  # P = I exactly (functional._sample_displaced skips the identity)
+        grad_i, ubar = g, _node_slopes(g, image, "zeros")
+    for i in range(len(u) - 1, 0, -1):
+        grad_w[..., i, :, :, :] += ubar
+        ubar, slopes = _step_vjp(ubar, u[i - 1], steps, i, "border")
+        grad_w[..., i, :, :, :] += slopes
+    return grad_i.squeeze(-3)
+
+
+class _MetamorphosisFunction(torch.autograd.Function):
+    """``f_N(nu, zeta, I)`` with the adjoint recursion as backward (no graph of the time loop is kept).
+
+    The forward keeps its record on ``ctx``: the transported images ``x_0..x_{N-1}`` and, for ``"compose"``,
+    the displacements ``u_0..u_N`` (``O(N n^2)``: half a velocity field, 1.5 for ``"compose"``); it is dropped
+    once the backward has used it (a second backward through a retained graph recomputes it). Double backward
+    is not supported (``once_differentiable``): use ``backward="autograd"``.
+    """
+
+    @staticmethod
+    def forward(velocity, source, template, config, moving):
+        f1, frames, displacements = _forward_record(template, velocity, source, config, moving)
+        return f1, frames, (frames.new_empty(0) if displacements is None else displacements)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        velocity, source, template, config, moving = inputs
+        ctx.mark_non_differentiable(output[1], output[2])
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(velocity, source, template)
+        ctx.config, ctx.moving = config, moving
+        ctx.record = (output[1], output[2] if config.interpolation == "compose" else None)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out, _grad_frames, _grad_displacements):
+        if grad_out is None:
+            return None, None, None, None, None
+        velocity, source, template = ctx.saved_tensors
+        c = ctx.config
+        record = ctx.record or _forward_record(template, velocity, source, c, ctx.moving)[1:]
+        ctx.record = None
+        grad_v, grad_z, grad_i = adjoint_gradient(grad_out, template, velocity, source, *record, c.domain,
+                                                  ctx.moving)
+        needs = ctx.needs_input_grad
+        return (grad_v if needs[0] else None, grad_z if needs[1] else None, grad_i if needs[2] else None,
+                None, None)
+
+
+class MetamorphosisDeformation(torch.nn.Module):
+    """The metamorphosis image path ``f(1) = M(nu, zeta, I)`` on the time grid ``t_i = i / N`` (eq:FlowEq:Intensity).
+
+    ``f(1)`` solves ``d/dt f + <grad f, nu> = zeta``, ``f(0) = I`` (eq:DirectMatchingMetamorphosisPDE): the
+    template transported by the flow of ``nu`` plus the source ``zeta`` accumulated along it (module docstring
+    for the discretisation). ``zeta = 0`` is LDDMM's geometric action ``W(nu, I)`` (``LDDMMDeformation``, the
+    same recursion in both interpolation modes); ``nu = 0`` is ``I + (1/N) sum_{i=1..N} zeta_i``.
+
+    - ``interpolation="reinterpolate"``: ``f_i = f_{i-1} o b_i + (1/N) zeta_i`` (re-interpolate every step, as
+      Algorithm 1); ``"compose"``: template part ``I o (Id + u_N)`` interpolated once (LDDMM's compose mode),
+      source part re-interpolated.
+    - ``backward="adjoint"``: a custom autograd Function whose backward is the adjoint recursion below (exact
+      derivative of the discrete map, no graph of the time loop; memory ``O(N n^2)``); ``"autograd"``: plain
+      autograd through the discrete forward (keeps the graph; for checks and double backward).
+
+    Gradient (``G = dL/df_N`` in torch entries; ``A_i`` = bilinear interpolation at the points ``b_i(x) =
+    x - nu_i(x)/N``, ``A_i^T`` its scatter with the same weights; ``D x`` = the slope of the bilinear interpolant
+    of ``x`` in the cell the point falls in). Reinterpolate, with ``f_{i-1}`` the path:
+
+        lambda_N = G,   lambda_{i-1} = A_i^T lambda_i                                     (i = N..1)
+        dL/dzeta_i = (1/N) lambda_i,   dL/dnu_i = -(1/N) lambda_i (D f_{i-1})(b_i),   dL/dI = lambda_0,
+
+    and ``dL/dzeta_0 = dL/dnu_0 = 0``. Compose: the same for the source part (``S_{i-1}`` in place of
+    ``f_{i-1}``), plus the template part ``P = I o (Id + u_N)``, ``u_i = u_{i-1} o b_i - nu_i/N``:
+
+        ubar_N = G (D I)(Id + u_N),   ubar_{i-1} = A_i^T ubar_i  (border padding),
+        dL/dnu_i += -(1/N) (ubar_i + (D u_{i-1})(b_i)^T ubar_i),   dL/dI = A_{u_N}^T G.
+
+    ``lambda_i`` is the discrete ``|D phi_{t_i,1}| (G o phi_{t_i,1})`` (``A^T`` is the discrete mass-preserving
+    action), so these discretise the continuous L2 gradients (times the weight ``cell_volume / N``)
+    ``d/dzeta(t) = |D phi_{t,1}| (G o phi_{t,1})`` and ``d/dnu(t) = -|D phi_{t,1}| (G o phi_{t,1}) grad f(t)``:
+    eq:GradGoalFunctionalVRHKS with the path ``f(t)`` in place of ``I o phi_{t,0}``, plus the source gradient.
+    At a step with ``nu_i = 0`` everywhere the forward skips the interpolation (exact identity), where the
+    interpolant has a kink at every node: the backward then takes the mean of the one-sided slopes (central
+    differences, zero / border continuation), so the gradient at ``nu = 0`` is the paper's central-difference
+    one. Elsewhere it is the derivative autograd computes through the discrete map, to rounding
+    (tests/deform/test_metamorphosis.py::test_adjoint_equals_autograd).
+
+    Gradient scale: ``dL/dzeta_i = (cell_volume / N) * (its L2([0,1], L2) gradient)``, as ``dL/dnu_i``
+    (``LDDMMDeformation``, "Gradient scale").
+
+    Convention:
+        ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, physical units per unit time), ``source (..., N+1,
+        nx, ny)`` (image units per unit time), ``template (..., nx, ny)``; batch dims broadcast (gradients are
+        summed back to each input's shape); output ``(..., nx, ny)``. float32 / float64, any device (the
+        inputs'). Images and sources are 0 outside the domain.
+
+    Example:
+        >>> M = MetamorphosisDeformation(ImageDomain.paper(64), num_steps=20)
+        >>> f1 = M(M.zero_velocity(), M.zero_source(), template)     # == template
+    """
+
+    def __init__(self, domain: ImageDomain, num_steps: int = 20, backward: str = "adjoint",
+                 interpolation: str = "reinterpolate"):
+        super().__init__()
+        if not isinstance(domain, ImageDomain):
+            raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+        for name, value, allowed in (("backward", backward, BACKWARDS),
+                                     ("interpolation", interpolation, Fd.INTERPOLATIONS)):
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+        self.domain, self.num_steps = domain, check_int(num_steps, "num_steps", 1)
+        self.backward, self.interpolation, self.action = backward, interpolation, "geometric"
+        self._config = _Config(domain, interpolation)
+        self.lddmm = LDDMMDeformation(domain, self.num_steps, "geometric", "paper", interpolation)
+
+    def extra_repr(self) -> str:
+        return (f"shape={self.domain.shape}, num_steps={self.num_steps}, backward={self.backward!r}, "
+                f"interpolation={self.interpolation!r}")
+
+    def velocity_shape(self, *batch) -> tuple:
+        """Shape ``(*batch, N+1, 2, nx, ny)`` of a velocity field."""
+        return (*batch, self.num_steps + 1, 2, *self.domain.shape)
+
+    def source_shape(self, *batch) -> tuple:
+        """Shape ``(*batch, N+1, nx, ny)`` of a source term."""
+        return (*batch, self.num_steps + 1, *self.domain.shape)
+
+    def zero_velocity(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
+        """The zero velocity field ``(*batch, N+1, 2, nx, ny)``."""
+        return torch.zeros(self.velocity_shape(*batch), dtype=dtype, device=device)
+
+    def zero_source(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
+        """The zero source ``(*batch, N+1, nx, ny)``."""
+        return torch.zeros(self.source_shape(*batch), dtype=dtype, device=device)
+
+    def _check(self, velocity, source, template) -> tuple:
+        """Validates the inputs (before any work); returns the step flags and the common batch shape."""
+        moving = self.lddmm._check(velocity, template)
+        if isinstance(source, torch.Tensor) and source.dim() >= 3 and source.shape[-3] != self.num_steps + 1:
+            raise ValueError(f"source must have num_steps + 1 = {self.num_steps + 1} time points on axis -3 "
+                             f"(shape (..., N+1, nx, ny)), got shape {tuple(source.shape)}")
+        check_tensor(source, "source", (self.num_steps + 1, *self.domain.shape))
+        check_same(velocity, source, "velocity", "source")
+        try:
+            batch = torch.broadcast_shapes(velocity.shape[:-4], source.shape[:-3], template.shape[:-2])
+        except RuntimeError:
+            raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-4])}, source "
+                             f"{tuple(source.shape[:-3])} and template {tuple(template.shape[:-2])} "
+                             f"do not broadcast") from None
+        return moving, batch
+
+    @staticmethod
+    def _expand(velocity, source, template, batch) -> tuple:
+        return (velocity.expand(*batch, *velocity.shape[-4:]), source.expand(*batch, *source.shape[-3:]),
+                template.expand(*batch, *template.shape[-2:]))
+
+    def forward(self, velocity: torch.Tensor, source: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
+        """``f(1)``, ``(..., nx, ny)``."""
+        moving, batch = self._check(velocity, source, template)
+        v, z, t = self._expand(velocity, source, template, batch)
+        recording = torch.is_grad_enabled() and any(x.requires_grad for x in (velocity, source, template))
+        if recording and self.backward == "adjoint":
+            return _MetamorphosisFunction.apply(v, z, t, self._config, moving)[0]
+        if recording:
+            return metamorphosis_trajectory(t, v, z, self.domain, self.interpolation, moving)[..., -1, :, :]
+        with torch.no_grad():
+            return _forward_record(t, v, z, self._config, moving)[0]
+
+    def trajectory(self, velocity: torch.Tensor, source: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
+        """``f(t_i)`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (differentiable by plain autograd)."""
+        moving, batch = self._check(velocity, source, template)
+        v, z, t = self._expand(velocity, source, template, batch)
+        return metamorphosis_trajectory(t, v, z, self.domain, self.interpolation, moving)
+
+    def parts(self, velocity: torch.Tensor, source: torch.Tensor, template: torch.Tensor) -> tuple:
+        """``(W(nu, I), f(1) - W(nu, I))``: the pure deformation of the template (LDDMM's geometric action) and
+        the intensity part, the source accumulated along the flow (``S_N``; the map is linear in
+        ``(I, zeta)``). No autograd graph is recorded."""
+        with torch.no_grad():
+            f1 = self.forward(velocity, source, template)
+            deformed = self.lddmm(velocity, template)
+        return deformed, f1 - deformed
+
+    def deformation(self, velocity: torch.Tensor) -> torch.Tensor:
+        """``phi_{1,0}`` as physical points ``(..., 2, nx, ny)`` (``LDDMMDeformation.deformation``)."""
+        return self.lddmm.deformation(velocity)
+
+    def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
+        """Minimum of ``det D phi_{1,0}`` (``LDDMMDeformation.min_jacobian``): the flow folds when ``<= 0``."""
+        return self.lddmm.min_jacobian(velocity)

@@ -1,0 +1,219 @@
+"""Metamorphosis vs LDDMM: quality on suite 4 (missing ventricle) and on a template with wrong grey values, and
+cost per iteration / memory at 256^2, N = 20.
+
+    python scripts/bench_metamorphosis.py quality --case missing --iters 300 --taus 0.1 1 10
+    python scripts/bench_metamorphosis.py quality --case contrast --iters 300 --taus 1
+    python scripts/bench_metamorphosis.py cost --size 256 --steps 20 --repeat 5
+    python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR --figure tau.png
+
+``quality`` runs LDDMM (Algorithm 1, the suite's gamma / sigma / step) and metamorphosis (``MetamorphosisDescent``,
+the same gamma / sigma / velocity step, source step ``1 / (tau + ||T||^2)``) on the same noisy data (10 angles x
+362 bins, the suite's SNR, seed 0) and prints SSIM / PSNR (honest and paper convention), the error inside the
+ventricle that the template lacks, and the seconds per iteration, as one JSON line per run (``--out`` appends
+them to a file). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and backward of the
+deformation and of T) of both models, interleaved, and the peak of live tensor memory (``tracemalloc`` on
+torch's CPU allocations is not available, so the run is repeated under ``torch.profiler`` memory profiling).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import torch
+
+from indreg import ImageDomain, metrics, noise, phantoms
+from indreg.deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
+from indreg.forward import ParallelBeamGeometry, RayTransform
+from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
+                            MetamorphosisState, SolverState)
+from indreg.solvers.metamorphosis import template_support
+
+CASES = {  # template, SNR (dB, code convention) of the suite
+    "missing": ("shepp_logan_template_missing", 7.06),
+    "contrast": ("shepp_logan_template_contrast", 7.06),
+    "extra": ("shepp_logan_template_extra", 6.46),
+}
+# the ventricle the suite-4 template lacks (phantoms.shepp_logan_template_missing), in units of the half width
+VENTRICLE = (-0.25, 0.2, 0.13)
+
+
+def ventricle_mask(domain: ImageDomain) -> torch.Tensor:
+    x, y = domain.points()
+    cx, cy, r = (v * domain.max_pt[0] for v in VENTRICLE)
+    return (x - cx) ** 2 + (y - cy) ** 2 <= r ** 2
+
+
+def problem_data(case: str, size: int, dtype=torch.float64):
+    dom = ImageDomain.paper(size)
+    T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(size * 362 / 256))))
+    name, snr = CASES[case]
+    template, target = phantoms.get(name, dom).to(dtype), phantoms.get("shepp_logan", dom).to(dtype)
+    data, _ = noise.add_white_noise(T(target), snr_db=snr, seed=0)
+    return dom, T, template, target, data
+
+
+def scores(image, target, mask) -> dict:
+    image = image.detach().double()
+    return {"ssim": metrics.ssim(image, target), "psnr": metrics.psnr(image, target),
+            "ssim_paper": metrics.ssim_paper(image, target), "psnr_paper": metrics.psnr_paper(image, target),
+            "ventricle_rms": float(((image - target)[mask] ** 2).mean().sqrt())}
+
+
+def quality(args) -> list:
+    dom, T, template, target, data = problem_data(args.case, args.size)
+    K, mask, rows = GaussianKernel(dom, args.sigma), ventricle_mask(dom), []
+    if not args.no_lddmm:
+        lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, args.gamma)
+        state = SolverState(lddmm.zero_momentum())
+        t0 = time.perf_counter()
+        Algorithm1(lddmm, step_size=args.step, max_iter=args.iters).run(state)
+        rows.append({"case": args.case, "model": "lddmm", "size": args.size, "iters": args.iters,
+                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
+                     **scores(lddmm.deformed(state.momentum), target, mask)})
+        rows.append({"case": args.case, "model": "template", **scores(template, target, mask)})
+        if args.save:
+            torch.save({"lddmm": lddmm.deformed(state.momentum)}, f"{args.save}_lddmm.pt")
+    for tau in args.taus:
+        M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
+        Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
+        problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
+                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks,
+                                            source_mask=template_support(template, dom) if args.mask else None)
+        state = MetamorphosisState.zeros(problem)
+        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start,
+                                      step_halving=args.halving)
+        t0 = time.perf_counter()
+        info = solver.run(state)
+        deformed, intensity = problem.parts(state.momentum, state.source)
+        rows.append({"case": args.case, "model": "metamorphosis", "size": args.size, "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
+                     "source_start": args.source_start, "mask": args.mask,
+                     "iters": args.iters,
+                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
+                     "source_regulariser": info["source_regulariser"],
+                     **scores(deformed + intensity, target, mask),
+                     "deformation_part": scores(deformed, target, mask)["ssim"]})
+        if args.save:
+            torch.save({"deformation_part": deformed, "intensity_part": intensity, "target": target},
+                       f"{args.save}_tau{tau:g}.pt")
+    return rows
+
+
+def cost(args) -> list:
+    torch.set_num_threads(args.threads)
+    dom, T, template, target, data = problem_data("missing", args.size, torch.float32)
+    K = GaussianKernel(dom, 2.0)
+    lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, 1e-7)
+    meta = MetamorphosisRegistration(T, MetamorphosisDeformation(dom, args.steps), K, template, data, 1e-7, 1.0)
+    g = torch.Generator().manual_seed(0)
+    m = torch.randn(lddmm.momentum_shape, generator=g).float()
+    m *= dom.cell_sides[0] / float(lddmm.velocity(m).abs().max())
+    z = torch.randn(meta.source_shape, generator=g).float()
+    calls = {"lddmm": lambda: lddmm.l2_gradient(m), "metamorphosis": lambda: meta.l2_gradient(m, z)}
+    times = {k: [] for k in calls}
+    for _ in range(args.repeat):
+        for k, f in calls.items():
+            t0 = time.perf_counter()
+            f()
+            times[k].append(time.perf_counter() - t0)
+    rows = []
+    for k, f in calls.items():
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU], profile_memory=True) as prof:
+            f()
+        peak = _peak_bytes(prof)
+        rows.append({"model": k, "size": args.size, "N": args.steps, "threads": args.threads,
+                     "s_per_eval_min": min(times[k]), "s_per_eval_median": sorted(times[k])[len(times[k]) // 2],
+                     "peak_live_MB": peak / 2 ** 20})
+    return rows
+
+
+def tau_rows(source: str) -> list:
+    """Rows of a ``quality`` JSON-lines file, or of a Hydra multirun (``sweep=metamorphosis_tau``: one
+    ``metrics.json`` per job, ``deformation.tau`` from its config)."""
+    from pathlib import Path
+
+    path = Path(source)
+    if path.is_file():
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = []
+    for f in sorted(path.glob("*/metrics.json")):
+        m = json.loads(f.read_text())
+        if m.get("status") in ("completed", "converged"):
+            rows.append({"model": "metamorphosis", "tau": m["config"]["deformation"]["tau"], "ssim": m["ssim"],
+                         "psnr": m["psnr"], "deformation_part": m["deformation_part_ssim"],
+                         "source_regulariser": m["source_regulariser"]})
+    return rows
+
+
+def tau_figure(args) -> list:
+    """SSIM / PSNR of f(1) and SSIM of W(nu, I) against tau (log scale), LDDMM as a horizontal line."""
+    from matplotlib.figure import Figure
+
+    rows = tau_rows(args.source)
+    meta = sorted((r for r in rows if r["model"] == "metamorphosis"), key=lambda r: r["tau"])
+    lddmm = [r for r in rows if r["model"] == "lddmm"]
+    fig = Figure(figsize=(10, 3.6), layout="constrained")
+    axes = fig.subplots(1, 3 if meta and "ventricle_rms" in meta[0] else 2)
+    panels = [("ssim", "SSIM (honest)"), ("psnr", "PSNR (dB)"), ("ventricle_rms", "RMS error in the ventricle")]
+    for ax, (key, label) in zip(axes, panels):
+        ax.semilogx([r["tau"] for r in meta], [r[key] for r in meta], "o-", label="metamorphosis f(1)")
+        if key == "ssim":
+            ax.semilogx([r["tau"] for r in meta], [r["deformation_part"] for r in meta], "s--",
+                        label=r"its part $W(\nu, I)$")
+        for r in lddmm[:1]:
+            ax.axhline(r[key], color="k", lw=1, label="LDDMM")
+        ax.set_xlabel(r"$\tau$")
+        ax.set_title(label)
+    axes[0].legend(fontsize="small")
+    fig.savefig(args.figure, dpi=100)
+    return meta + lddmm
+
+
+def _peak_bytes(prof) -> int:
+    """Peak of the running sum of allocations minus frees over the profiled events (live tensor memory)."""
+    events = sorted((e.time_range.start, e.cpu_memory_usage) for e in prof.events() if e.cpu_memory_usage)
+    live = peak = 0
+    for _, delta in events:
+        live += delta
+        peak = max(peak, live)
+    return peak
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("mode", choices=("quality", "cost", "tau-figure"))
+    p.add_argument("source", nargs="?", help="tau-figure: a quality JSON-lines file or a multirun dir")
+    p.add_argument("--figure", default="tau_sweep.png", help="tau-figure: output image")
+    p.add_argument("--case", choices=sorted(CASES), default="missing")
+    p.add_argument("--size", type=int, default=256)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--iters", type=int, default=300)
+    p.add_argument("--gamma", type=float, default=1e-7)
+    p.add_argument("--sigma", type=float, default=2.0)
+    p.add_argument("--step", type=float, default=0.02)
+    p.add_argument("--taus", type=float, nargs="*", default=[1.0])
+    p.add_argument("--no-lddmm", action="store_true", help="metamorphosis runs only")
+    p.add_argument("--save", default=None, help="prefix of .pt files with the resulting images")
+    p.add_argument("--interpolation", default="reinterpolate")
+    p.add_argument("--source-sigma", type=float, default=0.0, help="RKHS source kernel width (0: L2 source)")
+    p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
+    p.add_argument("--tv-smoothing", type=float, default=1e-3)
+    p.add_argument("--halving", action="store_true", help="metamorphosis: step halving")
+    p.add_argument("--mask", action="store_true", help="metamorphosis: source confined to the template's support")
+    p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    rows = {"quality": quality, "cost": cost, "tau-figure": tau_figure}[args.mode](args)
+    for r in rows:
+        line = json.dumps(r)
+        print(line, flush=True)
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(line + "\n")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

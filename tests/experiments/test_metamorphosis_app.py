@@ -1,0 +1,98 @@
+"""Metamorphosis through indreg.register and the indreg-register app (tiny problems)."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+import indreg
+from indreg import noise, phantoms
+from indreg.experiments.config import ConfigError
+
+from experiment_helpers import FAST, TINY, run_app, run_cli
+
+META = ["deformation=metamorphosis", "deformation.tau=0.5"]
+F64 = FAST + META + ["dtype=float64", "device=cpu"]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    domain = indreg.ImageDomain.paper(24)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 36))
+    template, target = phantoms.get("j", domain), 1.5 * phantoms.get("v", domain)
+    data, _ = noise.add_white_noise(T(target), snr_db=20.0, seed=0)
+    return T, template, target, data
+
+
+def test_register_metamorphosis(tiny):
+    T, template, target, data = tiny
+    r = indreg.register(template, data, T, model="metamorphosis", tau=0.1, num_steps=4, max_iter=8, target=target)
+    lddmm = indreg.register(template, data, T, num_steps=4, max_iter=8, target=target)
+    assert r.source.shape == (5, 24, 24) and r.status == "completed" and r.iterations == 8
+    torch.testing.assert_close(r.deformation_part + r.intensity_part, r.deformed)
+    torch.testing.assert_close(r.trajectory[-1], r.deformed)
+    assert r.objective < r.history[0]["objective"]
+    assert all(h["source_regulariser"] >= 0 for h in r.history) and r.history[-1]["source_regulariser"] > 0
+    assert r.residual < lddmm.residual and r.ssim > lddmm.ssim  # the grey values (x 1.5) are reachable
+    assert lddmm.source is None and lddmm.intensity_part is None
+
+
+def test_register_metamorphosis_options(tiny):
+    T, template, _, data = tiny
+    r = indreg.register(template, data, T, model="metamorphosis", source_sigma=1.0, solver="adam", lr=1e-3,
+                        source_lr=1e-2, num_steps=4, max_iter=3)
+    assert r.history[-1]["objective"] < r.history[0]["objective"] * 1.01
+    with pytest.raises(ValueError, match="model must be one of"):
+        indreg.register(template, data, T, model="meta")
+    with pytest.raises(TypeError, match="source_step_size is an option of model='metamorphosis'"):
+        indreg.register(template, data, T, source_step_size=0.1)
+    with pytest.raises(ValueError, match="uses the geometric action"):
+        indreg.register(template, data, T, model="metamorphosis", action="mass_preserving")
+    with pytest.raises(ValueError, match="backward must be one of"):
+        indreg.register(template, data, T, model="metamorphosis", backward="paper")
+
+
+def test_app_resume_equals_uninterrupted(tmp_path):
+    ref = run_app(F64, tmp_path / "ref")
+    out = tmp_path / "run"
+    assert run_app(F64 + ["stop_after=5"], out)["status"] == "stopped"
+    second = run_app(F64 + ["resume=true"], out)
+    assert second["objective"] == pytest.approx(ref["objective"], rel=1e-10)
+    for name in ("final", "momentum", "source", "intensity_part"):
+        np.testing.assert_allclose(np.load(out / f"{name}.npy"), np.load(tmp_path / "ref" / f"{name}.npy"),
+                                   rtol=0, atol=1e-10, err_msg=name)
+
+
+def test_app_refuses_bad_metamorphosis_values(tmp_path):
+    with pytest.raises(ConfigError, match="deformation.tau"):
+        run_app(F64 + ["deformation.tau=-1"], tmp_path / "a")
+    with pytest.raises(ConfigError, match="deformation.backward"):
+        run_app(F64 + ["deformation.backward=paper"], tmp_path / "b")
+    with pytest.raises(ConfigError, match="deformation.action"):
+        run_app(F64 + ["deformation.action=mass_preserving"], tmp_path / "c")
+
+
+@pytest.mark.slow
+def test_cli_end_to_end(tmp_path):
+    """``indreg-register deformation=metamorphosis deformation.tau=...``: metrics, parts, figure, TensorBoard."""
+    out = tmp_path / "run"
+    proc = run_cli(TINY + META + [f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "completed" and metrics["iterations"] == 10
+    for key in ("ssim", "deformation_part_ssim", "source_regulariser", "regulariser", "objective"):
+        assert math.isfinite(metrics[key]), key
+    assert metrics["hparams"]["model"] == "metamorphosis" and metrics["hparams"]["tau"] == 0.5
+    final, parts = np.load(out / "final.npy"), [np.load(out / f"{k}.npy") for k in ("deformation_part", "intensity_part")]
+    np.testing.assert_allclose(parts[0] + parts[1], final, atol=1e-5)
+    assert np.load(out / "source.npy").shape == (6, 32, 32)
+    assert (out / "parts.png").stat().st_size > 10_000 and (out / "figure.png").is_file()
+    history = json.loads((out / "history.json").read_text())
+    assert all("source_regulariser" in h and "regulariser" in h for h in history)
+    ea = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
+    ea.Reload()
+    assert {"loss/source_regulariser", "loss/regulariser"} <= set(ea.Tags()["scalars"])
+    assert {"images/deformation_part", "images/intensity_part", "images/metamorphosis_parts"} <= \
+        set(ea.Tags()["images"])

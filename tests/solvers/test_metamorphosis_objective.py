@@ -1,0 +1,184 @@
+"""Indirect metamorphosis: objective terms, L2 gradients by finite differences, descent, torch.optim, errors."""
+import math
+
+import pytest
+import torch
+
+from indreg import ImageDomain, phantoms
+from indreg.deform import GaussianKernel, MetamorphosisDeformation
+from indreg.forward import ParallelBeamGeometry, RayTransform
+from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
+                            MetamorphosisState, MetamorphosisTorchOptim, SolverState)
+from indreg.solvers.metamorphosis import template_support
+
+
+def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,
+                 mask=False):
+    """J -> V with the target's grey values scaled and offset (an intensity change LDDMM cannot make)."""
+    dom = ImageDomain.paper(n)
+    T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(n * 92 / 64))))
+    target = 0.6 * phantoms.get("v", dom).double() + 0.3 * (phantoms.get("v", dom).double() > 0.5)
+    M = MetamorphosisDeformation(dom, num_steps, interpolation=interpolation)
+    source_kernel = None if source_sigma is None else GaussianKernel(dom, source_sigma)
+    template = phantoms.get("j", dom).double()
+    return MetamorphosisRegistration(T, M, GaussianKernel(dom, 6.0), template, T(target), gamma, tau,
+                                     source_kernel=source_kernel,
+                                     source_mask=template_support(template, dom, 2.0) if mask else None), target
+
+
+def random_point(problem, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    m = torch.randn(problem.momentum_shape, generator=g, dtype=torch.float64)
+    m *= 0.5 * problem.domain.cell_sides[0] / float(problem.velocity(m).abs().max())
+    return m, 0.3 * torch.randn(problem.source_shape, generator=g, dtype=torch.float64)
+
+
+def test_terms_at_zero_are_lddmm_terms():
+    problem, _ = make_problem()
+    terms = problem.evaluate(problem.zero_momentum(), problem.zero_source())
+    lddmm = problem.lddmm.evaluate(problem.zero_momentum())
+    assert terms["source_regulariser"] == 0 and terms["regulariser"] == 0
+    assert terms["objective"] == pytest.approx(lddmm["objective"], rel=1e-14)
+    m, z = random_point(problem)
+    terms = problem.evaluate(m, z)
+    expected = 0.5 * problem.tau * sum(float(problem.domain.norm(z[i]) ** 2) / problem.num_steps for i in range(5))
+    assert terms["source_regulariser"] == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("interpolation,source_sigma,mask", (("reinterpolate", None, False), ("compose", None, False),
+                                                             ("reinterpolate", 2.0, False),
+                                                             ("reinterpolate", None, True), ("compose", 2.0, True)))
+def test_l2_gradients_match_finite_differences(interpolation, source_sigma, mask):
+    """dE(m + e dm, s + e ds)/de = time_weight (<K h_nu, dm> + <K_s h_s, ds>) (E in m and s; nu = K m, zeta = K_s s;
+    K_s = identity for the L2 source)."""
+    problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1, mask=mask)
+    m, z = random_point(problem)
+    _, h_nu, h_zeta, _ = problem.l2_gradient(m, z)
+    dm, dz = random_point(problem, seed=1)
+    w = problem.time_weight
+    for direction in ((dm, 0 * dz), (0 * dm, dz)):
+        eps = 1e-5
+        numeric = (problem.evaluate(m + eps * direction[0], z + eps * direction[1])["objective"]
+                   - problem.evaluate(m - eps * direction[0], z - eps * direction[1])["objective"]) / (2 * eps)
+        analytic = w * float((problem.kernel.apply(h_nu) * direction[0]).sum()
+                             + (problem.unmasked_source(h_zeta) * direction[1]).sum())
+        assert numeric == pytest.approx(analytic, rel=1e-6)
+
+
+def test_descent_decreases_the_objective_and_changes_intensities():
+    problem, target = make_problem()
+    state = MetamorphosisState.zeros(problem)
+    solver = MetamorphosisDescent(problem, step_size=0.02, max_iter=15)
+    infos = []
+    info = solver.run(state, callback=lambda s, i: infos.append(i))
+    objectives = [problem.evaluate(problem.zero_momentum(), problem.zero_source())["objective"]]
+    objectives += [i["objective"] for i in infos]
+    assert info["status"] == "completed" and solver.evaluations == 16
+    assert all(b < a for a, b in zip(objectives, objectives[1:]))
+    assert info["source_regulariser"] > 0 and info["regulariser"] > 0
+    assert info["grad_norm"] == pytest.approx(math.hypot(info["velocity_grad_norm"], info["source_grad_norm"]))
+    # the source changes the grey values: LDDMM with the same velocity step size fits the data worse
+    lddmm_state = SolverState(problem.lddmm.zero_momentum())
+    lddmm = Algorithm1(problem.lddmm, step_size=0.02, max_iter=15).run(lddmm_state)
+    assert info["data_fit"] < 0.5 * lddmm["data_fit"]
+    deformed, intensity = problem.parts(state.momentum, state.source)
+    torch.testing.assert_close(deformed + intensity, problem.image(state.momentum, state.source))
+    torch.testing.assert_close(deformed, problem.lddmm.deformed(state.momentum))
+
+
+def test_large_tau_is_lddmm():
+    """tau -> infinity freezes the source: the first step is Algorithm 1's (whose paper gradient agrees with the
+    exact one at nu = 0, except at t_0, which the discrete map does not use)."""
+    problem, _ = make_problem(tau=1e12)
+    state = MetamorphosisState.zeros(problem)
+    MetamorphosisDescent(problem, step_size=0.02, max_iter=1).run(state)
+    lddmm_state = SolverState(problem.lddmm.zero_momentum())
+    Algorithm1(problem.lddmm, step_size=0.02, max_iter=1).run(lddmm_state)
+    assert float(state.source.abs().max()) < 1e-9
+    torch.testing.assert_close(state.momentum[1:], lddmm_state.momentum[1:], rtol=1e-8, atol=1e-12)
+
+
+def test_step_halving_rejects_an_increase():
+    problem, _ = make_problem()
+    solver = MetamorphosisDescent(problem, step_size=1e3, source_step_size=1e3, max_iter=2, step_halving=True,
+                                  max_halvings=30)
+    state = MetamorphosisState.zeros(problem)
+    start = solver.report(state)["objective"]
+    info = solver.run(state)
+    assert info["objective"] <= start and solver.step_size < 1e3 and solver.source_step_size < 1e3
+
+
+@pytest.mark.parametrize("optimizer,kwargs,source_sigma,mask", (("adam", {"lr": 1e-3, "source_lr": 2e-2}, None, False),
+                                                               ("lbfgs", {}, None, False), ("lbfgs", {}, 2.0, False),
+                                                               ("lbfgs", {}, 2.0, True)))
+def test_torch_optim_decreases_and_its_gradients_are_the_l2_gradients(optimizer, kwargs, source_sigma, mask):
+    problem, _ = make_problem(source_sigma=source_sigma, mask=mask)
+    solver = MetamorphosisTorchOptim(problem, optimizer, max_iter=5, **kwargs)
+    state = MetamorphosisState.zeros(problem)
+    start = solver.report(state)["objective"]
+    info = solver.run(state)
+    assert info["objective"] < 0.9 * start
+    _, grad_p, grad_q, *_ = solver._evaluate()
+    _, h_nu, h_zeta, _ = problem.l2_gradient(state.momentum, state.source)
+    torch.testing.assert_close(grad_p, problem.kernel.apply(h_nu), rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(grad_q, problem.unmasked_source(h_zeta), rtol=1e-8, atol=1e-12)
+
+
+def test_rkhs_source_is_smooth_and_its_regulariser_is_the_rkhs_norm():
+    problem, _ = make_problem(source_sigma=2.0, tau=0.1)
+    state = MetamorphosisState.zeros(problem)
+    MetamorphosisDescent(problem, step_size=0.02, max_iter=5).run(state)
+    zeta = problem.source(state.source)
+    expected = 0.5 * 0.1 * problem.time_weight * float((state.source * zeta).sum())
+    assert problem.evaluate(state.momentum, state.source)["source_regulariser"] == pytest.approx(expected, rel=1e-12)
+    rough = lambda z: float((z[..., 1:, :] - z[..., :-1, :]).norm() / z.norm())  # noqa: E731
+    l2, _ = make_problem(tau=0.1)
+    l2_state = MetamorphosisState.zeros(l2)
+    MetamorphosisDescent(l2, step_size=0.02, max_iter=5).run(l2_state)
+    assert rough(zeta) < 0.75 * rough(l2_state.source)  # measured 0.32 vs 0.52
+
+
+def test_source_mask_confines_the_intensity_change():
+    problem, _ = make_problem(mask=True, tau=0.1)
+    mask = problem.source_mask
+    assert 0 < float(mask.mean()) < 1 and bool((mask[problem.template > 0.01] == 1).all())
+    state = MetamorphosisState.zeros(problem)
+    MetamorphosisDescent(problem, step_size=0.02, max_iter=3).run(state)
+    assert float(state.source.abs().max()) > 0
+    assert not bool(problem.source(state.source)[:, mask == 0].ne(0).any())
+    with pytest.raises(ValueError, match="source_mask must have values in"):
+        MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                  problem.data, 1e-5, 0.1, source_mask=2 * mask)
+
+
+def test_state_dict_round_trip():
+    problem, _ = make_problem()
+    state = MetamorphosisState.zeros(problem)
+    solver = MetamorphosisDescent(problem, max_iter=2)
+    solver.run(state)
+    copy = MetamorphosisState.zeros(problem)
+    copy.load_state_dict(state.state_dict())
+    assert torch.equal(copy.source, state.source) and copy.iteration == 2
+    other = MetamorphosisDescent(problem, max_iter=3)
+    other.load_state_dict(solver.state_dict())
+    assert other.source_step_size == solver.source_step_size
+
+
+def test_bad_input():
+    problem, _ = make_problem()
+    with pytest.raises(TypeError, match="deformation must be a MetamorphosisDeformation"):
+        MetamorphosisRegistration(problem.ray_transform, problem.deformation.lddmm, problem.kernel,
+                                  problem.template, problem.data, 1e-5, 1e-3)
+    with pytest.raises(ValueError, match="tau must be a finite number >= 0"):
+        MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                  problem.data, 1e-5, -1)
+    with pytest.raises(TypeError, match="problem must be a MetamorphosisRegistration"):
+        MetamorphosisDescent(problem.lddmm)
+    with pytest.raises(ValueError, match="source_step_size must be a finite number > 0"):
+        MetamorphosisDescent(problem, source_step_size=0)
+    with pytest.raises(TypeError, match="state must be a MetamorphosisState"):
+        MetamorphosisDescent(problem, source_step_size=1.0).step(SolverState(problem.zero_momentum()))
+    with pytest.raises(ValueError, match="source must have shape"):
+        problem.evaluate(problem.zero_momentum(), problem.zero_source()[:2])
+    with pytest.raises(ValueError, match="source_lr must equal lr for LBFGS"):
+        MetamorphosisTorchOptim(problem, "lbfgs", source_lr=0.1)
