@@ -2,13 +2,16 @@
 
 Convention:
     - Every function takes ``(x, gt)``: the result first, the ground truth second, each a 2D image
-      ``(nx, ny)`` as a torch tensor (any device/dtype) or numpy array; compared in float64; returns a float.
+      ``(nx, ny)`` or a 3D volume ``(nx, ny, nz)`` as a torch tensor (any device/dtype) or numpy array;
+      compared in float64; returns a float.
     - ``ssim`` / ``psnr``: today's honest convention, ``data_range = gt.max() - gt.min()``.
     - ``ssim_paper`` / ``psnr_paper``: the 2017 scikit-image defaults (``compare_ssim`` / ``compare_psnr``) that
       the paper's numbers use: SSIM with data range 2 (the float dtype range -1..1); PSNR with data range 2 if
       an image has negative values, else 1. (The 2017 ``compare_psnr`` looked at its first argument only; the
       authors passed the result first and the ground truths are nonnegative, so "either image" is the same.)
       Other SSIM settings are the defaults then and now: 7 x 7 uniform window, sample covariance.
+    - 3D SSIM is the same statistic with a 7 x 7 x 7 window (scikit-image's n-dimensional SSIM), averaged over
+      the volume.
 """
 from __future__ import annotations
 
@@ -26,8 +29,8 @@ def _pair(x, gt) -> tuple:
             a = a.detach().cpu().numpy()
         elif not isinstance(a, np.ndarray):
             raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(a).__name__}")
-        if a.ndim != 2:
-            raise ValueError(f"{name} must be a 2D image (nx, ny), got shape {a.shape}")
+        if a.ndim not in (2, 3):
+            raise ValueError(f"{name} must be a 2D image (nx, ny) or a 3D volume (nx, ny, nz), got shape {a.shape}")
         a = a.astype(np.float64)
         if not np.isfinite(a).all():
             raise ValueError(f"{name} contains non-finite values (nan or inf)")

@@ -54,7 +54,7 @@ def test_errors():
     with pytest.raises(ValueError, match="same shape"):
         ssim(x[:30], gt)
     with pytest.raises(ValueError, match="2D"):
-        psnr(x[None], gt[None])
+        psnr(x[None, None], gt[None, None])
     with pytest.raises(TypeError, match="torch.Tensor or numpy"):
         relative_error([[1.0]], gt)
     with pytest.raises(ValueError, match="constant"):
@@ -63,3 +63,15 @@ def test_errors():
         relative_error(x, np.zeros_like(gt))
     with pytest.raises(ValueError, match="non-finite"):
         ssim(np.full_like(x, np.nan), gt)
+
+
+def test_3d_volumes():
+    gt = np.zeros((16, 16, 16))
+    gt[4:12, 5:11, 6:10] = 1.0
+    noise = 0.05 * np.random.default_rng(1).standard_normal(gt.shape)
+    from skimage.metrics import structural_similarity
+    assert ssim(gt + noise, gt) == pytest.approx(structural_similarity(gt + noise, gt, data_range=1.0))
+    one_slice = gt.copy()
+    one_slice[:, :, 8] += noise[:, :, 8]
+    assert ssim(gt + noise, gt) < ssim(one_slice, gt) < 1.0  # a 7^3 window sees every slice's error
+    assert psnr(gt + 0.01, gt) == pytest.approx(40.0)

@@ -2,7 +2,9 @@
 so no global backend is touched; ``savefig`` renders with Agg).
 
 Convention: images are arrays ``(nx, ny)`` with axis 0 = x and axis 1 = y; they are shown as
-``np.rot90(image)`` so that x runs to the right and y upwards (upright), grey colormap.
+``np.rot90(image)`` so that x runs to the right and y upwards (upright), grey colormap. Volumes
+``(nx, ny, nz)`` are shown as three central orthogonal slices (:func:`orthoslices`): the xy plane (z = centre),
+the xz plane (y = centre) and the yz plane (x = centre), each upright in the same way (second axis upwards).
 """
 from __future__ import annotations
 
@@ -100,6 +102,41 @@ def metamorphosis_figure(final, deformation_part, intensity_part, target=None, e
         axes[3].set_axis_off()
     else:
         show_image(axes[3], target, "Target", vmin, vmax, extent)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+PLANES = ("xy", "xz", "yz")
+
+
+def orthoslices(volume) -> tuple:
+    """The central slices ``(v[:, :, nz//2], v[:, ny//2, :], v[nx//2, :, :])`` of a volume ``(nx, ny, nz)``:
+    the xy, xz and yz planes."""
+    v = np.asarray(volume)
+    if v.ndim != 3:
+        raise ValueError(f"orthoslices takes a volume (nx, ny, nz), got shape {v.shape}")
+    nx, ny, nz = v.shape
+    return v[:, :, nz // 2], v[:, ny // 2, :], v[nx // 2, :, :]
+
+
+def ortho_figure(panels, vmin=None, vmax=None, title: str = ""):
+    """One row of orthogonal slices (xy, xz, yz) per volume: ``panels`` is a list of ``(label, volume)``
+    (``volume`` None: an empty row), all on the grey scale ``[vmin, vmax]`` (default: the first volume's)."""
+    panels = [(label, v) for label, v in panels]
+    first = next(np.asarray(v) for _, v in panels if v is not None)
+    vmin = float(first.min()) if vmin is None else vmin
+    vmax = float(first.max()) if vmax is None else vmax
+    fig = Figure(figsize=(8.4, 2.8 * len(panels)), layout="constrained")
+    axes = fig.subplots(len(panels), 3, squeeze=False)
+    for row, (label, volume) in zip(axes, panels):
+        if volume is None:
+            for ax in row:
+                ax.set_axis_off()
+            row[0].set_title(f"{label} (off)")
+            continue
+        for ax, plane, image in zip(row, PLANES, orthoslices(volume)):
+            show_image(ax, image, f"{label}: {plane}", vmin, vmax)
     if title:
         fig.suptitle(title)
     return fig

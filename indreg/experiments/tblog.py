@@ -21,6 +21,8 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from torch.utils.tensorboard.summary import hparams
 
+from .figures import orthoslices
+
 SCALARS = {"objective": "loss/objective", "data_fit": "loss/data_fit", "regulariser": "loss/regulariser",
            "grad_norm": "optim/grad_norm", "step_size": "optim/step_size",
            "min_jacobian": "deformation/min_jacobian", "source_regulariser": "loss/source_regulariser",
@@ -30,10 +32,23 @@ METRICS = ("ssim", "psnr", "ssim_paper", "psnr_paper")
 
 
 def to_display(image, vmin: float, vmax: float) -> np.ndarray:
-    """An image (nx, ny) as an upright (np.rot90) grey CHW array in [0, 1] for ``add_image``."""
+    """An image (nx, ny) as an upright (np.rot90) grey CHW array in [0, 1] for ``add_image``; a volume
+    (nx, ny, nz) as its three central orthogonal slices (xy, xz, yz, ``figures.orthoslices``) side by side."""
     a = image.detach().cpu().double().numpy() if isinstance(image, torch.Tensor) else np.asarray(image, float)
+    if a.ndim == 3:
+        return _side_by_side([to_display(s, vmin, vmax) for s in orthoslices(a)])
     a = np.clip((np.rot90(a) - vmin) / max(vmax - vmin, 1e-12), 0.0, 1.0)
     return np.ascontiguousarray(a[None])
+
+
+def _side_by_side(tiles: list) -> np.ndarray:
+    """CHW tiles in a row, bottom-aligned on a white background, with a 2-pixel white gap."""
+    height = max(t.shape[1] for t in tiles)
+    row = []
+    for t in tiles:
+        pad = np.ones((1, height - t.shape[1], t.shape[2]))
+        row += [np.concatenate((pad, t), axis=1), np.ones((1, height, 2))]
+    return np.concatenate(row[:-1], axis=2)
 
 
 class RunWriter:
@@ -72,9 +87,7 @@ class RunWriter:
         if not self.enabled:
             return
         tiles = [to_display(im, self.vmin, self.vmax) for im in images]
-        gap = np.ones((1, tiles[0].shape[1], 2))
-        row = [t for tile in tiles for t in (tile, gap)][:-1]
-        self.writer.add_image(tag, np.concatenate(row, axis=2), step, dataformats="CHW")
+        self.writer.add_image(tag, _side_by_side(tiles), step, dataformats="CHW")
 
     def figure(self, tag: str, fig, step: int) -> None:
         if self.enabled:

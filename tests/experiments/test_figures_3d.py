@@ -1,0 +1,40 @@
+"""Orthogonal slices of volumes: which planes, the figure's layout, TensorBoard's montage."""
+import numpy as np
+import pytest
+
+from indreg.experiments import figures
+from indreg.experiments.tblog import to_display
+
+
+def volume(nx=6, ny=8, nz=10):
+    x, y, z = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    return 100.0 * x + 10.0 * y + z  # each voxel's value names its indices
+
+
+def test_orthoslices_are_the_central_planes():
+    xy, xz, yz = figures.orthoslices(volume())
+    assert xy.shape == (6, 8) and xz.shape == (6, 10) and yz.shape == (8, 10)
+    assert np.all(xy % 10 == 5)                 # z = nz // 2 = 5
+    assert np.all((xz // 10) % 10 == 4)         # y = ny // 2 = 4
+    assert np.all(yz // 100 == 3)               # x = nx // 2 = 3
+    with pytest.raises(ValueError, match=r"volume \(nx, ny, nz\)"):
+        figures.orthoslices(np.zeros((4, 4)))
+
+
+def test_ortho_figure_rows_and_columns():
+    fig = figures.ortho_figure([("template", volume()), ("FBP", None), ("target", volume())], title="t")
+    axes = fig.get_axes()
+    assert len(axes) == 9
+    assert [ax.get_title() for ax in axes[:3]] == ["template: xy", "template: xz", "template: yz"]
+    assert axes[3].get_title() == "FBP (off)" and not axes[4].axison
+
+
+def test_to_display_of_a_volume_is_three_upright_slices():
+    v = volume()
+    tile = to_display(v, float(v.min()), float(v.max()))
+    # heights: max of the rotated slices (ny=8, nz=10, nz=10); widths 6 + 2 + 6 + 2 + 8
+    assert tile.shape == (1, 10, 24)
+    assert tile.min() >= 0.0 and tile.max() <= 1.0
+    xy = to_display(figures.orthoslices(v)[0], float(v.min()), float(v.max()))
+    assert np.array_equal(tile[:, 2:, :6], xy)  # bottom-aligned, padded white above
+    assert np.all(tile[:, :2, :6] == 1.0)
