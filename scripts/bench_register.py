@@ -19,6 +19,11 @@ column divides by the 1-thread idle time.
     python scripts/bench_register.py                      # all suites, float32, 2 threads
     python scripts/bench_register.py --suites 1 3 --dtypes float32 float64 --iters 10
     python scripts/bench_register.py --suites 3 --solvers algorithm1 --busy 3
+    python scripts/bench_register.py --suites --volumes 64 128 --volume-steps 10 20   # 3D rows only
+
+``--volumes`` adds a 3D table (Algorithm 1, float32): 3D Shepp-Logan -> swirled (``indreg.phantoms``) on
+``n^3`` cells of [-16, 16]^3, a tilt series about y of 61 tilts (-60..60 degrees, step 2) on an ``n x n``
+detector, sigma 3, ``N`` time steps from ``--volume-steps``.
 """
 from __future__ import annotations
 
@@ -85,6 +90,56 @@ def worker(suite: str, solver_name: str, dtype_name: str, iters: int, warmup: in
             "peak_gib": peak, "growth_gib": peak - rss_before, "objective": info["objective"]}
 
 
+def worker_3d(size: int, num_steps: int, iters: int, warmup: int, threads: int) -> dict:
+    import indreg  # noqa: F401  (first: it sets OMP_WAIT_POLICY=PASSIVE before torch starts OpenMP)
+    import torch
+
+    from indreg import ImageDomain, phantoms
+    from indreg.deform.kernel import GaussianKernel
+    from indreg.deform.lddmm import LDDMMDeformation
+    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+    from indreg.noise import add_white_noise
+    from indreg.solvers import Algorithm1, IndirectRegistration, SolverState
+
+    torch.set_num_threads(threads)
+    dom = ImageDomain.paper(size, ndim=3)
+    T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 2, det_count=size, det_min=-16.0, det_max=16.0))
+    data, _ = add_white_noise(T(phantoms.get("shepp_logan_3d_swirl", dom)), snr_db=10.0, seed=0)
+    problem = IndirectRegistration(T, LDDMMDeformation(dom, num_steps=num_steps), GaussianKernel(dom, 3.0),
+                                   phantoms.get("shepp_logan_3d", dom).float(), data.float(), gamma=1e-6)
+    solver = Algorithm1(problem, step_size=0.02)
+    state = SolverState(problem.zero_momentum())
+    for _ in range(warmup):
+        solver.step(state)
+    times, cpu = [], []
+    for _ in range(iters):
+        t0, c0 = time.perf_counter(), time.process_time()
+        solver.step(state)
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    return {"size": size, "num_steps": num_steps, "s_per_it": statistics.median(times),
+            "cpu_per_it": statistics.median(cpu), "peak_gib": peak}
+
+
+def volume_table(args) -> None:
+    """Algorithm 1 on tilt-series problems of ``--volumes`` sizes and ``--volume-steps`` time steps."""
+    rows = []
+    for size in args.volumes:
+        for n in args.volume_steps:
+            cmd = [sys.executable, __file__, "--worker3d", str(size), str(n), "--iters", str(args.iters),
+                   "--warmup", str(args.warmup), "--threads", str(args.threads)]
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+            rows.append(json.loads(out.strip().splitlines()[-1]))
+            print(f"# done: volume {size}^3 N={n}", file=sys.stderr)
+    print(f"\n3D: Algorithm 1, float32, tilt series 61 x n x n (+-60 degrees), {args.threads} threads; median over "
+          f"{args.iters} iterations; peak = process peak RSS\n")
+    print("| grid | N | s / iteration | CPU s / it | peak GiB |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['size']}^3 | {r['num_steps']} | {r['s_per_it']:.3f} | {r['cpu_per_it']:.3f} | {r['peak_gib']:.2f} |")
+
+
 def _spawn(suite, solver, dtype, args, threads, policy="indreg") -> dict:
     """One worker process. ``policy="unset"``: no OMP_WAIT_POLICY and torch imported before indreg (torch's
     default spinning); ``"indreg"``: indreg is imported first and sets PASSIVE."""
@@ -123,17 +178,23 @@ def busy_table(suite: str, args) -> None:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--suites", nargs="+", default=["1", "3", "2"], choices=list(SUITES))
+    parser.add_argument("--suites", nargs="*", default=["1", "3", "2"], choices=list(SUITES))
     parser.add_argument("--solvers", nargs="+", default=["algorithm1", "lbfgs"], choices=["algorithm1", "lbfgs"])
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "float64"])
     parser.add_argument("--iters", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--busy", choices=list(SUITES), help="add the one-core-busy table for this suite")
+    parser.add_argument("--volumes", nargs="*", type=int, default=[], help="3D rows: grid sizes n (n^3 cells)")
+    parser.add_argument("--volume-steps", nargs="+", type=int, default=[10, 20], help="3D rows: time steps N")
     parser.add_argument("--worker", nargs=3, metavar=("SUITE", "SOLVER", "DTYPE"), help=argparse.SUPPRESS)
+    parser.add_argument("--worker3d", nargs=2, type=int, metavar=("SIZE", "N"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         print(json.dumps(worker(*args.worker, args.iters, args.warmup, args.threads)))
+        return
+    if args.worker3d:
+        print(json.dumps(worker_3d(*args.worker3d, args.iters, args.warmup, args.threads)))
         return
     rows = []
     for suite in args.suites:
@@ -141,6 +202,15 @@ def main():
             for dtype in args.dtypes:
                 rows.append(_spawn(suite, solver, dtype, args, args.threads))
                 print(f"# done: suite {suite} {solver} {dtype}", file=sys.stderr)
+    if rows:
+        suite_table(rows, args)
+    if args.busy:
+        busy_table(args.busy, args)
+    if args.volumes:
+        volume_table(args)
+
+
+def suite_table(rows: list, args) -> None:
     print(f"torch threads: {args.threads}; median over {args.iters} iterations after {args.warmup} warm-up; "
           f"N = 20; peak = process peak RSS (incl. ~0.3 GiB Python + torch), growth = during the iterations\n")
     print("| suite | grid | solver | dtype | s / iteration | CPU s / it | evals / it | s / evaluation | ODL s / it | "
@@ -153,8 +223,6 @@ def main():
         print(f"| {r['suite']} | {n}^2 | {r['solver']} | {r['dtype']} | {r['s_per_it']:.4f} | {r['cpu_per_it']:.4f} | "
               f"{r['evals_per_it']:.2f} | {r['s_per_eval']:.4f} | {odl if odl else '-'} | {ratio} | "
               f"{r['peak_gib']:.2f} | {r['growth_gib']:.2f} |")
-    if args.busy:
-        busy_table(args.busy, args)
 
 
 if __name__ == "__main__":

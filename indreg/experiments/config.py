@@ -56,9 +56,17 @@ class AnglePartition(str, Enum):
 
 
 class GeometryKind(str, Enum):
-    """``parallel``: ``ParallelBeamGeometry``; ``fan_flat``: ``FanBeamGeometry`` (flat detector)."""
+    """``parallel``: ``ParallelBeamGeometry``; ``fan_flat``: ``FanBeamGeometry`` (flat detector), both 2D;
+    ``tilt_series``: ``TiltSeriesGeometry`` (3D, single-axis tilt series of electron tomography)."""
     parallel = "parallel"
     fan_flat = "fan_flat"
+    tilt_series = "tilt_series"
+
+
+class TiltAxis(str, Enum):
+    x = "x"
+    y = "y"
+    z = "z"
 
 
 class AngleUnit(str, Enum):
@@ -105,11 +113,13 @@ class FBPFilter(str, Enum):
 
 @dataclass
 class PhantomConfig:
-    """Template I and target f_true (``indreg.phantoms``), digitised on n x n cells of [-half_width, half_width]^2."""
+    """Template I and target f_true (``indreg.phantoms``), digitised on ``size`` cells per axis of
+    ``[-half_width, half_width]^ndim`` (``ndim`` 2: images, 3: volumes)."""
     template: Phantom = Phantom["j"]
     target: Phantom = Phantom["v"]
     size: int = 64
     half_width: float = 16.0
+    ndim: int = 2
 
 
 @dataclass
@@ -133,7 +143,9 @@ class GeometryConfig:
     list, in ``angle_unit``) or else ``num_angles`` of ``partition``. Detector: ``det_count`` bins on
     ``[det_min, det_max]`` (at the detector; ``null`` both: fitted to the domain). ``data=files`` takes
     ``det_count`` (and ``num_angles``) from the sinogram. Fan beam: ``src_radius`` (source to origin),
-    ``det_radius`` (origin to detector)."""
+    ``det_radius`` (origin to detector). Tilt series (3D): rotation about ``tilt_axis``; angles ``angles`` or else
+    ``tilt_min``, ``tilt_min + tilt_step``, ..., ``tilt_max`` (in ``angle_unit``); ``det_count`` columns per
+    detector row, one row per slice along the tilt axis (docs/tilt_series.md)."""
     kind: GeometryKind = GeometryKind.parallel
     num_angles: Optional[int] = 10
     det_count: Optional[int] = 92
@@ -144,6 +156,10 @@ class GeometryConfig:
     angle_unit: AngleUnit = AngleUnit.deg
     src_radius: Optional[float] = None
     det_radius: float = 0.0
+    tilt_axis: TiltAxis = TiltAxis.y
+    tilt_min: float = -60.0
+    tilt_max: float = 60.0
+    tilt_step: float = 2.0
 
 
 @dataclass
@@ -201,13 +217,15 @@ class SolverConfig:
 
 @dataclass
 class BaselineConfig:
-    """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock)."""
+    """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock); for volumes also
+    SIRT (``sirt_iterations``, nonnegative)."""
     enabled: bool = True
     fbp_filter: FBPFilter = FBPFilter.hamming
     fbp_frequency_scaling: float = 0.4
     fbp_padding: bool = True
     tv_mu: float = 3.0
     tv_iterations: int = 1000
+    sirt_iterations: int = 100
 
 
 @dataclass
@@ -303,6 +321,7 @@ def validate(cfg: DictConfig) -> None:
     _check_cuda(c.device)
     _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)
     _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
+    _require(c.phantom.ndim in (2, 3), "phantom.ndim", "2 (images) or 3 (volumes)", c.phantom.ndim)
     _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
              c.phantom.half_width)
     _validate_data(c)
@@ -333,6 +352,7 @@ def validate(cfg: DictConfig) -> None:
              "a number in (0, 1]", b.fbp_frequency_scaling)
     _require(_finite(b.tv_mu) and b.tv_mu >= 0, "baseline.tv_mu", "a number >= 0", b.tv_mu)
     _require(b.tv_iterations >= 1, "baseline.tv_iterations", "an integer >= 1", b.tv_iterations)
+    _require(b.sirt_iterations >= 1, "baseline.sirt_iterations", "an integer >= 1", b.sirt_iterations)
     lg = c.logging
     _require(lg.every >= 1, "logging.every", "an integer >= 1", lg.every)
     _require(lg.checkpoint_every >= 1, "logging.checkpoint_every", "an integer >= 1", lg.checkpoint_every)
@@ -368,8 +388,9 @@ def _validate_data(c: DictConfig) -> None:
             _require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
         _require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
     else:
-        _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None, "geometry.num_angles",
-                 "an integer >= 1 (or geometry.angles)", g.num_angles)
+        _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None
+                 or g.kind.value == "tilt_series", "geometry.num_angles", "an integer >= 1 (or geometry.angles)",
+                 g.num_angles)
         _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1",
                  g.det_count)
     _require((g.det_min is None) == (g.det_max is None), "geometry.det_min",
@@ -377,6 +398,13 @@ def _validate_data(c: DictConfig) -> None:
     if g.det_min is not None:
         _require(_finite(g.det_min) and _finite(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
                  "finite det_min < det_max", (g.det_min, g.det_max))
+    if g.kind.value == "tilt_series":
+        _require(_finite(g.tilt_step) and g.tilt_step > 0, "geometry.tilt_step", "a number > 0", g.tilt_step)
+        _require(_finite(g.tilt_min) and _finite(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
+                 "finite tilt_min <= tilt_max", (g.tilt_min, g.tilt_max))
+    if d.source == "phantom":
+        ndim = 3 if g.kind.value == "tilt_series" else 2
+        _require(c.phantom.ndim == ndim, "phantom.ndim", f"{ndim} for geometry.kind={g.kind.value}", c.phantom.ndim)
     if g.kind.value == "fan_flat":
         _require(_finite(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
                  "a number > 0 (source to origin) for geometry.kind=fan_flat", g.src_radius)

@@ -110,23 +110,27 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     if not cfg.baseline.enabled:
         return {}
     b = cfg.baseline
-    key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, b.tv_mu, b.tv_iterations],
-                   dtype=str)
+    volume = exp.domain.ndim == 3
+    key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, b.tv_mu, b.tv_iterations,
+                    b.sirt_iterations if volume else 0], dtype=str)
     cache = out / "baselines.npz"
     if cache.is_file():
         with np.load(cache) as z:
             if np.array_equal(z["key"], key):
-                return {"fbp": torch.from_numpy(z["fbp"]), "tv": torch.from_numpy(z["tv"])}
-    from ..forward import fbp
+                return {k: torch.from_numpy(z[k]) for k in z.files if k != "key"}
+    from ..forward import fbp, sirt
     from ..forward.tv import tv_reconstruction
 
     t0 = time.perf_counter()
     T, g = exp.ray_transform, exp.noisy_data_64.to(exp.template.device)
     rec = {"fbp": fbp(T, g, filter=b.fbp_filter.value, frequency_scaling=b.fbp_frequency_scaling,
-                      padding=b.fbp_padding),
-           "tv": tv_reconstruction(T, g, mu=b.tv_mu, num_iter=b.tv_iterations)[0]}
+                      padding=b.fbp_padding)}
+    if volume:  # electron tomography's iterative baseline
+        rec["sirt"] = sirt(T, g, num_iter=b.sirt_iterations, nonneg=True)[0]
+    rec["tv"] = tv_reconstruction(T, g, mu=b.tv_mu, num_iter=b.tv_iterations)[0]
     rec = {k: v.detach().to("cpu", torch.float64) for k, v in rec.items()}
-    log.info("baselines (FBP, TV %d iterations) in %.1f s", b.tv_iterations, time.perf_counter() - t0)
+    log.info("baselines (%s) in %.1f s", ", ".join(rec).upper().replace("TV", f"TV {b.tv_iterations} iterations"),
+             time.perf_counter() - t0)
     np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
     return rec
 
@@ -365,9 +369,13 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
 
     traj = _numpy(trajectory)
+    volume = exp.domain.ndim == 3
     if cfg.logging.figure:
         quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
                    else f"relative data residual {result['residual']:.4f}")
+        if volume:
+            figures.save(_ortho_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+    if cfg.logging.figure and not volume:
         fig = figures.paper_figure(exp.template_64.numpy(), traj, None if target is None else target.numpy(),
                                    exp.geometry.det_points.numpy(),
                                    None if exp.clean_data_64 is None else exp.clean_data_64[0].numpy(),
@@ -382,7 +390,10 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     n = traj.shape[0] - 1
     writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
     writer.image("images/deformed_template", final, it)
-    writer.figure("images/deformed_grid", figures.deformed_grid_figure(_numpy(phi)), it)
+    grid = _numpy(phi)
+    if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
+        grid = grid[:2, :, :, grid.shape[-1] // 2]
+    writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
     if parts is not None:
         writer.image("images/deformation_part", parts[0], it)
         bound = max(float(parts[1].abs().max()), 1e-12)
@@ -393,11 +404,24 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     if target is not None:
         log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
                  "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
-                 _pair(result, "fbp"), _pair(result, "tv"), result["warnings"])
+                 _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if volume else ""),
+                 result["warnings"])
     else:
         log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
                  it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
     return result
+
+
+def _ortho_figure(exp, traj, rec: dict, title: str = ""):
+    """A volume's run: orthogonal slices of the template, W(nu, I) at t = 0.5 and 1, target and baselines."""
+    from . import figures
+
+    n = traj.shape[0] - 1
+    panels = [("template", exp.template_64.numpy()), ("t = 0.5", traj[n // 2]), ("t = 1", traj[n])]
+    panels += [("target", None if exp.target_64 is None else exp.target_64.numpy())]
+    panels += [(k.upper(), _numpy(v)) for k, v in rec.items()]
+    shown = exp.target_64 if exp.target_64 is not None else exp.template_64
+    return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title)
 
 
 def _parts_figure(exp, final, parts, title: str = ""):

@@ -7,8 +7,9 @@ means one function here and one yaml file, nothing else.
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
     files     your own data: template, sinogram (and optionally a target) read by ``indreg.io``
 
-Convention: images ``(n, n)`` float64 on the CPU, axis 0 = x, on ``[-half_width, half_width]^2`` (square
-cells); data ``(num_angles, det_count)`` float64 on the CPU. Every input problem of the ``files`` source raises
+Convention: images ``(n, n)`` (or volumes ``(n, n, n)``) float64 on the CPU, axis 0 = x, on
+``[-half_width, half_width]^d`` (square / cubic cells); data ``(num_angles, det_count)`` (a tilt series:
+``(num_tilts, det_rows, det_cols)``) float64 on the CPU. Every input problem of the ``files`` source raises
 ``indreg.io.DataFileError`` naming the file (or config key) before any computation.
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import phantoms
 from ..domain import ImageDomain
-from ..forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform
+from ..forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
 from .config import ConfigError
 
 SOURCES: dict = {}
@@ -56,9 +57,9 @@ def load(cfg: DictConfig) -> Data:
     return SOURCES[cfg.data.source](cfg)
 
 
-def square_domain(n: int, half_width: float) -> ImageDomain:
-    """``n x n`` cells on ``[-half_width, half_width]^2``."""
-    return ImageDomain((n, n), (-half_width,) * 2, (half_width,) * 2)
+def square_domain(n: int, half_width: float, ndim: int = 2) -> ImageDomain:
+    """``n`` cells per axis on ``[-half_width, half_width]^ndim``."""
+    return ImageDomain((n,) * ndim, (-half_width,) * ndim, (half_width,) * ndim)
 
 
 def _angles(g) -> Optional[torch.Tensor]:
@@ -79,7 +80,14 @@ def _angles(g) -> Optional[torch.Tensor]:
 
 def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch.Tensor] = None):
     """The geometry of ``g`` (the ``geometry`` group): explicit ``angles`` (radians) or ``num_angles`` of
-    ``partition``; ``det_min = det_max = null``: the ray transform fits the detector to the domain."""
+    ``partition`` (a tilt series: ``tilt_min:tilt_step:tilt_max``); ``det_min = det_max = null``: the operator
+    fits the detector to the domain."""
+    if g.kind.value == "tilt_series":
+        if angles is None:
+            unit = math.pi / 180 if g.angle_unit.value == "deg" else 1.0
+            count = int(math.floor((g.tilt_max - g.tilt_min) / g.tilt_step + 1e-9)) + 1
+            angles = (g.tilt_min + g.tilt_step * torch.arange(count, dtype=torch.float64)) * unit
+        return TiltSeriesGeometry(angles, det_count, g.det_min, g.det_max, g.tilt_axis.value, angle_unit="rad")
     paper = angles is None and g.partition.value == "paper"
     if paper and g.kind.value == "parallel":
         return ParallelBeamGeometry.paper(g.num_angles, det_count, det_min=g.det_min, det_max=g.det_max)
@@ -91,6 +99,13 @@ def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch
                                        det_min=g.det_min, det_max=g.det_max, angles=angles)
     return ParallelBeamGeometry(num_angles=None if angles is not None else g.num_angles, det_count=det_count,
                                 det_min=g.det_min, det_max=g.det_max, angles=angles)
+
+
+def make_operator(domain: ImageDomain, geometry):
+    """The forward operator of ``geometry`` on ``domain``: a ``TiltSeriesTransform`` or a ``RayTransform``."""
+    if isinstance(geometry, TiltSeriesGeometry):
+        return TiltSeriesTransform(domain, geometry)
+    return RayTransform(domain, geometry)
 
 
 def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
@@ -108,12 +123,12 @@ def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
 
 @source("phantom")
 def phantom_data(cfg: DictConfig) -> Data:
-    """The ``phantom`` group's template and target on ``size^2`` cells; data simulated in float64 on the CPU
+    """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
     (noise drawn with the run's seed), so the same config gives the same data on every device."""
     p = cfg.phantom
-    domain = square_domain(p.size, p.half_width)
+    domain = square_domain(p.size, p.half_width, p.ndim)
     geometry = make_geometry(cfg.geometry, domain, cfg.geometry.det_count, _angles(cfg.geometry))
-    T = RayTransform(domain, geometry)
+    T = make_operator(domain, geometry)
     geometry = T.geometry                      # with the detector extent resolved
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)
