@@ -196,7 +196,8 @@ def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
     out = torch.zeros(u.shape[1:], dtype=torch.float64)
     for value, axes, centre, rot in _ellipsoids(ellipsoids):
         q = torch.tensordot(rot, u - centre.view(3, *([1] * (u.dim() - 1))), dims=1)
-        out += value * ((q / axes.view(3, *([1] * (u.dim() - 1)))).pow(2).sum(0) <= 1.0)
+        inside = (q / axes.view(3, *([1] * (u.dim() - 1)))).pow(2).sum(0) <= 1.0
+        out += value * inside.to(torch.float64)
     return out
 
 
