@@ -1,8 +1,11 @@
 """Reading templates, sinograms and tilt angles from files; writing result images.
 
 Convention:
-    - Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y);
-      sinograms as float64 ``(num_angles, det_count)``; angles as float64 radians, 1D.
+    - Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y),
+      volumes as ``(nx, ny, nz)`` (``read_volume``); sinograms as float64 ``(num_angles, det_count)``, tilt
+      series as ``(num_tilts, det_rows, det_cols)`` (``read_tilt_series``); angles as float64 radians, 1D.
+    - 3D MRC volumes are stored in MRC's order, sections ``(z, y, x)``, and transposed on reading and writing
+      (``read_volume``, ``write_volume``); 2D MRC images and tilt-series stacks are taken as stored.
     - Array formats (``.npy``, ``.npz``, ``.h5``/``.hdf5``, ``.mrc``/``.st``/``.ali``) hold indreg's arrays
       as they are: images ``(x, y)``, sinograms ``(angle, bin)``.
     - Picture formats (``.png``, ``.tif``/``.tiff``) are read as displayed (rows top to bottom, columns
@@ -188,16 +191,16 @@ def _load(spec, name: str) -> tuple:
     return np.asarray(raw), suffix
 
 
-def _numeric(raw: np.ndarray, name: str, spec) -> np.ndarray:
-    """Float64 copy of a 2D array after checking it is non-empty, real, numeric and finite."""
+def _numeric(raw: np.ndarray, name: str, spec, ndim: int = 2) -> np.ndarray:
+    """Float64 copy of an ``ndim``-D array after checking it is non-empty, real, numeric and finite."""
     if raw.dtype.kind == "c":
         raise _fail(name, spec, f"has complex values (dtype {raw.dtype}); give the real data")
     if raw.dtype.kind not in "biuf":
         raise _fail(name, spec, f"has non-numeric dtype {raw.dtype}")
     if raw.size == 0:
         raise _fail(name, spec, f"is empty (shape {raw.shape})")
-    if raw.ndim != 2:
-        raise _fail(name, spec, f"must hold a 2D array, got shape {raw.shape}")
+    if raw.ndim != ndim:
+        raise _fail(name, spec, f"must hold a {ndim}D array, got shape {raw.shape}")
     out = np.array(raw, dtype=np.float64, order="C")
     bad = int(np.count_nonzero(~np.isfinite(out)))
     if bad:
@@ -207,8 +210,8 @@ def _numeric(raw: np.ndarray, name: str, spec) -> np.ndarray:
 
 # --- public readers -----------------------------------------------------------------------------------
 
-def read_image(path, *, name: str = "template") -> np.ndarray:
-    """Read a 2D image as float64 ``(nx, ny)``, axis 0 = x, axis 1 = y.
+def read_image(path, *, name: str = "template", ndim: int = 2) -> np.ndarray:
+    """Read a 2D image as float64 ``(nx, ny)``, axis 0 = x, axis 1 = y (``ndim=3``: ``read_volume``).
 
     Convention:
         - ``.npy``/``.npz``/``.h5``/``.mrc`` arrays are taken as they are (already ``(x, y)``); an MRC file
@@ -220,6 +223,10 @@ def read_image(path, *, name: str = "template") -> np.ndarray:
     Raises:
         DataFileError: one line ``"{name} file {path}: {problem}"``.
     """
+    if ndim == 3:
+        return read_volume(path, name=name)
+    if ndim != 2:
+        raise ValueError(f"ndim must be 2 or 3, got {ndim!r}")
     raw, suffix = _load(path, name)
     if suffix in MRC and raw.ndim == 3 and raw.shape[0] == 1:
         raw = raw[0]
@@ -246,6 +253,81 @@ def read_sinogram(path, *, name: str = "sinogram") -> np.ndarray:
     if suffix in MRC and raw.ndim == 3 and 1 in raw.shape[1:]:
         raw = raw[:, 0, :] if raw.shape[1] == 1 else raw[:, :, 0]
     return _numeric(raw, name, path)
+
+
+def read_volume(path, *, name: str = "template") -> np.ndarray:
+    """Read a 3D volume as float64 ``(nx, ny, nz)``, axis 0 = x, axis 1 = y, axis 2 = z.
+
+    Convention:
+        - ``.npy``/``.npz``/``.h5`` arrays are taken as they are (already ``(x, y, z)``, as ``write_volume``
+          writes them).
+        - ``.mrc``/``.st``/``.ali``: MRC stores sections ``(z, y, x)`` (x fastest, the standard
+          ``mapc, mapr, maps = 1, 2, 3``); the array is transposed to ``(x, y, z)``. The voxel size is
+          ``read_voxel_size``.
+        - Pictures (``.png``/``.tif``) are not volumes.
+
+    Raises:
+        DataFileError: one line ``"{name} file {path}: {problem}"``.
+    """
+    if split_path(path)[0].suffix.lower() in PICTURE:
+        raise _fail(name, path, f"a volume must be {', '.join(('.npy',) + CONTAINER + MRC)}, not a picture")
+    raw, suffix = _load(path, name)
+    volume = _numeric(raw, name, path, ndim=3)
+    return np.ascontiguousarray(volume.transpose(2, 1, 0)) if suffix in MRC else volume
+
+
+def read_voxel_size(path, *, name: str = "volume") -> tuple:
+    """Voxel (cell) size ``(hx, hy, hz)`` from an MRC header, as floats (MRC's unit, Angstrom by convention)."""
+    import mrcfile
+
+    path = Path(path)
+    if path.suffix.lower() not in MRC:
+        raise _fail(name, path, f"only MRC files ({', '.join(MRC)}) carry a voxel size")
+    if not path.is_file():
+        raise _fail(name, path, "no such file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with mrcfile.open(path, mode="r", permissive=True, header_only=True) as mrc:
+                size = mrc.voxel_size
+    except (ValueError, OSError) as err:
+        raise _fail(name, path, f"not a readable MRC file ({type(err).__name__}: {err})") from None
+    return float(size.x), float(size.y), float(size.z)
+
+
+def read_tilt_series(path, angles=None, unit: str = "deg", *, name: str = "tilt series") -> tuple:
+    """Read a tilt series and its angles: ``(data, angles)``, float64 ``(num_tilts, det_rows, det_cols)`` and
+    radians ``(num_tilts,)``.
+
+    Convention (``TiltSeriesGeometry`` with ``tilt_axis="y"``, docs/tilt_series.md):
+        - An MRC stack ``.mrc``/``.st``/``.ali`` is taken as stored: sections = tilts, rows = the image's Y
+          (along the tilt axis: detector rows), columns = X (detector columns), so IMOD's aligned stack (tilt
+          axis along Y) is indreg's data with no transposition. ``.npy``/``.npz``/``.h5`` hold the same
+          ``(tilt, row, column)`` array.
+        - ``angles``: a ``.tlt``/``.rawtlt`` path or a list in ``unit`` (``"deg"`` default, or ``"rad"``);
+          ``None``: the sibling ``stem.tlt``, else ``stem.rawtlt`` (``tilt_angles_for``); one angle per tilt.
+
+    Raises:
+        DataFileError: a problem with a file, no angle file next to the stack, or a count mismatch.
+        ValueError: bad inline angles or ``unit``.
+    """
+    if unit not in ANGLE_UNITS:
+        raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")
+    raw, suffix = _load(path, name)
+    data = _numeric(raw, name, path, ndim=3)
+    origin = "angles"
+    if angles is None:
+        angles = tilt_angles_for(path)
+        if angles is None:
+            stem = split_path(path)[0].with_suffix("")
+            raise _fail(name, path, f"no tilt angles: give angles= or put {stem.name}.tlt (or .rawtlt), one "
+                                    "angle a line in degrees, next to it")
+    if isinstance(angles, (str, os.PathLike)):
+        origin = str(angles)
+    radians = read_angles(angles, unit, name=origin)
+    if radians.size != data.shape[0]:
+        raise _fail(name, path, f"{data.shape[0]} tilts (sections) but {origin} gives {radians.size} angles")
+    return data, radians
 
 
 def _angle_file(path: Path, name: str) -> list:
@@ -360,4 +442,79 @@ def write_image(path, array) -> Path:
         raise _fail("output", path, problem) from None
     except OSError as err:
         raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
+    return path
+
+
+def _finite_array(array, path: Path, ndim: int, what: str) -> np.ndarray:
+    if hasattr(array, "detach"):   # torch tensor
+        array = array.detach().cpu().numpy()
+    data = np.asarray(array)
+    if data.dtype.kind not in "biuf" or data.ndim != ndim or data.size == 0:
+        raise _fail("output", path, f"{what} must be a non-empty real {ndim}D array, got dtype {data.dtype}, "
+                                    f"shape {data.shape}")
+    if not np.isfinite(data).all():
+        raise _fail("output", path, "array has non-finite values (NaN or Inf)")
+    return data
+
+
+def _write_mrc(path: Path, sections: np.ndarray, voxel_size) -> None:
+    import mrcfile
+
+    try:
+        with mrcfile.new(path, overwrite=True) as mrc:
+            mrc.set_data(np.ascontiguousarray(sections, dtype=np.float32))
+            if voxel_size is not None:
+                mrc.voxel_size = tuple(float(h) for h in voxel_size)
+    except OSError as err:
+        raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
+
+
+def write_volume(path, volume, domain=None) -> Path:
+    """Write a volume ``(nx, ny, nz)`` (axis 0 = x) as ``.mrc`` or ``.npy``.
+
+    Convention:
+        - ``.mrc``: float32 (mode 2), sections ``(z, y, x)`` (x fastest, MRC's standard axis order), so
+          IMOD/ChimeraX show x, y, z as indreg's; the voxel size in the header is the domain's cell sides
+          ``(hx, hy, hz)`` in the domain's length unit (MRC readers take it as Angstrom), 1 without a domain.
+        - ``.npy``: float64 ``(nx, ny, nz)`` as it is (no voxel size).
+        - ``read_volume`` (and ``read_voxel_size``) give both back.
+
+    Raises:
+        DataFileError: unknown extension, not a finite real 3D array, a shape other than ``domain.shape``, or
+        the file cannot be written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in WRITE_FORMATS:
+        raise _fail("output", path, f"cannot write format {suffix or '(no extension)'!r}; use {WRITE_FORMATS}")
+    data = _finite_array(volume, path, 3, "volume")
+    if domain is not None and tuple(data.shape) != tuple(domain.shape):
+        raise _fail("output", path, f"volume has shape {data.shape} but the domain has {tuple(domain.shape)}")
+    if suffix == ".npy":
+        try:
+            np.save(path, np.asarray(data, dtype=np.float64))
+        except OSError as err:
+            raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
+    else:
+        _write_mrc(path, data.transpose(2, 1, 0), None if domain is None else domain.cell_sides)
+    return path
+
+
+def write_tilt_series(path, data, angles, pixel_size: float | None = None) -> Path:
+    """Write a tilt series ``(num_tilts, det_rows, det_cols)`` as an MRC stack (sections = tilts, as stored)
+    and its angles (radians) as ``stem.tlt`` in degrees, one a line: what ``read_tilt_series`` reads.
+    ``pixel_size``: the detector cell (x and y of the header; z = 1)."""
+    path = Path(path)
+    if path.suffix.lower() not in MRC:
+        raise _fail("output", path, f"a tilt series is written as MRC ({', '.join(MRC)})")
+    stack = _finite_array(data, path, 3, "tilt series")
+    radians = np.asarray(angles.detach().cpu() if hasattr(angles, "detach") else angles, dtype=np.float64)
+    if radians.shape != (stack.shape[0],) or not np.isfinite(radians).all():
+        raise _fail("output", path, f"needs {stack.shape[0]} finite angles (one per tilt), got shape {radians.shape}")
+    _write_mrc(path, stack, None if pixel_size is None else (pixel_size, pixel_size, 1.0))
+    tlt = path.with_suffix(".tlt")
+    try:
+        np.savetxt(tlt, np.rad2deg(radians), fmt="%.6f")
+    except OSError as err:
+        raise _fail("output", tlt, f"cannot be written ({type(err).__name__}: {err})") from None
     return path

@@ -16,7 +16,14 @@ Convention:
 
 Names for :func:`get`: ``"j"``, ``"v"`` (suite 1), ``"six_objects_target"``, ``"six_objects_template"``
 (suite 2), ``"shepp_logan"``, ``"shepp_logan_template"`` (suite 3), ``"shepp_logan_template_missing"``,
-``"shepp_logan_template_extra"`` (suite 4), ``"shepp_logan_template_contrast"`` (metamorphosis).
+``"shepp_logan_template_extra"`` (suite 4), ``"shepp_logan_template_contrast"`` (metamorphosis); 3D (on a
+3D domain, ``(nx, ny, nz)``): ``"shepp_logan_3d"`` (template) and ``"shepp_logan_3d_swirl"`` (target) of the
+electron-tomography suite ET-3D.
+
+3D phantoms: ellipsoids in the normalised frame ``[-1, 1]^3`` mapped affinely onto the domain's box, cell
+means of ``supersample^3`` points (default 2), rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` with
+ZXZ Euler angles in degrees (``ellipsoid_rotation``); exact line integrals ``ellipsoid_line_integrals``.
+The ET-3D target is the template deformed by the analytic volume-preserving swirl-and-bend ``swirl_bend``.
 """
 from __future__ import annotations
 
@@ -136,6 +143,163 @@ def shepp_logan_template_contrast(domain: ImageDomain) -> torch.Tensor:
     return 0.6 * template + 0.1 * head
 
 
+#: 3D modified Shepp-Logan (Kak & Slaney's head ellipsoids as in Schabel's ``phantom3d``, Toft's intensities):
+#: rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)``, semi-axes along x, y, z and the centre in the
+#: normalised frame ``[-1, 1]^3``, ZXZ Euler angles in degrees (``ellipsoid_rotation``). The slice z = 0 is
+#: the 2D phantom up to the ventricles' rotation (phi + psi = -8 and 28 degrees instead of -18 and 18).
+SHEPP_LOGAN_3D_ELLIPSOIDS = (
+    (1.00, .6900, .9200, .8100, 0.0000, 0.0000, 0.0000, 0.0, 0.0, 0.0),
+    (-.80, .6624, .8740, .7800, 0.0000, -.0184, 0.0000, 0.0, 0.0, 0.0),
+    (-.20, .1100, .3100, .2200, 0.2200, 0.0000, 0.0000, -18.0, 0.0, 10.0),
+    (-.20, .1600, .4100, .2800, -.2200, 0.0000, 0.0000, 18.0, 0.0, 10.0),
+    (0.10, .2100, .2500, .4100, 0.0000, 0.3500, -.1500, 0.0, 0.0, 0.0),
+    (0.10, .0460, .0460, .0500, 0.0000, 0.1000, 0.2500, 0.0, 0.0, 0.0),
+    (0.10, .0460, .0460, .0500, 0.0000, -.1000, 0.2500, 0.0, 0.0, 0.0),
+    (0.10, .0460, .0230, .0500, -.0800, -.6050, 0.0000, 0.0, 0.0, 0.0),
+    (0.10, .0230, .0230, .0200, 0.0000, -.6060, 0.0000, 0.0, 0.0, 0.0),
+    (0.10, .0230, .0460, .0200, 0.0600, -.6050, 0.0000, 0.0, 0.0, 0.0),
+)
+
+#: Parameters of ``swirl_bend`` (normalised frame): swirl angle at the centre (radians), its radial and axial
+#: widths, and the bend's amplitude.
+SWIRL_ANGLE, SWIRL_RADIUS, SWIRL_HEIGHT, BEND = 0.7, 0.45, 0.5, 0.12
+
+
+def ellipsoid_rotation(phi: float, theta: float, psi: float) -> torch.Tensor:
+    """ZXZ Euler rotation (degrees) ``R`` of an ellipsoid: ``p`` is inside when ``|R (p - c) / axes| <= 1``.
+    With ``theta = psi = 0`` it is the 2D ``R(phi) = [[cos, sin], [-sin, cos]]`` about z (module docstring)."""
+    f, t, s = (math.radians(a) for a in (phi, theta, psi))
+    cf, sf, ct, st, cs, ss = math.cos(f), math.sin(f), math.cos(t), math.sin(t), math.cos(s), math.sin(s)
+    return torch.tensor([[cs * cf - ct * sf * ss, cs * sf + ct * cf * ss, ss * st],
+                         [-ss * cf - ct * sf * cs, -ss * sf + ct * cf * cs, cs * st],
+                         [st * sf, -st * cf, ct]], dtype=torch.float64)
+
+
+def _ellipsoids(rows) -> list:
+    """Checked rows as ``(value, axes (3,), centre (3,), R (3, 3))``."""
+    out = []
+    for row in rows:
+        if len(row) != 10:
+            raise ValueError(f"each ellipsoid must have 10 entries (value, a, b, c, cx, cy, cz, phi, theta, psi), "
+                             f"got {row!r}")
+        r = [float(v) for v in row]
+        if not all(math.isfinite(v) for v in r) or min(r[1:4]) <= 0:
+            raise ValueError(f"ellipsoid entries must be finite with semi-axes > 0, got {row!r}")
+        out.append((r[0], torch.tensor(r[1:4], dtype=torch.float64), torch.tensor(r[4:7], dtype=torch.float64),
+                    ellipsoid_rotation(*r[7:10])))
+    return out
+
+
+def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
+    """Sum of constant-valued ellipsoids at normalised points ``u`` ``(3, ...)`` (rows as
+    ``SHEPP_LOGAN_3D_ELLIPSOIDS``); returns ``u.shape[1:]``."""
+    out = torch.zeros(u.shape[1:], dtype=torch.float64)
+    for value, axes, centre, rot in _ellipsoids(ellipsoids):
+        q = torch.tensordot(rot, u - centre.view(3, *([1] * (u.dim() - 1))), dims=1)
+        inside = (q / axes.view(3, *([1] * (u.dim() - 1)))).pow(2).sum(0) <= 1.0
+        out += value * inside.to(torch.float64)
+    return out
+
+
+def supersampled(domain: ImageDomain, fn, supersample: int = 2) -> torch.Tensor:
+    """Cell means of ``fn(u)`` over ``supersample^3`` points per cell of a 3D ``domain``; ``fn`` takes
+    normalised points ``u`` ``(3, ...)`` in ``[-1, 1]^3`` (mapped affinely onto the domain's box) and returns
+    values ``u.shape[1:]``. Evaluated in slabs along x (bounded memory). Returns float64 ``(nx, ny, nz)``."""
+    s = check_int(supersample, "supersample", 1)
+    if domain.ndim != 3:
+        raise ValueError(f"a 3D phantom needs a 3D domain, got shape {domain.shape}")
+    fine = [(torch.arange(s * n, dtype=torch.float64) + 0.5) * (2.0 / (s * n)) - 1.0 for n in domain.shape]
+    nx, ny, nz = domain.shape
+    step = max(1, 2**21 // (s ** 3 * ny * nz))   # cells along x per slab
+    slabs = []
+    for i in range(0, nx, step):
+        k = min(step, nx - i)
+        u = torch.stack(torch.meshgrid(fine[0][s * i: s * (i + k)], fine[1], fine[2], indexing="ij"))
+        slabs.append(fn(u).reshape(k, s, ny, s, nz, s).mean(dim=(1, 3, 5)))
+    return torch.cat(slabs)
+
+
+def ellipsoid_phantom(domain: ImageDomain, ellipsoids, supersample: int = 2) -> torch.Tensor:
+    """Sum of constant-valued ellipsoids on a 3D domain, averaged over ``supersample^3`` points per cell.
+
+    Convention: rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` in the normalised frame ``[-1, 1]^3``
+    mapped affinely onto ``[min_pt, max_pt]`` (as the 2D ``ellipse_phantom``); returns float64 ``(nx, ny, nz)``.
+    Analytic line integrals: ``ellipsoid_line_integrals``.
+    """
+    rows = tuple(ellipsoids)
+    _ellipsoids(rows)
+    return supersampled(domain, lambda u: ellipsoid_values(rows, u), supersample)
+
+
+def ellipsoid_line_integrals(ellipsoids, domain: ImageDomain, points: torch.Tensor,
+                             directions: torch.Tensor) -> torch.Tensor:
+    """Exact integrals of ``ellipsoid_phantom``'s function over the lines ``{p + t d : t in R}``.
+
+    Convention: ``points`` and ``directions`` ``(..., 3)`` in physical units (x, y, z), directions of unit
+    length; returns ``(...)``. Each ellipsoid contributes ``value * chord length``: in the normalised frame
+    ``u = (x - centre_box) / half_extent`` the line is ``q + t e`` (``q = R (u_p - c) / axes``,
+    ``e = R (d / half_extent) / axes``) and the chord is ``2 sqrt(b^2 - |e|^2 (|q|^2 - 1)) / |e|^2``,
+    ``b = q . e``, where the root is real (exact for any box, also non-cubic).
+    """
+    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (domain.min_pt, domain.max_pt))
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    u, e_u = (points.to(torch.float64) - mid) / half, directions.to(torch.float64) / half
+    out = torch.zeros(points.shape[:-1], dtype=torch.float64)
+    for value, axes, centre, rot in _ellipsoids(ellipsoids):
+        q = ((u - centre) @ rot.T) / axes
+        e = (e_u @ rot.T) / axes
+        a, b, c = (e * e).sum(-1), (q * e).sum(-1), (q * q).sum(-1) - 1.0
+        out += value * 2.0 * (b * b - a * c).clamp(min=0).sqrt() / a
+    return out
+
+
+def ellipsoid_tilt_series(ellipsoids, domain: ImageDomain, geometry) -> torch.Tensor:
+    """Exact tilt-series data ``(num_tilts, det_rows, det_cols)`` of ``ellipsoid_phantom(domain, ellipsoids)``
+    for a resolved ``TiltSeriesGeometry`` (``TiltSeriesTransform(...).geometry``): the line through
+    ``s_d w + t_j e_t`` along ``w_perp`` in the slice plane (``TiltSeriesGeometry``)."""
+    u, v = geometry.slice_axes
+    theta = geometry.angles[:, None, None]
+    s = geometry.det_points[None, None, :]
+    t = domain.axes()[geometry.axis][None, :, None]
+    shape = torch.broadcast_shapes(theta.shape, t.shape, s.shape)
+    p, d = torch.zeros(*shape, 3, dtype=torch.float64), torch.zeros(*shape, 3, dtype=torch.float64)
+    p[..., u], p[..., v], p[..., geometry.axis] = s * torch.cos(theta), s * torch.sin(theta), t
+    d[..., u], d[..., v] = -torch.sin(theta).expand(shape), torch.cos(theta).expand(shape)
+    return ellipsoid_line_integrals(ellipsoids, domain, p, d)
+
+
+def swirl_bend(u: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+    """The smooth volume-preserving diffeomorphism ``phi = B o S`` of suite ET-3D (normalised points ``(3, ...)``).
+
+    ``S`` swirls about the z axis: ``(r, angle, z) -> (r, angle + alpha(r, z), z)`` in cylindrical coordinates
+    with ``alpha = SWIRL_ANGLE exp(-r^2 / (2 SWIRL_RADIUS^2) - z^2 / (2 SWIRL_HEIGHT^2))`` (40 degrees at the
+    centre); ``B`` bends along x: ``(x, y, z) -> (x + BEND cos(pi z / 2), y, z)``. Both Jacobian matrices are
+    unit-triangular in suitable coordinates, so ``det D phi = 1`` everywhere (positive, volume-preserving), and
+    both are inverted in closed form (``r`` and ``z`` are invariant): ``phi^-1 = S^-1 o B^-1`` (``inverse=True``).
+    """
+    def swirl(w, sign):
+        alpha = sign * SWIRL_ANGLE * torch.exp(-(w[0] ** 2 + w[1] ** 2) / (2 * SWIRL_RADIUS ** 2)
+                                               - w[2] ** 2 / (2 * SWIRL_HEIGHT ** 2))
+        c, s = torch.cos(alpha), torch.sin(alpha)
+        return torch.stack((c * w[0] - s * w[1], s * w[0] + c * w[1], w[2]))
+
+    def bend(w, sign):
+        return torch.stack((w[0] + sign * BEND * torch.cos(math.pi * w[2] / 2), w[1], w[2]))
+
+    return swirl(bend(u, -1.0), -1.0) if inverse else bend(swirl(u, 1.0), 1.0)
+
+
+def shepp_logan_3d(domain: ImageDomain) -> torch.Tensor:
+    """3D modified Shepp-Logan (``SHEPP_LOGAN_3D_ELLIPSOIDS``) on a 3D domain: suite ET-3D's template."""
+    return ellipsoid_phantom(domain, SHEPP_LOGAN_3D_ELLIPSOIDS)
+
+
+def shepp_logan_3d_swirl(domain: ImageDomain) -> torch.Tensor:
+    """Suite ET-3D's target: the 3D Shepp-Logan deformed by ``swirl_bend``, ``I o phi^-1`` evaluated exactly
+    (the ellipsoids at ``phi^-1(u)``) at the sub-sample points, so no registration code is involved."""
+    return supersampled(domain, lambda u: ellipsoid_values(SHEPP_LOGAN_3D_ELLIPSOIDS, swirl_bend(u, inverse=True)))
+
+
 @lru_cache(maxsize=None)
 def _raster(filename: str) -> np.ndarray:
     """Package data as float64 with axis 0 = x (read-only, cached)."""
@@ -201,7 +365,12 @@ _REGISTRY = {
     "shepp_logan_template_missing": shepp_logan_template_missing,
     "shepp_logan_template_extra": shepp_logan_template_extra,
     "shepp_logan_template_contrast": shepp_logan_template_contrast,
+    "shepp_logan_3d": shepp_logan_3d,
+    "shepp_logan_3d_swirl": shepp_logan_3d_swirl,
 }
+
+#: Phantoms of volumes (3D domains); all others are 2D.
+_3D = ("shepp_logan_3d", "shepp_logan_3d_swirl")
 
 
 def names() -> list:
@@ -209,10 +378,19 @@ def names() -> list:
     return list(_REGISTRY)
 
 
-def get(name: str, domain: ImageDomain) -> torch.Tensor:
-    """The phantom called ``name`` sampled on ``domain``: float64 ``(nx, ny)``."""
+def ndim(name: str) -> int:
+    """The dimension (2 or 3) of the domain the phantom ``name`` is defined on."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown phantom {name!r}; valid names: {', '.join(names())}")
+    return 3 if name in _3D else 2
+
+
+def get(name: str, domain: ImageDomain) -> torch.Tensor:
+    """The phantom called ``name`` sampled on ``domain``: float64 ``(nx, ny)`` or, for 3D phantoms,
+    ``(nx, ny, nz)``."""
+    d = ndim(name)
     if not isinstance(domain, ImageDomain):
         raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+    if domain.ndim != d:
+        raise ValueError(f"phantom {name!r} is {d}D but the domain has shape {domain.shape}")
     return _REGISTRY[name](domain)

@@ -15,7 +15,11 @@ Memory: "matrix MB" is the exact size of the CSR pair (A and A^T, values + indic
 operator and running it once, i.e. including construction temporaries (0 if an earlier, larger peak
 was not exceeded, so geometries are run from small to large).
 
-Usage: python scripts/bench_operators.py [--repeats 20] [--threads 2]
+A second table times the 3D single-axis tilt series (``TiltSeriesTransform``; 61 tilts, -60..60 degrees in
+2-degree steps, tilt axis y, detector as wide as the volume) on 64^3 and 128^3 in float32: forward and adjoint
+seconds (median), one batched sparse product over all slices.
+
+Usage: python scripts/bench_operators.py [--repeats 20] [--threads 2] [--only-3d]
 """
 import argparse
 import resource
@@ -26,10 +30,11 @@ import torch
 from skimage.transform import iradon, radon
 
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
-from indreg.forward import FanBeamGeometry
+from indreg.forward import FanBeamGeometry, TiltSeriesGeometry, TiltSeriesTransform
 
 GEOMETRIES = [(64, 10, 92), (256, 10, 362), (438, 6, 620)]   # grid n, angles, bins; detector [-24, 24]
 FAN = (256, 360, 512, 40.0, 40.0)                              # grid n, views over 2 pi, bins, src/det radius
+TILT_GRIDS = (64, 128)                                         # n^3 volumes on [-16, 16]^3, 61 tilts +-60 deg
 
 try:
     import astra
@@ -104,12 +109,40 @@ def bench_astra(T, upright: np.ndarray, repeats: int) -> dict:
     return out
 
 
+def bench_tilt_series(n: int, repeats: int) -> dict:
+    """Forward / adjoint seconds (float32) of the tilt series on n^3 (module docstring)."""
+    domain = ImageDomain.paper(n, 3)
+    t = time.perf_counter()
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-60, 60, 2, det_count=n, det_min=-16.0,
+                                                               det_max=16.0))
+    build = time.perf_counter() - t
+    x = torch.rand(domain.shape, generator=torch.Generator().manual_seed(0)).float()
+    y = T(x)
+    with torch.no_grad():
+        fwd, adj = (median_ms(fn, repeats) / 1e3 for fn in (lambda: T(x), lambda: T.adjoint(y)))
+    return dict(grid=f"{n}^3", data=" x ".join(map(str, T.range_shape)), nnz=T.system.nnz, build=build,
+                fwd=fwd, adj=adj)
+
+
+def print_tilt_series(repeats: int) -> None:
+    print("\n| volume | data (tilts x rows x cols) | nnz per slice | build s | fwd f32 s | adj f32 s |")
+    print("|---" * 6 + "|")
+    for n in TILT_GRIDS:
+        r = bench_tilt_series(n, max(3, repeats // 4))
+        print(f"| {r['grid']} | {r['data']} | {r['nnz']:,} | {r['build']:.2f} | {r['fwd']:.3f} | {r['adj']:.3f} |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--only-3d", action="store_true", help="only the tilt-series table")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.only_3d:
+        print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+        print_tilt_series(args.repeats)
+        return
     rows = [bench(n, a, b, args.repeats) for n, a, b in GEOMETRIES]
     n, views, bins, src, det = FAN
     rows.append(bench(n, views, bins, args.repeats, ParallelBeamGeometry(views, bins)))   # same size, parallel
@@ -127,6 +160,7 @@ def main():
               f"| {r['radon']:.1f} | {r['iradon']:.1f} | {r['speedup']:.1f}x |"
               + (f" {r['astra_fwd']:.1f} | {r['astra_adj']:.1f} |" if astra_cols else ""))
     print("\nThe fan row's skimage columns are the parallel radon / iradon with the same number of views.")
+    print_tilt_series(args.repeats)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,9 @@ import tifffile
 import torch
 
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
-from indreg.io import (DataFileError, read_angles, read_image, read_sinogram, tilt_angles_for, write_image)
+from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+from indreg.io import (DataFileError, read_angles, read_image, read_sinogram, read_tilt_series, read_volume,
+                       read_voxel_size, tilt_angles_for, write_image, write_tilt_series, write_volume)
 
 
 def picture(rows=5, cols=7, dtype=np.uint8):
@@ -327,3 +329,84 @@ def test_skimage_radon_matches_ray_transform(n, circle):
     assert err < 0.02                                          # two interpolation schemes, same line integrals
     flipped = np.abs(sk.T[:, ::-1] * h - g).max() / np.abs(g).max()
     assert flipped > 0.3                                       # the test would see a detector flip
+
+
+# --- 3D: volumes and tilt series ----------------------------------------------------------------------------
+
+VOLUME_DOMAIN = ImageDomain((6, 5, 4), (-3.0, -2.0, 0.0), (3.0, 0.5, 6.0))   # cell sides (1, 0.5, 1.5)
+
+
+def volume():
+    return np.random.default_rng(1).random(VOLUME_DOMAIN.shape).astype(np.float32).astype(np.float64)
+
+
+def test_mrc_volume_round_trip_axis_order_and_voxel_size(tmp_path):
+    v = volume()
+    write_volume(tmp_path / "v.mrc", torch.from_numpy(v), VOLUME_DOMAIN)
+    np.testing.assert_array_equal(read_volume(tmp_path / "v.mrc"), v)
+    np.testing.assert_array_equal(read_image(tmp_path / "v.mrc", ndim=3), v)
+    assert read_voxel_size(tmp_path / "v.mrc") == pytest.approx((1.0, 0.5, 1.5))
+    with mrcfile.open(tmp_path / "v.mrc") as mrc:   # MRC's own view: nx, ny, nz columns, rows, sections
+        assert (int(mrc.header.nx), int(mrc.header.ny), int(mrc.header.nz)) == (6, 5, 4)
+        assert (int(mrc.header.mapc), int(mrc.header.mapr), int(mrc.header.maps)) == (1, 2, 3)
+        assert float(mrc.data[3, 2, 1]) == v[1, 2, 3]                       # data[z, y, x]
+
+
+@pytest.mark.parametrize("ext", [".npy", ".h5"])
+def test_volume_arrays_read_as_stored(tmp_path, ext):
+    v = volume()
+    if ext == ".npy":
+        write_volume(tmp_path / "v.npy", v, VOLUME_DOMAIN)
+    else:
+        with h5py.File(tmp_path / "v.h5", "w") as f:
+            f["/vol"] = v
+    np.testing.assert_array_equal(read_volume(tmp_path / f"v{ext}"), v)
+
+
+def test_tilt_series_round_trip_with_tlt(tmp_path):
+    """A simulated tilt series written as an MRC stack + .tlt is read back as the operator's data."""
+    dom = ImageDomain.paper(8, 3)
+    T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 15, det_count=12))
+    y = T(torch.rand(dom.shape, dtype=torch.float64)).float().double()
+    write_tilt_series(tmp_path / "ts.mrc", y, T.geometry.angles, pixel_size=T.geometry.det_cell)
+    assert (tmp_path / "ts.tlt").read_text().splitlines()[0] == "-60.000000"
+    data, angles = read_tilt_series(tmp_path / "ts.mrc")
+    np.testing.assert_array_equal(data, y.numpy())
+    np.testing.assert_allclose(angles, T.geometry.angles.numpy(), rtol=0, atol=1e-8)
+    assert read_voxel_size(tmp_path / "ts.mrc")[0] == pytest.approx(T.geometry.det_cell, rel=1e-6)
+    (tmp_path / "ts.tlt").rename(tmp_path / "ts.rawtlt")
+    assert read_tilt_series(tmp_path / "ts.mrc")[1].shape == (9,)
+    np.testing.assert_allclose(read_tilt_series(tmp_path / "ts.mrc", angles=np.arange(9) * 0.1, unit="rad")[1],
+                               np.arange(9) * 0.1)
+
+
+def test_3d_bad_input_one_line_errors(tmp_path):
+    v = volume()
+    write_volume(tmp_path / "v.mrc", v)
+    with pytest.raises(DataFileError, match=r"template file .*v.mrc: must hold a 2D array, got shape \(4, 5, 6\)"):
+        read_image(tmp_path / "v.mrc")
+    np.save(tmp_path / "flat.npy", v[0])
+    with pytest.raises(DataFileError, match=r"flat.npy: must hold a 3D array, got shape \(5, 4\)"):
+        read_volume(tmp_path / "flat.npy")
+    with pytest.raises(DataFileError, match="a volume must be .*not a picture"):
+        read_volume(tmp_path / "v.png")
+    with pytest.raises(DataFileError, match="volume has shape"):
+        write_volume(tmp_path / "w.mrc", v[:, :, :2], VOLUME_DOMAIN)
+    with pytest.raises(DataFileError, match="non-finite"):
+        write_volume(tmp_path / "w.mrc", np.full((2, 2, 2), np.nan))
+    with pytest.raises(DataFileError, match="must be a non-empty real 3D array"):
+        write_volume(tmp_path / "w.npy", v[0])
+    write_tilt_series(tmp_path / "ts.mrc", np.ones((3, 2, 4)), np.zeros(3))
+    (tmp_path / "ts.tlt").unlink()
+    with pytest.raises(DataFileError, match=r"ts.mrc: no tilt angles: give angles= or put ts.tlt"):
+        read_tilt_series(tmp_path / "ts.mrc")
+    with pytest.raises(DataFileError, match="3 tilts .* but angles gives 2 angles"):
+        read_tilt_series(tmp_path / "ts.mrc", angles=[0.0, 1.0])
+    with pytest.raises(ValueError, match="angle_unit must be 'deg' or 'rad'"):
+        read_tilt_series(tmp_path / "ts.mrc", angles=[0, 1, 2], unit="degree")
+    with pytest.raises(DataFileError, match="needs 3 finite angles"):
+        write_tilt_series(tmp_path / "ts.mrc", np.ones((3, 2, 4)), [0.0, 1.0])
+    with pytest.raises(DataFileError, match="only MRC files"):
+        read_voxel_size(tmp_path / "flat.npy")
+    with pytest.raises(ValueError, match="ndim must be 2 or 3"):
+        read_image(tmp_path / "v.mrc", ndim=4)

@@ -11,7 +11,8 @@ from indreg.domain import ImageDomain
 from indreg.phantoms import ellipse_phantom
 
 NAMES = ["j", "v", "six_objects_target", "six_objects_template", "shepp_logan", "shepp_logan_template",
-         "shepp_logan_template_missing", "shepp_logan_template_extra"]
+         "shepp_logan_template_missing", "shepp_logan_template_extra", "shepp_logan_template_contrast"]
+NAMES_3D = ["shepp_logan_3d", "shepp_logan_3d_swirl"]
 DATA = __import__("pathlib").Path(phantoms.__file__).parent / "data"
 
 
@@ -22,7 +23,7 @@ def value_at(img, dom, x, y):
 
 
 def test_registry_names_shapes_dtype():
-    assert phantoms.names() == NAMES
+    assert phantoms.names() == NAMES + NAMES_3D
     dom = ImageDomain((24, 20))
     for name in NAMES:
         f = phantoms.get(name, dom)
@@ -113,3 +114,69 @@ def test_raster_on_other_box_is_function_on_frame():
     assert float(outside.abs().max()) == 0.0
     t = phantoms.six_objects_template(ImageDomain.paper(256))
     np.testing.assert_array_equal(t.numpy(), np.load(DATA / "six_objects_template_256.npy").astype(np.float64))
+
+
+def test_3d_phantoms_registry_and_values():
+    dom = ImageDomain((20, 24, 16))
+    for name in NAMES_3D:
+        assert phantoms.ndim(name) == 3
+        f = phantoms.get(name, dom)
+        assert f.shape == (20, 24, 16) and f.dtype == torch.float64, name
+        assert float(f.min()) >= -1e-12 and float(f.max()) <= 1.0 + 1e-12, name
+    assert phantoms.ndim("j") == 2
+    with pytest.raises(ValueError, match="phantom 'shepp_logan_3d' is 3D but the domain has shape"):
+        phantoms.get("shepp_logan_3d", ImageDomain.paper(8))
+    with pytest.raises(ValueError, match="phantom 'j' is 2D"):
+        phantoms.get("j", dom)
+    with pytest.raises(ValueError, match="10 entries"):
+        phantoms.ellipsoid_phantom(dom, [(1.0, 0.5, 0.5, 0.5)])
+    with pytest.raises(ValueError, match="semi-axes > 0"):
+        phantoms.ellipsoid_phantom(dom, [(1.0, 0.5, 0.0, 0.5, 0, 0, 0, 0, 0, 0)])
+
+
+def test_shepp_logan_3d_known_values():
+    """Kak-Slaney head: skull 1.0 at (0, 0.9, 0), brain 0.2 at the centre, ventricles 0.0, a small ellipsoid at
+    z = 0.25 (value 0.3) that is absent at z = -0.25; the ball's volume is 4/3 pi a b c."""
+    dom = ImageDomain.paper(64, 3)
+    f = phantoms.get("shepp_logan_3d", dom)
+
+    def at(x, y, z):   # normalised point -> cell value
+        i, j, k = (min(63, int((16 * c + 16) // 0.5)) for c in (x, y, z))
+        return float(f[i, j, k])
+
+    assert at(0.0, 0.9, 0.0) == pytest.approx(1.0)
+    assert at(0.0, 0.0, 0.0) == pytest.approx(0.2)
+    assert at(0.22, 0.0, 0.0) == pytest.approx(0.0, abs=1e-12)
+    assert at(0.0, -0.1, 0.25) == pytest.approx(0.3)
+    assert at(0.0, -0.1, -0.25) == pytest.approx(0.2)
+    ball = phantoms.ellipsoid_phantom(dom, [(1.0, 0.5, 0.25, 0.375, 0.1, 0.0, -0.1, 30.0, 40.0, 0.0)])
+    volume = 4 / 3 * math.pi * (8 * 4 * 6)
+    assert float(ball.sum()) * dom.cell_volume == pytest.approx(volume, rel=0.01)
+
+
+def test_ellipsoid_rotation_is_orthonormal_and_2d_compatible():
+    rot = phantoms.ellipsoid_rotation(25.0, 40.0, -70.0)
+    torch.testing.assert_close(rot @ rot.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
+    assert float(torch.linalg.det(rot)) == pytest.approx(1.0)
+    t = math.radians(25.0)
+    torch.testing.assert_close(phantoms.ellipsoid_rotation(25.0, 0.0, 0.0)[:2, :2],
+                               torch.tensor([[math.cos(t), math.sin(t)], [-math.sin(t), math.cos(t)]],
+                                            dtype=torch.float64))
+
+
+def test_swirl_bend_is_volume_preserving_diffeomorphism():
+    """phi^-1(phi(u)) = u; det D phi = 1 (central differences); the target is the template at phi^-1."""
+    u = torch.rand(3, 500, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    torch.testing.assert_close(phantoms.swirl_bend(phantoms.swirl_bend(u), inverse=True), u, rtol=0, atol=1e-13)
+    torch.testing.assert_close(phantoms.swirl_bend(phantoms.swirl_bend(u, inverse=True)), u, rtol=0, atol=1e-13)
+    eps = 1e-6
+    jac = torch.stack([(phantoms.swirl_bend(u + eps * e[:, None]) - phantoms.swirl_bend(u - eps * e[:, None]))
+                       / (2 * eps) for e in torch.eye(3, dtype=torch.float64)], dim=-1)   # (3, 500, 3)
+    det = torch.linalg.det(jac.permute(1, 0, 2))
+    torch.testing.assert_close(det, torch.ones_like(det), rtol=0, atol=1e-8)
+    moved = phantoms.swirl_bend(torch.zeros(3, 1, dtype=torch.float64))      # the bend moves the centre along x
+    assert float(moved[0, 0]) == pytest.approx(phantoms.BEND)
+    dom = ImageDomain.paper(24, 3)
+    template, target = phantoms.get("shepp_logan_3d", dom), phantoms.get("shepp_logan_3d_swirl", dom)
+    assert float((template - target).abs().sum() / template.abs().sum()) > 0.3          # a large deformation
+    assert float(target.sum()) == pytest.approx(float(template.sum()), rel=0.01)      # det = 1: mass kept

@@ -1,13 +1,17 @@
 """Forward model of indirect registration: geometries, ray transform ``T``, FBP and TV baselines.
 
 The data model is ``g = T(W(nu, I)) + noise`` (``eq:OptimV``); ``T`` is any ``LinearOperator`` (protocol in
-``operator``), by default the 2D ray transform for a parallel-beam or fan-beam geometry.
+``operator``), by default the 2D ray transform for a parallel-beam or fan-beam geometry, or in 3D the
+single-axis tilt series of electron tomography (``tilt_series``). Baselines: FBP, SIRT and TV (2D and 3D).
 """
 from .geometry import FanBeamGeometry, ParallelBeamGeometry
 from .operator import LinearOperator, adjointness, check_operator
 from .ray_transform import RayTransform, register_projector
+from .tilt_series import TiltSeriesGeometry, TiltSeriesTransform
 from .fbp import fbp
+from .sirt import sirt
 from .tv import tv_reconstruction
 
 __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_projector", "LinearOperator",
-           "check_operator", "adjointness", "fbp", "tv_reconstruction"]
+           "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "TiltSeriesGeometry",
+           "TiltSeriesTransform"]

@@ -1,4 +1,5 @@
-"""Filtered backprojection (FBP) for the ``RayTransform`` (parallel beam; fan beam by rebinning).
+"""Filtered backprojection (FBP) for the ``RayTransform`` (parallel beam; fan beam by rebinning) and, slice by
+slice, for the ``TiltSeriesTransform`` (weighted backprojection of a tilt series).
 
 Derivation (angles on ``[0, pi)``). With ``P(theta, rho) = integral p(theta, s) exp(-2 pi i rho s) ds`` the
 Fourier slice theorem gives ``P(theta, rho) = F(rho w)``, and writing Fourier inversion in polar
@@ -101,7 +102,13 @@ def fbp(T, y: torch.Tensor, filter: str = "hamming", frequency_scaling: float = 
         padding: zero-pad the detector axis to ``2 * det_count`` before the FFT (no wrap-around).
 
     The paper's FBP baseline is ``filter="hamming", frequency_scaling=0.4, padding=True``.
+
+    Tilt series (``TiltSeriesTransform``): data ``(..., num_tilts, det_rows, det_cols)`` -> volumes
+    ``(..., nx, ny, nz)``, the 2D FBP of ``T.slice_transform`` applied to every detector row at once (the
+    weighted backprojection of electron tomography, each tilt weighted by its quadrature cell).
     """
+    if hasattr(T, "slice_transform"):
+        return _fbp_tilt_series(T, y, filter, frequency_scaling, padding)
     geometry = getattr(T, "geometry", None)
     if not isinstance(geometry, (ParallelBeamGeometry, FanBeamGeometry)):
         raise TypeError(f"fbp needs a RayTransform with a parallel- or fan-beam geometry, got {type(T).__name__}")
@@ -117,6 +124,13 @@ def fbp(T, y: torch.Tensor, filter: str = "hamming", frequency_scaling: float = 
     if not bool((ratio == 1.0).all()):
         q = q * ratio.to(dtype=q.dtype, device=q.device)[:, None]
     return T.adjoint(q.contiguous())
+
+
+def _fbp_tilt_series(T, y: torch.Tensor, filter: str, frequency_scaling: float, padding: bool) -> torch.Tensor:
+    """Slice-wise FBP of a tilt series: rows (along the tilt axis) into the batch, 2D FBP, rows back."""
+    y = check_tensor(y, "data", T.range_shape)
+    rows = fbp(T.slice_transform, y.movedim(-2, -3), filter, frequency_scaling, padding)   # (..., n_t, n_u, n_v)
+    return rows.movedim(-3, rows.dim() - 3 + T.geometry.axis)
 
 
 def _rebin_to_parallel(T, y: torch.Tensor) -> tuple:

@@ -280,6 +280,9 @@ class RayTransform(nn.Module):
         super().__init__()
         if not isinstance(domain, ImageDomain):
             raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+        if domain.ndim != 2:
+            raise ValueError(f"RayTransform needs a 2D domain, got shape {domain.shape}; for a 3D volume use "
+                             "TiltSeriesTransform (indreg.forward.tilt_series)")
         _projector_for(geometry)
         geometry = geometry.resolve(domain)
         self.domain = domain

@@ -3,9 +3,10 @@
 
 Convention:
     - ``T`` is any ``LinearOperator`` (``indreg.forward.operator``): a ``RayTransform`` or a user's operator.
-    - Images ``(..., nx, ny)`` (axis 0 = x) on ``T.domain``; data ``(..., *T.range_shape)`` (for a ray
-      transform ``(..., num_angles, det_count)``); any leading batch dims (shared by ``y`` and ``x0``); dtype
-      and device follow ``y``.
+    - ``T`` may also be a ``TiltSeriesTransform`` (3D): everything below holds with d = 3.
+    - Images ``(..., nx, ny)`` or volumes ``(..., nx, ny, nz)`` (axis 0 = x) on ``T.domain``; data
+      ``(..., *T.range_shape)`` (for a ray transform ``(..., num_angles, det_count)``); any leading batch
+      dims (shared by ``y`` and ``x0``); dtype and device follow ``y``.
     - Objective, as the paper's eq:VarReg with ODL's ``L2NormSquared`` data term (no factor 1/2, the
       authors' ODL set-up, so the paper's ``mu`` means the same here):
           ``E(x) = ||T x - y||^2 + mu * TV(x)``,  ``TV(x) = int |grad x| dx``  (isotropic),
@@ -17,7 +18,8 @@ Convention:
     - ``grad``: forward differences divided by the cell sides, zero padding beyond the last pixel (ODL's
       ``Gradient`` default, ``pad_mode="constant"``): ``(grad f)_x[i] = (f[i+1] - f[i]) / hx`` with
       ``f[nx] = 0``. ``div = -grad^*`` (L2 adjoint; the cell volumes cancel, so it is the matrix transpose):
-      ``(div p)[i] = (p_x[i] - p_x[i-1]) / hx + (same in y)`` with ``p_x[-1] = 0``.
+      ``(div p)[i] = (p_x[i] - p_x[i-1]) / hx + (same in y[, z])`` with ``p_x[-1] = 0``. In 3D the same
+      with a third component (z); the vector field is ``(..., d, *shape)``.
 """
 from __future__ import annotations
 
@@ -29,39 +31,45 @@ from .operator import check_operator
 
 
 def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
-    """Forward-difference gradient with zero padding: ``(..., nx, ny) -> (..., 2, nx, ny)`` (component 0 = x)."""
-    hx, hy = domain.cell_sides
-    gx = torch.diff(f, dim=-2, append=torch.zeros_like(f[..., :1, :])) / hx
-    gy = torch.diff(f, dim=-1, append=torch.zeros_like(f[..., :, :1])) / hy
-    return torch.stack((gx, gy), dim=-3)
+    """Forward-difference gradient with zero padding: ``(..., *shape) -> (..., d, *shape)`` (component 0 = x).
+
+    ``(grad f)_a[i] = (f[i + e_a] - f[i]) / h_a`` with ``f = 0`` beyond the last cell, for every axis ``a``
+    of the d-dimensional domain (d = 2 or 3)."""
+    parts = []
+    for dim, h in zip(domain.dims, domain.cell_sides):
+        pad = torch.zeros_like(f.narrow(dim, 0, 1))
+        parts.append(torch.diff(f, dim=dim, append=pad) / h)
+    return torch.stack(parts, dim=-domain.ndim - 1)
 
 
 def divergence(p: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
-    """Backward-difference divergence ``-grad^*``: ``(..., 2, nx, ny) -> (..., nx, ny)``;
-    ``<grad f, p> = -<f, div p>``."""
-    hx, hy = domain.cell_sides
-    px, py = p[..., 0, :, :], p[..., 1, :, :]
-    dx = torch.diff(px, dim=-2, prepend=torch.zeros_like(px[..., :1, :])) / hx
-    dy = torch.diff(py, dim=-1, prepend=torch.zeros_like(py[..., :, :1])) / hy
-    return dx + dy
+    """Backward-difference divergence ``-grad^*``: ``(..., d, *shape) -> (..., *shape)``;
+    ``<grad f, p> = -<f, div p>``: ``(div p)[i] = sum_a (p_a[i] - p_a[i - e_a]) / h_a`` with ``p_a = 0``
+    before the first cell."""
+    out = None
+    for a, (dim, h) in enumerate(zip(domain.dims, domain.cell_sides)):
+        pa = p.select(-domain.ndim - 1, a)
+        term = torch.diff(pa, dim=dim, prepend=torch.zeros_like(pa.narrow(dim, 0, 1))) / h
+        out = term if out is None else out + term
+    return out
 
 
 def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0) -> torch.Tensor:
     """Isotropic total variation ``TV(f) = int sqrt(|grad f|^2 + eps^2) dx`` (eps = ``smoothing``).
 
-    Convention: ``f (..., nx, ny)`` on ``domain``; ``grad f`` by forward differences in physical units with
-    zero padding (``gradient``, ODL's default); the integral is the Riemann sum with the cell volume; batch
-    dims kept. ``smoothing = 0`` gives plain TV, whose autograd gradient is taken as 0 where ``grad f = 0``
-    (a subgradient); ``smoothing > 0`` gives the smooth approximation (``TV_eps >= TV``,
+    Convention: ``f (..., *shape)`` on a 2D or 3D ``domain``; ``grad f`` by forward differences in physical
+    units with zero padding (``gradient``, ODL's default); the integral is the Riemann sum with the cell
+    volume; batch dims kept. ``smoothing = 0`` gives plain TV, whose autograd gradient is taken as 0 where
+    ``grad f = 0`` (a subgradient); ``smoothing > 0`` gives the smooth approximation (``TV_eps >= TV``,
     ``TV_eps - TV <= eps |Omega|``), differentiable everywhere.
     """
-    sq = (gradient(f, domain) ** 2).sum(dim=-3)
+    sq = (gradient(f, domain) ** 2).sum(dim=-domain.ndim - 1)
     if smoothing > 0:
         mag = (sq + smoothing ** 2).sqrt()
     else:
         positive = sq > 0
         mag = torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
-    return domain.cell_volume * mag.sum(dim=(-2, -1))
+    return domain.cell_volume * mag.sum(dim=domain.dims)
 
 
 def _normal_operator_norm(T, shape, dtype, device, num_iter: int) -> float:
@@ -96,12 +104,12 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
             ``T.range_shape``; ``||K||`` is estimated by power iteration, so no operator norm is needed.
         y: data ``(..., *T.range_shape)``.
         mu: TV weight (> 0); the paper uses 3.0 (suite 1) and 1.0 (suite 2).
-        num_iter: iterations (the paper: 1000). x0: start (default zeros), shape ``(..., nx, ny)``.
+        num_iter: iterations (the paper: 1000). x0: start (default zeros), shape ``(..., *T.domain.shape)``.
         callback: called as ``callback(i, x)`` after iteration ``i`` (0-based).
         nonneg: constrain ``x >= 0``.  opnorm_iter: power iterations for ``||K||``.
 
     Returns:
-        ``(x, history)``: ``x`` ``(..., nx, ny)``; ``history["objective"]`` float64 CPU tensor
+        ``(x, history)``: ``x`` ``(..., *T.domain.shape)``; ``history["objective"]`` float64 CPU tensor
         ``(num_iter, ...)`` with ``E`` of each iterate, ``history["step"]`` = ``tau`` (= ``sigma``),
         ``history["opnorm"]`` = the estimated ``||K||``.
     """
@@ -115,10 +123,11 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
         check_tensor(x0, "x0", tuple(batch) + tuple(dom.shape)).to(dtype=y.dtype, device=y.device).clone()
     opnorm = _normal_operator_norm(T, dom.shape, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1))
     tau = sigma = 1.0 / (1.1 * opnorm)
+    vec = -dom.ndim - 1                               # the axis of the gradient's components
 
     def energy(tx, gx):
         r = tx - y
-        return T.inner_data(r, r) + mu * dom.cell_volume * gx.norm(dim=-3).sum(dim=(-2, -1))
+        return T.inner_data(r, r) + mu * dom.cell_volume * gx.norm(dim=vec).sum(dim=dom.dims)
 
     tx, gx = T(x), gradient(x, dom)
     p, q = torch.zeros_like(tx), torch.zeros_like(gx)
@@ -127,7 +136,7 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     for i in range(num_iter):
         p = (p + sigma * (tx_bar - y)) / (1.0 + sigma / 2.0)
         q = q + sigma * gx_bar
-        q = q / torch.clamp(q.norm(dim=-3, keepdim=True) / mu, min=1.0)
+        q = q / torch.clamp(q.norm(dim=vec, keepdim=True) / mu, min=1.0)
         x_new = x - tau * (T.adjoint(p) - divergence(q, dom))
         if nonneg:
             x_new = x_new.clamp(min=0.0)

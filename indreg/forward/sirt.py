@@ -1,0 +1,70 @@
+"""SIRT (simultaneous iterative reconstruction technique) for any ``LinearOperator`` with a nonnegative matrix.
+
+Iteration (Gregor & Benson 2008; ASTRA's ``SIRT``), for ``T = A`` as a matrix with nonnegative entries:
+
+    x_{k+1} = P( x_k + C A^T R (y - A x_k) ),   R = diag(1 / A 1),  C = diag(1 / A^T 1),
+
+``P`` the projection on ``x >= 0`` (``nonneg``) or the identity. Only the protocol is used: ``A 1 = T(1)``
+and ``C A^T = diag(1 / T^*(1)) T^*`` (the weight of the L2 adjoint cancels), so it works for the ray
+transforms in 2D and 3D and for any user operator whose matrix is nonnegative. Rays or cells with a zero sum
+get a zero weight. It is gradient descent on ``(1/2) ||A x - y||_R^2`` in the metric ``C^{-1}`` with step 1,
+and ``||R^{1/2} A C^{1/2}|| <= 1`` for a nonnegative ``A`` (Schur's test), so the weighted residual
+``||A x_k - y||_R^2`` decreases monotonically, with or without ``nonneg``.
+"""
+from __future__ import annotations
+
+import torch
+
+from .._checks import check_int, check_tensor
+from .operator import check_operator
+
+
+def _inverse_sums(sums: torch.Tensor, what: str) -> torch.Tensor:
+    """``1 / sums`` where ``sums > 0``, 0 where ``sums == 0``; error if a sum is negative."""
+    scale = float(sums.abs().max()) if sums.numel() else 0.0
+    if bool((sums < -1e-12 * scale).any()):
+        raise ValueError(f"sirt needs an operator with a nonnegative matrix, but {what} has negative entries")
+    positive = sums > 1e-12 * scale
+    return torch.where(positive, 1.0 / torch.where(positive, sums, torch.ones_like(sums)), torch.zeros_like(sums))
+
+
+@torch.no_grad()
+def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None, nonneg: bool = False,
+         callback=None) -> tuple:
+    """``num_iter`` SIRT iterations for ``T x = y`` (module docstring).
+
+    Convention:
+        - ``T`` a ``LinearOperator``; ``y`` data ``(..., *T.range_shape)``, any leading batch dims; images
+          ``(..., *T.domain.shape)`` (2D or 3D); dtype and device follow ``y``.
+        - ``x0``: start (default zeros). ``nonneg``: clip to ``x >= 0`` after every step.
+        - ``callback(i, x)`` after iteration ``i`` (0-based).
+
+    Returns:
+        ``(x, history)``: ``history["residual"]`` float64 CPU ``(num_iter, ...)``, the weighted residual
+        ``sum R (T x_k - y)^2`` after iteration ``k`` (non-increasing), and ``history["data_residual"]`` the
+        data-space norm ``||T x_k - y||`` (``T.inner_data``).
+    """
+    check_operator(T, "T")
+    y = check_tensor(y, "y", tuple(T.range_shape))
+    num_iter = check_int(num_iter, "num_iter", 1)
+    dom = T.domain
+    batch = y.shape[:y.dim() - len(T.range_shape)]
+    x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else \
+        check_tensor(x0, "x0", tuple(batch) + tuple(dom.shape)).to(dtype=y.dtype, device=y.device).clone()
+    row = _inverse_sums(T(dom.zeros(dtype=y.dtype, device=y.device) + 1.0), "T(1) (ray sums)")
+    col = _inverse_sums(T.adjoint(torch.ones(T.range_shape, dtype=y.dtype, device=y.device)),
+                        "T^*(1) (cell sums)")
+    data_dims = tuple(range(-len(T.range_shape), 0))
+    residual = torch.empty((num_iter,) + tuple(batch), dtype=torch.float64)
+    data_residual = torch.empty_like(residual)
+    r = y - T(x)
+    for i in range(num_iter):
+        x = x + col * T.adjoint(row * r)
+        if nonneg:
+            x = x.clamp(min=0.0)
+        r = y - T(x)
+        residual[i] = (row * r * r).sum(dim=data_dims).cpu()
+        data_residual[i] = T.inner_data(r, r).sqrt().cpu()
+        if callback is not None:
+            callback(i, x)
+    return x, {"residual": residual, "data_residual": data_residual}

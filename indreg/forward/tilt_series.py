@@ -1,0 +1,245 @@
+"""Single-axis tilt series (electron tomography): the 3D ray transform for rotations about one image axis.
+
+Every slice of the volume orthogonal to the tilt axis is imaged by the same 2D parallel-beam geometry, so the
+3D operator is the 2D Joseph matrix ``A`` (``ray_transform``) applied to all slices at once: the tilt axis is
+moved into the batch and one sparse-dense product does every slice of every volume of a batch. The backward
+of the forward product is the exact transpose, as in 2D. Conventions: docs/tilt_series.md.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .._checks import check_same, check_tensor
+from ..domain import AXES, ImageDomain
+from .geometry import ParallelBeamGeometry
+from .operator import adjointness, operator_norm
+from .ray_transform import RayTransform, _Backproject, _Project
+
+TILT_ANGLE_UNITS = ("deg", "rad")
+
+
+def _axis_index(tilt_axis) -> int:
+    """``"x"``/``"y"``/``"z"`` or 0/1/2 -> the array axis 0, 1 or 2."""
+    if isinstance(tilt_axis, str) and tilt_axis in AXES:
+        return AXES.index(tilt_axis)
+    if not isinstance(tilt_axis, bool) and tilt_axis in (0, 1, 2):
+        return int(tilt_axis)
+    raise ValueError(f"tilt_axis must be 'x', 'y', 'z' (or 0, 1, 2), got {tilt_axis!r}")
+
+
+class TiltSeriesGeometry:
+    """Rotation of the specimen about one image axis (the tilt axis), parallel beam, flat 2D detector.
+
+    Convention (tilt axis ``t``; the two other axes ``(u, v)`` in increasing order: ``(x, z)`` for the
+    default ``t = y``, ``(y, z)`` for ``t = x``, ``(x, y)`` for ``t = z``):
+        - Slice ``j`` (the cells at ``t = t_j``) is a 2D image ``(n_u, n_v)`` imaged by
+          ``ParallelBeamGeometry(angles, det_count, det_min, det_max)``: datum ``p(theta_k, t_j, s_d)`` is the
+          integral over ``{s_d w + r w_perp}`` in the ``(u, v)`` plane with ``w = (cos theta, sin theta)``,
+          ``w_perp = (-sin theta, cos theta)``. At tilt 0 the beam runs along +v (+z for ``t = y``) and the
+          detector columns along u (x).
+        - Data ``(..., num_tilts, det_rows, det_cols)``: ``det_rows = n_t`` rows at the slices' ``t_j`` (row
+          spacing = the cell side along ``t``), ``det_cols = det_count`` cell-centred bins on
+          ``[det_min, det_max]`` along ``s``. For ``t = y`` this is an MRC/IMOD stack ``(tilt, Y, X)`` as stored.
+        - Angles: ``angle_unit`` is required (``"deg"`` or ``"rad"``; no guessing), any order, non-uniform.
+        - Data inner product ``angle_cell * det_cell * row_cell * sum`` with ``angle_cell = pi / num_tilts``
+          (the 2D weight times the row spacing), so the L2 adjoint is ``(data_weight / cell_volume) A^T``
+          slice by slice. FBP weighs tilt ``k`` by ``angle_weights[k]`` (midpoint cells: the step of a
+          regular tilt series).
+        - ``det_min = det_max = None``: the detector is fitted to the slice (its half-diagonal), see
+          ``ParallelBeamGeometry``; for data measured on a detector as wide as the volume pass
+          ``det_min, det_max = domain.min_pt[u], domain.max_pt[u]``.
+
+    Example:
+        >>> g = TiltSeriesGeometry.uniform(-60, 60, 2, det_count=64, det_min=-16.0, det_max=16.0)
+        >>> g.num_tilts, g.tilt_axis
+        (61, 'y')
+    """
+
+    def __init__(self, angles, det_count: int, det_min: float | None = None, det_max: float | None = None,
+                 tilt_axis="y", *, angle_unit: str, angle_weights=None):
+        if angle_unit not in TILT_ANGLE_UNITS:
+            raise ValueError(f"angle_unit must be 'deg' or 'rad' (required for a tilt series), got {angle_unit!r}")
+        self.axis = _axis_index(tilt_axis)
+        self.slice_geometry = ParallelBeamGeometry(det_count=det_count, det_min=det_min, det_max=det_max,
+                                                   angles=angles, angle_unit=angle_unit,
+                                                   angle_weights=angle_weights)
+        self.det_rows = None   # set by resolve(domain)
+        self.row_cell = None
+
+    @classmethod
+    def uniform(cls, min_deg: float, max_deg: float, step_deg: float, det_count: int, det_min: float | None = None,
+                det_max: float | None = None, tilt_axis="y"):
+        """Tilts ``min_deg, min_deg + step_deg, ..., max_deg`` degrees (``ParallelBeamGeometry.tilt_series``)."""
+        g = ParallelBeamGeometry.tilt_series(min_deg, max_deg, step_deg, det_count, det_min, det_max)
+        return cls(g.angles, det_count, det_min, det_max, tilt_axis, angle_unit="rad")
+
+    @property
+    def tilt_axis(self) -> str:
+        """``"x"``, ``"y"`` or ``"z"``."""
+        return AXES[self.axis]
+
+    @property
+    def slice_axes(self) -> tuple:
+        """The array axes ``(u, v)`` of a slice: the two non-tilt axes in increasing order."""
+        return tuple(a for a in range(3) if a != self.axis)
+
+    angles = property(lambda self: self.slice_geometry.angles, doc="Tilt angles in radians (float64, 1D).")
+    num_tilts = property(lambda self: self.slice_geometry.num_angles, doc="Number of tilts.")
+    det_count = property(lambda self: self.slice_geometry.det_count, doc="Detector columns (bins along s).")
+    det_min = property(lambda self: self.slice_geometry.det_min, doc="Detector start along s.")
+    det_max = property(lambda self: self.slice_geometry.det_max, doc="Detector end along s.")
+    det_cell = property(lambda self: self.slice_geometry.det_cell, doc="Column width.")
+    det_points = property(lambda self: self.slice_geometry.det_points, doc="Column centres along s.")
+    angle_cell = property(lambda self: self.slice_geometry.angle_cell, doc="``pi / num_tilts``.")
+    angle_weights = property(lambda self: self.slice_geometry.angle_weights, doc="FBP quadrature cells.")
+
+    @property
+    def is_resolved(self) -> bool:
+        """Whether the detector (extent and rows) is set for a domain."""
+        return self.det_rows is not None and self.slice_geometry.is_resolved
+
+    def _require_resolved(self):
+        if not self.is_resolved:
+            raise ValueError("TiltSeriesGeometry is not resolved for a domain: call geometry.resolve(domain) "
+                             "(TiltSeriesTransform does this)")
+
+    @property
+    def shape(self) -> tuple:
+        """Data shape ``(num_tilts, det_rows, det_cols)``."""
+        self._require_resolved()
+        return (self.num_tilts, self.det_rows, self.det_count)
+
+    @property
+    def data_weight(self) -> float:
+        """Weight of the data inner product, ``angle_cell * det_cell * row_cell``."""
+        self._require_resolved()
+        return self.angle_cell * self.det_cell * self.row_cell
+
+    def slice_domain(self, domain: ImageDomain) -> ImageDomain:
+        """The 2D domain ``(n_u, n_v)`` of one slice of ``domain``."""
+        u, v = self.slice_axes
+        return ImageDomain((domain.shape[u], domain.shape[v]), (domain.min_pt[u], domain.min_pt[v]),
+                           (domain.max_pt[u], domain.max_pt[v]))
+
+    def resolve(self, domain: ImageDomain) -> "TiltSeriesGeometry":
+        """A copy with the detector rows of ``domain`` and, if unset, the detector extent fitted to a slice."""
+        if not isinstance(domain, ImageDomain) or domain.ndim != 3:
+            raise ValueError(f"a tilt series needs a 3D ImageDomain, got {domain!r}")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.slice_geometry = self.slice_geometry.resolve(self.slice_domain(domain))
+        new.det_rows, new.row_cell = domain.shape[self.axis], domain.cell_sides[self.axis]
+        return new
+
+    def __repr__(self) -> str:
+        return (f"TiltSeriesGeometry(num_tilts={self.num_tilts}, det_count={self.det_count}, "
+                f"det_min={self.det_min}, det_max={self.det_max}, tilt_axis={self.tilt_axis!r})")
+
+
+class TiltSeriesTransform(nn.Module):
+    """Single-axis tilt-series ray transform ``T: L2(domain) -> L2(tilts x rows x columns)`` (a ``LinearOperator``).
+
+    ``(T f)(theta_k, t_j, s_d)`` is the 2D parallel-beam ray transform of the slice ``f(., t_j, .)``
+    (``TiltSeriesGeometry``), discretised by the 2D Joseph matrix ``A`` of that slice geometry, the same for
+    every slice: ``T f = A`` applied slice by slice, in one batched sparse product.
+
+    Convention:
+        - Input volumes ``(..., nx, ny, nz)`` on a 3D ``domain`` (axis 0 = x), float32 or float64, any leading
+          batch dims, any device. Output data ``(..., num_tilts, det_rows, det_cols)``, line integrals in
+          physical length units (a unit ball of radius r gives ``2 r`` through its centre).
+        - ``transpose`` is the exact matrix transpose ``A^T`` per slice; ``adjoint`` is the L2 adjoint for
+          ``domain.inner`` and ``inner_data``: ``T^* = (data_weight / cell_volume) A^T`` (the cell side along
+          the tilt axis cancels, so the factor is the 2D one).
+        - Derivative: ``T`` is linear, ``T'(f) = T``; its autograd backward is ``A^T`` (and the backward of
+          ``transpose`` is ``A``), exact and twice differentiable.
+        - ``self.geometry`` is the resolved geometry; ``self.slice_transform`` the 2D ``RayTransform`` of one
+          slice (used by ``fbp``).
+
+    Example:
+        >>> dom = ImageDomain((32, 24, 16))
+        >>> T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 3, det_count=40))
+        >>> T(dom.zeros(2)).shape
+        torch.Size([2, 41, 24, 40])
+    """
+
+    def __init__(self, domain: ImageDomain, geometry: TiltSeriesGeometry):
+        super().__init__()
+        if not isinstance(domain, ImageDomain) or domain.ndim != 3:
+            raise ValueError(f"domain must be a 3D ImageDomain (nx, ny, nz), got {domain!r}")
+        if not isinstance(geometry, TiltSeriesGeometry):
+            raise TypeError(f"geometry must be a TiltSeriesGeometry, got {type(geometry).__name__}")
+        self.domain = domain
+        self.slice_transform = RayTransform(geometry.slice_domain(domain), geometry.slice_geometry)
+        self.geometry = geometry.resolve(domain)
+
+    @property
+    def range_shape(self) -> tuple:
+        """Data shape ``(num_tilts, det_rows, det_cols)``."""
+        return self.geometry.shape
+
+    @property
+    def adjoint_scale(self) -> float:
+        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
+        return self.geometry.data_weight / self.domain.cell_volume
+
+    @property
+    def system(self):
+        """The 2D system matrix shared by all slices."""
+        return self.slice_transform.system
+
+    def _check_dtype(self, x, name):
+        self.slice_transform._check_dtype(x, name)
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        """``T f``: volumes ``(..., nx, ny, nz)`` -> data ``(..., num_tilts, det_rows, det_cols)``."""
+        f = self.domain.check_image(f, "volume")
+        self._check_dtype(f, "volume")
+        slices = f.movedim(f.dim() - 3 + self.geometry.axis, -3)           # (..., n_t, n_u, n_v)
+        batch = slices.shape[:-2]
+        out = _Project.apply(slices.reshape(-1, slices.shape[-2] * slices.shape[-1]), self.system)
+        return out.reshape(*batch, self.geometry.num_tilts, self.geometry.det_count).movedim(-3, -2)
+
+    def A(self, f: torch.Tensor) -> torch.Tensor:
+        """The forward operator ``T f`` (same as calling the module)."""
+        return self(f)
+
+    def transpose(self, y: torch.Tensor) -> torch.Tensor:
+        """Exact matrix transpose ``A^T y`` slice by slice: data -> volumes ``(..., nx, ny, nz)``."""
+        y = check_tensor(y, "data", self.range_shape)
+        self._check_dtype(y, "data")
+        rows = y.movedim(-2, -3)                                          # (..., n_t, tilts, cols)
+        batch = rows.shape[:-2]
+        out = _Backproject.apply(rows.reshape(-1, rows.shape[-2] * rows.shape[-1]), self.system)
+        u, v = self.geometry.slice_axes
+        out = out.reshape(*batch, self.domain.shape[u], self.domain.shape[v])
+        return out.movedim(-3, out.dim() - 3 + self.geometry.axis)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """L2 adjoint ``T^* y = (data_weight / cell_volume) A^T y`` (backprojection)."""
+        return self.adjoint_scale * self.transpose(y)
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """deepinv's ``A_adjoint``: the adjoint for plain sums, i.e. ``transpose``."""
+        return self.transpose(y)
+
+    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
+        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the last three axes."""
+        check_same(y1, y2, "y1", "y2")
+        return self.geometry.data_weight * (y1 * y2).sum(dim=(-3, -2, -1))
+
+    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted data norm over the last three axes."""
+        return self.inner_data(y, y).sqrt()
+
+    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
+        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (``operator.adjointness``)."""
+        return adjointness(self, dtype, device, seed)
+
+    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
+                      seed: int = 0) -> float:
+        """``||T||`` by power iteration on ``T^* T`` (``operator.operator_norm``)."""
+        return operator_norm(self, num_iter, dtype, device, seed)
+
+    def extra_repr(self) -> str:
+        return f"domain={self.domain}, geometry={self.geometry}, nnz per slice={self.system.nnz}"
