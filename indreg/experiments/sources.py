@@ -5,7 +5,8 @@ it (config group ``data``: ``conf/data/<name>.yaml``). The run loop only sees :c
 means one function here and one yaml file, nothing else.
 
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
-    files     your own data: template, sinogram (and optionally a target) read by ``indreg.io``
+    files     your own data: template, sinogram (and optionally a target) read by ``indreg.io``; with
+              ``geometry=tilt_series`` a template volume and an MRC tilt series with its .tlt angles
 
 Convention: images ``(n, n)`` (or volumes ``(n, n, n)``) float64 on the CPU, axis 0 = x, on
 ``[-half_width, half_width]^d`` (square / cubic cells); data ``(num_angles, det_count)`` (a tilt series:
@@ -162,6 +163,55 @@ def _file_angles(cfg: DictConfig, num_rows: int) -> torch.Tensor:
     return angles
 
 
+def box_domain(shape: tuple, half_width: float) -> ImageDomain:
+    """Cubic cells of side ``2 half_width / max(shape)``, centred: the longest axis spans
+    ``[-half_width, half_width]`` (a slab of electron tomography keeps its aspect ratio)."""
+    h = 2.0 * half_width / max(shape)
+    return ImageDomain(tuple(shape), tuple(-h * n / 2 for n in shape), tuple(h * n / 2 for n in shape))
+
+
+def _tilt_series_files(cfg: DictConfig) -> Data:
+    """``data=files`` with ``geometry=tilt_series``: a template volume and a tilt series (with its angles).
+    ``geometry.det_min = det_max = null``: the detector columns have the voxels' width, centred on the axis."""
+    from ..io import DataFileError, read_tilt_series, read_volume, split_path
+
+    d, g = cfg.data, cfg.geometry
+    template = read_volume(d.template, name="data.template")
+    domain = box_domain(template.shape, d.half_width)
+    spec = None if g.angles is None else (OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles)
+                                          else str(g.angles))
+    try:
+        data, angles = read_tilt_series(d.sinogram, spec, g.angle_unit.value, name="data.sinogram")
+    except ValueError as e:
+        if isinstance(e, DataFileError):
+            raise
+        raise ConfigError(f"geometry.angles: {e}") from None
+    target = None
+    if d.target:
+        target = read_volume(d.target, name="data.target")
+        if target.shape != template.shape:
+            raise DataFileError(f"data.target {d.target}: shape {target.shape} differs from the template's "
+                                f"{template.shape}")
+        target = torch.from_numpy(target)
+    det_min, det_max = g.det_min, g.det_max
+    if det_min is None:  # measured data: detector columns as wide as the volume's voxels, centred
+        u = 0 if g.tilt_axis.value != "x" else 1
+        det_max = data.shape[2] * domain.cell_sides[u] / 2
+        det_min = -det_max
+    try:
+        geometry = TiltSeriesGeometry(torch.as_tensor(angles, dtype=torch.float64), data.shape[2], det_min, det_max,
+                                      g.tilt_axis.value, angle_unit="rad")
+        T = make_operator(domain, geometry)
+    except ValueError as e:
+        raise DataFileError(f"geometry: {e}") from None
+    if tuple(data.shape) != tuple(T.range_shape):
+        raise DataFileError(f"data.sinogram {d.sinogram}: shape {tuple(data.shape)} but the template "
+                            f"{tuple(template.shape)} with tilt axis {g.tilt_axis.value} needs "
+                            f"{tuple(T.range_shape)} (tilts, rows along the tilt axis, columns)")
+    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=torch.from_numpy(template),
+                data_64=torch.from_numpy(data), label=split_path(d.template)[0].name, target_64=target)
+
+
 @source("files")
 def file_data(cfg: DictConfig) -> Data:
     """Template, sinogram and optional target from files (``indreg.io``).
@@ -173,6 +223,8 @@ def file_data(cfg: DictConfig) -> Data:
     from ..io import DataFileError, read_image, read_sinogram, split_path
 
     d, g = cfg.data, cfg.geometry
+    if g.kind.value == "tilt_series":
+        return _tilt_series_files(cfg)
     template = read_image(d.template, name="data.template")
     nx, ny = template.shape
     if nx != ny:
