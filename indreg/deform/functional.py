@@ -10,6 +10,15 @@ hand-written).
 Convention:
     - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
       fields ``(..., N+1, 2, nx, ny)`` at ``t_i = i / N``; physical units of ``ImageDomain``.
+    - 3D: every function takes the same arguments on an ``ImageDomain`` of shape ``(nx, ny, nz)``, with
+      images ``(..., nx, ny, nz)``, vector fields ``(..., 3, nx, ny, nz)`` (component 2 = z) and velocities
+      ``(..., N+1, 3, nx, ny, nz)``: one code path, the number of image axes d read from ``domain.ndim`` (in
+      the docstrings below ``(..., nx, ny)`` then reads ``(..., nx, ny, nz)`` and ``2`` components read 3).
+      Interpolation is trilinear (``grid_sample`` on 5D tensors, ``grid_sampler_3d_backward`` for the exact
+      adjoint), finite differences and divergences run over three axes, and ``jacobian_determinant`` is the
+      3x3 determinant (``determinant``). ``grid_sample`` grids list the coordinates in reverse order
+      (``[..., 0]`` = z, ``[..., 1]`` = y, ``[..., 2]`` = x).
+
     - In the recursions the batch dims of images and velocities must already agree (broadcast first).
     - Interpolation is bilinear (``grid_sample``, ``align_corners=False``: grid coordinates -1 and 1 are
       the domain's edges, so pixel centres sit exactly at the cell centres of ``ImageDomain``).
