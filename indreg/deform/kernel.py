@@ -89,12 +89,14 @@ class GaussianKernel:
         return self._gauss(x[:, None] - x[None, :]).to(dtype)
 
     def _matrices(self, dtype, device):
-        """``(Kx, ..., K_last^T)``: the matrices of all axes, the last one transposed (it multiplies from the right)."""
+        """``(Kx, ..., K_last^T)``: the matrices of all axes, the last one transposed (it multiplies from the
+        right); in 3D ``Kx`` carries the factor ``cell_volume`` (one pass less over the volumes)."""
         key = ("matrix", dtype, device)
         if key not in self._cache:
             d = self.domain.ndim
-            self._cache[key] = tuple(self.toeplitz(a, dtype, device) for a in range(d - 1)) \
-                + (self.toeplitz(d - 1, dtype, device).T.contiguous(),)
+            first = self.toeplitz(0, torch.float64, device) * (self.domain.cell_volume if d == 3 else 1.0)
+            self._cache[key] = (first.to(dtype), *(self.toeplitz(a, dtype, device) for a in range(1, d - 1)),
+                                self.toeplitz(d - 1, dtype, device).T.contiguous())
         return self._cache[key]
 
     def _spectra(self, dtype, device):
@@ -133,8 +135,7 @@ class GaussianKernel:
                 out = torch.matmul(torch.matmul(matrices[0], f), matrices[1])
             else:  # z from the right; y: (ny, ny) @ (..., nx, ny, nz) acts on axis -2; x on (..., nx, ny * nz)
                 out = torch.matmul(matrices[1], torch.matmul(f, matrices[2]))
-                out = torch.matmul(matrices[0], out.reshape(*out.shape[:-3], shape[0], -1)).reshape(out.shape)
-
+                return torch.matmul(matrices[0], out.reshape(*out.shape[:-3], shape[0], -1)).reshape(out.shape)
         else:
             lengths, spectrum = self._spectra(f.dtype, f.device)
             dims = tuple(range(-len(shape), 0))
