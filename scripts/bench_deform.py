@@ -4,6 +4,8 @@
     python scripts/bench_deform.py --action mass_preserving --interpolation compose   # another variant
     python scripts/bench_deform.py --kernel        # GaussianKernel: matrix vs FFT (the "auto" crossover)
     python scripts/bench_deform.py --blur          # interpolation="reinterpolate" vs "compose" (J, Shepp-Logan)
+    python scripts/bench_deform.py --ndim 3 --sizes 64 128 --steps 10 --modes paper exact   # 3D volumes
+    python scripts/bench_deform.py --ndim 3 --sizes 128 --steps 10 --iteration --no-main    # Algorithm 1 in 3D
 
 Timing: median over ``--repeats`` runs after a warm-up, float32, ``torch.set_num_threads(--threads)``; per
 size one fresh subprocess times the three backward modes and both phases in interleaved rounds (per round and
@@ -41,21 +43,23 @@ from indreg.deform import functional as Fd
 def smooth_velocity(domain, num_steps, displacement, sigma=2.0, dtype=torch.float32, seed=0):
     """A kernel-smoothed random velocity, constant in time, max |v| = ``displacement`` (physical units)."""
     g = torch.Generator().manual_seed(seed)
-    v = GaussianKernel(domain, sigma)(torch.randn(2, *domain.shape, dtype=torch.float64, generator=g))
+    d = domain.ndim
+    v = GaussianKernel(domain, sigma)(torch.randn(d, *domain.shape, dtype=torch.float64, generator=g))
     v = displacement * v / v.abs().max()
-    return v.expand(num_steps + 1, 2, *domain.shape).to(dtype).contiguous()
+    return v.expand(num_steps + 1, d, *domain.shape).to(dtype).contiguous()
 
 
-MODES = ("paper", "exact", "autograd")
+MODES = ["paper", "exact", "autograd"]  # --modes
 VARIANT = {"action": "geometric", "interpolation": "reinterpolate"}  # set from the command line
+NDIM = [2]  # --ndim
 
 
 def problem(n, num_steps, mode):
-    domain = ImageDomain.paper(n)
-    x, y = domain.points(torch.float32)
-    template = torch.exp(-(x ** 2 + y ** 2) / 50) * (1 + 0.3 * torch.cos(x / 2))
+    domain = ImageDomain.paper(n, NDIM[0])
+    points = domain.points(torch.float32)
+    template = torch.exp(-sum(p ** 2 for p in points) / 50) * (1 + 0.3 * torch.cos(points[0] / 2))
     velocity = smooth_velocity(domain, num_steps, 2.0).requires_grad_()
-    grad_out = torch.sin(y / 3) * domain.cell_volume
+    grad_out = torch.sin(points[1] / 3) * domain.cell_volume
     return LDDMMDeformation(domain, num_steps, backward=mode, **VARIANT), velocity, template, grad_out
 
 
@@ -67,13 +71,15 @@ def call(W, velocity, template, grad_out, phase):
     return out
 
 
-COMBOS = [(mode, phase) for mode in MODES for phase in ("fwd", "fwd+bwd")]
+def combos():
+    return [(mode, phase) for mode in MODES for phase in ("fwd", "fwd+bwd")]
 
 
 def time_worker(n, num_steps, repeats, threads):
     """Median times of all modes and phases, interleaved call by call (the ratios see the same machine state)."""
     torch.set_num_threads(threads)
     problems = {mode: problem(n, num_steps, mode) for mode in MODES}
+    COMBOS = combos()
     for mode, phase in COMBOS:
         call(*problem(16, num_steps, mode), phase)  # warm-up of the code paths
         call(*problems[mode], phase)
@@ -100,6 +106,49 @@ def memory_worker(n, mode, phase, num_steps, threads):
         with LivePeak() as live:
             call(*args, phase)
     print(json.dumps({"rss_mb": rss, "live_mb": live.peak / 2 ** 20}))
+
+
+class ProjectZ:
+    """A stand-in forward operator for 3D timings: integrals along z (one projection, exact adjoint)."""
+
+    def __init__(self, domain):
+        self.domain, self.range_shape = domain, domain.shape[:2]
+
+    def __call__(self, f):
+        return f.sum(dim=-1) * self.domain.cell_sides[2]
+
+    def adjoint(self, g):
+        return g.unsqueeze(-1).expand(*g.shape, self.domain.shape[2]).contiguous()
+
+    def inner_data(self, y1, y2):
+        return self.domain.cell_sides[0] * self.domain.cell_sides[1] * (y1 * y2).sum(dim=(-2, -1))
+
+
+def iteration_worker(n, num_steps, repeats, threads):
+    """Seconds per Algorithm-1 iteration (kernel, deformation forward + backward, operator, min Jacobian with
+    step halving) on a 3D problem, and the process's peak RSS (MB) after the run."""
+    from indreg.solvers import Algorithm1, IndirectRegistration, SolverState
+
+    torch.set_num_threads(threads)
+    domain = ImageDomain.paper(n, 3)
+    points = domain.points(torch.float32)
+    template = torch.exp(-sum(p ** 2 for p in points) / 50)
+    target = torch.exp(-sum((p - s) ** 2 for p, s in zip(points, (2.0, -1.0, 1.0))) / 50)
+    T = ProjectZ(domain)
+    W = LDDMMDeformation(domain, num_steps, backward=VARIANT.get("backward", "paper"), action=VARIANT["action"],
+                         interpolation=VARIANT["interpolation"])
+    problem_ = IndirectRegistration(T, W, GaussianKernel(domain, 6.0), template, T(target), gamma=1e-6)
+    solver = Algorithm1(problem_, step_size=0.02, max_iter=repeats + 1, step_halving=True)
+    state = SolverState(problem_.zero_momentum())
+    solver.step(state)  # warm-up (and the first evaluation)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        info = solver.step(state)
+        times.append(time.perf_counter() - t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"seconds": statistics.median(times), "min_seconds": min(times), "peak_rss_mb": peak,
+                      "evaluations": info["evaluations"], "objective": info["objective"]}))
 
 
 class _MallInfo2(ctypes.Structure):
@@ -142,7 +191,7 @@ def _disable_huge_pages():
 def run(a, *worker_args):
     cmd = [sys.executable, __file__, "--worker", *map(str, worker_args), "--steps", str(a.steps),
            "--repeats", str(a.repeats), "--threads", str(a.threads), "--action", a.action,
-           "--interpolation", a.interpolation]
+           "--interpolation", a.interpolation, "--ndim", str(a.ndim), "--modes", *a.modes]
     done = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -151,20 +200,34 @@ def main_table(a):
     results = {}
     for n in a.sizes:
         times = run(a, "time", n)
-        for mode, phase in COMBOS:
+        for mode, phase in combos():
             results[n, mode, phase] = {"time": times[f"{mode} {phase}"], **run(a, "memory", n, mode, phase)}
-            print(f"  {n}^2 {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
+            print(f"  {n}^{a.ndim} {mode:8s} {phase:7s} {results[n, mode, phase]}", file=sys.stderr)
     print(f"\n### LDDMMDeformation, N = {a.steps}, float32, {a.threads} thread(s), {a.action}, {a.interpolation}\n")
     print("| size | backward | forward (s) | fwd+bwd (s) | fwd: RSS / live (MB) | fwd+bwd: RSS / live (MB) |")
     print("|---|---|---|---|---|---|")
     for n in a.sizes:
         for mode in MODES:
             f, b = results[n, mode, "fwd"], results[n, mode, "fwd+bwd"]
-            print(f"| {n}^2 | {mode} | {f['time']:.4f} | {b['time']:.4f} | {f['rss_mb']:.1f} / {f['live_mb']:.1f} "
-                  f"| {b['rss_mb']:.1f} / {b['live_mb']:.1f} |")
+            print(f"| {n}^{a.ndim} | {mode} | {f['time']:.4f} | {b['time']:.4f} | {f['rss_mb']:.1f} / "
+                  f"{f['live_mb']:.1f} | {b['rss_mb']:.1f} / {b['live_mb']:.1f} |")
     if len(a.sizes) > 1:
-        exponents(results, a.sizes)
-    ratios(results, a.sizes)
+        exponents(results, a.sizes, a.ndim)
+    if {"exact", "paper", "autograd"} <= set(MODES):
+        ratios(results, a.sizes)
+
+
+def iteration_table(a):
+    print(f"\n### Algorithm 1 in 3D (z-projection operator), N = {a.steps}, float32, {a.threads} thread(s), "
+          f"{a.action}, {a.interpolation}, step halving on\n")
+    print("| size | backward | s / iteration (median, min) | peak RSS of the process (MB) |")
+    print("|---|---|---|---|")
+    for n in a.sizes:
+        for mode in MODES:
+            if mode == "autograd":
+                continue
+            r = run(a, "iteration", n, mode)
+            print(f"| {n}^3 | {mode} | {r['seconds']:.3f}, {r['min_seconds']:.3f} | {r['peak_rss_mb']:.0f} |")
 
 
 def ratios(results, sizes):
@@ -175,14 +238,14 @@ def ratios(results, sizes):
         ex, pa, au = (results[n, mode, "fwd+bwd"] for mode in ("exact", "paper", "autograd"))
         keys = ("time", "rss_mb", "live_mb")
         r = lambda x, y: " / ".join(f"{x[k] / max(y[k], 1e-9):.2f}" for k in keys)  # noqa: E731
-        print(f"| {n}^2 | {r(ex, pa)} | {r(ex, au)} | {au['time'] / pa['time']:.2f} |")
+        print(f"| {n} | {r(ex, pa)} | {r(ex, au)} | {au['time'] / pa['time']:.2f} |")
 
 
-def exponents(results, sizes):
+def exponents(results, sizes, ndim=2):
     """Least-squares exponent p of time ~ pixels^p over the sizes."""
     print("\n| backward | exponent fwd (time ~ pixels^p) | exponent fwd+bwd |")
     print("|---|---|---|")
-    pixels = np.log([n * n for n in sizes])
+    pixels = np.log([float(n) ** ndim for n in sizes])
     for mode in MODES:
         p = [np.polyfit(pixels, np.log([results[n, mode, ph]["time"] for n in sizes]), 1)[0]
              for ph in ("fwd", "fwd+bwd")]
@@ -246,19 +309,30 @@ def main():
     p.add_argument("--interpolation", default="reinterpolate", choices=Fd.INTERPOLATIONS)
     p.add_argument("--kernel", action="store_true", help="also the kernel matrix/FFT table")
     p.add_argument("--blur", action="store_true", help="also the reinterpolate/compose table")
+    p.add_argument("--ndim", type=int, default=2, choices=(2, 3), help="2D images or 3D volumes (sizes n^ndim)")
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES, help="backward modes to time")
+    p.add_argument("--iteration", action="store_true", help="also seconds per Algorithm-1 iteration (3D)")
     p.add_argument("--no-main", action="store_true", help="skip the time/memory table")
     p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args()
     VARIANT.update(action=a.action, interpolation=a.interpolation)
+    NDIM[0] = a.ndim
+    MODES[:] = a.modes
     if a.worker:
         if a.worker[0] == "time":
             time_worker(int(a.worker[1]), a.steps, a.repeats, a.threads)
+        elif a.worker[0] == "iteration":
+            VARIANT["backward"] = a.worker[2]
+            iteration_worker(int(a.worker[1]), a.steps, a.repeats, a.threads)
         else:
             memory_worker(int(a.worker[1]), a.worker[2], a.worker[3], a.steps, a.threads)
         return
     torch.set_num_threads(a.threads)
     if not a.no_main:
         main_table(a)
+    if a.iteration:
+        iteration_table(a)
+
     if a.kernel:
         kernel_table(a)
     if a.blur:

@@ -29,13 +29,14 @@ class GaussianKernel:
 
     ``K(m)(x) = int_Omega K(x, y) m(y) dy`` is evaluated at the cell centres as a Riemann sum,
     ``cell_volume * sum_j K(x, y_j) m(y_j)``, with no wrap-around and no truncation. The Gaussian is
-    separable, ``K(x, y) = k_x(x1 - y1) k_y(x2 - y2)``, so the sum is computed either as
+    separable, ``K(x, y) = k_x(x1 - y1) k_y(x2 - y2) [k_z(x3 - y3)]``, so the sum is computed either as
 
-    - ``method="matrix"``: ``hx hy * Kx @ M @ Ky^T`` per component, with the dense Toeplitz matrices
-      ``Kx[i, j] = exp(-(x_i - x_j)^2 / (2 sigma^2))`` (cost ``O(n^3)``, fast BLAS), or
+    - ``method="matrix"``: ``hx hy * Kx @ M @ Ky^T`` per component (3D: one more product along z), with the
+      dense Toeplitz matrices ``Kx[i, j] = exp(-(x_i - x_j)^2 / (2 sigma^2))`` (cost ``O(n^(d+1))``, fast
+      BLAS), or
     - ``method="fft"``: a linear convolution by FFT, each axis zero-padded to a fast FFT length
       ``L >= 2n - 1`` (``scipy.fft.next_fast_len``) so the circular convolution equals the linear one
-      on the grid (cost ``O(n^2 log n)``),
+      on the grid (cost ``O(n^d log n)``; the padded spectra of a batch take ``2^d`` times its memory),
     - ``method="auto"``: the matrix form up to ``MATRIX_MAX_CPU`` (CPU) / ``MATRIX_MAX_CUDA`` (CUDA)
       pixels on the longer axis, else the FFT (crossover measured, see ``MATRIX_MAX_CPU``).
 
@@ -46,7 +47,8 @@ class GaussianKernel:
         ``sigma`` in physical units (the paper's domain is ``[-16, 16]^2``); the output has the input's
         shape, dtype and device. The operator is L2-self-adjoint and positive definite:
         ``<K f, g>_L2 = <f, K g>_L2``, and for ``v = K m`` the V norm is ``<v, v>_V = <m, K m>_L2``
-        (``inner_v``).
+        (``inner_v``). 3D (a ``domain`` of shape ``(nx, ny, nz)``): vector fields ``(..., 3, nx, ny, nz)``
+        (component 2 = z), the same methods with a third factor.
 
     Example:
         >>> K = GaussianKernel(ImageDomain.paper(64), sigma=6.0)
@@ -82,14 +84,19 @@ class GaussianKernel:
         return torch.exp(-d * d / self._two_sigma2)
 
     def toeplitz(self, axis: int, dtype=torch.float64, device=None) -> torch.Tensor:
-        """The dense matrix ``exp(-(x_i - x_j)^2 / (2 sigma^2))`` on ``axis`` (0 = x, 1 = y)."""
+        """The dense matrix ``exp(-(x_i - x_j)^2 / (2 sigma^2))`` on ``axis`` (0 = x, 1 = y, 2 = z)."""
         x = self.domain.axes(torch.float64, device)[axis]
         return self._gauss(x[:, None] - x[None, :]).to(dtype)
 
     def _matrices(self, dtype, device):
+        """``(Kx, ..., K_last^T)``: the matrices of all axes, the last one transposed (it multiplies from the
+        right); in 3D ``Kx`` carries the factor ``cell_volume`` (one pass less over the volumes)."""
         key = ("matrix", dtype, device)
         if key not in self._cache:
-            self._cache[key] = (self.toeplitz(0, dtype, device), self.toeplitz(1, dtype, device).T.contiguous())
+            d = self.domain.ndim
+            first = self.toeplitz(0, torch.float64, device) * (self.domain.cell_volume if d == 3 else 1.0)
+            self._cache[key] = (first.to(dtype), *(self.toeplitz(a, dtype, device) for a in range(1, d - 1)),
+                                self.toeplitz(d - 1, dtype, device).T.contiguous())
         return self._cache[key]
 
     def _spectra(self, dtype, device):
@@ -101,33 +108,45 @@ class GaussianKernel:
                 offsets = torch.arange(length, dtype=torch.float64, device=device)
                 offsets = torch.where(offsets < n, offsets, offsets - length)  # circular offsets -(L-n)..n-1
                 kernel = torch.where(offsets.abs() < n, self._gauss(offsets * h), torch.zeros_like(offsets))
-                spectra.append(torch.fft.rfft(kernel) if axis == 1 else torch.fft.fft(kernel))
+                last = axis == self.domain.ndim - 1
+                spectra.append(torch.fft.rfft(kernel) if last else torch.fft.fft(kernel))
                 lengths.append(length)
             ctype = torch.complex64 if dtype == torch.float32 else torch.complex128
-            self._cache[key] = (tuple(lengths), (spectra[0][:, None] * spectra[1][None, :]).to(ctype))
+            spectrum = spectra[0]
+            for s in spectra[1:]:  # the outer product of the per-axis spectra
+                spectrum = spectrum[..., None] * s
+            self._cache[key] = (tuple(lengths), spectrum.to(ctype))
         return self._cache[key]
 
     def __call__(self, m: torch.Tensor) -> torch.Tensor:
-        """``K(m)(x_i) = cell_volume * sum_j exp(-|x_i - x_j|^2 / (2 sigma^2)) m(x_j)`` for ``m (..., 2, nx, ny)``."""
-        check_tensor(m, "vector field", (2, *self.domain.shape))
+        """``K(m)(x_i) = cell_volume * sum_j exp(-|x_i - x_j|^2 / (2 sigma^2)) m(x_j)`` for ``m (..., d, *shape)``."""
+        check_tensor(m, "vector field", (self.domain.ndim, *self.domain.shape))
         return self.apply(m)
 
     def apply(self, f: torch.Tensor) -> torch.Tensor:
-        """The kernel on any tensor ``(..., nx, ny)`` (no shape check on the component axis, no finiteness check).
+        """The kernel on any tensor ``(..., *shape)`` (no shape check on the component axis, no finiteness check).
 
         Linear in ``f`` and differentiable by autograd (matrix products / FFTs).
         """
+        shape = self.domain.shape
         if self.resolved_method(f.device) == "matrix":
-            kx, kyt = self._matrices(f.dtype, f.device)
-            out = torch.matmul(torch.matmul(kx, f), kyt)
+            matrices = self._matrices(f.dtype, f.device)
+            if len(shape) == 2:
+                out = torch.matmul(torch.matmul(matrices[0], f), matrices[1])
+            else:  # z from the right; y: (ny, ny) @ (..., nx, ny, nz) acts on axis -2; x on (..., nx, ny * nz)
+                out = torch.matmul(matrices[1], torch.matmul(f, matrices[2]))
+                return torch.matmul(matrices[0], out.reshape(*out.shape[:-3], shape[0], -1)).reshape(out.shape)
         else:
-            (lx, ly), spectrum = self._spectra(f.dtype, f.device)
-            nx, ny = self.domain.shape
-            out = torch.fft.irfft2(torch.fft.rfft2(f, s=(lx, ly)) * spectrum, s=(lx, ly))[..., :nx, :ny]
+            lengths, spectrum = self._spectra(f.dtype, f.device)
+            dims = tuple(range(-len(shape), 0))
+            out = torch.fft.irfftn(torch.fft.rfftn(f, s=lengths, dim=dims) * spectrum, s=lengths, dim=dims)
+            out = out[(Ellipsis, *(slice(0, n) for n in shape))]
         return out * self.domain.cell_volume
 
     def inner_v(self, m1: torch.Tensor, m2: torch.Tensor) -> torch.Tensor:
-        """``<m1, K m2>_L2`` over the last 3 dims (batch dims kept): the V inner product of ``K m1`` and ``K m2``."""
-        check_tensor(m1, "m1", (2, *self.domain.shape))
+        """``<m1, K m2>_L2`` over the last d + 1 dims (batch dims kept): the V inner product of ``K m1`` and ``K m2``."""
+        d = self.domain.ndim
+        check_tensor(m1, "m1", (d, *self.domain.shape))
         check_same(m1, m2, "m1", "m2")
-        return self.domain.cell_volume * (m1 * self(m2)).sum(dim=(-3, -2, -1))
+        return self.domain.cell_volume * (m1 * self(m2)).sum(dim=tuple(range(-d - 1, 0)))
+

@@ -46,7 +46,8 @@ class _PaperDeformation(torch.autograd.Function):
     @staticmethod
     def forward(velocity, template, config, moving):
         record = _record(velocity, template, config, moving)
-        return record[..., -1, 0, :, :].clone(), record
+        d = config.domain.ndim
+        return record.select(-d - 2, -1).select(-d - 1, 0).clone(), record
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -66,8 +67,9 @@ class _PaperDeformation(torch.autograd.Function):
         record = ctx.record if ctx.record is not None else _record(velocity, template, c, ctx.moving)
         if need_velocity:  # paper_gradient overwrites it
             ctx.record = None
+        d = c.domain.ndim
         grad_v, grad_i = Fd.paper_gradient(
-            grad_out, velocity.expand(*grad_out.shape[:-2], *velocity.shape[-4:]), record, c.domain,
+            grad_out, velocity.expand(*grad_out.shape[:-d], *velocity.shape[-d - 2:]), record, c.domain,
             c.action, c.interpolation, c.scheme, need_velocity=need_velocity, moving=ctx.moving)
         grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
         grad_i = grad_i.sum_to_size(template.shape) if ctx.needs_input_grad[1] else None
@@ -102,10 +104,11 @@ class _ExactDeformation(torch.autograd.Function):
         record = ctx.record if ctx.record is not None else _exact_record(velocity, template, c, ctx.moving)[1]
         if need_velocity:  # exact_gradient overwrites it
             ctx.record = None
-        batch = grad_out.shape[:-2]
+        d = c.domain.ndim
+        batch = grad_out.shape[:-d]
         grad_v, grad_i = Fd.exact_gradient(
-            grad_out, template.expand(*batch, *template.shape[-2:]),
-            velocity.expand(*batch, *velocity.shape[-4:]), record, c.domain, c.action, c.interpolation, c.scheme,
+            grad_out, template.expand(*batch, *template.shape[-d:]),
+            velocity.expand(*batch, *velocity.shape[-d - 2:]), record, c.domain, c.action, c.interpolation, c.scheme,
             need_velocity=need_velocity, need_template=need_template, moving=ctx.moving)
         grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
         grad_i = grad_i.sum_to_size(template.shape) if need_template else None
@@ -114,18 +117,22 @@ class _ExactDeformation(torch.autograd.Function):
 
 def _exact_record(velocity, template, config, moving) -> tuple:
     """``functional.exact_record`` of the broadcast inputs."""
-    batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
-    return Fd.exact_record(template.expand(*batch, *template.shape[-2:]),
-                           velocity.expand(*batch, *velocity.shape[-4:]), config.domain, config.action,
-                           config.interpolation, config.scheme, moving)
+    template, velocity = _broadcast(velocity, template, config.domain.ndim)
+    return Fd.exact_record(template, velocity, config.domain, config.action, config.interpolation, config.scheme,
+                           moving)
 
 
 def _record(velocity, template, config, moving) -> torch.Tensor:
     """``functional.gradient_record`` of the broadcast inputs."""
-    batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
-    return Fd.gradient_record(template.expand(*batch, *template.shape[-2:]),
-                              velocity.expand(*batch, *velocity.shape[-4:]), config.domain, config.action,
-                              config.interpolation, config.scheme, moving)
+    template, velocity = _broadcast(velocity, template, config.domain.ndim)
+    return Fd.gradient_record(template, velocity, config.domain, config.action, config.interpolation, config.scheme,
+                              moving)
+
+
+def _broadcast(velocity, template, d: int) -> tuple:
+    """``(template, velocity)`` expanded to their common batch dims (``d`` image axes)."""
+    batch = torch.broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
+    return template.expand(*batch, *template.shape[-d:]), velocity.expand(*batch, *velocity.shape[-d - 2:])
 
 
 class LDDMMDeformation(torch.nn.Module):
@@ -211,6 +218,12 @@ class LDDMMDeformation(torch.nn.Module):
         device (the inputs'). Images are 0 outside the domain (zero padding), Jacobians and displacements are
         continued from the border.
 
+        3D (a ``domain`` with ``shape (nx, ny, nz)``): the same operator, code and options, with
+        ``velocity (..., N+1, 3, nx, ny, nz)`` (component 2 = z), ``template (..., nx, ny, nz)``, output
+        ``(..., nx, ny, nz)``; trilinear interpolation (``grid_sample`` on 5D tensors), the 3x3 Jacobian
+        determinant, and divergences / gradients over three axes. Everything above holds per axis. Measured
+        times and memory: docs/3d.md.
+
     Example:
         >>> W = LDDMMDeformation(ImageDomain.paper(64), num_steps=20)
         >>> v = torch.zeros(21, 2, 64, 64, requires_grad=True)
@@ -237,23 +250,26 @@ class LDDMMDeformation(torch.nn.Module):
                 f"backward={self.backward!r}, interpolation={self.interpolation!r}, scheme={self.scheme!r}")
 
     def velocity_shape(self, *batch) -> tuple:
-        """Shape ``(*batch, N+1, 2, nx, ny)`` of a velocity field for this operator."""
-        return (*batch, self.num_steps + 1, 2, *self.domain.shape)
+        """Shape ``(*batch, N+1, d, *shape)`` of a velocity field for this operator."""
+        return (*batch, self.num_steps + 1, self.domain.ndim, *self.domain.shape)
 
     def zero_velocity(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
-        """The zero velocity field ``(*batch, N+1, 2, nx, ny)``."""
+        """The zero velocity field ``(*batch, N+1, d, *shape)``."""
         return torch.zeros(self.velocity_shape(*batch), dtype=dtype, device=device)
 
     def _check_velocity(self, velocity) -> list:
         """Validates the velocity; returns its ``functional.step_flags`` (one pass: finiteness and zero steps)."""
-        if isinstance(velocity, torch.Tensor) and velocity.dim() >= 4 and velocity.shape[-4] != self.num_steps + 1:
-            raise ValueError(f"velocity must have num_steps + 1 = {self.num_steps + 1} time points on axis -4 "
-                             f"(shape (..., N+1, 2, nx, ny)), got shape {tuple(velocity.shape)}")
-        shape = (self.num_steps + 1, 2, *self.domain.shape)
+        d = self.domain.ndim
+        t = d + 2  # the time axis is -t
+        if isinstance(velocity, torch.Tensor) and velocity.dim() >= t and velocity.shape[-t] != self.num_steps + 1:
+            layout = "(..., N+1, 2, nx, ny)" if d == 2 else "(..., N+1, 3, nx, ny, nz)"
+            raise ValueError(f"velocity must have num_steps + 1 = {self.num_steps + 1} time points on axis -{t} "
+                             f"(shape {layout}), got shape {tuple(velocity.shape)}")
+        shape = self.velocity_shape()
         if not isinstance(velocity, torch.Tensor) or velocity.dtype not in FLOAT_DTYPES \
-                or velocity.shape[velocity.dim() - 4:] != shape:
+                or velocity.shape[velocity.dim() - t:] != shape:
             check_tensor(velocity, "velocity", shape)
-        moving, finite = Fd.step_flags(velocity)
+        moving, finite = Fd.step_flags(velocity, d)
         if not finite:
             check_tensor(velocity, "velocity", shape)
         return moving
@@ -262,37 +278,36 @@ class LDDMMDeformation(torch.nn.Module):
         moving = self._check_velocity(velocity)
         _check_fast(template, "template", self.domain.shape)
         check_same(velocity, template, "velocity", "template")
+        d = self.domain.ndim
         try:
-            torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
+            torch.broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
         except RuntimeError:
-            raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-4])} and template "
-                             f"{tuple(template.shape[:-2])} do not broadcast") from None
+            raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-d - 2])} and template "
+                             f"{tuple(template.shape[:-d])} do not broadcast") from None
         return moving
 
     def forward(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
-        """The deformed template ``W(nu, I)``, ``(..., nx, ny)``."""
+        """The deformed template ``W(nu, I)``, ``(..., *shape)``."""
         moving = self._check(velocity, template)
         if self.backward != "autograd" and torch.is_grad_enabled() and (velocity.requires_grad
                                                                         or template.requires_grad):
             if self.backward == "exact":
                 return _ExactDeformation.apply(velocity, template, self._config, moving)
             return _PaperDeformation.apply(velocity, template, self._config, moving)[0]
-        deformed = self._trajectory(velocity, template, moving)[..., -1, :, :]
+        deformed = self._trajectory(velocity, template, moving).select(-self.domain.ndim - 1, -1)
         return deformed if self.backward == "autograd" else deformed.clone()  # not a view of the trajectory
 
     def trajectory(self, velocity: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
-        """``W(nu, I)(t_i)`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (differentiable by plain autograd)."""
+        """``W(nu, I)(t_i)`` for ``i = 0..N``, ``(..., N+1, *shape)`` (differentiable by plain autograd)."""
         return self._trajectory(velocity, template, self._check(velocity, template))
 
     def _trajectory(self, velocity: torch.Tensor, template: torch.Tensor, moving: list) -> torch.Tensor:
-        batch = torch.broadcast_shapes(velocity.shape[:-4], template.shape[:-2])
         c = self._config
-        return Fd.deformed_trajectory(template.expand(*batch, *template.shape[-2:]),
-                                      velocity.expand(*batch, *velocity.shape[-4:]),
-                                      c.domain, c.action, c.interpolation, c.scheme, moving)
+        template, velocity = _broadcast(velocity, template, c.domain.ndim)
+        return Fd.deformed_trajectory(template, velocity, c.domain, c.action, c.interpolation, c.scheme, moving)
 
     def jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
-        """The mass-preserving action's ``|D phi_{1,0}|``, ``(..., nx, ny)``: the first-order product of step 8.
+        """The mass-preserving action's ``|D phi_{1,0}|``, ``(..., *shape)``: the first-order product of step 8.
 
         ``J_i = (1 - div nu(t_i)/N) * J_{i-1} o (Id - nu(t_i)/N)`` (``functional.jacobian_trajectory``), the
         factor the mass-preserving action multiplies by (eq:DeforOpMP) and whose recursion the paper's
@@ -303,10 +318,10 @@ class LDDMMDeformation(torch.nn.Module):
         ``min_jacobian``.
         """
         moving = self._check_velocity(velocity)
-        return Fd.jacobian_trajectory(velocity, self.domain, self.scheme, moving)[..., -1, :, :]
+        return Fd.jacobian_trajectory(velocity, self.domain, self.scheme, moving).select(-self.domain.ndim - 1, -1)
 
     def jacobian_determinant(self, velocity: torch.Tensor) -> torch.Tensor:
-        """``det D phi_{1,0}`` of the map the deformation applies, ``(..., nx, ny)``: folding where ``<= 0``.
+        """``det D phi_{1,0}`` of the map the deformation applies, ``(..., *shape)``: folding where ``<= 0``.
 
         ``phi_{1,0}`` is the composition of the small steps ``Id - nu(t_i)/N`` of eq:ODEflow1b (``deformation``):
         ``interpolation="compose"`` samples the template at exactly these composed displacements, and
@@ -327,9 +342,10 @@ class LDDMMDeformation(torch.nn.Module):
         product's minimum is 0.944 while the map's determinant reaches -0.654 and is ``<= 0`` on 37% of the
         pixels. Cost: N two-channel interpolations (the product: N one-channel ones), no ``O(N n^2)`` storage.
         """
-        return self.jacobian_determinant(velocity).amin(dim=(-2, -1))
+        return self.jacobian_determinant(velocity).amin(dim=self.domain.dims)
 
     def deformation(self, velocity: torch.Tensor) -> torch.Tensor:
-        """``phi_{1,0}`` as physical points ``(..., 2, nx, ny)`` (composed displacements; deformed-grid plots)."""
+        """``phi_{1,0}`` as physical points ``(..., d, *shape)`` (composed displacements; deformed-grid plots)."""
+
         moving = self._check_velocity(velocity)
         return self.domain.points(velocity.dtype, velocity.device) + Fd.displacement_10(velocity, self.domain, moving)

@@ -263,6 +263,9 @@ class MetamorphosisDeformation(torch.nn.Module):
         super().__init__()
         if not isinstance(domain, ImageDomain):
             raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+        if domain.ndim != 2:
+            raise NotImplementedError(f"metamorphosis is 2D only; domain has shape {domain.shape} (use model='lddmm' "
+                                      f"in 3D)")
         for name, value, allowed in (("backward", backward, BACKWARDS),
                                      ("interpolation", interpolation, Fd.INTERPOLATIONS)):
             if value not in allowed:

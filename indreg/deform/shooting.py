@@ -46,14 +46,15 @@ class ShootingResult(NamedTuple):
 
 
 def _half_extent(domain: ImageDomain, like: torch.Tensor) -> torch.Tensor:
-    """``extent / 2`` per component, ``(2, 1, 1)``: grid units (``functional.to_grid_units``) -> physical units."""
-    return torch.tensor([e / 2 for e in domain.extent], dtype=like.dtype, device=like.device).view(2, 1, 1)
+    """``extent / 2`` per component, ``(d, 1, .., 1)``: grid units (``functional.to_grid_units``) -> physical units."""
+    return torch.tensor([e / 2 for e in domain.extent], dtype=like.dtype, device=like.device).view(
+        -1, *(1,) * domain.ndim)
 
 
 def jacobian_matrix(displacement: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """``D phi = Id + D u`` for ``phi = Id + u`` by central differences (one-sided at the domain's edge).
 
-    Convention: ``displacement`` u ``(..., 2, nx, ny)`` in physical units -> ``(..., 2, 2, nx, ny)`` with
+    Convention: ``displacement`` u ``(..., d, *shape)`` in physical units -> ``(..., d, d, *shape)`` with
     entry ``[a, b] = d phi^a / d x_b``. Differencing the displacement (not the points) keeps the identity
     part exact. Central differences as ``functional.gradient(scheme="central")``, but one-sided at the edge
     instead of zero padding, because the displacement is continued constantly there (``"border"``
@@ -62,26 +63,27 @@ def jacobian_matrix(displacement: torch.Tensor, domain: ImageDomain) -> torch.Te
     shot geodesic (64^2, sigma 6, 4-unit displacement: 7 % with forward, 0.9 % with central differences at
     N = 20, and only the central one decreases with N).
     """
-    hx, hy = domain.cell_sides
-    d_dx = torch.gradient(displacement, spacing=hx, dim=-2)[0]
-    d_dy = torch.gradient(displacement, spacing=hy, dim=-1)[0]
-    eye = torch.eye(2, dtype=displacement.dtype, device=displacement.device)[:, :, None, None]
-    return torch.stack([d_dx, d_dy], dim=-3) + eye
+    d = domain.ndim
+    derivatives = [torch.gradient(displacement, spacing=h, dim=axis - d)[0] for axis, h in enumerate(domain.cell_sides)]
+    eye = torch.eye(d, dtype=displacement.dtype, device=displacement.device).view(d, d, *(1,) * d)
+    return torch.stack(derivatives, dim=-d - 1) + eye
 
 
 def coadjoint_transport(momentum: torch.Tensor, displacement: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """The coadjoint action ``|D phi| (D phi)^T (m o phi)`` of ``phi = Id + displacement`` on a momentum.
 
-    Convention: ``momentum``, ``displacement`` (physical units) ``(..., 2, nx, ny)`` with equal batch dims;
-    ``m o phi`` by the bilinear interpolation of ``functional.sample`` (``m`` is 0 outside the domain).
+    Convention: ``momentum``, ``displacement`` (physical units) ``(..., d, *shape)`` with equal batch dims;
+    ``m o phi`` by the bi/trilinear interpolation of ``functional.sample`` (``m`` is 0 outside the domain).
     Component b of the result is ``det(D phi) * sum_a (D phi)[a, b] (m^a o phi)``: ``m_t`` of EPDiff for
     ``phi = phi_{t,0}``.
     """
+    d = domain.ndim
     grid = F.displaced_grid(F.to_grid_units(displacement, domain), domain)
     pulled = F.sample(momentum, grid, "zeros")
     jac = jacobian_matrix(displacement, domain)
-    det = jac[..., 0, 0, :, :] * jac[..., 1, 1, :, :] - jac[..., 0, 1, :, :] * jac[..., 1, 0, :, :]
-    return det.unsqueeze(-3) * (jac * pulled.unsqueeze(-3)).sum(dim=-4)
+    rows = jac.unbind(-d - 2)
+    det = F.determinant([row.unbind(-d - 1) for row in rows])
+    return det.unsqueeze(-d - 1) * (jac * pulled.unsqueeze(-d - 1)).sum(dim=-d - 2)
 
 
 def advance_inverse_flow(displacement: torch.Tensor, velocity: torch.Tensor, num_steps: int,
@@ -89,7 +91,7 @@ def advance_inverse_flow(displacement: torch.Tensor, velocity: torch.Tensor, num
     """One step of eq:ODEflow1b, ``phi_{t_i,0} = phi_{t_{i-1},0} o (Id - nu(t_i)/N)``, on displacements.
 
     Convention: ``phi = Id + u``; ``displacement`` = u of ``phi_{t_{i-1},0}`` in *grid units*
-    (``functional.to_grid_units``), ``velocity`` = nu(t_i) in physical units, both ``(..., 2, nx, ny)``;
+    (``functional.to_grid_units``), ``velocity`` = nu(t_i) in physical units, both ``(..., d, *shape)``;
     returns u of ``phi_{t_i,0}`` in grid units, ``u_i = u_{i-1} o (Id - nu/N) - nu/N``: the step of
     ``functional.displacements_t0`` (same interpolation, "border" padding), so the composed flow is the one
     ``LDDMMDeformation.deformation`` computes from the same velocities.
@@ -135,7 +137,8 @@ class GeodesicShooting(torch.nn.Module):
     Convention:
         momentum ``m0 (..., 2, nx, ny)`` (L2 density, ``nu = K m``; any batch dims), template ``(..., nx, ny)``
         or ``(nx, ny)`` shared by the batch; same dtype and device. Returns the deformed template
-        ``(..., nx, ny)``, or a ``ShootingResult`` with ``return_all=True``.
+        ``(..., nx, ny)``, or a ``ShootingResult`` with ``return_all=True``. 3D (a ``domain`` of shape
+        ``(nx, ny, nz)``): ``m0 (..., 3, nx, ny, nz)``, template ``(..., nx, ny, nz)``, 3x3 Jacobians.
 
     Example:
         >>> dom = ImageDomain.paper(64)
@@ -167,7 +170,7 @@ class GeodesicShooting(torch.nn.Module):
                 f"checkpoint={self.checkpoint}")
 
     def _check_momentum(self, momentum) -> torch.Tensor:
-        return check_tensor(momentum, "momentum", (2, *self.domain.shape))
+        return check_tensor(momentum, "momentum", (self.domain.ndim, *self.domain.shape))
 
     def _step(self, displacement, velocity, momentum):
         """One time step ``t_{i-1} -> t_i``: returns ``(u of phi_{t_i,0} (grid units), m_{t_i}, nu(t_i))``."""
@@ -181,8 +184,8 @@ class GeodesicShooting(torch.nn.Module):
     def shoot(self, momentum: torch.Tensor) -> tuple:
         """Integrate EPDiff from ``m0``: returns ``(velocity, momenta, displacement)``.
 
-        Convention: ``momentum (..., 2, nx, ny)`` -> velocity ``nu(t_i)`` and momenta ``m_{t_i}``, both
-        ``(..., N+1, 2, nx, ny)``, and the displacement ``u = phi_{1,0} - Id`` ``(..., 2, nx, ny)`` (physical units).
+        Convention: ``momentum (..., d, *shape)`` -> velocity ``nu(t_i)`` and momenta ``m_{t_i}``, both
+        ``(..., N+1, d, *shape)``, and the displacement ``u = phi_{1,0} - Id`` ``(..., d, *shape)`` (physical units).
         """
         m0 = self._check_momentum(momentum)
         nu = self.kernel.apply(m0)
@@ -196,14 +199,16 @@ class GeodesicShooting(torch.nn.Module):
                 u, m, nu = self._step(u, nu, m0)
             velocities.append(nu)
             momenta.append(m)
-        return torch.stack(velocities, dim=-4), torch.stack(momenta, dim=-4), u * _half_extent(self.domain, u)
+        t = -self.domain.ndim - 2
+        return torch.stack(velocities, dim=t), torch.stack(momenta, dim=t), u * _half_extent(self.domain, u)
 
     def velocity(self, momentum: torch.Tensor) -> torch.Tensor:
-        """The shot velocity fields ``nu(t_i) = K m_{t_i}``, ``(..., N+1, 2, nx, ny)`` (for ``LDDMMDeformation``)."""
+        """The shot velocity fields ``nu(t_i) = K m_{t_i}``, ``(..., N+1, d, *shape)`` (for ``LDDMMDeformation``)."""
         return self.shoot(momentum)[0]
 
     def energy(self, momentum: torch.Tensor) -> torch.Tensor:
-        """Geodesic energy ``<m, K m>_L2`` over the last 3 dims (batch dims kept).
+        """Geodesic energy ``<m, K m>_L2`` over the last d + 1 dims (batch dims kept).
+
 
         For ``m = m0`` this is ``||v||^2_{L2([0,1], V)}`` along the geodesic (the V norm is conserved in
         time), the regulariser of shooting-based registration; on the momenta of a ``ShootingResult``,

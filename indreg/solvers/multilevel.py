@@ -148,6 +148,9 @@ class MultilevelSolver(IterativeSolver):
                  jacobian_every: int = 1):
         if not isinstance(problem, IndirectRegistration):
             raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
+        if problem.domain.ndim != 2:
+            raise NotImplementedError(f"solver='fast' (MultilevelSolver) is 2D only; the problem's domain has shape "
+                                      f"{problem.domain.shape} (use 'algorithm1' or 'lbfgs' in 3D)")
         if inner not in INNER:
             raise ValueError(f"inner must be one of {INNER}, got {inner!r}")
         if inner == "lbfgs" and (backward not in BACKWARDS or backward == "paper"):

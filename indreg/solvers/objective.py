@@ -55,7 +55,8 @@ class IndirectRegistration:
         tv_smoothing: ``eps`` of the smoothed isotropic TV (``total_variation``); 0 is plain TV.
 
     Convention:
-        momentum / velocity ``(N+1, 2, nx, ny)`` at ``t_i = i/N`` (component 0 = x); the discrete
+        momentum / velocity ``(N+1, 2, nx, ny)`` at ``t_i = i/N`` (component 0 = x; 3D: ``(N+1, 3, nx, ny, nz)``,
+        template ``(nx, ny, nz)``, any operator whose ``domain`` is 3D); the discrete
         ``L2([0,1], X)`` inner product is ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (the code's convention, N+1
         terms). The L2 gradient of E with respect to ``nu`` (``l2_gradient``) is
         ``h = gamma m + (N / cell_volume) dL/dnu`` with ``L`` the matching term (data fit + TV) and
@@ -89,6 +90,8 @@ class IndirectRegistration:
         self.gamma = check_nonnegative(gamma, "gamma")
         self.tv_weight = check_nonnegative(tv_weight, "tv_weight")
         self.tv_smoothing = check_nonnegative(tv_smoothing, "tv_smoothing")
+        if self.tv_weight > 0 and domain.ndim != 2:
+            raise NotImplementedError(f"tv_weight > 0 needs a 2D domain (the TV term is 2D only), got shape {domain.shape}")
         self.num_steps = int(deformation.num_steps)
 
     def __repr__(self):
@@ -102,8 +105,8 @@ class IndirectRegistration:
 
     @property
     def momentum_shape(self) -> tuple:
-        """``(N+1, 2, nx, ny)``."""
-        return (self.num_steps + 1, 2, *self.domain.shape)
+        """``(N+1, d, *shape)``: ``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny, nz)``."""
+        return (self.num_steps + 1, self.domain.ndim, *self.domain.shape)
 
     @property
     def time_weight(self) -> float:
