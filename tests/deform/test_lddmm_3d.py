@@ -282,3 +282,16 @@ def test_geodesic_shooting_3d():
         fd = float(((shoot(m0 + eps * direction, template) - shoot(m0 - eps * direction, template)) * template).sum())
     fd /= 2 * eps
     assert abs(float((g * direction).sum()) - fd) < 1e-7 * max(1.0, abs(fd))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("action", ACTIONS)
+def test_exact_equals_autograd_on_cuda(action):
+    dom, v, template, grad_out = _problem()
+    v, template, grad_out = v.cuda(), template.cuda(), grad_out.cuda()
+    out_e, gv_e, gi_e = _grads(LDDMMDeformation(dom, 3, action, "exact"), v, template, grad_out)
+    out_a, gv_a, gi_a = _grads(LDDMMDeformation(dom, 3, action, "autograd"), v, template, grad_out)
+    assert out_e.device.type == "cuda"
+    torch.testing.assert_close(out_e, out_a, rtol=1e-12, atol=1e-14)
+    assert float((gv_e - gv_a).norm() / gv_a.norm()) < 1e-10
+    assert float((gi_e - gi_a).norm() / gi_a.norm()) < 1e-10
