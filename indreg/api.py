@@ -206,9 +206,6 @@ def setup(template, data, operator, **options) -> Setup:
     template = as_array(template, "template", domain.shape, dtype, device)
     data = as_array(data, "data", operator.range_shape, dtype, device)
     if o["target"] is not None:
-        if domain.ndim != 2:  # indreg.metrics compares 2D images
-            raise ValueError(f"target (ssim / psnr) needs a 2D domain, got shape {domain.shape}; compare 3D results "
-                             f"yourself")
         o["target"] = as_array(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
     if o["callback"] is not None and not callable(o["callback"]):
         raise TypeError(f"callback must be callable(state, info), got {o['callback']!r}")

@@ -90,8 +90,6 @@ class IndirectRegistration:
         self.gamma = check_nonnegative(gamma, "gamma")
         self.tv_weight = check_nonnegative(tv_weight, "tv_weight")
         self.tv_smoothing = check_nonnegative(tv_smoothing, "tv_smoothing")
-        if self.tv_weight > 0 and domain.ndim != 2:
-            raise NotImplementedError(f"tv_weight > 0 needs a 2D domain (the TV term is 2D only), got shape {domain.shape}")
         self.num_steps = int(deformation.num_steps)
 
     def __repr__(self):
