@@ -104,7 +104,7 @@ def worker_3d(size: int, num_steps: int, iters: int, warmup: int, threads: int) 
     torch.set_num_threads(threads)
     dom = ImageDomain.paper(size, ndim=3)
     T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 2, det_count=size, det_min=-16.0, det_max=16.0))
-    data, _ = add_white_noise(T(phantoms.get("shepp_logan_3d_swirl", dom)), snr_db=10.0, seed=0)
+    data, _ = add_white_noise(T(phantoms.get("shepp_logan_3d_swirl", dom)), snr_db=10.0, seed=0, event_dims=3)
     problem = IndirectRegistration(T, LDDMMDeformation(dom, num_steps=num_steps), GaussianKernel(dom, 3.0),
                                    phantoms.get("shepp_logan_3d", dom).float(), data.float(), gamma=1e-6)
     solver = Algorithm1(problem, step_size=0.02)

@@ -29,7 +29,8 @@ the process exits with 128 + signal number). ``resume=true`` continues from ``<r
 with the same numbers as an uninterrupted run. In a multirun every log line starts with ``[job <n>]``. Outputs in
 the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``, ``velocity.npy``,
 ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``, ``data.npy``,
-``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt``; measured data
+``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt`` (volumes also
+``final.mrc``, with the voxel size in its header, and ``sirt.npy``; ``figure.png`` shows orthogonal slices); measured data
 without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the relative data
 misfit, is always in metrics.json).
 """
@@ -363,6 +364,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
             result.update({f"deformation_part_{k}": v for k, v in figures_of_merit(parts[0], target).items()})
     for name, a in arrays.items():
         np.save(out / f"{name}.npy", _numpy(a))
+    if exp.domain.ndim == 3:  # the registered volume for IMOD / ChimeraX too (voxel size in the header)
+        from ..io import write_volume
+        write_volume(out / "final.mrc", _numpy(final), exp.domain)
     with open(out / "history.json", "w") as f:
         json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
     with open(out / "metrics.json", "w") as f:

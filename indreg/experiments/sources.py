@@ -118,8 +118,10 @@ def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
     if n.snr_db is None and n.std is None:
         return clean, clean.clone(), float("inf")
     seed = cfg.seed if n.seed is None else n.seed
-    noisy, noise = add_white_noise(clean, snr_db=n.snr_db, std=n.std, convention=n.convention.value, seed=seed)
-    return clean, noisy, float(snr_db(clean, noise, convention=n.convention.value))
+    k = len(T.range_shape)  # one data set: a sinogram or a whole tilt series
+    noisy, noise = add_white_noise(clean, snr_db=n.snr_db, std=n.std, convention=n.convention.value, seed=seed,
+                                   event_dims=k)
+    return clean, noisy, float(snr_db(clean, noise, convention=n.convention.value, event_dims=k))
 
 
 @source("phantom")

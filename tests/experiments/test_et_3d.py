@@ -1,0 +1,75 @@
+"""The 3D app: suite_et_3d through the CLI on a tiny volume, tilt-series files, 3D config errors."""
+import json
+
+import numpy as np
+import pytest
+
+from experiment_helpers import compose, run_app, run_cli
+
+# 16^3, 7 tilts (-60..60 step 20), N = 3, 3 iterations
+TINY_3D = ["experiment=suite_et_3d", "phantom.size=16", "geometry.det_count=16", "geometry.tilt_step=20",
+           "deformation.num_steps=3", "solver.max_iter=3", "baseline.tv_iterations=5", "baseline.sirt_iterations=5",
+           "logging.every=1", "logging.checkpoint_every=1", "logging.progress=false"]
+
+
+def test_cli_suite_et_3d_tiny(tmp_path):
+    out = tmp_path / "run"
+    proc = run_cli(TINY_3D + [f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["iterations"] == 3
+    for key in ("ssim", "psnr", "ssim_paper", "fbp_ssim", "sirt_ssim", "tv_ssim", "template_ssim", "min_jacobian"):
+        assert np.isfinite(m[key]), key
+    assert m["objective"] < json.loads((out / "history.json").read_text())[0]["objective"]
+    final = np.load(out / "final.npy")
+    assert final.shape == (16, 16, 16) and np.load(out / "data.npy").shape == (7, 16, 16)
+    assert np.load(out / "trajectory.npy").shape == (4, 16, 16, 16)
+    from indreg.io import read_voxel_size, read_volume
+    np.testing.assert_allclose(read_volume(out / "final.mrc"), final, rtol=1e-6, atol=1e-6)  # float32 in MRC
+    assert read_voxel_size(out / "final.mrc") == pytest.approx((2.0, 2.0, 2.0))
+    assert (out / "figure.png").stat().st_size > 10_000 and (out / "sirt.npy").is_file()
+
+
+def test_tilt_series_files_resume_like_uninterrupted(tmp_path):
+    """data=files with geometry=tilt_series: an MRC volume and an MRC stack with its .tlt; stopping after 2
+    iterations and resuming gives the numbers of an uninterrupted run."""
+    from indreg import ImageDomain, phantoms
+    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+    from indreg.io import write_tilt_series, write_volume
+
+    dom = ImageDomain((16, 16, 12), (-8.0, -8.0, -6.0), (8.0, 8.0, 6.0))   # a slab, 1-unit voxels
+    g = TiltSeriesGeometry.uniform(-60, 60, 20, det_count=16, det_min=-8.0, det_max=8.0)
+    T = TiltSeriesTransform(dom, g)
+    template = phantoms.get("shepp_logan_3d", ImageDomain.paper(16, ndim=3))[:, :, 2:14]
+    data = T(phantoms.get("shepp_logan_3d_swirl", ImageDomain.paper(16, ndim=3))[:, :, 2:14])
+    write_volume(tmp_path / "template.mrc", template.numpy(), dom)
+    write_tilt_series(tmp_path / "tilts.mrc", data.numpy(), g.angles, pixel_size=1.0)
+    args = ["data=files", f"data.template={tmp_path / 'template.mrc'}", f"data.sinogram={tmp_path / 'tilts.mrc'}",
+            "data.half_width=8", "geometry=tilt_series", "deformation.num_steps=3",
+            "solver.max_iter=4", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
+            "logging.progress=false", "logging.checkpoint_every=1", "dtype=float64"]
+    whole = run_app(args, tmp_path / "whole")
+    assert whole["status"] == "completed" and 0 < whole["residual"] < 1
+    assert run_app(args + ["stop_after=2"], tmp_path / "split")["status"] == "stopped"
+    resumed = run_app(args + ["resume=true"], tmp_path / "split")
+    assert resumed["objective"] == whole["objective"]
+    exp_cfg = compose(args)
+    from indreg.experiments.build import build
+    exp = build(exp_cfg)
+    assert exp.domain.shape == (16, 16, 12) and exp.domain.cell_sides == (1.0, 1.0, 1.0)
+    assert exp.geometry.det_min == -8.0 and exp.ray_transform.range_shape == (7, 16, 16)
+
+
+@pytest.mark.parametrize("overrides,match", [
+    (["geometry=tilt_series", "geometry.det_count=32"], r"phantom\.ndim.*3 for geometry\.kind=tilt_series"),
+    (["experiment=suite_et_3d", "geometry=parallel", "geometry.num_angles=10", "geometry.det_count=64"],
+     r"phantom\.ndim.*2 for geometry\.kind=parallel"),
+    (["experiment=suite_et_3d", "geometry.tilt_step=0"], r"geometry\.tilt_step"),
+    (["experiment=suite_et_3d", "geometry.tilt_min=70"], r"geometry\.tilt_min"),
+    (["experiment=suite_et_3d", "phantom.ndim=4"], r"phantom\.ndim"),
+])
+def test_3d_config_errors(overrides, match):
+    from indreg.experiments.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match=match):
+        validate(compose(overrides))
