@@ -4,17 +4,20 @@ from . import _openmp
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 from .domain import ImageDomain
-from .forward import FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform
+from .forward import (FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry,
+                      TiltSeriesTransform)
 from .deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from . import metrics, noise, phantoms
-from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver
+from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver
 from .solvers import MetamorphosisRegistration, MetamorphosisDescent, MetamorphosisTorchOptim
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 from .api import RegistrationResult, register
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
+           "TiltSeriesGeometry", "TiltSeriesTransform",
            "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+           "MultilevelSolver",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
            "metrics", "noise", "phantoms"]
