@@ -143,12 +143,20 @@ def _problem_config(plain: dict) -> dict:
     return out
 
 
+def _step_size(cfg: DictConfig, exp) -> float:
+    """The configured step: Algorithm 1's, solver=fast's Algorithm 1 step (its option), else the optimiser's lr."""
+    name = cfg.solver.name.value
+    if name == "fast" and exp.solver.inner == "algorithm1":
+        return float(exp.solver.step_size)
+    return float(cfg.solver.step_size if name == "algorithm1" else cfg.solver.lr)
+
+
 def hyperparameters(cfg: DictConfig, exp) -> dict:
     """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
     return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
             "N": int(cfg.deformation.num_steps), "model": cfg.deformation.model.value,
             "tau": float(cfg.deformation.tau) if cfg.deformation.model.value == "metamorphosis" else 0.0,
-            "step_size": float(cfg.solver.step_size if cfg.solver.name.value == "algorithm1" else cfg.solver.lr),
+            "step_size": _step_size(cfg, exp),
             "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
             "template": exp.label, "size": int(exp.domain.shape[0]),
             "max_iter": int(cfg.solver.max_iter), "dtype": cfg.dtype.value, "seed": int(cfg.seed)}

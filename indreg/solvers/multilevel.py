@@ -141,7 +141,7 @@ class MultilevelSolver(IterativeSolver):
     last two axes (x, y), ``resample_time`` on axis 0 (``t_i = i/N``).
     """
 
-    def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 20),
+    def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
                  max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 5e-4, window: int = 5,
                  inner: str = "algorithm1", step_size: float = 0.08, step_halving: bool = True,
                  max_halvings: int = 10, backward: str = "exact", history_size: int = 10, min_size: int = 16,

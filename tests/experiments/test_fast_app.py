@@ -49,6 +49,8 @@ def test_fast_app_run_resumes_exactly(tmp_path):
     for key in ("iteration", "objective", "evaluations", "grad_norm", "step_size", "level"):
         assert [h[key] for h in b] == [h[key] for h in a], key
     assert res["objective"] == ref["objective"] and res["evaluations"] == ref["evaluations"]
+    # metrics.json / HParams: fast's Algorithm 1 step (its option), not the unused torch.optim lr
+    assert res["hparams"]["solver"] == "fast" and res["hparams"]["step_size"] == 0.08
 
 
 def test_register_solver_fast():
