@@ -135,7 +135,7 @@ def _run_row(directory, model: str) -> dict:
     data fit, source norm ``sqrt(2 E_source / tau)`` (``||zeta||`` in ``L2([0,1], L2)`` or the source RKHS),
     RMS error in the target's ventricle (suite-4 missing template), TV's SSIM."""
     m, images, _ = _run(directory)
-    row = {"model": model, "tau": m["hparams"].get("tau"), "ssim": m["ssim"], "psnr": m["psnr"],
+    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"], "psnr": m["psnr"],
            "data_fit": m["data_fit"], "deformation_part": m.get("deformation_part_ssim", m["ssim"]),
            "source_norm": math.sqrt(2 * m.get("source_regulariser", 0.0) / m["hparams"]["tau"])
            if m["hparams"].get("tau") else 0.0, "tv_ssim": m.get("tv_ssim")}
@@ -183,9 +183,9 @@ def tau_figure(args) -> list:
             if tv is not None:
                 ax.axhline(tv, color="tab:green", lw=1, ls=":", label="TV")
         if key in ("data_fit", "source_norm"):
-            ax.set_yscale("symlog" if key == "source_norm" else "log")
+            ax.set_yscale("log")
         for r in lddmm[:1]:
-            if key in r:
+            if key in r and key != "source_norm":
                 ax.axhline(r[key], color="k", lw=1, label="LDDMM")
         ax.set_xlabel(r"$\tau$  (small: reconstruction-like, large: LDDMM-like)", fontsize="small")
         ax.set_title(label)
