@@ -101,7 +101,7 @@ def test_presets_share_data_and_protocol_with_their_lddmm_counterpart(name):
 def test_limited_angle_preset_is_the_follow_up_papers_setting():
     cfg = compose(["experiment=shepp_logan_limited_angle_metamorphosis"])
     assert list(cfg.geometry.angles) == [2.25 * k for k in range(20)] and cfg.geometry.angle_unit == "deg"
-    assert cfg.noise.std == 0.25 and cfg.deformation.tau == cfg.solver.gamma == 1e-5 and cfg.kernel.sigma == 2.0
+    assert cfg.noise.std == 0.25 and cfg.solver.gamma == 1e-5 and cfg.kernel.sigma == 2.0
     assert cfg.phantom.size == 256
 
 
