@@ -219,7 +219,7 @@ def _run(directory: str) -> tuple:
 
 def table(args) -> list:
     """One markdown row per method from ``indreg-register`` run dirs given as ``PRESET,METHOD,DIR`` (FBP and TV
-    rows from a dir's baselines when it has them); the RMS error inside the target's ventricle, and its ratio to
+    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the target's ventricle, and its ratio to
     the preset's LDDMM row, for the suite-4 missing-ventricle template."""
     rows = []
     for spec in args.runs:
@@ -227,7 +227,7 @@ def table(args) -> list:
         m, images, baseline_s = _run(directory)
         mask = ventricle_mask(ImageDomain.paper(images["target"].shape[0])) \
             if m["hparams"].get("template") == "shepp_logan_template_missing" else None
-        entries = [(method, "final", m["seconds"])]
+        entries = [] if method == "baselines" else [(method, "final", m["seconds"])]  # "baselines": FBP, TV only
         entries += [(name.upper(), name, baseline_s) for name in ("fbp", "tv") if name in images]
         for label, key, seconds in entries:
             image, target = images[key], images["target"]
