@@ -4,7 +4,8 @@ cost per iteration / memory at 256^2, N = 20.
     python scripts/bench_metamorphosis.py quality --case missing --iters 300 --taus 0.1 1 10
     python scripts/bench_metamorphosis.py quality --case contrast --iters 300 --taus 1
     python scripts/bench_metamorphosis.py cost --size 256 --steps 20 --repeat 5
-    python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR --figure tau.png
+    python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR [--lddmm RUN_DIR] --figure tau.png
+    python scripts/bench_metamorphosis.py table PRESET,METHOD,RUN_DIR ... [--figure table.md]
 
 ``quality`` runs LDDMM (Algorithm 1, the suite's gamma / sigma / step) and metamorphosis (``MetamorphosisDescent``,
 the same gamma / sigma / velocity step, source step ``1 / (tau + ||T||^2)``) on the same noisy data (10 angles x
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 
@@ -35,14 +37,14 @@ CASES = {  # template, SNR (dB, code convention) of the suite
     "contrast": ("shepp_logan_template_contrast", 7.06),
     "extra": ("shepp_logan_template_extra", 6.46),
 }
-# the ventricle the suite-4 template lacks (phantoms.shepp_logan_template_missing), in units of the half width
-VENTRICLE = (-0.25, 0.2, 0.13)
+# the target's ventricle that the suite-4 template lacks (the larger dark ellipse of phantoms.SHEPP_LOGAN_ELLIPSES,
+# row 3, centre (-0.22, 0)): where the ventricle must appear
+VENTRICLE = phantoms.SHEPP_LOGAN_ELLIPSES[3]
 
 
 def ventricle_mask(domain: ImageDomain) -> torch.Tensor:
-    x, y = domain.points()
-    cx, cy, r = (v * domain.max_pt[0] for v in VENTRICLE)
-    return (x - cx) ** 2 + (y - cy) ** 2 <= r ** 2
+    """The pixels at least half covered by the target's ventricle ellipse, ``(nx, ny)`` bool."""
+    return phantoms.ellipse_phantom(domain, ((1.0, *VENTRICLE[1:]),)) >= 0.5
 
 
 def problem_data(case: str, size: int, dtype=torch.float64):
@@ -128,46 +130,130 @@ def cost(args) -> list:
     return rows
 
 
-def tau_rows(source: str) -> list:
-    """Rows of a ``quality`` JSON-lines file, or of a Hydra multirun (``sweep=metamorphosis_tau``: one
-    ``metrics.json`` per job, ``deformation.tau`` from its config)."""
+def _run_row(directory, model: str) -> dict:
+    """A ``tau-figure`` row from an ``indreg-register`` run dir: SSIM / PSNR of ``f(1)`` (and of ``W(nu, I)``),
+    data fit, source norm ``sqrt(2 E_source / tau)`` (``||zeta||`` in ``L2([0,1], L2)`` or the source RKHS),
+    RMS error in the target's ventricle (suite-4 missing template), TV's SSIM."""
+    m, images, _ = _run(directory)
+    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"], "psnr": m["psnr"],
+           "data_fit": m["data_fit"], "deformation_part": m.get("deformation_part_ssim", m["ssim"]),
+           "source_norm": math.sqrt(2 * m.get("source_regulariser", 0.0) / m["hparams"]["tau"])
+           if m["hparams"].get("tau") else 0.0, "tv_ssim": m.get("tv_ssim")}
+    if m["hparams"].get("template") == "shepp_logan_template_missing":
+        mask = ventricle_mask(ImageDomain.paper(images["target"].shape[0]))
+        row["ventricle_rms"] = float(((images["final"] - images["target"])[mask] ** 2).mean().sqrt())
+    return row
+
+
+def tau_rows(source: str, lddmm: str | None = None) -> list:
+    """Rows of a ``quality`` JSON-lines file, or of a Hydra multirun (``sweep=metamorphosis_tau``: one run dir per
+    job, ``tau`` from its metrics) plus, optionally, an LDDMM run dir on the same data."""
     from pathlib import Path
 
     path = Path(source)
     if path.is_file():
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    rows = []
-    for f in sorted(path.glob("*/metrics.json")):
-        m = json.loads(f.read_text())
-        if m.get("status") in ("completed", "converged"):
-            rows.append({"model": "metamorphosis", "tau": m["config"]["deformation"]["tau"], "ssim": m["ssim"],
-                         "psnr": m["psnr"], "deformation_part": m["deformation_part_ssim"],
-                         "source_regulariser": m["source_regulariser"]})
-    return rows
+    rows = [_run_row(f.parent, "metamorphosis") for f in sorted(path.glob("*/metrics.json"))
+            if json.loads(f.read_text()).get("status") in ("completed", "converged")]
+    return rows + ([_run_row(lddmm, "lddmm")] if lddmm else [])
 
 
 def tau_figure(args) -> list:
-    """SSIM / PSNR of f(1) and SSIM of W(nu, I) against tau (log scale), LDDMM as a horizontal line."""
+    """Against tau (log scale): SSIM of f(1) and of W(nu, I), data fit, source norm, RMS error in the ventricle
+    (when known); LDDMM (and TV's SSIM) as horizontal lines. Prints a markdown table too."""
+    from pathlib import Path
+
     from matplotlib.figure import Figure
 
-    rows = tau_rows(args.source)
+    rows = tau_rows(args.source, args.lddmm)
     meta = sorted((r for r in rows if r["model"] == "metamorphosis"), key=lambda r: r["tau"])
     lddmm = [r for r in rows if r["model"] == "lddmm"]
-    fig = Figure(figsize=(10, 3.6), layout="constrained")
-    axes = fig.subplots(1, 3 if meta and "ventricle_rms" in meta[0] else 2)
-    panels = [("ssim", "SSIM (honest)"), ("psnr", "PSNR (dB)"), ("ventricle_rms", "RMS error in the ventricle")]
-    for ax, (key, label) in zip(axes, panels):
-        ax.semilogx([r["tau"] for r in meta], [r[key] for r in meta], "o-", label="metamorphosis f(1)")
+    panels = [("ssim", "SSIM (honest)"), ("data_fit", r"data fit $\frac{1}{2}\|T f(1) - g\|^2$"),
+              ("source_norm", r"source norm $\|\zeta\|$"), ("ventricle_rms", "RMS error in the ventricle")]
+    panels = [p for p in panels if p[0] in meta[0]]
+    fig = Figure(figsize=(3.4 * len(panels), 3.4), layout="constrained")
+    taus = [r["tau"] for r in meta]
+    for ax, (key, label) in zip(fig.subplots(1, len(panels)), panels):
+        ax.semilogx(taus, [r[key] for r in meta], "o-", label="metamorphosis f(1)")
         if key == "ssim":
-            ax.semilogx([r["tau"] for r in meta], [r["deformation_part"] for r in meta], "s--",
-                        label=r"its part $W(\nu, I)$")
+            ax.semilogx(taus, [r["deformation_part"] for r in meta], "s--", label=r"its part $W(\nu, I)$")
+            tv = next((r["tv_ssim"] for r in rows if r.get("tv_ssim") is not None), None)
+            if args.baselines:
+                tv = json.loads((Path(args.baselines) / "metrics.json").read_text())["tv_ssim"]
+            if tv is not None:
+                ax.axhline(tv, color="tab:green", lw=1, ls=":", label="TV")
+        if key in ("data_fit", "source_norm"):
+            ax.set_yscale("log")
         for r in lddmm[:1]:
-            ax.axhline(r[key], color="k", lw=1, label="LDDMM")
-        ax.set_xlabel(r"$\tau$")
+            if key in r and key != "source_norm":
+                ax.axhline(r[key], color="k", lw=1, label="LDDMM")
+        ax.set_xlabel(r"$\tau$  (small: reconstruction-like, large: LDDMM-like)", fontsize="small")
         ax.set_title(label)
-    axes[0].legend(fontsize="small")
+        if key == "ssim":
+            ax.legend(fontsize="small")
     fig.savefig(args.figure, dpi=100)
+    keys = ["tau", "ssim", "psnr", "deformation_part", "data_fit", "source_norm"] + \
+        (["ventricle_rms"] if "ventricle_rms" in meta[0] else [])
+    print("| " + " | ".join(["model"] + keys) + " |\n|" + "---|" * (len(keys) + 1))
+    for r in meta + lddmm:
+        print("| " + " | ".join([r["model"]] + [f"{r[k]:.4g}" if isinstance(r.get(k), float) else str(r.get(k))
+                                                 for k in keys]) + " |")
     return meta + lddmm
+
+
+def _run(directory: str) -> tuple:
+    """``(metrics.json, final, target, fbp, tv, baseline seconds)`` of an ``indreg-register`` run dir."""
+    import re
+    from pathlib import Path
+
+    import numpy as np
+
+    d = Path(directory)
+    m = json.loads((d / "metrics.json").read_text())
+    images = {k: torch.from_numpy(np.load(d / f"{k}.npy")).double() for k in ("final", "target", "fbp", "tv")
+              if (d / f"{k}.npy").is_file()}
+    log = (d / "register.log").read_text() if (d / "register.log").is_file() else ""
+    found = re.search(r"baselines \(FBP, TV \d+ iterations\) in ([0-9.]+) s", log)
+    return m, images, float(found.group(1)) if found else None
+
+
+def table(args) -> list:
+    """One markdown row per method from ``indreg-register`` run dirs given as ``PRESET,METHOD,DIR`` (FBP and TV
+    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the target's ventricle, and its ratio to
+    the preset's LDDMM row, for the suite-4 missing-ventricle template."""
+    rows = []
+    for spec in args.runs:
+        preset, method, directory = spec.split(",", 2)
+        m, images, baseline_s = _run(directory)
+        mask = ventricle_mask(ImageDomain.paper(images["target"].shape[0])) \
+            if m["hparams"].get("template") == "shepp_logan_template_missing" else None
+        entries = [] if method == "baselines" else [(method, "final", m["seconds"])]  # "baselines": FBP, TV only
+        entries += [(name.upper(), name, baseline_s) for name in ("fbp", "tv") if name in images]
+        for label, key, seconds in entries:
+            image, target = images[key], images["target"]
+            row = {"preset": preset, "method": label, "ssim": metrics.ssim(image, target),
+                   "psnr": metrics.psnr(image, target), "seconds": seconds,
+                   "s_per_iter": m["seconds_per_iteration"] if key == "final" else None}
+            if key == "final" and "deformation_part_ssim" in m:
+                row["deformation_part_ssim"] = m["deformation_part_ssim"]
+            if mask is not None:
+                row["ventricle_rms"] = float(((image - target)[mask] ** 2).mean().sqrt())
+            rows.append(row)
+    reference = {r["preset"]: r["ventricle_rms"] for r in rows if r["method"] == "LDDMM" and "ventricle_rms" in r}
+    lines = ["| preset | method | SSIM (honest) | PSNR (dB) | RMS error in the ventricle (ratio to LDDMM) | seconds |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        vent = "" if "ventricle_rms" not in r else f"{r['ventricle_rms']:.3f}" + (
+            f" ({r['ventricle_rms'] / reference[r['preset']]:.2f})" if r["preset"] in reference else "")
+        secs = "" if r["seconds"] is None else f"{r['seconds']:.0f}" + (
+            " (FBP + TV)" if r["s_per_iter"] is None else f" ({r['s_per_iter']:.2f}/it)")
+        lines.append(f"| {r['preset']} | {r['method']} | {r['ssim']:.3f} | {r['psnr']:.2f} | {vent} | {secs} |")
+    text = "\n".join(lines) + "\n"
+    if args.figure and args.figure.endswith(".md"):
+        with open(args.figure, "w") as f:
+            f.write(text)
+    print(text)
+    return rows
 
 
 def _peak_bytes(prof) -> int:
@@ -182,9 +268,12 @@ def _peak_bytes(prof) -> int:
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("mode", choices=("quality", "cost", "tau-figure"))
+    p.add_argument("mode", choices=("quality", "cost", "tau-figure", "table"))
     p.add_argument("source", nargs="?", help="tau-figure: a quality JSON-lines file or a multirun dir")
-    p.add_argument("--figure", default="tau_sweep.png", help="tau-figure: output image")
+    p.add_argument("runs", nargs="*", help="table: PRESET,METHOD,RUN_DIR of indreg-register runs")
+    p.add_argument("--figure", default="tau_sweep.png", help="tau-figure: output image; table: a .md file")
+    p.add_argument("--lddmm", default=None, help="tau-figure: an LDDMM run dir on the same data (reference lines)")
+    p.add_argument("--baselines", default=None, help="tau-figure: a run dir on the same data with TV's SSIM")
     p.add_argument("--case", choices=sorted(CASES), default="missing")
     p.add_argument("--size", type=int, default=256)
     p.add_argument("--steps", type=int, default=20)
@@ -206,7 +295,9 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    rows = {"quality": quality, "cost": cost, "tau-figure": tau_figure}[args.mode](args)
+    if args.mode == "table" and args.source:
+        args.runs = [args.source, *args.runs]
+    rows = {"quality": quality, "cost": cost, "tau-figure": tau_figure, "table": table}[args.mode](args)
     for r in rows:
         line = json.dumps(r)
         print(line, flush=True)

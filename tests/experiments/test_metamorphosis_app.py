@@ -11,7 +11,8 @@ import indreg
 from indreg import noise, phantoms
 from indreg.experiments.config import ConfigError
 
-from experiment_helpers import FAST, TINY, run_app, run_cli
+from experiment_helpers import FAST, TINY, compose, run_app, run_cli
+from indreg.experiments.config import validate
 
 META = ["deformation=metamorphosis", "deformation.tau=0.5"]
 F64 = FAST + META + ["dtype=float64", "device=cpu"]
@@ -72,6 +73,43 @@ def test_app_refuses_bad_metamorphosis_values(tmp_path):
         run_app(F64 + ["deformation.backward=paper"], tmp_path / "b")
     with pytest.raises(ConfigError, match="deformation.action"):
         run_app(F64 + ["deformation.action=mass_preserving"], tmp_path / "c")
+
+
+# metamorphosis preset -> the LDDMM run on the same data it is compared with (docs/metamorphosis.md)
+COUNTERPARTS = {
+    "suite4_missing_object_metamorphosis": ["experiment=suite4_missing_object"],
+    "suite4_extra_object_metamorphosis": ["experiment=suite4_extra_object"],
+    "suite3_contrast_metamorphosis": ["experiment=suite3_shepp_logan", "phantom=shepp_logan_contrast"],
+    "shepp_logan_limited_angle_metamorphosis": ["experiment=shepp_logan_limited_angle_metamorphosis",
+                                                "deformation=geometric"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(COUNTERPARTS))
+def test_presets_share_data_and_protocol_with_their_lddmm_counterpart(name):
+    meta, lddmm = compose([f"experiment={name}"]), compose(COUNTERPARTS[name])
+    validate(meta)
+    validate(lddmm)
+    assert meta.deformation.model == "metamorphosis" and lddmm.deformation.model == "lddmm"
+    for key in ("phantom", "geometry", "noise", "seed", "kernel", "dtype", "baseline"):
+        assert meta[key] == lddmm[key], key
+    for key in ("name", "gamma", "step_size", "max_iter"):
+        assert meta.solver[key] == lddmm.solver[key], key
+    assert meta.deformation.num_steps == lddmm.deformation.num_steps == 20
+
+
+def test_limited_angle_preset_is_the_follow_up_papers_setting():
+    cfg = compose(["experiment=shepp_logan_limited_angle_metamorphosis"])
+    assert list(cfg.geometry.angles) == [2.25 * k for k in range(20)] and cfg.geometry.angle_unit == "deg"
+    assert cfg.noise.std == 0.25 and cfg.solver.gamma == 1e-5 and cfg.kernel.sigma == 2.0
+    assert cfg.phantom.size == 256
+
+
+def test_tau_sweep_spans_reconstruction_to_lddmm():
+    cfg = compose(["sweep=metamorphosis_tau"], return_hydra_config=True)
+    assert cfg.name == "suite4_missing_object_metamorphosis"
+    taus = [float(t) for t in cfg.hydra.sweeper.params["deformation.tau"].split(",")]
+    assert taus == sorted(taus) and taus[-1] / taus[0] >= 1e4 and cfg.solver.source_start == 0
 
 
 @pytest.mark.slow
