@@ -165,6 +165,19 @@ def _file_angles(cfg: DictConfig, num_rows: int) -> torch.Tensor:
     return angles
 
 
+def _target(path, template, read) -> Optional[torch.Tensor]:
+    """The optional ground truth ``data.target`` (``read``: ``read_image`` or ``read_volume``), shaped as the
+    template."""
+    from ..io import DataFileError
+
+    if not path:
+        return None
+    target = read(path, name="data.target")
+    if target.shape != template.shape:
+        raise DataFileError(f"data.target {path}: shape {target.shape} differs from the template's {template.shape}")
+    return torch.from_numpy(target)
+
+
 def box_domain(shape: tuple, half_width: float) -> ImageDomain:
     """Cubic cells of side ``2 half_width / max(shape)``, centred: the longest axis spans
     ``[-half_width, half_width]`` (a slab of electron tomography keeps its aspect ratio)."""
@@ -188,13 +201,7 @@ def _tilt_series_files(cfg: DictConfig) -> Data:
         if isinstance(e, DataFileError):
             raise
         raise ConfigError(f"geometry.angles: {e}") from None
-    target = None
-    if d.target:
-        target = read_volume(d.target, name="data.target")
-        if target.shape != template.shape:
-            raise DataFileError(f"data.target {d.target}: shape {target.shape} differs from the template's "
-                                f"{template.shape}")
-        target = torch.from_numpy(target)
+    target = _target(d.target, template, read_volume)
     det_min, det_max = g.det_min, g.det_max
     if det_min is None:  # measured data: detector columns as wide as the volume's voxels, centred
         u = 0 if g.tilt_axis.value != "x" else 1
@@ -238,13 +245,7 @@ def file_data(cfg: DictConfig) -> Data:
     if g.det_count is not None and g.det_count != sinogram.shape[1]:
         raise DataFileError(f"data.sinogram {d.sinogram}: {sinogram.shape[1]} detector bins but "
                             f"geometry.det_count={g.det_count}")
-    target = None
-    if d.target:
-        target = read_image(d.target, name="data.target")
-        if target.shape != template.shape:
-            raise DataFileError(f"data.target {d.target}: shape {target.shape} differs from the template's "
-                                f"{template.shape}")
-        target = torch.from_numpy(target)
+    target = _target(d.target, template, read_image)
     domain = square_domain(nx, d.half_width)
     try:
         geometry = make_geometry(g, domain, sinogram.shape[1], angles)

@@ -19,7 +19,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from .._checks import check_int
+from .._checks import check_int, check_same
 from ..domain import ImageDomain
 
 MEMBERS = ("domain", "range_shape", "__call__", "adjoint", "inner_data")
@@ -90,3 +90,27 @@ def operator_norm(op, num_iter: int = 100, dtype: torch.dtype = torch.float64, d
         x = op.adjoint(op(x))
         x = x / dom.norm(x)
     return float(norm_data(op, op(x)))
+
+
+class WeightedDataMixin:
+    """The data-space members of a projector whose data inner product is ``geometry.data_weight * sum`` over
+    ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``inner_data``, ``norm_data``, and the checks
+    ``adjointness_test`` and ``operator_norm`` on the operator itself (as deepinv's ``adjointness_test``)."""
+
+    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
+        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept."""
+        check_same(y1, y2, "y1", "y2")
+        return self.geometry.data_weight * (y1 * y2).sum(dim=tuple(range(-len(self.range_shape), 0)))
+
+    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted data norm over the data axes."""
+        return self.inner_data(y, y).sqrt()
+
+    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
+        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (:func:`adjointness`)."""
+        return adjointness(self, dtype, device, seed)
+
+    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
+                      seed: int = 0) -> float:
+        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
+        return operator_norm(self, num_iter, dtype, device, seed)

@@ -29,10 +29,10 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
-from .._checks import check_same, check_tensor
+from .._checks import check_tensor
 from ..domain import ImageDomain
 from .geometry import FanBeamGeometry, ParallelBeamGeometry, domain_radius
-from .operator import adjointness, operator_norm
+from .operator import WeightedDataMixin
 
 _PROJECTORS = {}
 
@@ -245,7 +245,7 @@ class _Backproject(torch.autograd.Function):
         return _Project.apply(grad, ctx.system), None
 
 
-class RayTransform(nn.Module):
+class RayTransform(WeightedDataMixin, nn.Module):
     """Ray transform ``T: L2(domain) -> L2(angles x detector)`` (a ``LinearOperator``; deepinv-style names).
 
     Parallel beam: ``(T f)(theta, s) = integral over t of f(s w + t w_perp)``, ``w = (cos theta, sin theta)``,
@@ -332,24 +332,6 @@ class RayTransform(nn.Module):
         For the L2 adjoint of the weighted inner products use ``adjoint``; to hand the operator to deepinv use
         ``indreg.forward.deepinv.as_physics``."""
         return self.transpose(y)
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the last two axes."""
-        check_same(y1, y2, "y1", "y2")
-        return self.geometry.data_weight * (y1 * y2).sum(dim=(-2, -1))
-
-    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
-        """Weighted data norm over the last two axes."""
-        return self.inner_data(y, y).sqrt()
-
-    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
-        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (``operator.adjointness``)."""
-        return adjointness(self, dtype, device, seed)
-
-    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
-                      seed: int = 0) -> float:
-        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (``operator.operator_norm``)."""
-        return operator_norm(self, num_iter, dtype, device, seed)
 
     def extra_repr(self) -> str:
         return f"domain={self.domain}, geometry={self.geometry}, nnz={self.system.nnz}"

@@ -10,10 +10,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .._checks import check_same, check_tensor
+from .._checks import check_tensor
 from ..domain import AXES, ImageDomain
 from .geometry import ParallelBeamGeometry
-from .operator import adjointness, operator_norm
+from .operator import WeightedDataMixin
 from .ray_transform import RayTransform, _Backproject, _Project
 
 TILT_ANGLE_UNITS = ("deg", "rad")
@@ -137,7 +137,7 @@ class TiltSeriesGeometry:
                 f"det_min={self.det_min}, det_max={self.det_max}, tilt_axis={self.tilt_axis!r})")
 
 
-class TiltSeriesTransform(nn.Module):
+class TiltSeriesTransform(WeightedDataMixin, nn.Module):
     """Single-axis tilt-series ray transform ``T: L2(domain) -> L2(tilts x rows x columns)`` (a ``LinearOperator``).
 
     ``(T f)(theta_k, t_j, s_d)`` is the 2D parallel-beam ray transform of the slice ``f(., t_j, .)``
@@ -222,24 +222,6 @@ class TiltSeriesTransform(nn.Module):
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:
         """deepinv's ``A_adjoint``: the adjoint for plain sums, i.e. ``transpose``."""
         return self.transpose(y)
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the last three axes."""
-        check_same(y1, y2, "y1", "y2")
-        return self.geometry.data_weight * (y1 * y2).sum(dim=(-3, -2, -1))
-
-    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
-        """Weighted data norm over the last three axes."""
-        return self.inner_data(y, y).sqrt()
-
-    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
-        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (``operator.adjointness``)."""
-        return adjointness(self, dtype, device, seed)
-
-    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
-                      seed: int = 0) -> float:
-        """``||T||`` by power iteration on ``T^* T`` (``operator.operator_norm``)."""
-        return operator_norm(self, num_iter, dtype, device, seed)
 
     def extra_repr(self) -> str:
         return f"domain={self.domain}, geometry={self.geometry}, nnz per slice={self.system.nnz}"
