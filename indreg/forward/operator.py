@@ -97,6 +97,16 @@ class WeightedDataMixin:
     ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``inner_data``, ``norm_data``, and the checks
     ``adjointness_test`` and ``operator_norm`` on the operator itself (as deepinv's ``adjointness_test``)."""
 
+    @property
+    def range_shape(self) -> tuple:
+        """Data shape: ``geometry.shape``."""
+        return self.geometry.shape
+
+    @property
+    def adjoint_scale(self) -> float:
+        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
+        return self.geometry.data_weight / self.domain.cell_volume
+
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
         """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept."""
         check_same(y1, y2, "y1", "y2")

@@ -289,16 +289,6 @@ class RayTransform(WeightedDataMixin, nn.Module):
         self.geometry = geometry
         self.system = _SystemMatrix(domain, geometry)
 
-    @property
-    def range_shape(self) -> tuple:
-        """Data shape ``(num_angles, det_count)``."""
-        return self.geometry.shape
-
-    @property
-    def adjoint_scale(self) -> float:
-        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
-        return self.geometry.data_weight / self.domain.cell_volume
-
     def _check_dtype(self, x: torch.Tensor, name: str) -> None:
         if x.dtype not in (torch.float32, torch.float64):
             raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")

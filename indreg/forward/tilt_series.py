@@ -174,16 +174,6 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
         self.geometry = geometry.resolve(domain)
 
     @property
-    def range_shape(self) -> tuple:
-        """Data shape ``(num_tilts, det_rows, det_cols)``."""
-        return self.geometry.shape
-
-    @property
-    def adjoint_scale(self) -> float:
-        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
-        return self.geometry.data_weight / self.domain.cell_volume
-
-    @property
     def system(self):
         """The 2D system matrix shared by all slices."""
         return self.slice_transform.system

@@ -38,7 +38,7 @@ from ..deform.metamorphosis import MetamorphosisDeformation
 from ..forward.operator import operator_norm
 from .objective import IndirectRegistration, check_nonnegative
 from .state import IterativeSolver, SolverState, make_info, problems
-from .torch_optim import _DEFAULTS, _optimizer_class
+from .torch_optim import _DEFAULTS, setup_common
 
 
 class MetamorphosisRegistration:
@@ -389,15 +389,7 @@ class MetamorphosisTorchOptim(IterativeSolver):
             M = problem.deformation
             problem = problem.with_deformation(MetamorphosisDeformation(M.domain, M.num_steps, backward,
                                                                         M.interpolation))
-        self.problem = problem
-        self.max_iter = check_int(max_iter, "max_iter", 0)
-        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
-        self.scale = problem.num_steps / problem.domain.cell_volume
-        cls = _optimizer_class(optimizer)
-        if lr is None and cls is not torch.optim.LBFGS:
-            raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
-        self.lr = check_positive(1.0 if lr is None else lr, "lr")
+        cls = setup_common(self, problem, optimizer, lr, max_iter, grad_tol, jacobian_every)
         self.source_lr = self.lr if source_lr is None else check_positive(source_lr, "source_lr")
         if cls is torch.optim.LBFGS and self.source_lr != self.lr:
             raise ValueError(f"source_lr must equal lr for LBFGS (one parameter group), got {source_lr} and {lr}")

@@ -33,6 +33,22 @@ def _optimizer_class(optimizer):
     return names[optimizer.lower()]
 
 
+def setup_common(solver, problem, optimizer, lr, max_iter, grad_tol, jacobian_every):
+    """The attributes every ``torch.optim`` solver sets (``problem``, ``max_iter``, ``grad_tol``,
+    ``jacobian_every``, ``scale = N / cell_volume``, ``lr``: 1.0 for L-BFGS, else required); returns the
+    optimizer class."""
+    solver.problem = problem
+    solver.max_iter = check_int(max_iter, "max_iter", 0)
+    solver.grad_tol = check_nonnegative(grad_tol, "grad_tol")
+    solver.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
+    solver.scale = problem.num_steps / problem.domain.cell_volume
+    cls = _optimizer_class(optimizer)
+    if lr is None and cls is not torch.optim.LBFGS:
+        raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
+    solver.lr = check_positive(1.0 if lr is None else lr, "lr")
+    return cls
+
+
 class TorchOptimSolver(IterativeSolver):
     """Minimise E with a ``torch.optim`` optimizer over ``p``, where ``nu = K(s p)``, ``s = N / cell_volume``.
 
@@ -78,15 +94,7 @@ class TorchOptimSolver(IterativeSolver):
             W = problem.deformation
             problem = problem.with_deformation(type(W)(W.domain, W.num_steps, W.action, backward,
                                                        W.interpolation, W.scheme))
-        self.problem = problem
-        self.max_iter = check_int(max_iter, "max_iter", 0)
-        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
-        self.scale = problem.num_steps / problem.domain.cell_volume
-        cls = _optimizer_class(optimizer)
-        if lr is None and cls is not torch.optim.LBFGS:
-            raise ValueError(f"lr is required for {cls.__name__} (see the docstring for its scale)")
-        self.lr = check_positive(1.0 if lr is None else lr, "lr")
+        cls = setup_common(self, problem, optimizer, lr, max_iter, grad_tol, jacobian_every)
         self.parameter = torch.nn.Parameter(problem.zero_momentum())
         kwargs = {**_DEFAULTS.get(cls, {}), **optimizer_kwargs}
         self.optimizer = cls([self.parameter], lr=self.lr, **kwargs)
