@@ -39,6 +39,7 @@ from .. import phantoms as _phantoms
 from ..deform import functional as _Fd
 from ..deform import lddmm as _lddmm
 from ..deform import metamorphosis as _metamorphosis
+from ..domain import AXES
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
 Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
@@ -63,12 +64,6 @@ class GeometryKind(str, Enum):
     tilt_series = "tilt_series"
 
 
-class TiltAxis(str, Enum):
-    x = "x"
-    y = "y"
-    z = "z"
-
-
 class AngleUnit(str, Enum):
     deg = "deg"
     rad = "rad"
@@ -83,6 +78,7 @@ class NoiseConvention(str, Enum):
 Action = Enum("Action", {name: name for name in _Fd.ACTIONS}, type=str)
 Backward = Enum("Backward", {name: name for name in (*_lddmm.BACKWARDS, *_metamorphosis.BACKWARDS)}, type=str)
 Interpolation = Enum("Interpolation", {name: name for name in _Fd.INTERPOLATIONS}, type=str)
+TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z
 
 
 class Model(str, Enum):

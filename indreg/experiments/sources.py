@@ -85,9 +85,9 @@ def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch
     fits the detector to the domain."""
     if g.kind.value == "tilt_series":
         if angles is None:
-            unit = math.pi / 180 if g.angle_unit.value == "deg" else 1.0
-            count = int(math.floor((g.tilt_max - g.tilt_min) / g.tilt_step + 1e-9)) + 1
-            angles = (g.tilt_min + g.tilt_step * torch.arange(count, dtype=torch.float64)) * unit
+            deg = 1.0 if g.angle_unit.value == "deg" else 180 / math.pi
+            return TiltSeriesGeometry.uniform(g.tilt_min * deg, g.tilt_max * deg, g.tilt_step * deg, det_count,
+                                              g.det_min, g.det_max, g.tilt_axis.value)
         return TiltSeriesGeometry(angles, det_count, g.det_min, g.det_max, g.tilt_axis.value, angle_unit="rad")
     paper = angles is None and g.partition.value == "paper"
     if paper and g.kind.value == "parallel":

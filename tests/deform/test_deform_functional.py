@@ -109,14 +109,23 @@ def test_out_buffers_only_without_autograd():
         Fd.jacobian_trajectory(v, dom, out=torch.empty(3, 8, 8))
 
 
+# (input shape, grid shape, bands expected with 2 threads for (shape) arguments of _bands): an image, a volume
+BAND_CASES = {
+    "2d": ((1, 1, 128, 96), (1, 128, 128, 2), {(128, 128): 2, (64, 64): 1, (127, 128): 1}),
+    "3d": ((1, 1, 64, 20, 16), (1, 64, 20, 16, 3), {(64, 20, 16): 2}),
+}
+
+
 @pytest.mark.parametrize("padding_mode", ("zeros", "border"))
-def test_sample_in_row_bands_is_exact(padding_mode):
-    """With several CPU threads a large single image is sampled in bands of rows: the same values, and the
-    same gradients (the input's summed over the bands)."""
+@pytest.mark.parametrize("case", BAND_CASES)
+def test_sample_in_row_bands_is_exact(padding_mode, case):
+    """With several CPU threads a large single image (volume) is sampled in bands (slabs) of rows: the same
+    values, and the same gradients (the input's summed over the bands)."""
+    f_shape, grid_shape, bands = BAND_CASES[case]
     g = torch.Generator().manual_seed(0)
-    f = torch.rand(1, 1, 128, 96, dtype=torch.float64, generator=g)
-    grid = torch.rand(1, 128, 128, 2, dtype=torch.float64, generator=g) * 2.2 - 1.1
-    weight = torch.rand(1, 1, 128, 128, dtype=torch.float64, generator=g)
+    f = torch.rand(f_shape, dtype=torch.float64, generator=g)
+    grid = torch.rand(grid_shape, dtype=torch.float64, generator=g) * 2.2 - 1.1
+    weight = torch.rand(*grid_shape[:1], 1, *grid_shape[1:-1], dtype=torch.float64, generator=g)
 
     def value_and_grads():
         a, b = f.clone().requires_grad_(), grid.clone().requires_grad_()
@@ -128,7 +137,7 @@ def test_sample_in_row_bands_is_exact(padding_mode):
         torch.set_num_threads(1)
         single = value_and_grads()
         torch.set_num_threads(2)
-        assert Fd._bands(f, 128, 128) == 2 and Fd._bands(f, 64, 64) == 1 and Fd._bands(f, 127, 128) == 1
+        assert {shape: Fd._bands(f, *shape) for shape in bands} == bands
         banded = value_and_grads()
     finally:
         torch.set_num_threads(threads)

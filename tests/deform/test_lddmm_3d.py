@@ -107,31 +107,6 @@ def test_growth_factors_and_divergence_adjoint_3d(scheme, shape):
     torch.testing.assert_close(lhs, rhs, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("padding_mode", ("zeros", "border"))
-def test_sample_in_row_bands_is_exact_3d(padding_mode):
-    """With 2 CPU threads a single volume is interpolated in 2 slabs of x rows: the same values and gradients."""
-    f = torch.rand(1, 1, 64, 20, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
-    grid = torch.rand(1, 64, 20, 16, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 2.2 - 1.1
-    weight = _random(1, 1, 64, 20, 16, seed=7)
-
-    def value_and_grads():
-        a, b = f.clone().requires_grad_(), grid.clone().requires_grad_()
-        out = Fd.sample(a, b, padding_mode)
-        return (out.detach(), *torch.autograd.grad((out * weight).sum(), (a, b)))
-
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        single = value_and_grads()
-        torch.set_num_threads(2)
-        assert Fd._bands(f, 64, 20, 16) == 2
-        banded = value_and_grads()
-    finally:
-        torch.set_num_threads(threads)
-    assert torch.equal(banded[0], single[0]) and torch.equal(banded[2], single[2])
-    torch.testing.assert_close(banded[1], single[1], rtol=1e-13, atol=1e-13)
-
-
 # ------------------------------------------------------------------------------------------------ analytic flows
 @pytest.mark.parametrize("action", ACTIONS)
 @pytest.mark.parametrize("backward", ("paper", "exact", "autograd"))
