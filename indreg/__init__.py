@@ -8,16 +8,18 @@ from .forward import (FanBeamGeometry, LinearOperator, ParallelBeamGeometry, Ray
                       TiltSeriesTransform)
 from .deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from . import metrics, noise, phantoms
-from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver
+from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver, RegistrationProblem
+from .solvers import SolverState, StepControl
 from .solvers import MetamorphosisRegistration, MetamorphosisDescent, MetamorphosisTorchOptim
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
+from . import models
 from .api import RegistrationResult, register
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform",
            "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "MultilevelSolver",
+           "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
            "metrics", "noise", "phantoms"]

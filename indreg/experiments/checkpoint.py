@@ -224,3 +224,31 @@ def problem_mismatch(saved: dict, current: dict, prefix: str = "") -> list:
         elif a != b:
             out.append(f"{prefix}{k}: checkpoint {a!r}, config {b!r}")
     return out
+
+
+def check_state(saved: dict, state, max_iter: int) -> None:
+    """The loaded checkpoint against the run's schema, not only its bytes: ``iteration`` an integer in
+    ``[0, max_iter]`` equal to the state's, the state's entries (``state.names``) floating-point tensors of the
+    current iterate's shapes, ``history`` one report per iteration, ``seconds`` a finite number >= 0. Raises
+    ``ValueError`` naming the field (``restoring`` turns it into a ``CheckpointError`` naming the file)."""
+    it = saved["iteration"]
+    if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= max_iter:
+        raise ValueError(f"iteration {it!r} is not an integer in [0, solver.max_iter={max_iter}]")
+    s = saved["state"]
+    if not isinstance(s, dict) or s.get("iteration") != it:
+        raise ValueError(f"state.iteration {s.get('iteration') if isinstance(s, dict) else s!r} differs from "
+                         f"iteration {it}")
+    for name, current in zip(state.names, state.iterate):
+        t = s.get(name)
+        if not isinstance(t, torch.Tensor) or not t.is_floating_point() or tuple(t.shape) != tuple(current.shape):
+            what = f"a {t.dtype} tensor of shape {tuple(t.shape)}" if isinstance(t, torch.Tensor) else repr(type(t))
+            raise ValueError(f"state.{name} is {what}; this run needs a floating-point tensor of shape "
+                             f"{tuple(current.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"state.{name} contains non-finite values")
+    history, seconds = saved["history"], saved["seconds"]
+    if not isinstance(history, list) or len(history) != it or not all(isinstance(h, dict) for h in history):
+        raise ValueError(f"history has {len(history) if isinstance(history, list) else '?'} entries, expected one "
+                         f"report per iteration ({it})")
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 <= seconds < float("inf"):
+        raise ValueError(f"seconds {seconds!r} is not a finite number >= 0")

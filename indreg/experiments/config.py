@@ -35,10 +35,10 @@ from typing import Any, Dict, Optional
 
 from omegaconf import DictConfig, OmegaConf
 
+from dataclasses import make_dataclass
+
+from .. import options as _options
 from .. import phantoms as _phantoms
-from ..deform import functional as _Fd
-from ..deform import lddmm as _lddmm
-from ..deform import metamorphosis as _metamorphosis
 from ..domain import AXES
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
@@ -74,29 +74,7 @@ class NoiseConvention(str, Enum):
     paper = "paper"
 
 
-# the deformation operator's choices, from the one place that defines them
-Action = Enum("Action", {name: name for name in _Fd.ACTIONS}, type=str)
-Backward = Enum("Backward", {name: name for name in (*_lddmm.BACKWARDS, *_metamorphosis.BACKWARDS)}, type=str)
-Interpolation = Enum("Interpolation", {name: name for name in _Fd.INTERPOLATIONS}, type=str)
 TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z
-
-
-class Model(str, Enum):
-    """``lddmm``: ``LDDMMDeformation``; ``metamorphosis``: ``MetamorphosisDeformation`` (intensities change too)."""
-    lddmm = "lddmm"
-    metamorphosis = "metamorphosis"
-
-
-class SolverName(str, Enum):
-    algorithm1 = "algorithm1"
-    torch_optim = "torch_optim"
-    fast = "fast"            # indreg.solvers.MultilevelSolver (optimizer_kwargs: its options)
-
-
-class Optimizer(str, Enum):
-    lbfgs = "lbfgs"
-    adam = "adam"
-    sgd = "sgd"
 
 
 class FBPFilter(str, Enum):
@@ -167,48 +145,22 @@ class NoiseConfig:
     seed: Optional[int] = None  # None: the run's seed
 
 
-@dataclass
-class DeformationConfig:
-    """LDDMM flow with N time steps (t_i = i / N), group action and derivative scheme (``LDDMMDeformation``).
-    ``model=metamorphosis`` (``deformation=metamorphosis``): the image path also changes intensities
-    (``MetamorphosisDeformation``, geometric action, backward ``adjoint`` or ``autograd``); ``tau`` weighs the
-    source term's penalty; ``source_sigma`` (null: the paper's L2 source) the width of an RKHS for the source;
-    ``source_mask=template`` confines the intensity changes to the template's support."""
-    num_steps: int = 20
-    action: Action = Action.geometric
-    backward: Backward = Backward.paper
-    interpolation: Interpolation = Interpolation.reinterpolate
-    model: Model = Model.lddmm
-    tau: float = 1.0
-    source_sigma: Optional[float] = None
-    source_mask: Optional[str] = None
+def _group(name: str, doc: str, extra=()):
+    """The schema of a registration group, generated from ``indreg.options`` (one declaration for the app and
+    ``indreg.register``); ``extra``: the app's own keys."""
+    cls = make_dataclass(name, [*_options.schema_fields(name[:-len("Config")].lower()), *extra])
+    cls.__doc__ = doc
+    return cls
 
 
-@dataclass
-class KernelConfig:
-    """Gaussian RKHS kernel ``exp(-|x - y|^2 / (2 sigma^2))`` (physical units)."""
-    sigma: float = 6.0
-
-
-@dataclass
-class SolverConfig:
-    """Objective weights and the optimiser. ``step_size`` is Algorithm 1's epsilon (the presets set it); ``lr`` is
-    the learning rate of torch.optim (``solver=lbfgs`` / ``adam`` set their own), so an ``experiment=`` preset
-    never changes an optimizer's learning rate."""
-    name: SolverName = SolverName.algorithm1
-    gamma: float = 1e-6
-    tv_weight: float = 0.0
-    step_size: float = 0.02
-    lr: float = 1.0
-    max_iter: int = 200
-    grad_tol: float = 0.0
-    step_halving: bool = False
-    max_halvings: int = 20
-    optimizer: Optimizer = Optimizer.lbfgs
-    optimizer_kwargs: Dict[str, Any] = field(default_factory=dict)
-    source_step_size: Optional[float] = None  # metamorphosis, algorithm1: null = 1 / (tau + ||T||^2)
-    source_lr: Optional[float] = None         # metamorphosis, torch_optim: null = lr
-    source_start: int = 0                     # metamorphosis, algorithm1: iterations with the source frozen
+DeformationConfig = _group("DeformationConfig", "Deformation: the model (``indreg.models``: lddmm, metamorphosis), "
+                           "time steps N, group action, backward, interpolation, and the model's own options.")
+KernelConfig = _group("KernelConfig", "Kernel: the Gaussian RKHS kernel width sigma (physical units).")
+SolverConfig = _group("SolverConfig", "Solver: ``name`` algorithm1, fast, torch_optim (with ``optimizer``) or a "
+                      "torch.optim name; objective weights, steps and iterations (``indreg.options``). "
+                      "``step_size`` is Algorithm 1's, ``lr`` torch.optim's: each is used only by its solver, so an "
+                      "``experiment=`` preset never changes an optimizer's learning rate.",
+                      extra=[("optimizer", str, field(default="lbfgs"))])
 
 
 @dataclass
@@ -328,21 +280,7 @@ def validate(cfg: DictConfig) -> None:
              "a number in [-300, 300] (dB) or null", n.snr_db)
     _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
     _require(n.seed is None or 0 <= n.seed < 2 ** 32, "noise.seed", "null or an integer in [0, 2**32)", n.seed)
-    _require(c.deformation.num_steps >= 1, "deformation.num_steps", "an integer >= 1", c.deformation.num_steps)
-    _validate_model(c)
-    _require(_finite(c.kernel.sigma) and c.kernel.sigma > 0, "kernel.sigma", "a number > 0", c.kernel.sigma)
-    s = c.solver
-    _require(_finite(s.gamma) and s.gamma >= 0, "solver.gamma", "a number >= 0", s.gamma)
-    _require(_finite(s.tv_weight) and s.tv_weight >= 0, "solver.tv_weight", "a number >= 0", s.tv_weight)
-    _require(_finite(s.step_size) and s.step_size > 0, "solver.step_size", "a number > 0", s.step_size)
-    _require(_finite(s.lr) and s.lr > 0, "solver.lr", "a number > 0", s.lr)
-    _require(s.max_iter >= 0, "solver.max_iter", "an integer >= 0", s.max_iter)
-    _require(_finite(s.grad_tol) and s.grad_tol >= 0, "solver.grad_tol", "a number >= 0", s.grad_tol)
-    _require(s.max_halvings >= 0, "solver.max_halvings", "an integer >= 0", s.max_halvings)
-    if s.name.value == "torch_optim":
-        _check_optimizer_kwargs(s.optimizer.value, s.optimizer_kwargs)
-    if s.name.value == "fast":
-        _check_fast_kwargs(s.optimizer_kwargs)
+    check_registration(c)
     b = c.baseline
     _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
              "a number in (0, 1]", b.fbp_frequency_scaling)
@@ -354,23 +292,23 @@ def validate(cfg: DictConfig) -> None:
     _require(lg.checkpoint_every >= 1, "logging.checkpoint_every", "an integer >= 1", lg.checkpoint_every)
 
 
-def _validate_model(c: DictConfig) -> None:
-    """``deformation.model`` and the keys whose valid values depend on it."""
-    d, s = c.deformation, c.solver
-    backwards = _metamorphosis.BACKWARDS if d.model.value == "metamorphosis" else _lddmm.BACKWARDS
-    _require(d.backward.value in backwards, "deformation.backward",
-             f"one of {', '.join(backwards)} for deformation.model={d.model.value}", d.backward.value)
-    if d.model.value == "metamorphosis":
-        _require(d.action.value == "geometric", "deformation.action", "geometric for deformation.model=metamorphosis",
-                 d.action.value)
-    _require(_finite(d.tau) and d.tau >= 0, "deformation.tau", "a number >= 0", d.tau)
-    _require(d.source_mask in (None, "template"), "deformation.source_mask", "null or template", d.source_mask)
-    _require(d.source_sigma is None or (_finite(d.source_sigma) and d.source_sigma > 0), "deformation.source_sigma",
-             "null or a number > 0", d.source_sigma)
-    for key in ("source_step_size", "source_lr"):
-        v = s[key]
-        _require(v is None or (_finite(v) and v > 0), f"solver.{key}", "null or a number > 0", v)
-    _require(s.source_start >= 0, "solver.source_start", "an integer >= 0", s.source_start)
+def registration_values(cfg: DictConfig) -> dict:
+    """The ``indreg.register`` options of the config's ``kernel``, ``deformation`` and ``solver`` groups
+    (``solver.name=torch_optim`` names its optimizer in ``solver.optimizer``)."""
+    plain = to_plain(cfg)
+    values = {o.name: plain[o.group][o.key] for o in _options.all_options() if o.group in plain}
+    if values["solver"] == "torch_optim":
+        values["solver"] = plain["solver"]["optimizer"]
+    return values
+
+
+def check_registration(cfg: DictConfig) -> dict:
+    """``indreg.options.resolve`` on the config's values (options of another solver / model are dropped);
+    errors name the config key."""
+    try:
+        return _options.resolve(registration_values(cfg), label=lambda o: o.config_key, strict=False)
+    except _options.OptionError as e:
+        raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
 
 
 def _validate_data(c: DictConfig) -> None:
@@ -417,28 +355,6 @@ def _check_cuda(device: str) -> None:
     index = int(device.split(":")[1]) if ":" in device else 0
     _require(index < count, "device", f"'auto', 'cpu' or a CUDA device of this machine ({count} CUDA device(s) "
              "available)", device)
-
-
-def _check_optimizer_kwargs(optimizer: str, kwargs) -> None:
-    """Every ``solver.optimizer_kwargs`` key must be a keyword of the torch.optim optimizer's constructor."""
-    import inspect
-
-    from ..solvers.torch_optim import _optimizer_class
-
-    allowed = set(inspect.signature(_optimizer_class(optimizer).__init__).parameters) - {"self", "params", "lr"}
-    for key in kwargs:
-        _require(key in allowed, f"solver.optimizer_kwargs.{key}",
-                 f"a keyword of torch.optim {_optimizer_class(optimizer).__name__} ({', '.join(sorted(allowed))})",
-                 kwargs[key])
-
-
-def _check_fast_kwargs(kwargs) -> None:
-    """``solver=fast``: every ``solver.optimizer_kwargs`` key must be an option of ``MultilevelSolver``."""
-    from ..solvers.multilevel import options
-
-    for key in kwargs:
-        _require(key in options(), f"solver.optimizer_kwargs.{key}",
-                 f"an option of solver=fast (indreg.solvers.MultilevelSolver: {', '.join(options())})", kwargs[key])
 
 
 def path_component(name) -> str:

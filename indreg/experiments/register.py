@@ -22,7 +22,7 @@ a sweep resumable: rerun the same command with ``resume=true``. See configs/READ
 
 A run builds the problem (:mod:`indreg.experiments.build`: data from the ``data`` source, then the same setup as
 ``indreg.register``), computes the FBP and TV baselines from the same data, then runs the loop shared with
-``indreg.register`` (``indreg.api.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
+``indreg.register`` (``indreg.run.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
 every iteration; a progress line (``iteration i/total``, it/s, ETA), SSIM / PSNR (with a target) and the deformed
 template every ``logging.every``; a checkpoint every ``logging.checkpoint_every`` and on SIGINT / SIGTERM (then
 the process exits with 128 + signal number). ``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends
@@ -49,9 +49,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from ..api import (RegistrationLoop, count_warnings, evaluate, final_image, image_trajectory, initial_state,
-                   is_metamorphosis, relative_residual)
 from ..io import DataFileError
+from ..run import RegistrationLoop, build_result, initial_state
 from . import checkpoint as ckpt
 from .build import build, seed_everything
 from .config import CONFIG_DIR, ConfigError, register_schema, to_plain, validate
@@ -143,23 +142,21 @@ def _problem_config(plain: dict) -> dict:
     return out
 
 
-def _step_size(cfg: DictConfig, exp) -> float:
-    """The configured step: Algorithm 1's, solver=fast's Algorithm 1 step (its option), else the optimiser's lr."""
-    name = cfg.solver.name.value
-    if name == "fast" and exp.solver.inner == "algorithm1":
+def _step_size(exp) -> float:
+    """The configured step: Algorithm 1's (also solver=fast's inner one), else the optimiser's lr."""
+    o = exp.options
+    if hasattr(exp.solver, "step_sizes") or getattr(exp.solver, "inner", None) == "algorithm1":
         return float(exp.solver.step_size)
-    return float(cfg.solver.step_size if name == "algorithm1" else cfg.solver.lr)
+    return float(o["lr"] if o["lr"] is not None else 1.0)
 
 
 def hyperparameters(cfg: DictConfig, exp) -> dict:
-    """The run's parameters shown in TensorBoard's HParams tab and in metrics.json."""
-    return {"gamma": float(cfg.solver.gamma), "sigma": float(cfg.kernel.sigma),
-            "N": int(cfg.deformation.num_steps), "model": cfg.deformation.model.value,
-            "tau": float(cfg.deformation.tau) if cfg.deformation.model.value == "metamorphosis" else 0.0,
-            "step_size": _step_size(cfg, exp),
-            "action": cfg.deformation.action.value, "solver": cfg.solver.name.value,
-            "template": exp.label, "size": int(exp.domain.shape[0]),
-            "max_iter": int(cfg.solver.max_iter), "dtype": cfg.dtype.value, "seed": int(cfg.seed)}
+    """The run's parameters shown in TensorBoard's HParams tab and in metrics.json (the model adds its own)."""
+    o = exp.options
+    return {"gamma": float(o["gamma"]), "sigma": float(o["sigma"]), "N": int(o["num_steps"]), "model": o["model"],
+            "step_size": _step_size(exp), "action": o["action"], "solver": o["solver"], "template": exp.label,
+            "size": int(exp.domain.shape[0]), "max_iter": int(o["max_iter"]), "dtype": cfg.dtype.value,
+            "seed": int(cfg.seed), **exp.problem.hparams()}
 
 
 def _json_float(v):
@@ -194,7 +191,7 @@ class AppLoop(RegistrationLoop):
         self.writer.scalars(info, it)
         self._fom = ""
         if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
-            deformed = final_image(self.problem, self.state)
+            deformed = self.problem.reconstruction(self.state.iterate)
             if exp.target_64 is not None:
                 fom = figures_of_merit(deformed, exp.target_64)
                 self.writer.metrics(fom, it)
@@ -248,13 +245,10 @@ def run(cfg: DictConfig, output_dir) -> dict:
     history, seconds = [], 0.0
     if saved is not None:
         with ckpt.restoring(path):
+            ckpt.check_state(saved, state, cfg.solver.max_iter)
             state.load_state_dict(saved["state"])
-            state.momentum = state.momentum.to(device=exp.template.device, dtype=exp.template.dtype)
-            if is_metamorphosis(problem):
-                state.source = state.source.to(device=exp.template.device, dtype=exp.template.dtype)
-                problem.check(state.momentum, state.source)
-            else:
-                problem.check_momentum(state.momentum)
+            state.iterate = tuple(t.to(device=exp.template.device, dtype=exp.template.dtype) for t in state.iterate)
+            problem.check_iterate(state.iterate)
             exp.solver.load_state_dict(saved["solver"])
             ckpt.set_rng_state(saved["rng"])
             history, seconds = list(saved["history"]), float(saved["seconds"])
@@ -326,83 +320,86 @@ def _failed(out: Path, history: list) -> dict:
 
 
 def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: str) -> dict:
-    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams.
+    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams, from the
+    result that ``indreg.register`` would return (``indreg.run.build_result``).
 
     Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
-    data residual ``residual = ||T f - g|| / ||g||`` is always reported."""
-    from . import figures
+    data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (metamorphosis:
+    source and the parts of f(1)) are saved by name; those it scores (``problem.scored``) get SSIM / PSNR."""
     from .tblog import METRICS
 
-    problem, m, it = exp.problem, state.momentum, state.iteration
-    final = final_image(problem, state)
-    trajectory = image_trajectory(problem, state)
-    with torch.no_grad():
-        velocity = problem.velocity(m)
-        phi = problem.deformation.deformation(velocity)
-    terms = evaluate(problem, state)
+    problem, it = exp.problem, state.iteration
+    r = build_result(problem, state, history, seconds, status)
     target = exp.target_64
     result = {}
     if target is not None:
-        result.update(figures_of_merit(final, target))
+        result.update(figures_of_merit(r.deformed, target))
         for name, image in rec.items():
             result.update({f"{name}_{k}": v for k, v in figures_of_merit(image, target).items()})
         result.update({f"template_{k}": v for k, v in figures_of_merit(exp.template_64, target).items()})
-    result.update(terms)
+        for name in problem.scored:
+            result.update({f"{name}_{k}": v for k, v in figures_of_merit(r.outputs[name], target).items()})
+    result.update(r.terms)
     result.update({
-        "status": status, "residual": relative_residual(exp.ray_transform, final, problem.data), "iterations": it,
-        "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds,
-        "min_jacobian": problem.min_jacobian(velocity),
+        "status": status, "residual": r.residual, "iterations": it,
+        "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": count_warnings(history), "rejected_steps": sum(1 for h in history if h.get("rejected")),
+        "warnings": r.warnings, "rejected_steps": sum(1 for h in history if h.get("rejected")),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
-    arrays = {"final": final, "trajectory": trajectory, "velocity": velocity, "momentum": m, "deformation": phi,
-              "template": exp.template_64, "data": exp.noisy_data_64, **rec}
+    arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
+              "deformation": r.deformation, "template": exp.template_64, "data": exp.noisy_data_64, **rec,
+              **r.outputs}
     if target is not None:
         arrays["target"] = target
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
-    parts = None
-    if is_metamorphosis(problem):
-        parts = problem.parts(m, state.source)
-        arrays.update(source=state.source, deformation_part=parts[0], intensity_part=parts[1])
-        if target is not None:
-            result.update({f"deformation_part_{k}": v for k, v in figures_of_merit(parts[0], target).items()})
     for name, a in arrays.items():
         np.save(out / f"{name}.npy", _numpy(a))
     if exp.domain.ndim == 3:  # the registered volume for IMOD / ChimeraX too (voxel size in the header)
         from ..io import write_volume
-        write_volume(out / "final.mrc", _numpy(final), exp.domain)
+        write_volume(out / "final.mrc", _numpy(r.deformed), exp.domain)
     with open(out / "history.json", "w") as f:
         json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
     with open(out / "metrics.json", "w") as f:
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    _figures(cfg, exp, r, rec, result, out, writer, it)
+    writer.metrics(result, it)
+    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
+    if target is not None:
+        log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
+                 "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
+                 _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec
+                                                               else ""), result["warnings"])
+    else:
+        log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
+                 it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+    return result
 
-    traj = _numpy(trajectory)
+
+def _figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -> None:
+    """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
+    splits its reconstruction (``deformation_part`` / ``intensity_part``), and TensorBoard's final images."""
+    from . import figures
+
+    traj, target = _numpy(r.trajectory), exp.target_64
     volume = exp.domain.ndim == 3
-    if cfg.logging.figure:
-        quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
-                   else f"relative data residual {result['residual']:.4f}")
-        if volume:
-            figures.save(_ortho_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
-    if cfg.logging.figure and not volume:
-        fig = figures.paper_figure(exp.template_64.numpy(), traj, None if target is None else target.numpy(),
-                                   exp.geometry.det_points.numpy(),
-                                   None if exp.clean_data_64 is None else exp.clean_data_64[0].numpy(),
-                                   exp.noisy_data_64[0].numpy(),
-                                   _numpy(rec["fbp"]) if "fbp" in rec else None,
-                                   _numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
-                                   title=f"{cfg.name}: {quality}",
-                                   angle_deg=float(exp.geometry.angles[0]) * 180 / math.pi)
-        figures.save(fig, out / "figure.png")
+    parts = (r.outputs["deformation_part"], r.outputs["intensity_part"]) \
+        if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
+    quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
+               else f"relative data residual {result['residual']:.4f}")
+    if cfg.logging.figure and volume:
+        figures.save(_ortho_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+    elif cfg.logging.figure:
+        figures.save(_paper_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
         if parts is not None:
-            figures.save(_parts_figure(exp, final, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
+            figures.save(_parts_figure(exp, r.deformed, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
     n = traj.shape[0] - 1
     writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
-    writer.image("images/deformed_template", final, it)
-    grid = _numpy(phi)
+    writer.image("images/deformed_template", r.deformed, it)
+    grid = _numpy(r.deformation)
     if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
         grid = grid[:2, :, :, grid.shape[-1] // 2]
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
@@ -410,18 +407,24 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         writer.image("images/deformation_part", parts[0], it)
         bound = max(float(parts[1].abs().max()), 1e-12)
         writer.image_scaled("images/intensity_part", parts[1], it, -bound, bound)
-        writer.figure("images/metamorphosis_parts", _parts_figure(exp, final, parts), it)
-    writer.metrics(result, it)
-    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
-    if target is not None:
-        log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
-                 "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
-                 _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if volume else ""),
-                 result["warnings"])
-    else:
-        log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
-                 it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
-    return result
+        writer.figure("images/metamorphosis_parts", _parts_figure(exp, r.deformed, parts), it)
+
+
+def _paper_figure(exp, traj, rec: dict, title: str):
+    """``figures.paper_figure`` of a 2D run: the data panel shows the first row of the data against the
+    detector coordinate where the geometry gives one (``det_points``), else against the bin index."""
+    from . import figures
+
+    noisy = exp.noisy_data_64.reshape(-1, exp.noisy_data_64.shape[-1])
+    clean = None if exp.clean_data_64 is None else exp.clean_data_64.reshape(noisy.shape)[0].numpy()
+    det = getattr(exp.geometry, "det_points", None)
+    angles = getattr(exp.geometry, "angles", None)
+    target = None if exp.target_64 is None else exp.target_64.numpy()
+    return figures.paper_figure(exp.template_64.numpy(), traj, target,
+                                np.arange(noisy.shape[-1]) if det is None else det.numpy(), clean, noisy[0].numpy(),
+                                _numpy(rec["fbp"]) if "fbp" in rec else None,
+                                _numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
+                                title=title, angle_deg=0.0 if angles is None else float(angles[0]) * 180 / math.pi)
 
 
 def _ortho_figure(exp, traj, rec: dict, title: str = ""):

@@ -289,6 +289,11 @@ class RayTransform(WeightedDataMixin, nn.Module):
         self.geometry = geometry
         self.system = _SystemMatrix(domain, geometry)
 
+    def on_domain(self, domain: ImageDomain) -> "RayTransform":
+        """The same geometry (detector extent included) on another grid of the plane, e.g. a coarser one for
+        coarse-to-fine solvers; the data space is unchanged."""
+        return RayTransform(domain, self.geometry)
+
     def _check_dtype(self, x: torch.Tensor, name: str) -> None:
         if x.dtype not in (torch.float32, torch.float64):
             raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")

@@ -173,6 +173,11 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
         self.slice_transform = RayTransform(geometry.slice_domain(domain), geometry.slice_geometry)
         self.geometry = geometry.resolve(domain)
 
+    def on_domain(self, domain: ImageDomain) -> "TiltSeriesTransform":
+        """The same tilts and detector columns (extent included) on another grid of the volume, e.g. a coarser one
+        for coarse-to-fine solvers; the detector rows follow the grid along the tilt axis (one row per slice)."""
+        return TiltSeriesTransform(domain, self.geometry)
+
     @property
     def system(self):
         """The 2D system matrix shared by all slices."""

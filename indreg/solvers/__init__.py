@@ -1,11 +1,14 @@
-"""Objective and solvers of indirect registration: Algorithm 1 and any torch.optim optimizer."""
+"""Objectives and solvers of indirect registration: the registration-problem protocol, Algorithm 1 with step
+control, any torch.optim optimizer, coarse to fine."""
+from .problem import RegistrationProblem
 from .algorithm1 import Algorithm1
 from .multilevel import MultilevelSolver
 from .metamorphosis import (MetamorphosisDescent, MetamorphosisRegistration, MetamorphosisState,
                             MetamorphosisTorchOptim)
 from .objective import IndirectRegistration, total_variation
-from .state import SolverState
+from .state import SolverState, StepControl
 from .torch_optim import TorchOptimSolver
 
-__all__ = ["IndirectRegistration", "Algorithm1", "TorchOptimSolver", "MultilevelSolver", "SolverState", "total_variation",
-           "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim", "MetamorphosisState"]
+__all__ = ["RegistrationProblem", "IndirectRegistration", "Algorithm1", "StepControl", "TorchOptimSolver",
+           "MultilevelSolver", "SolverState", "total_variation", "MetamorphosisRegistration", "MetamorphosisDescent",
+           "MetamorphosisTorchOptim", "MetamorphosisState"]

@@ -1,4 +1,5 @@
-"""Algorithm 1 of the paper (alg:GradientDescentAlgorithm_1): fixed-step V-gradient descent on the velocity field."""
+"""Algorithm 1 of the paper (alg:GradientDescentAlgorithm_1): gradient descent on the velocity field, on any
+registration problem's iterate (LDDMM: the momentum; metamorphosis: momentum and source)."""
 from __future__ import annotations
 
 import math
@@ -6,123 +7,167 @@ import math
 import torch
 
 from .._checks import check_int, check_positive
-from .objective import IndirectRegistration, check_nonnegative
-from .state import IterativeSolver, SolverState, make_info, problems
+from .objective import check_nonnegative
+from .problem import RegistrationProblem
+from .state import IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems
+
+
+def check_problem(problem) -> None:
+    if not isinstance(problem, RegistrationProblem):
+        raise TypeError(f"problem must be a registration problem (indreg.solvers.RegistrationProblem: "
+                        f"IndirectRegistration, MetamorphosisRegistration, ...), got {type(problem).__name__}")
 
 
 class Algorithm1(IterativeSolver):
-    """Gradient descent ``nu <- nu - alpha grad_V E(nu)`` (eq:gradientflow), as the authors' code.
+    """Gradient descent ``x_k <- x_k - alpha_k h_k`` on every entry of the iterate (eq:gradientflow).
 
-    ``grad_V E(nu)(t_i) = gamma nu_i - K(|D phi_{t_i,1}| (grad_data o phi_{t_i,1}) grad(I o phi_{t_i,0}))``
-    (eq:GradGoalFunctionalVRHKS in the code's scale, see ``objective``; the mass-preserving version
-    eq:GradGoalFunctionalVRHKS_mp comes from the deformation's backward with the same assembly). With
-    ``nu = K m`` and ``grad_V E = K h`` (``h`` = L2 gradient, ``IndirectRegistration.l2_gradient``) the
-    update is linear, so it runs on the momentum: ``m <- m - alpha h``, ``nu = K m`` (identical iterates
-    in exact arithmetic; the regulariser ``<m, K m>`` stays exact).
+    LDDMM (``x = (m,)``): ``grad_V E(nu)(t_i) = gamma nu_i - K(|D phi_{t_i,1}| (grad_data o phi_{t_i,1})
+    grad(I o phi_{t_i,0}))`` (eq:GradGoalFunctionalVRHKS in the code's scale, see ``objective``; the
+    mass-preserving version eq:GradGoalFunctionalVRHKS_mp comes from the deformation's backward with the same
+    assembly). With ``nu = K m`` and ``grad_V E = K h`` (``h`` = L2 gradient, ``problem.gradient``) the update is
+    linear, so it runs on the momentum: ``m <- m - alpha h``, ``nu = K m`` (identical iterates in exact
+    arithmetic; the regulariser ``<m, K m>`` stays exact). Metamorphosis (``x = (m, s)``) descends the source
+    with its own step ``beta`` (eq:Metam:ODE's gradient in ``zeta``).
 
     Args:
-        problem: an ``IndirectRegistration``.
-        step_size: ``alpha > 0`` (the paper's 0.02 / 0.04 work unchanged).
+        problem: a ``RegistrationProblem``.
+        step_size: ``alpha > 0`` for the momentum (the paper's 0.02 / 0.04 work unchanged).
         max_iter: maximum number of iterations ``K``.
-        grad_tol: stop when the gradient norm (``problem.gradient_norm``: the ``L2([0,1], L2)`` norm of
-            the L2 gradient ``h``) is ``<= grad_tol``; 0 disables the test.
-        step_halving: reject a step whose objective is non-finite, larger than the current one, or
-            folds (``min Jacobian <= 0``); halve the step and retry, at most ``max_halvings`` times
-            (the halved step is kept for later iterations). If all retries fail the iterate is kept and
-            ``info["rejected"]`` is True. Without it such steps are taken and reported in ``info["warning"]``.
+        grad_tol: stop when the gradient norm (``hypot`` of the entries' ``L2([0,1], L2)`` norms) is
+            ``<= grad_tol``; 0 disables the test.
+        step_halving, max_halvings: ``StepControl``: reject a step whose objective is non-finite, larger than
+            the current one, or folds (``min Jacobian <= 0``); halve every step and retry, at most
+            ``max_halvings`` times (the halved steps are kept for later iterations). If all retries fail the
+            iterate is kept and ``info["rejected"]`` is True. Without it such steps are taken and reported in
+            ``info["warning"]``.
         jacobian_every: compute ``min_jacobian`` (one extra Jacobian recursion, about the cost of the
             deformation's forward) every this many iterations, ``nan`` in between; with ``step_halving``
             it is computed at every step (folding must be checked).
+        steps: step sizes of the entries after the momentum by name (``None`` or absent:
+            ``problem.default_step(name)``).
+        frozen: iterations during which an entry is kept fixed, by name (e.g. ``{"source": 300}``).
 
-    ``step(state)`` performs one iteration and returns the report at the new iterate: objective, data_fit,
-    regulariser, tv, grad_norm, min_jacobian (of ``phi_{1,0}``), step_size, evaluations (cumulative
-    forward/backward evaluations, one per tried step plus one at the start), rejected, warning.
-    The gradient at the new iterate is kept for the next step, so an iteration costs one evaluation.
-    ``report(state)`` is that report at the current iterate without a step. After ``load_state_dict`` the
-    first evaluation recomputes the cached gradient of the saved iterate and is not counted, so
-    ``evaluations`` continues as in an uninterrupted run.
+    ``step(state)`` performs one iteration and returns the report at the new iterate (``make_info``):
+    objective and its terms, grad_norm, min_jacobian (of ``phi_{1,0}``), step_size, evaluations (cumulative
+    forward/backward evaluations, one per tried step plus one at the start), rejected, warning. The gradient
+    at the new iterate is kept for the next step, so an iteration costs one evaluation. ``report(state)`` is
+    that report at the current iterate without a step. After ``load_state_dict`` the first evaluation
+    recomputes the cached gradient of the saved iterate and is not counted, so ``evaluations`` continues as in
+    an uninterrupted run.
     """
 
-    def __init__(self, problem: IndirectRegistration, step_size: float = 0.02, max_iter: int = 200,
+    def __init__(self, problem: RegistrationProblem, step_size: float = 0.02, max_iter: int = 200,
                  grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
-                 jacobian_every: int = 1):
-        if not isinstance(problem, IndirectRegistration):
-            raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
+                 jacobian_every: int = 1, steps: dict | None = None, frozen: dict | None = None):
+        check_problem(problem)
         self.problem = problem
-        self.step_size = check_positive(step_size, "step_size")
+        self.names = tuple(problem.iterate_names)
+        steps, frozen = dict(steps or {}), dict(frozen or {})
+        for key in (*steps, *frozen):
+            if key not in self.names[1:]:
+                raise ValueError(f"steps / frozen name entries of the iterate after the momentum "
+                                 f"{self.names[1:]}, got {key!r}")
+        self.step_sizes = [check_positive(step_size, "step_size")]
+        for name in self.names[1:]:
+            s = steps.get(name)
+            self.step_sizes.append(check_positive(problem.default_step(name) if s is None else s,
+                                                  f"{name}_step_size"))
+        self.frozen = {self.names.index(k): check_int(v, f"{k}_start", 0) for k, v in frozen.items()}
         self.max_iter = check_int(max_iter, "max_iter", 0)
         self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-        self.step_halving = bool(step_halving)
-        self.max_halvings = check_int(max_halvings, "max_halvings", 0)
+        self.control = StepControl(step_halving, check_int(max_halvings, "max_halvings", 0))
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
         self.evaluations = 0
-        self._current = None   # (momentum tensor, its _version, terms, h, nu) of the last evaluation
+        self._current = None   # (mark of the iterate, terms, h, nu) of the last evaluation
         self._recount = False  # the next evaluation at the iterate recomputes one already counted
 
-    def __repr__(self):
-        return (f"Algorithm1(step_size={self.step_size}, max_iter={self.max_iter}, grad_tol={self.grad_tol}, "
-                f"step_halving={self.step_halving})")
+    @property
+    def step_size(self) -> float:
+        """The momentum's step (it may have been halved)."""
+        return self.step_sizes[0]
 
-    def _evaluate(self, m, counted: bool = True):
-        terms, h, nu = self.problem.l2_gradient(m)
+    @step_size.setter
+    def step_size(self, value: float) -> None:
+        self.step_sizes[0] = check_positive(value, "step_size")
+
+    @property
+    def step_halving(self) -> bool:
+        return self.control.halving
+
+    @property
+    def max_halvings(self) -> int:
+        return self.control.max_halvings
+
+    def __repr__(self):
+        extra = "".join(f", {n}_step_size={s:.4g}" for n, s in zip(self.names[1:], self.step_sizes[1:]))
+        return (f"{type(self).__name__}(step_size={self.step_size}{extra}, max_iter={self.max_iter}, "
+                f"grad_tol={self.grad_tol}, step_halving={self.step_halving})")
+
+    def _evaluate(self, x: tuple, counted: bool = True):
+        terms, h, nu = self.problem.gradient(x)
         self.evaluations += int(counted)
         return terms, h, nu
 
     def _at(self, state: SolverState):
-        """Terms, L2 gradient and velocity at ``state.momentum`` (cached from the previous step)."""
-        m = state.momentum
-        c = self._current
-        if c is None or c[0] is not m or c[1] != m._version:
-            self.problem.check_momentum(m)
-            self._current = (m, m._version, *self._evaluate(m, counted=not self._recount))
+        """Terms, L2 gradients and velocity at ``state.iterate`` (cached from the previous step)."""
+        x = state.iterate
+        if self._current is None or not is_marked(x, self._current[0]):
+            self.problem.check_iterate(x)
+            self._current = (mark(x), *self._evaluate(x, counted=not self._recount))
             self._recount = False
-        return self._current[2:]
+        return self._current[1:]
 
     def _min_jacobian(self, nu, iteration: int) -> float:
         if self.step_halving or iteration % self.jacobian_every == 0:
             return self.problem.min_jacobian(nu)
         return math.nan
 
+    def _info(self, iteration, terms, h, min_jac, steps, rejected, warnings) -> dict:
+        return make_info(iteration, terms, [self.problem.gradient_norm(g) for g in h], min_jac, steps,
+                         self.evaluations, rejected, warnings, self.names)
+
     def report(self, state: SolverState) -> dict:
-        """The report at ``state.momentum`` (no step; ``min_jacobian`` always computed)."""
+        """The report at ``state.iterate`` (no step; ``min_jacobian`` always computed)."""
         terms, h, nu = self._at(state)
         min_jac = self.problem.min_jacobian(nu)
-        return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, self.step_size,
-                         self.evaluations, False, problems(terms["objective"], min_jac))
+        return self._info(state.iteration, terms, h, min_jac, self.step_sizes, False,
+                          problems(terms["objective"], min_jac))
+
+    def _moved(self, x: tuple, h: tuple, steps: tuple, iteration: int) -> tuple:
+        """``x_k - alpha_k h_k`` for every entry not frozen at ``iteration``."""
+        return tuple(xk if iteration < self.frozen.get(k, 0) else torch.add(xk, hk, alpha=-a)
+                     for k, (xk, hk, a) in enumerate(zip(x, h, steps)))
 
     def step(self, state: SolverState) -> dict:
-        """One iteration ``m <- m - alpha h`` (with optional step halving); mutates ``state``; returns the report."""
-        terms, h, _ = self._at(state)
-        retries = self.max_halvings if self.step_halving else 0
-        for attempt in range(retries + 1):
-            alpha = self.step_size
-            m_new = torch.add(state.momentum, h, alpha=-alpha)
-            new_terms, new_h, new_nu = self._evaluate(m_new)
-            min_jac = self._min_jacobian(new_nu, state.iteration + 1)
-            warnings = problems(new_terms["objective"], min_jac, terms["objective"])
-            if not (self.step_halving and warnings):
-                break
-            if attempt < retries:
-                self.step_size = alpha / 2
-        rejected = bool(self.step_halving and warnings)
+        """One iteration (with optional step halving); mutates ``state``; returns the report."""
+        terms, h, nu = self._at(state)
+        it = state.iteration
+
+        def trial(steps):
+            x_new = self._moved(state.iterate, h, steps, it)
+            new = self._evaluate(x_new)
+            return (x_new, new), new[0]["objective"], self._min_jacobian(new[2], it + 1)
+
+        (x_new, new), min_jac, steps, warnings, rejected = self.control.search(self.step_sizes, terms["objective"],
+                                                                               trial)
         if rejected:
-            warnings = [f"step rejected after {retries} halvings (kept the iterate): " + "; ".join(warnings)]
-            new_terms, new_h = terms, h
-            min_jac = self._min_jacobian(self._current[4], state.iteration + 1)
+            new = (terms, h, nu)
+            min_jac = self._min_jacobian(nu, it + 1)
         else:
-            state.momentum = m_new
-            self._current = (m_new, m_new._version, new_terms, new_h, new_nu)
+            state.iterate = x_new
+            self._current = (mark(x_new), *new)
         state.iteration += 1
-        return make_info(state.iteration, new_terms, self.problem.gradient_norm(new_h), min_jac, alpha,
-                         self.evaluations, rejected, warnings)
+        return self._info(state.iteration, new[0], new[1], min_jac, steps, rejected, warnings)
 
     def state_dict(self) -> dict:
-        """Step size (it may have been halved), the evaluation counter and whether it counts the iterate's."""
-        return {"step_size": self.step_size, "evaluations": self.evaluations,
-                "evaluated": self._current is not None}
+        """Step sizes (they may have been halved), the evaluation counter and whether it counts the iterate's."""
+        d = {"step_size": self.step_sizes[0], "evaluations": self.evaluations, "evaluated": self._current is not None}
+        d.update({f"{n}_step_size": s for n, s in zip(self.names[1:], self.step_sizes[1:])})
+        return d
 
     def load_state_dict(self, d: dict) -> None:
-        self.step_size = check_positive(d["step_size"], "step_size")
-        self.evaluations = int(d["evaluations"])
+        self.step_sizes = [check_positive(d["step_size"], "step_size")] + \
+            [check_positive(d[f"{n}_step_size"], f"{n}_step_size") for n in self.names[1:]]
+        self.evaluations = check_int(d["evaluations"], "evaluations", 0)
         self._current = None
         self._recount = bool(d["evaluated"])

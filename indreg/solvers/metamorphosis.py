@@ -27,21 +27,19 @@ with ``lambda_i ~ |D phi_{t_i,1}| (T^*(T f(1) - g) o phi_{t_i,1})`` (the data gr
 """
 from __future__ import annotations
 
-import copy
-import math
-from dataclasses import dataclass
-
 import torch
 
-from .._checks import check_int, check_positive, check_same, check_tensor
+from .._checks import check_same, check_tensor
 from ..deform.metamorphosis import MetamorphosisDeformation
 from ..forward.operator import operator_norm
+from .algorithm1 import Algorithm1
 from .objective import IndirectRegistration, check_nonnegative
-from .state import IterativeSolver, SolverState, make_info, problems
-from .torch_optim import _DEFAULTS, setup_common
+from .problem import RegistrationProblem
+from .state import SolverState
+from .torch_optim import TorchOptimSolver
 
 
-class MetamorphosisRegistration:
+class MetamorphosisRegistration(RegistrationProblem):
     """Indirect metamorphosis ``min_{m, zeta} E(K m, zeta)`` (eq:Metam:ODE in the code's scale, module docstring).
 
     Args:
@@ -71,7 +69,7 @@ class MetamorphosisRegistration:
         self.deformation = deformation
         self.tau = check_nonnegative(tau, "tau")
         for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
-                     "tv_smoothing", "num_steps", "momentum_shape", "time_weight"):
+                     "tv_smoothing", "num_steps", "momentum_shape"):
             setattr(self, name, getattr(self.lddmm, name))
         if source_kernel is not None and getattr(source_kernel, "domain", None) != kernel.domain:
             raise ValueError(f"source_kernel must be a GaussianKernel on the kernel's domain {kernel.domain}, got "
@@ -111,10 +109,6 @@ class MetamorphosisRegistration:
         self.lddmm.check_momentum(m)
         check_tensor(zeta, "source", self.source_shape)
         check_same(zeta, self.template, "source", "template")
-
-    def velocity(self, m: torch.Tensor) -> torch.Tensor:
-        """``nu = K m`` (differentiable)."""
-        return self.kernel.apply(m)
 
     def unmasked_source(self, s: torch.Tensor) -> torch.Tensor:
         """``K_s s`` (RKHS source) or ``s`` (L2 source), differentiable: the field whose pairing with ``s`` is the
@@ -189,13 +183,6 @@ class MetamorphosisRegistration:
         terms["objective"] = sum(terms.values())
         return terms, h_nu, h_zeta, nu
 
-    def gradient_norm(self, h: torch.Tensor) -> float:
-        """``||h||_{L2([0,1], L2)}`` (velocity or source gradient)."""
-        return self.lddmm.gradient_norm(h)
-
-    def min_jacobian(self, nu: torch.Tensor) -> float:
-        return self.lddmm.min_jacobian(nu)
-
     def source_lipschitz(self, num_iter: int = 30) -> float:
         """``(tau + ||T||^2) ||K_s||``: the Lipschitz constant of the source update at ``nu = 0`` (``f(1)`` depends
         on ``zeta`` through the average ``(1/N) sum zeta_i``, of norm 1 in ``L2([0,1], L2)``; ``||K_s|| = 1``
@@ -212,6 +199,62 @@ class MetamorphosisRegistration:
         return float(self.source_kernel.apply(ones).max())
 
 
+    # the registration-problem protocol (indreg.solvers.problem): the iterate is x = (m, s)
+    iterate_names = ("momentum", "source")
+    scored = ("deformation_part",)
+
+    def zero_iterate(self) -> tuple:
+        return self.zero_momentum(), self.zero_source()
+
+    def check_iterate(self, x: tuple) -> None:
+        super().check_iterate(x)
+        self.check(*x)
+
+    def gradient(self, x: tuple) -> tuple:
+        """``(terms, (h_nu, h_s), nu)``: ``l2_gradient`` at ``x = (m, s)``."""
+        terms, h_nu, h_s, nu = self.l2_gradient(*x)
+        return terms, (h_nu, h_s), nu
+
+    def differentiable(self, x: tuple) -> tuple:
+        """Terms differentiable through ``(m, s)``, ``aux = (nu, K_s s)``; ``h_nu = dE/dnu / time_weight + gamma m / 2``
+        and ``h_s = dE/ds`` (L2 source) or ``dE/d(K_s s) / time_weight + tau s / 2`` (RKHS source)."""
+        m, s = x
+        nu, unmasked = self.velocity(m), self.unmasked_source(s)
+
+        def l2(x, dx, daux):
+            h_s = dx[1] if self.source_kernel is None else daux[1] / self.time_weight + 0.5 * self.tau * x[1]
+            return daux[0] / self.time_weight + 0.5 * self.gamma * x[0], h_s
+        return self.terms(m, s, nu, unmasked), (nu, unmasked), l2
+
+    def reconstruction(self, x: tuple) -> torch.Tensor:
+        return self.image(*x)
+
+    def image_trajectory(self, x: tuple) -> torch.Tensor:
+        return self.trajectory(*x)
+
+    def evaluate_iterate(self, x: tuple) -> dict:
+        return self.evaluate(*x)
+
+    def outputs(self, x: tuple) -> dict:
+        """The source ``s`` and the parts of ``f(1)``: ``deformation_part = W(nu, I)``, ``intensity_part = f(1) -
+        W(nu, I)``."""
+        deformation_part, intensity_part = self.parts(*x)
+        return {"source": x[1], "deformation_part": deformation_part, "intensity_part": intensity_part}
+
+    def default_step(self, name: str) -> float:
+        """The source's step ``1 / source_lipschitz()``."""
+        if name != "source":
+            return super().default_step(name)
+        return 1.0 / self.source_lipschitz()
+
+    def with_backward(self, backward: str) -> "MetamorphosisRegistration":
+        M = self.deformation
+        return self.with_deformation(MetamorphosisDeformation(M.domain, M.num_steps, backward, M.interpolation))
+
+    def hparams(self) -> dict:
+        return {"tau": self.tau}
+
+
 def template_support(template: torch.Tensor, domain, margin: float = 1.0, threshold: float = 0.01) -> torch.Tensor:
     """A ``source_mask``: 1 where ``|I| > threshold max |I|`` or within ``margin`` (physical units, a square
     neighbourhood) of such a pixel, else 0; ``(nx, ny)`` in the template's dtype / device."""
@@ -220,35 +263,17 @@ def template_support(template: torch.Tensor, domain, margin: float = 1.0, thresh
     return torch.nn.functional.max_pool2d(inside, (kx, ky), stride=1, padding=(kx // 2, ky // 2))[0, 0]
 
 
-@dataclass
 class MetamorphosisState(SolverState):
     """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source iterate ``s`` (``(N+1, nx, ny)``;
-    ``zeta = problem.source(s)``: ``s`` itself for the L2 source), iteration count. Solvers replace both tensors
-    at every accepted step (never in place)."""
+    ``zeta = problem.source(s)``: ``s`` itself for the L2 source), iteration count (``SolverState`` with
+    ``source``)."""
 
-    source: torch.Tensor | None = None
-
-    def state_dict(self) -> dict:
-        return dict(super().state_dict(), source=self.source.detach().clone())
-
-    def load_state_dict(self, d: dict) -> None:
-        super().load_state_dict(d)
-        self.source = d["source"].detach().clone()
+    def __init__(self, momentum: torch.Tensor, iteration: int = 0, source: torch.Tensor | None = None):
+        super().__init__(momentum, iteration, source=source)
 
     @classmethod
     def zeros(cls, problem: MetamorphosisRegistration) -> "MetamorphosisState":
         return cls(problem.zero_momentum(), 0, problem.zero_source())
-
-
-def _info(iteration, terms, h_nu, h_zeta, problem, min_jac, step_sizes, evaluations, rejected, warnings) -> dict:
-    """``state.make_info`` plus the source's regulariser, gradient norm and step size."""
-    info = make_info(iteration, terms, problem.gradient_norm(h_nu), min_jac, step_sizes[0], evaluations, rejected,
-                     warnings)
-    info.update(source_regulariser=terms["source_regulariser"], source_grad_norm=problem.gradient_norm(h_zeta),
-                source_step_size=float(step_sizes[1]))
-    info["grad_norm"] = math.hypot(info["grad_norm"], info["source_grad_norm"])
-    info["velocity_grad_norm"] = problem.gradient_norm(h_nu)
-    return info
 
 
 def _check_problem(problem):
@@ -256,13 +281,8 @@ def _check_problem(problem):
         raise TypeError(f"problem must be a MetamorphosisRegistration, got {type(problem).__name__}")
 
 
-def _check_state(state):
-    if not isinstance(state, MetamorphosisState) or state.source is None:
-        raise TypeError(f"state must be a MetamorphosisState with a source, got {type(state).__name__}")
-
-
-class MetamorphosisDescent(IterativeSolver):
-    """Gradient descent in the spirit of Algorithm 1 with separate step sizes for ``nu`` and ``zeta``:
+class MetamorphosisDescent(Algorithm1):
+    """``Algorithm1`` on ``x = (m, s)`` with separate step sizes for ``nu`` and ``zeta``:
 
         m <- m - alpha h_nu        (nu = K m: nu <- nu - alpha grad_V E, as Algorithm 1)
         s <- s - beta h_s          (L2 gradient step on zeta = s; with ``source_kernel`` zeta <- zeta - beta K_s h_s)
@@ -274,201 +294,43 @@ class MetamorphosisDescent(IterativeSolver):
         max_iter, grad_tol: as ``Algorithm1``; ``grad_norm`` is ``sqrt(|h_nu|^2 + |h_zeta|^2)`` (both
             ``L2([0,1], L2)`` norms), also reported separately (``velocity_grad_norm``, ``source_grad_norm``).
         step_halving: reject a step whose objective is non-finite, larger than the current one, or folds;
-            halve both step sizes and retry, at most ``max_halvings`` times (as ``Algorithm1``).
+            halve both step sizes and retry, at most ``max_halvings`` times (``StepControl``).
         source_start: the source is kept fixed for the first ``source_start`` iterations (Algorithm 1 on
             ``nu`` alone: the deformation first explains what it can, then the source the remainder); 0
             (default) updates both from the start.
         jacobian_every: compute ``min_jacobian`` every this many iterations (always with ``step_halving``).
-
-    ``step(state)`` (a ``MetamorphosisState``) returns ``Algorithm1``'s report plus ``source_regulariser``,
-    ``source_grad_norm``, ``velocity_grad_norm`` and ``source_step_size``; one evaluation per iteration.
     """
 
     def __init__(self, problem: MetamorphosisRegistration, step_size: float = 0.02, source_step_size="auto",
                  max_iter: int = 200, grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
                  jacobian_every: int = 1, source_start: int = 0):
         _check_problem(problem)
-        self.problem = problem
-        self.step_size = check_positive(step_size, "step_size")
-        if source_step_size == "auto":
-            source_step_size = 1.0 / problem.source_lipschitz()
-        self.source_step_size = check_positive(source_step_size, "source_step_size")
-        self.max_iter = check_int(max_iter, "max_iter", 0)
-        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-        self.step_halving = bool(step_halving)
-        self.max_halvings = check_int(max_halvings, "max_halvings", 0)
-        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
-        self.source_start = check_int(source_start, "source_start", 0)
-        self.evaluations = 0
-        self._current = None  # (momentum, source, their versions, terms, h_nu, h_zeta, nu) of the iterate
+        super().__init__(problem, step_size, max_iter, grad_tol, step_halving, max_halvings, jacobian_every,
+                         steps={"source": None if source_step_size == "auto" else source_step_size},
+                         frozen={"source": source_start})
 
-    def __repr__(self):
-        return (f"MetamorphosisDescent(step_size={self.step_size}, source_step_size={self.source_step_size:.4g}, "
-                f"max_iter={self.max_iter}, step_halving={self.step_halving}, source_start={self.source_start})")
+    @property
+    def source_step_size(self) -> float:
+        return self.step_sizes[1]
 
-    def _evaluate(self, m, zeta):
-        self.evaluations += 1
-        return self.problem.l2_gradient(m, zeta)
-
-    def _at(self, state: MetamorphosisState):
-        _check_state(state)
-        m, z = state.momentum, state.source
-        c = self._current
-        if c is None or c[0] is not m or c[1] is not z or c[2] != (m._version, z._version):
-            self.problem.check(m, z)
-            self._current = (m, z, (m._version, z._version), *self._evaluate(m, z))
-        return self._current[3:]
-
-    def _min_jacobian(self, nu, iteration: int) -> float:
-        if self.step_halving or iteration % self.jacobian_every == 0:
-            return self.problem.min_jacobian(nu)
-        return math.nan
-
-    def report(self, state: MetamorphosisState) -> dict:
-        """The report at the current iterate (no step; ``min_jacobian`` always computed)."""
-        terms, h_nu, h_zeta, nu = self._at(state)
-        min_jac = self.problem.min_jacobian(nu)
-        return _info(state.iteration, terms, h_nu, h_zeta, self.problem, min_jac,
-                     (self.step_size, self.source_step_size), self.evaluations, False,
-                     problems(terms["objective"], min_jac))
-
-    def step(self, state: MetamorphosisState) -> dict:
-        """One iteration (with optional step halving); mutates ``state``; returns the report at the new iterate."""
-        terms, h_nu, h_zeta, nu = self._at(state)
-        for attempt in range(1 + (self.max_halvings if self.step_halving else 0)):
-            alpha, beta = self.step_size, self.source_step_size
-            m_new = torch.add(state.momentum, h_nu, alpha=-alpha)
-            z_new = state.source if state.iteration < self.source_start else \
-                torch.add(state.source, h_zeta, alpha=-beta)
-            new = self._evaluate(m_new, z_new)
-            min_jac = self._min_jacobian(new[3], state.iteration + 1)
-            warnings = problems(new[0]["objective"], min_jac, terms["objective"])
-            if not (self.step_halving and warnings):
-                break
-            if attempt < self.max_halvings:
-                self.step_size, self.source_step_size = alpha / 2, beta / 2
-        rejected = bool(self.step_halving and warnings)
-        if rejected:
-            warnings = [f"step rejected after {self.max_halvings} halvings (kept the iterate): " + "; ".join(warnings)]
-            new = (terms, h_nu, h_zeta, nu)
-        else:
-            state.momentum, state.source = m_new, z_new
-            self._current = (m_new, z_new, (m_new._version, z_new._version), *new)
-        state.iteration += 1
-        return _info(state.iteration, new[0], new[1], new[2], self.problem, min_jac, (alpha, beta),
-                     self.evaluations, rejected, warnings)
-
-    def state_dict(self) -> dict:
-        return {"step_size": self.step_size, "source_step_size": self.source_step_size,
-                "evaluations": self.evaluations}
-
-    def load_state_dict(self, d: dict) -> None:
-        self.step_size = check_positive(d["step_size"], "step_size")
-        self.source_step_size = check_positive(d["source_step_size"], "source_step_size")
-        self.evaluations = int(d["evaluations"])
-        self._current = None
+    @property
+    def source_start(self) -> int:
+        return self.frozen.get(1, 0)
 
 
-class MetamorphosisTorchOptim(IterativeSolver):
-    """Any ``torch.optim`` optimizer on ``(p, q)``: ``nu = K(c p)``, source iterate ``c q``, ``c = N / cell_volume``.
-
-    As ``TorchOptimSolver``: with this scaling autograd's gradients are ``dE/dp = K h_nu`` (the V-gradient)
-    and ``dE/dq = K_s h_s`` (the source's L2 gradient, or its RKHS gradient with ``source_kernel``), so E is an
-    honest function of the parameters and
-    a line search (L-BFGS ``strong_wolfe``) sees consistent values. ``lr`` applies to ``p``, ``source_lr``
-    (default ``lr``) to ``q`` (two parameter groups; L-BFGS takes a single group, so it needs ``source_lr``
-    unset or equal to ``lr``). ``backward``: "adjoint" (default, the exact custom backward) or "autograd".
-    Reports as ``MetamorphosisDescent``; ``step(state)`` takes a ``MetamorphosisState``.
-    """
+class MetamorphosisTorchOptim(TorchOptimSolver):
+    """``TorchOptimSolver`` on ``x = (m, s)``: ``nu = K(c p)``, source iterate ``c q``, ``c = N / cell_volume``;
+    ``lr`` applies to ``p``, ``source_lr`` (default ``lr``) to ``q`` (L-BFGS takes one parameter group, so it needs
+    ``source_lr`` unset or equal to ``lr``). ``backward``: "adjoint" (default, the exact custom backward) or
+    "autograd"."""
 
     def __init__(self, problem: MetamorphosisRegistration, optimizer="lbfgs", lr: float | None = None,
                  source_lr: float | None = None, max_iter: int = 100, grad_tol: float = 0.0,
                  backward: str = "adjoint", jacobian_every: int = 1, **optimizer_kwargs):
         _check_problem(problem)
-        if backward != problem.deformation.backward:
-            M = problem.deformation
-            problem = problem.with_deformation(MetamorphosisDeformation(M.domain, M.num_steps, backward,
-                                                                        M.interpolation))
-        cls = setup_common(self, problem, optimizer, lr, max_iter, grad_tol, jacobian_every)
-        self.source_lr = self.lr if source_lr is None else check_positive(source_lr, "source_lr")
-        if cls is torch.optim.LBFGS and self.source_lr != self.lr:
-            raise ValueError(f"source_lr must equal lr for LBFGS (one parameter group), got {source_lr} and {lr}")
-        self.p = torch.nn.Parameter(problem.zero_momentum())
-        self.q = torch.nn.Parameter(problem.zero_source())
-        groups = [{"params": [self.p, self.q]}] if cls is torch.optim.LBFGS else \
-            [{"params": [self.p], "lr": self.lr}, {"params": [self.q], "lr": self.source_lr}]
-        self.optimizer = cls(groups, lr=self.lr, **{**_DEFAULTS.get(cls, {}), **optimizer_kwargs})
-        self.evaluations = 0
-        self._cache = None
+        super().__init__(problem, optimizer, lr, max_iter, grad_tol, backward, jacobian_every,
+                         lrs={"source": source_lr}, **optimizer_kwargs)
 
-    def __repr__(self):
-        return f"MetamorphosisTorchOptim(optimizer={type(self.optimizer).__name__}, lr={self.lr}, " \
-               f"source_lr={self.source_lr}, max_iter={self.max_iter})"
-
-    def _evaluate(self):
-        """Terms, parameter gradients, L2 gradients and ``nu`` at the current parameters (cached by value)."""
-        c = self._cache
-        if c is not None and torch.equal(c[0], self.p.detach()) and torch.equal(c[1], self.q.detach()):
-            return c[2:]
-        with torch.enable_grad():
-            m, s = self.scale * self.p, self.scale * self.q
-            nu, unmasked = self.problem.velocity(m), self.problem.unmasked_source(s)
-            terms = self.problem.terms(m, s, nu, unmasked)
-            grad_p, grad_q, dnu, du = torch.autograd.grad(terms["objective"], (self.p, self.q, nu, unmasked))
-        # dE/dnu at fixed m (dE/du at fixed s) holds half the regulariser's gradient; dE/dq = K_s h_s (L2
-        # source: u is s itself, and dE/dq = h_s)
-        h_nu = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m.detach()
-        h_s = grad_q if self.problem.source_kernel is None else \
-            du / self.problem.time_weight + 0.5 * self.problem.tau * s.detach()
-        self.evaluations += 1
-        terms = {k: float(v.detach()) for k, v in terms.items()}
-        self._cache = (self.p.detach().clone(), self.q.detach().clone(), terms, grad_p, grad_q, h_nu, h_s,
-                       nu.detach())
-        return self._cache[2:]
-
-    def _closure(self):
-        terms, grad_p, grad_q, *_ = self._evaluate()
-        self.p.grad, self.q.grad = grad_p.clone(), grad_q.clone()
-        return torch.tensor(terms["objective"], dtype=self.p.dtype)
-
-    def _sync(self, state: MetamorphosisState) -> None:
-        _check_state(state)
-        self.problem.check(state.momentum, state.source)
-        with torch.no_grad():
-            if not torch.equal(self.scale * self.p, state.momentum):
-                self.p.copy_(state.momentum / self.scale)
-            if not torch.equal(self.scale * self.q, state.source):
-                self.q.copy_(state.source / self.scale)
-
-    def _report(self, iteration, previous=None, min_jac=None) -> dict:
-        terms, _, _, h_nu, h_zeta, nu = self._evaluate()
-        if min_jac is None:
-            min_jac = self.problem.min_jacobian(nu)
-        return _info(iteration, terms, h_nu, h_zeta, self.problem, min_jac, (self.lr, self.source_lr),
-                     self.evaluations, False, problems(terms["objective"], min_jac, previous))
-
-    def report(self, state: MetamorphosisState) -> dict:
-        self._sync(state)
-        return self._report(state.iteration)
-
-    def step(self, state: MetamorphosisState) -> dict:
-        """One ``optimizer.step``; mutates ``state``; returns the report at the new iterate."""
-        self._sync(state)
-        previous = self._evaluate()[0]["objective"]
-        self.optimizer.step(self._closure)
-        state.iteration += 1
-        state.momentum, state.source = (self.scale * self.p).detach(), (self.scale * self.q).detach()
-        min_jac = None if state.iteration % self.jacobian_every == 0 else math.nan
-        return self._report(state.iteration, previous, min_jac)
-
-    def state_dict(self) -> dict:
-        return {"optimizer": copy.deepcopy(self.optimizer.state_dict()), "p": self.p.detach().clone(),
-                "q": self.q.detach().clone(), "evaluations": self.evaluations}
-
-    def load_state_dict(self, d: dict) -> None:
-        with torch.no_grad():
-            self.p.copy_(d["p"])
-            self.q.copy_(d["q"])
-        self.optimizer.load_state_dict(copy.deepcopy(d["optimizer"]))
-        self.evaluations = int(d["evaluations"])
-        self._cache = None
+    @property
+    def source_lr(self) -> float:
+        return self.lrs[1]

@@ -12,11 +12,9 @@ import torch
 import torch.nn.functional as F
 
 from .._checks import check_int, check_positive
-from ..deform.lddmm import BACKWARDS, LDDMMDeformation
-from ..deform.kernel import GaussianKernel
-from ..domain import ImageDomain
-from .algorithm1 import Algorithm1
-from .objective import IndirectRegistration, check_nonnegative
+from ..deform.lddmm import BACKWARDS
+from .algorithm1 import Algorithm1, check_problem
+from .objective import check_nonnegative
 from .state import IterativeSolver, SolverState
 from .torch_optim import TorchOptimSolver
 
@@ -45,51 +43,37 @@ def resample_time(m: torch.Tensor, num_steps: int) -> torch.Tensor:
 
 
 def restrict(f: torch.Tensor, shape: tuple) -> torch.Tensor:
-    """Area averages of ``f (..., nx, ny)`` over the cells of a coarser grid ``shape`` of the same rectangle."""
-    if tuple(f.shape[-2:]) == tuple(shape):
+    """Cell averages of ``f (..., *fine)`` over the cells of a coarser grid ``shape`` of the same box (2D or 3D:
+    the last ``len(shape)`` axes)."""
+    d = len(shape)
+    if tuple(f.shape[-d:]) == tuple(shape):
         return f
-    lead = f.shape[:-2]
-    out = F.adaptive_avg_pool2d(f.reshape(-1, 1, *f.shape[-2:]), shape)
-    return out.reshape(*lead, *shape)
+    lead = f.shape[:-d]
+    pool = F.adaptive_avg_pool2d if d == 2 else F.adaptive_avg_pool3d
+    return pool(f.reshape(-1, 1, *f.shape[-d:]), shape).reshape(*lead, *shape)
 
 
 def prolong(f: torch.Tensor, shape: tuple) -> torch.Tensor:
-    """``f (..., nx, ny)`` as a piecewise-constant density on the finer grid ``shape`` (each coarse cell's value
+    """``f (..., *coarse)`` as a piecewise-constant density on the finer grid ``shape`` (each coarse cell's value
     on the fine cells it covers): ``K`` of the result is ``K`` of ``f`` up to the quadrature error of the
     finer Riemann sum, and ``restrict`` inverts it for integer factors."""
-    if tuple(f.shape[-2:]) == tuple(shape):
+    d = len(shape)
+    if tuple(f.shape[-d:]) == tuple(shape):
         return f
-    lead = f.shape[:-2]
-    out = F.interpolate(f.reshape(-1, 1, *f.shape[-2:]), size=tuple(shape), mode="nearest-exact")
+    lead = f.shape[:-d]
+    out = F.interpolate(f.reshape(-1, 1, *f.shape[-d:]), size=tuple(shape), mode="nearest-exact")
     return out.reshape(*lead, *shape)
 
 
-def _check_rebuildable(T) -> None:
-    from ..forward import RayTransform
-
-    if not isinstance(T, RayTransform):
-        raise TypeError(f"coarse levels rebuild the forward operator as RayTransform(coarse domain, geometry); "
-                        f"got a {type(T).__name__}: use levels=() (no coarse level) with this operator")
-
-
-def coarse_problem(problem: IndirectRegistration, shape: tuple, num_steps: int, backward: str) -> IndirectRegistration:
-    """``problem`` on a ``shape`` grid of the same rectangle with ``num_steps`` time steps: the template's area
-    averages, the same data, the ray transform rebuilt on the coarse grid with the same geometry, the same
-    kernel width, gamma and TV weight; the deformation's action, interpolation and scheme with ``backward``."""
-    from ..forward import RayTransform
-
-    d, W, T = problem.domain, problem.deformation, problem.ray_transform
-    if tuple(shape) == tuple(d.shape):
-        domain, T_level, template, K = d, T, problem.template, problem.kernel
-    else:
-        _check_rebuildable(T)
-        domain = ImageDomain(tuple(shape), d.min_pt, d.max_pt)
-        T_level = RayTransform(domain, T.geometry)
-        template = restrict(problem.template, shape)
-        K = GaussianKernel(domain, problem.kernel.sigma)
-    W_level = LDDMMDeformation(domain, num_steps, W.action, backward, W.interpolation, W.scheme)
-    return IndirectRegistration(T_level, W_level, K, template, problem.data, problem.gamma, problem.tv_weight,
-                                problem.tv_smoothing)
+def _check_coarsenable(problem) -> None:
+    """Coarse levels need ``problem.coarsened`` and an operator that rebuilds itself on a coarser grid."""
+    T = problem.ray_transform
+    if not hasattr(problem, "coarsened"):
+        raise TypeError(f"coarse levels need a problem that can be coarsened (problem.coarsened); "
+                        f"{type(problem).__name__} cannot: use levels=() or another solver")
+    if not callable(getattr(T, "on_domain", None)):
+        raise TypeError(f"coarse levels rebuild the forward operator on a coarser grid with T.on_domain(domain); "
+                        f"a {type(T).__name__} has no on_domain: use levels=() (no coarse level) with this operator")
 
 
 class MultilevelSolver(IterativeSolver):
@@ -97,7 +81,7 @@ class MultilevelSolver(IterativeSolver):
     the problem's grid; ``solver="fast"`` of the app and of ``indreg.register``.
 
     Level ``l`` (coarse to fine) is the problem on a grid ``levels[l]`` times coarser with ``level_steps[l]``
-    time steps (``coarse_problem``); it starts from the previous level's momentum, prolongated as a
+    time steps (``problem.coarsened``); it starts from the previous level's momentum, prolongated as a
     piecewise-constant density in space (``prolong``: ``nu = K m`` is kept) and linearly in time
     (``resample_time``), and runs ``level_iter[l]`` iterations or until its objective stalls (``rtol``). The
     last level is the problem itself (its grid, N, action, interpolation) and runs until ``max_iter``
@@ -112,8 +96,9 @@ class MultilevelSolver(IterativeSolver):
     ``grid`` (its size on axis 0) added; ``evaluations`` counts all levels.
 
     Args:
-        problem: an ``IndirectRegistration`` whose ``ray_transform`` is a ``RayTransform`` when there are
-            coarse levels.
+        problem: a registration problem whose iterate is the momentum (``IndirectRegistration``, 2D or 3D);
+            with coarse levels it must have ``coarsened`` and its operator ``on_domain`` (``RayTransform``,
+            ``TiltSeriesTransform``).
         levels: coarsening factors of the coarse levels, coarse to fine (e.g. ``(4, 2)``: 64^2 and 128^2 for a
             256^2 problem); ``()`` is the problem's grid only.
         level_steps: time steps N of each coarse level.
@@ -138,19 +123,19 @@ class MultilevelSolver(IterativeSolver):
         jacobian_every: compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
 
     Convention: ``state.momentum`` ``(N+1, 2, nx, ny)`` of the problem; ``restrict`` / ``prolong`` act on the
-    last two axes (x, y), ``resample_time`` on axis 0 (``t_i = i/N``).
+    image axes (x, y[, z]), ``resample_time`` on axis 0 (``t_i = i/N``).
     """
 
-    def __init__(self, problem: IndirectRegistration, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
+    def __init__(self, problem, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
                  max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 5e-4, window: int = 5,
                  inner: str = "algorithm1", step_size: float = 0.08, step_halving: bool = True,
                  max_halvings: int = 10, backward: str = "exact", history_size: int = 10, min_size: int = 16,
                  jacobian_every: int = 1):
-        if not isinstance(problem, IndirectRegistration):
-            raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
-        if problem.domain.ndim != 2:
-            raise NotImplementedError(f"solver='fast' (MultilevelSolver) is 2D only; the problem's domain has shape "
-                                      f"{problem.domain.shape} (use 'algorithm1' or 'lbfgs' in 3D)")
+        check_problem(problem)
+        if len(problem.iterate_names) != 1:
+            raise TypeError(f"MultilevelSolver (solver='fast') takes a problem whose iterate is the momentum alone; "
+                            f"{type(problem).__name__}'s is {problem.iterate_names}: use 'algorithm1' or a "
+                            "torch.optim solver")
         if inner not in INNER:
             raise ValueError(f"inner must be one of {INNER}, got {inner!r}")
         if inner == "lbfgs" and (backward not in BACKWARDS or backward == "paper"):
@@ -184,7 +169,7 @@ class MultilevelSolver(IterativeSolver):
                                       check_int(it, "level_iter entry", 0)))
         self.schedule.append((tuple(problem.domain.shape), problem.num_steps, None))
         if len(self.schedule) > 1:
-            _check_rebuildable(problem.ray_transform)
+            _check_coarsenable(problem)
         self.level = -1          # index into schedule of the running level (-1: not started)
         self.level_start = 0     # the global iteration at which it started
         self.evaluations = 0     # of the finished levels (the running level's solver counts its own)
@@ -195,7 +180,7 @@ class MultilevelSolver(IterativeSolver):
         self._pending = False    # resumed on the problem's grid: the level's momentum is the caller's state
 
     def __repr__(self):
-        grids = " -> ".join(f"{s[0]}^2 N={n}" for s, n, _ in self.schedule)
+        grids = " -> ".join(f"{'x'.join(map(str, s))} N={n}" for s, n, _ in self.schedule)
         return (f"MultilevelSolver({grids}, inner={self.inner!r}, max_iter={self.max_iter}, "
                 f"rtol={self.rtol}, grad_tol={self.grad_tol})")
 
@@ -206,16 +191,17 @@ class MultilevelSolver(IterativeSolver):
     def _level_solver(self, level: int):
         shape, n, _ = self.schedule[level]
         if self.inner == "algorithm1":
-            p = coarse_problem(self.problem, shape, n, self.problem.deformation.backward)
+            p = self.problem.coarsened(shape, n, self.problem.deformation.backward)
             return Algorithm1(p, step_size=self.step_size, max_iter=self.max_iter, step_halving=self.step_halving,
                               max_halvings=self.max_halvings, jacobian_every=self.jacobian_every)
-        p = coarse_problem(self.problem, shape, n, self.backward)
+        p = self.problem.coarsened(shape, n, self.backward)
         return TorchOptimSolver(p, "lbfgs", max_iter=self.max_iter, backward=self.backward,
                                 jacobian_every=self.jacobian_every, history_size=self.history_size)
 
     def _to_level(self, m: torch.Tensor, level: int) -> torch.Tensor:
         shape, n, _ = self.schedule[level]
-        if tuple(m.shape[-2:]) == tuple(shape):
+        d = len(shape)
+        if tuple(m.shape[-d:]) == tuple(shape):
             return resample_time(m, n)
         if m.shape[-1] > shape[-1]:
             return resample_time(restrict(m, shape), n)

@@ -22,6 +22,7 @@ import torch
 from .._checks import check_same, check_tensor
 from ..forward.operator import check_operator
 from ..forward.tv import total_variation
+from .problem import RegistrationProblem
 
 
 def check_nonnegative(value, name: str) -> float:
@@ -35,7 +36,7 @@ def check_nonnegative(value, name: str) -> float:
     return v
 
 
-class IndirectRegistration:
+class IndirectRegistration(RegistrationProblem):
     """Indirect registration problem ``min_nu E(nu)`` (eq:RegOptim), with ``nu = K m``.
 
     ``E(nu) = (gamma/2) sum_{i=0..N} (1/N) ||nu_i||_V^2 + (1/2) ||T W(nu, I) - g||^2_data + tv_weight TV(W(nu, I))``
@@ -106,11 +107,6 @@ class IndirectRegistration:
         """``(N+1, d, *shape)``: ``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny, nz)``."""
         return (self.num_steps + 1, self.domain.ndim, *self.domain.shape)
 
-    @property
-    def time_weight(self) -> float:
-        """Weight ``cell_volume / N`` of a torch entry in the discrete ``L2([0,1], L2)`` inner product."""
-        return self.domain.cell_volume / self.num_steps
-
     def check_momentum(self, m) -> torch.Tensor:
         """Validate a momentum ``(N+1, 2, nx, ny)`` in the template's dtype/device."""
         check_tensor(m, "momentum", self.momentum_shape)
@@ -120,10 +116,6 @@ class IndirectRegistration:
     def zero_momentum(self) -> torch.Tensor:
         """``m = 0`` (identity deformation), ``(N+1, 2, nx, ny)`` in the template's dtype/device."""
         return torch.zeros(self.momentum_shape, dtype=self.template.dtype, device=self.template.device)
-
-    def velocity(self, m: torch.Tensor) -> torch.Tensor:
-        """``nu = K m`` (differentiable)."""
-        return self.kernel.apply(m)
 
     def deformed(self, m: torch.Tensor) -> torch.Tensor:
         """``W(K m, I)`` (nx, ny)."""
@@ -189,12 +181,63 @@ class IndirectRegistration:
         """The V-gradient ``K h`` of E at ``nu = K m`` (eq:GradGoalFunctionalVRHKS(_mp) in the code's scale)."""
         return self.kernel.apply(self.l2_gradient(m)[1])
 
-    def gradient_norm(self, h: torch.Tensor) -> float:
-        """``||h||_{L2([0,1], L2)} = sqrt(sum_i (1/N) ||h_i||^2_L2)``: norm of the L2 gradient of E w.r.t. nu."""
-        flat = h.reshape(-1)
-        return math.sqrt(self.time_weight * float(torch.dot(flat, flat)))
+    # the registration-problem protocol (indreg.solvers.problem): the iterate is x = (m,)
+    def zero_iterate(self) -> tuple:
+        return (self.zero_momentum(),)
 
-    def min_jacobian(self, nu: torch.Tensor) -> float:
-        """Minimum Jacobian determinant of ``phi_{1,0}`` for velocity ``nu`` (folding when <= 0)."""
-        with torch.no_grad():
-            return float(self.deformation.min_jacobian(nu))
+    def check_iterate(self, x: tuple) -> None:
+        super().check_iterate(x)
+        self.check_momentum(x[0])
+
+    def gradient(self, x: tuple) -> tuple:
+        """``(terms, (h,), nu)``: ``l2_gradient`` at ``x = (m,)``."""
+        terms, h, nu = self.l2_gradient(x[0])
+        return terms, (h,), nu
+
+    def differentiable(self, x: tuple) -> tuple:
+        """Terms differentiable through ``m``, ``aux = (nu,)``, and ``h = dE/dnu / time_weight + gamma m / 2``
+        (``dE/dnu`` at fixed ``m`` holds half the regulariser's gradient)."""
+        (m,) = x
+        nu = self.velocity(m)
+        return self.terms(m, nu), (nu,), lambda x, dx, daux: (daux[0] / self.time_weight + 0.5 * self.gamma * x[0],)
+
+    def reconstruction(self, x: tuple) -> torch.Tensor:
+        return self.deformed(x[0])
+
+    def image_trajectory(self, x: tuple) -> torch.Tensor:
+        return self.trajectory(x[0])
+
+    def evaluate_iterate(self, x: tuple) -> dict:
+        return self.evaluate(x[0])
+
+    def with_backward(self, backward: str) -> "IndirectRegistration":
+        W = self.deformation
+        return self.with_deformation(type(W)(W.domain, W.num_steps, W.action, backward, W.interpolation, W.scheme))
+
+    def for_line_search(self) -> "IndirectRegistration":
+        """The paper's backward is replaced by ``"exact"`` (a line search needs the gradient of what it evaluates)."""
+        return self.with_backward("exact") if self.deformation.backward == "paper" else self
+
+    def coarsened(self, shape: tuple, num_steps: int, backward: str) -> "IndirectRegistration":
+        """The problem on a ``shape`` grid of the same box with ``num_steps`` time steps (``MultilevelSolver``):
+        the template's cell averages, the operator rebuilt by ``T.on_domain(coarse)`` (the data cell-averaged to its
+        range where that changes, e.g. a tilt series' rows), the same
+        kernel width, gamma and TV weight; the deformation's action, interpolation and scheme with ``backward``."""
+        from ..deform import GaussianKernel
+        from ..domain import ImageDomain
+        from .multilevel import restrict
+
+        d, W, T = self.domain, self.deformation, self.ray_transform
+        if tuple(shape) == tuple(d.shape):
+            domain, T_level, template, K = d, T, self.template, self.kernel
+        else:
+            domain = ImageDomain(tuple(shape), d.min_pt, d.max_pt)
+            T_level = T.on_domain(domain)
+            template = restrict(self.template, shape)
+            K = GaussianKernel(domain, self.kernel.sigma)
+        data = self.data
+        if tuple(T_level.range_shape) != tuple(data.shape):  # e.g. a tilt series: one detector row per slice
+            data = restrict(data, tuple(T_level.range_shape)[-2:])
+        W_level = type(W)(domain, num_steps, W.action, backward, W.interpolation, W.scheme)
+        return IndirectRegistration(T_level, W_level, K, template, data, self.gamma, self.tv_weight,
+                                    self.tv_smoothing)

@@ -1,34 +1,61 @@
-"""Solver state (for checkpoints) and the per-iteration report shared by the solvers."""
+"""Solver state (for checkpoints), step control and the per-iteration report shared by the solvers."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 
 
-@dataclass
 class SolverState:
-    """The iterate of a registration solver: momentum ``m`` (``nu = K m``) and the iteration count.
+    """The iterate ``x = (m, ...)`` of a registration solver and the iteration count.
 
-    Convention: ``momentum (N+1, 2, nx, ny)`` at ``t_i = i/N``. Solvers replace ``momentum`` by a new
-    tensor at every accepted step (they never modify it in place). Optimizer internals (Adam moments,
-    L-BFGS history, step size) live in ``solver.state_dict()``; save both to resume bit-identically.
+    ``momentum`` is the first entry (``nu = K m``); further entries are named by the problem's ``iterate_names``
+    and passed by name (metamorphosis: ``SolverState(m, 0, source=s)``), read and set as attributes
+    (``state.source``). ``iterate`` is the tuple. Solvers replace entries by new tensors at every accepted step
+    (never in place). Optimizer internals (Adam moments, L-BFGS history, step size) live in
+    ``solver.state_dict()``; save both to resume bit-identically.
+
+    Convention: ``momentum (N+1, d, *shape)`` at ``t_i = i/N``; other entries as their problem says.
     """
 
-    momentum: torch.Tensor
-    iteration: int = 0
+    def __init__(self, momentum: torch.Tensor, iteration: int = 0, **rest):
+        object.__setattr__(self, "names", ("momentum", *rest))
+        object.__setattr__(self, "iterate", (momentum, *rest.values()))
+        object.__setattr__(self, "iteration", int(iteration))
+
+    @classmethod
+    def initial(cls, problem) -> "SolverState":
+        """``x = problem.zero_iterate()`` at iteration 0."""
+        x = problem.zero_iterate()
+        return cls(x[0], 0, **dict(zip(problem.iterate_names[1:], x[1:])))
+
+    def __getattr__(self, name):
+        names = self.__dict__.get("names", ())
+        if name in names:
+            return self.iterate[names.index(name)]
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    def __setattr__(self, name, value):
+        if name in self.names:
+            x = list(self.iterate)
+            x[self.names.index(name)] = value
+            value, name = tuple(x), "iterate"
+        object.__setattr__(self, name, value)
+
+    def __repr__(self):
+        shapes = ", ".join(f"{n}={tuple(t.shape)}" for n, t in zip(self.names, self.iterate))
+        return f"{type(self).__name__}({shapes}, iteration={self.iteration})"
 
     def state_dict(self) -> dict:
-        return {"momentum": self.momentum.detach().clone(), "iteration": int(self.iteration)}
+        return {"iteration": int(self.iteration), **{n: t.detach().clone() for n, t in zip(self.names, self.iterate)}}
 
     def load_state_dict(self, d: dict) -> None:
-        self.momentum = d["momentum"].detach().clone()
+        self.iterate = tuple(d[n].detach().clone() for n in self.names)
         self.iteration = int(d["iteration"])
 
     @classmethod
     def from_state_dict(cls, d: dict) -> "SolverState":
-        state = cls(momentum=d["momentum"])
+        state = cls(d["momentum"], **{k: v for k, v in d.items() if k not in ("momentum", "iteration")})
         state.load_state_dict(d)
         return state
 
@@ -46,12 +73,56 @@ def problems(objective: float, min_jacobian: float, previous: float | None = Non
     return out
 
 
-def make_info(iteration, terms, grad_norm, min_jacobian, step_size, evaluations, rejected, warnings) -> dict:
-    """The per-iteration report (python floats) returned by ``solver.step``."""
-    return {"iteration": int(iteration), "objective": terms["objective"], "data_fit": terms["data_fit"],
-            "regulariser": terms["regulariser"], "tv": terms["tv"], "grad_norm": float(grad_norm),
-            "min_jacobian": float(min_jacobian), "step_size": float(step_size),
-            "evaluations": int(evaluations), "rejected": bool(rejected), "warning": "; ".join(warnings)}
+def make_info(iteration, terms, grad_norms, min_jacobian, step_sizes, evaluations, rejected, warnings,
+              names=("momentum",)) -> dict:
+    """The per-iteration report (python floats) returned by ``solver.step``.
+
+    ``grad_norm`` is the norm of the whole gradient (``hypot`` of the entries' ``L2([0,1], L2)`` norms) and
+    ``step_size`` the momentum's step; an iterate of several entries adds ``velocity_grad_norm`` and, per further
+    entry ``<name>``, ``<name>_grad_norm`` and ``<name>_step_size``. Every term of ``terms`` is reported.
+    """
+    grad_norms, step_sizes = tuple(grad_norms), tuple(step_sizes)
+    info = {"iteration": int(iteration), "objective": terms["objective"], "data_fit": terms["data_fit"],
+            "regulariser": terms["regulariser"], "tv": terms["tv"]}
+    info.update({k: v for k, v in terms.items() if k not in info})
+    info.update(grad_norm=float(math.hypot(*grad_norms)), min_jacobian=float(min_jacobian),
+                step_size=float(step_sizes[0]), evaluations=int(evaluations), rejected=bool(rejected),
+                warning="; ".join(warnings))
+    if len(names) > 1:
+        info["velocity_grad_norm"] = float(grad_norms[0])
+        for name, g, s in zip(names[1:], grad_norms[1:], step_sizes[1:]):
+            info[f"{name}_grad_norm"], info[f"{name}_step_size"] = float(g), float(s)
+    return info
+
+
+class StepControl:
+    """Safeguarded descent steps on any iterate (a tuple of tensors).
+
+    ``search(steps, objective, trial)`` calls ``trial(steps) -> (result, new_objective, min_jacobian)``; with
+    ``halving`` a trial whose objective is non-finite, larger than ``objective``, or whose deformation folds
+    (``min_jacobian <= 0``) is rejected, every step size halved and the trial repeated, at most ``max_halvings``
+    times (the halved sizes are kept for later iterations). Without ``halving`` the first trial is taken and its
+    problems are only reported.
+
+    Returns ``(result, min_jacobian, steps_tried, warnings, rejected)``: ``rejected`` when every trial failed
+    (the caller keeps its iterate); ``steps_tried`` are the sizes of the last trial.
+    """
+
+    def __init__(self, halving: bool, max_halvings: int):
+        self.halving, self.max_halvings = bool(halving), int(max_halvings)
+
+    def search(self, steps: list, objective: float, trial) -> tuple:
+        retries = self.max_halvings if self.halving else 0
+        for attempt in range(retries + 1):
+            tried = tuple(steps)
+            result, new_objective, min_jac = trial(tried)
+            warnings = problems(new_objective, min_jac, objective)
+            if not (self.halving and warnings):
+                return result, min_jac, tried, warnings, False
+            if attempt < retries:
+                steps[:] = [s / 2 for s in steps]
+        return result, min_jac, tried, [f"step rejected after {retries} halvings (kept the iterate): "
+                                        + "; ".join(warnings)], True
 
 
 class IterativeSolver:
@@ -95,3 +166,14 @@ class IterativeSolver:
             status = self.status(info)
             if status is not None:
                 return dict(info, status=status)
+
+
+def mark(x: tuple) -> tuple:
+    """A token for the tensors of ``x`` as they are now (the tensors and their in-place versions)."""
+    return tuple(x), tuple(t._version for t in x)
+
+
+def is_marked(x: tuple, token) -> bool:
+    """Whether ``x`` holds the same tensors, unchanged, as when ``token = mark(...)`` was taken."""
+    return token is not None and len(x) == len(token[0]) and all(a is b for a, b in zip(x, token[0])) \
+        and tuple(t._version for t in x) == token[1]

@@ -7,9 +7,10 @@ import math
 import torch
 
 from .._checks import check_int, check_positive
-from ..deform.lddmm import BACKWARDS
-from .objective import IndirectRegistration, check_nonnegative
-from .state import IterativeSolver, SolverState, make_info, problems
+from .algorithm1 import check_problem
+from .objective import check_nonnegative
+from .problem import RegistrationProblem
+from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems
 
 _DEFAULTS = {
     # one solver iteration = one L-BFGS iteration; stopping is ours (grad_tol, max_iter), not L-BFGS's
@@ -33,124 +34,137 @@ def _optimizer_class(optimizer):
     return names[optimizer.lower()]
 
 
-def setup_common(solver, problem, optimizer, lr, max_iter, grad_tol, jacobian_every):
-    """The attributes every ``torch.optim`` solver sets (``problem``, ``max_iter``, ``grad_tol``,
-    ``jacobian_every``, ``scale = N / cell_volume``, ``lr``: 1.0 for L-BFGS, else required); returns the
-    optimizer class."""
-    solver.problem = problem
-    solver.max_iter = check_int(max_iter, "max_iter", 0)
-    solver.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-    solver.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
-    solver.scale = problem.num_steps / problem.domain.cell_volume
-    cls = _optimizer_class(optimizer)
-    if lr is None and cls is not torch.optim.LBFGS:
-        raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
-    solver.lr = check_positive(1.0 if lr is None else lr, "lr")
-    return cls
-
-
 class TorchOptimSolver(IterativeSolver):
-    """Minimise E with a ``torch.optim`` optimizer over ``p``, where ``nu = K(s p)``, ``s = N / cell_volume``.
+    """Minimise E with a ``torch.optim`` optimizer over ``p = (p_0, p_1, ...)``, iterate ``x_k = s p_k``,
+    ``s = N / cell_volume`` (LDDMM: ``nu = K(s p)``).
 
     Why this parametrisation: with ``m = s p`` the torch gradient is ``dE/dm = (cell_volume/N) K h``
     (``K`` is a symmetric matrix, ``h`` the L2 gradient of E w.r.t. ``nu``, see ``IndirectRegistration``),
     so ``dE/dp = s dE/dm = K h = grad_V E`` as a field: autograd's gradient is the V-gradient of
     Algorithm 1, and E(p) is an honest function of ``p``, so line searches (L-BFGS ``strong_wolfe``) see
-    consistent values and directional derivatives. Plain SGD on ``p`` is ``nu <- nu - lr s K grad_V E``:
+    consistent values and directional derivatives (metamorphosis' source likewise: ``dE/dq`` is its L2 gradient,
+    or its RKHS gradient with a source kernel). Plain SGD on ``p`` is ``nu <- nu - lr s K grad_V E``:
     V-gradient descent preconditioned once more by ``s K`` (not Algorithm 1; use ``Algorithm1`` for that),
     so its ``lr`` is much smaller than the paper's step sizes.
 
     Args:
-        problem: an ``IndirectRegistration``.
+        problem: a ``RegistrationProblem``.
         optimizer: "lbfgs", "adam", "sgd" (any ``torch.optim`` class name, case-insensitive) or a class.
-        lr: learning rate (default 1.0 for L-BFGS; required otherwise).
+        lr: learning rate of the momentum (default 1.0 for L-BFGS; required otherwise).
         max_iter: number of solver iterations (one ``optimizer.step`` each; L-BFGS does one iteration
             per step: ``max_iter=1``, ``max_eval=25``, ``history_size=10`` are passed to it, with
             ``line_search_fn="strong_wolfe"`` and zero tolerances unless overridden in ``optimizer_kwargs``).
         grad_tol: stop when ``grad_norm`` (as ``Algorithm1``) is ``<= grad_tol``; 0 disables the test.
-        backward: the deformation's backward; the problem's deformation is rebuilt with it if it differs.
-            "exact" (default): the hand-written adjoint of the discrete forward map, the exact gradient at
-            about the paper's cost; "autograd": the same gradient through autograd (about 2x the time and
-            memory); "paper": the paper's continuous-gradient formula, whose mismatch with the discrete
-            forward (e.g. ``nu(t_0)`` unused by eq:ODEflow1b) can make a line search fail.
+        backward: the deformation's backward; ``None`` (default): ``problem.for_line_search()`` (LDDMM's
+            "paper" becomes "exact", the hand-written adjoint of the discrete forward map: the exact gradient at
+            about the paper's cost); "autograd": the same gradient through autograd (about 2x the time and
+            memory); LDDMM's "paper" (the continuous-gradient formula, whose mismatch with the discrete forward
+            can make a line search fail) only when asked for.
         jacobian_every: compute ``min_jacobian`` every this many iterations (``nan`` in between).
+        lrs: learning rates of the entries after the momentum by name (default ``lr``; L-BFGS takes one
+            parameter group, so they must equal ``lr``).
         **optimizer_kwargs: passed to the optimizer.
 
     Evaluations (forward + backward of W and T) are counted by the closure; a closure call at a point
     already evaluated (L-BFGS re-evaluates the accepted line-search point) reuses the stored result. After
-    ``load_state_dict`` the first evaluation recomputes the stored result at the saved parameter and is not
+    ``load_state_dict`` the first evaluation recomputes the stored result at the saved parameters and is not
     counted, so ``evaluations`` continues as in an uninterrupted run. ``report(state)`` is the report at the
     current iterate without a step.
     """
 
-    def __init__(self, problem: IndirectRegistration, optimizer="lbfgs", lr: float | None = None,
-                 max_iter: int = 100, grad_tol: float = 0.0, backward: str = "exact", jacobian_every: int = 1,
-                 **optimizer_kwargs):
-        if not isinstance(problem, IndirectRegistration):
-            raise TypeError(f"problem must be an IndirectRegistration, got {type(problem).__name__}")
-        if backward not in BACKWARDS:
-            raise ValueError(f"backward must be one of {BACKWARDS}, got {backward!r}")
-        if backward != problem.deformation.backward:
-            W = problem.deformation
-            problem = problem.with_deformation(type(W)(W.domain, W.num_steps, W.action, backward,
-                                                       W.interpolation, W.scheme))
-        cls = setup_common(self, problem, optimizer, lr, max_iter, grad_tol, jacobian_every)
-        self.parameter = torch.nn.Parameter(problem.zero_momentum())
-        kwargs = {**_DEFAULTS.get(cls, {}), **optimizer_kwargs}
-        self.optimizer = cls([self.parameter], lr=self.lr, **kwargs)
+    def __init__(self, problem: RegistrationProblem, optimizer="lbfgs", lr: float | None = None,
+                 max_iter: int = 100, grad_tol: float = 0.0, backward: str | None = None, jacobian_every: int = 1,
+                 lrs: dict | None = None, **optimizer_kwargs):
+        check_problem(problem)
+        if backward is None:
+            problem = problem.for_line_search()
+        elif backward != problem.deformation.backward:
+            problem = problem.with_backward(backward)
+        self.problem = problem
+        self.names = tuple(problem.iterate_names)
+        self.max_iter = check_int(max_iter, "max_iter", 0)
+        self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
+        self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
+        self.scale = problem.num_steps / problem.domain.cell_volume
+        cls = _optimizer_class(optimizer)
+        if lr is None and cls is not torch.optim.LBFGS:
+            raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
+        self.lr = check_positive(1.0 if lr is None else lr, "lr")
+        lrs = dict(lrs or {})
+        for key in lrs:
+            if key not in self.names[1:]:
+                raise ValueError(f"lrs name entries of the iterate after the momentum {self.names[1:]}, got {key!r}")
+        self.lrs = [self.lr] + [self.lr if lrs.get(n) is None else check_positive(lrs[n], f"{n}_lr")
+                                for n in self.names[1:]]
+        self.parameters = [torch.nn.Parameter(x) for x in problem.zero_iterate()]
+        if cls is torch.optim.LBFGS:
+            if any(r != self.lr for r in self.lrs):
+                raise ValueError(f"L-BFGS takes one parameter group: the learning rates of {self.names} must be "
+                                 f"equal, got {self.lrs}")
+            groups = [{"params": self.parameters}]
+        else:
+            groups = [{"params": [p], "lr": r} for p, r in zip(self.parameters, self.lrs)]
+        self.optimizer = cls(groups, lr=self.lr, **{**_DEFAULTS.get(cls, {}), **optimizer_kwargs})
         self.evaluations = 0
-        self._cache = None      # (p clone, terms, grad, h, nu) of the last evaluation
-        self._synced = None     # (momentum tensor, its _version) written by the last step
-        self._recount = None    # a saved parameter whose evaluation was already counted
+        self._cache = None      # (p clones, terms, grads, h, nu) of the last evaluation
+        self._synced = None     # mark of the iterate written by the last step
+        self._recount = None    # saved parameters whose evaluation was already counted
+
+    @property
+    def parameter(self) -> torch.nn.Parameter:
+        """The momentum's parameter ``p_0 = m / s``."""
+        return self.parameters[0]
 
     def __repr__(self):
         return (f"TorchOptimSolver(optimizer={type(self.optimizer).__name__}, lr={self.lr}, "
                 f"max_iter={self.max_iter}, grad_tol={self.grad_tol})")
 
+    def _at_cache(self, c) -> bool:
+        return c is not None and all(torch.equal(a, p.detach()) for a, p in zip(c, self.parameters))
+
     def _evaluate(self):
-        """Objective and ``dE/dp`` at the current parameter (cached by value)."""
-        p = self.parameter
-        c = self._cache
-        if c is not None and torch.equal(c[0], p.detach()):
-            return c[1:]
+        """Objective, ``dE/dp``, the L2 gradients and ``nu`` at the current parameters (cached by value)."""
+        if self._at_cache(None if self._cache is None else self._cache[0]):
+            return self._cache[1:]
+        k = len(self.parameters)
         with torch.enable_grad():
-            m = self.scale * p
-            nu = self.problem.velocity(m)
-            terms = self.problem.terms(m, nu)
-            # dE/dnu at fixed m is (cell_volume/N)(gamma/2 m + L2 gradient of the matching term)
-            grad, dnu = torch.autograd.grad(terms["objective"], (p, nu))
-        m = m.detach()
-        h = dnu / self.problem.time_weight + 0.5 * self.problem.gamma * m
-        terms = {k: float(v.detach()) for k, v in terms.items()}
-        recount = self._recount is not None and torch.equal(self._recount, p.detach())
-        self.evaluations += int(not recount)
+            x = tuple(self.scale * p for p in self.parameters)
+            terms, aux, l2 = self.problem.differentiable(x)
+            grads = torch.autograd.grad(terms["objective"], (*self.parameters, *aux))
+        h = l2(tuple(t.detach() for t in x), grads[:k], grads[k:])
+        terms = {key: float(v.detach()) for key, v in terms.items()}
+        self.evaluations += int(not self._at_cache(self._recount))
         self._recount = None
-        self._cache = (p.detach().clone(), terms, grad, h, nu.detach())
+        self._cache = (tuple(p.detach().clone() for p in self.parameters), terms, grads[:k], h, aux[0].detach())
         return self._cache[1:]
 
     def _closure(self):
-        terms, grad, _, _ = self._evaluate()
-        self.parameter.grad = grad.clone()
+        terms, grads, _, _ = self._evaluate()
+        for p, g in zip(self.parameters, grads):
+            p.grad = g.clone()
         return torch.tensor(terms["objective"], dtype=self.parameter.dtype)
 
     def _sync(self, state: SolverState) -> None:
-        """Set ``p = m / s`` unless ``state.momentum`` is the one this solver wrote (bit-identical resume)."""
-        m = state.momentum
-        if self._synced is not None and self._synced[0] is m and self._synced[1] == m._version:
+        """Set ``p = x / s`` unless ``state.iterate`` is the one this solver wrote (bit-identical resume)."""
+        x = state.iterate
+        if is_marked(x, self._synced):
             return
-        self.problem.check_momentum(m)
-        p = self.parameter.detach()
-        if not torch.equal(self.scale * p, m):
-            with torch.no_grad():
-                p.copy_(m / self.scale)
+        self.problem.check_iterate(x)
+        with torch.no_grad():
+            for p, xk in zip(self.parameters, x):
+                if not torch.equal(self.scale * p, xk):
+                    p.copy_(xk / self.scale)
+
+    def _info(self, iteration, terms, h, min_jac, step_size, previous=None) -> dict:
+        return make_info(iteration, terms, [self.problem.gradient_norm(g) for g in h], min_jac,
+                         [step_size, *self.lrs[1:]], self.evaluations, False,
+                         problems(terms["objective"], min_jac, previous), self.names)
 
     def report(self, state: SolverState) -> dict:
-        """The report at ``state.momentum`` (no step; ``min_jacobian`` always computed)."""
+        """The report at ``state.iterate`` (no step; ``min_jacobian`` always computed)."""
         self._sync(state)
         terms, _, h, nu = self._evaluate()
-        min_jac = self.problem.min_jacobian(nu)
-        return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, self.lr,
-                         self.evaluations, False, problems(terms["objective"], min_jac))
+        return self._info(state.iteration, terms, h, self.problem.min_jacobian(nu), self.lr)
 
     def step(self, state: SolverState) -> dict:
         """One ``optimizer.step``; mutates ``state``; returns the report at the new iterate."""
@@ -158,30 +172,26 @@ class TorchOptimSolver(IterativeSolver):
         previous = self._evaluate()[0]["objective"]
         self.optimizer.step(self._closure)
         terms, _, h, nu = self._evaluate()
-        if (state.iteration + 1) % self.jacobian_every == 0:
-            min_jac = self.problem.min_jacobian(nu)
-        else:
-            min_jac = math.nan
-        warnings = problems(terms["objective"], min_jac, previous)
-        state.momentum = (self.scale * self.parameter).detach()
-        self._synced = (state.momentum, state.momentum._version)
+        min_jac = self.problem.min_jacobian(nu) if (state.iteration + 1) % self.jacobian_every == 0 else math.nan
+        state.iterate = tuple((self.scale * p).detach() for p in self.parameters)
+        self._synced = mark(state.iterate)
         state.iteration += 1
         step_size = self.optimizer.state[self.parameter].get("t", self.lr) \
             if isinstance(self.optimizer, torch.optim.LBFGS) else self.lr
-        return make_info(state.iteration, terms, self.problem.gradient_norm(h), min_jac, step_size,
-                         self.evaluations, False, warnings)
+        return self._info(state.iteration, terms, h, min_jac, step_size, previous)
 
     def state_dict(self) -> dict:
-        """Optimizer internals (Adam moments, L-BFGS history), the parameter ``p`` and the evaluation counter."""
+        """Optimizer internals (Adam moments, L-BFGS history), the parameters ``p`` and the evaluation counter."""
         return {"optimizer": copy.deepcopy(self.optimizer.state_dict()),
-                "parameter": self.parameter.detach().clone(), "evaluations": self.evaluations,
-                "evaluated": self._cache is not None and torch.equal(self._cache[0], self.parameter.detach())}
+                "parameters": [p.detach().clone() for p in self.parameters], "evaluations": self.evaluations,
+                "evaluated": self._cache is not None and self._at_cache(self._cache[0])}
 
     def load_state_dict(self, d: dict) -> None:
         with torch.no_grad():
-            self.parameter.copy_(d["parameter"])
+            for p, saved in zip(self.parameters, d["parameters"]):
+                p.copy_(saved)
         self.optimizer.load_state_dict(copy.deepcopy(d["optimizer"]))
-        self.evaluations = int(d["evaluations"])
+        self.evaluations = check_int(d["evaluations"], "evaluations", 0)
         self._cache = None
         self._synced = None
-        self._recount = self.parameter.detach().clone() if d["evaluated"] else None
+        self._recount = tuple(p.detach().clone() for p in self.parameters) if d["evaluated"] else None

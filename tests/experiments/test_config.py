@@ -70,7 +70,6 @@ def test_sweep_preset_is_the_papers_table():
     ("solver.gama=1e-3", "solver.gama"),                 # unknown key
     ("solver.gamma=abc", "solver.gamma"),                # wrong type
     ("solver.max_iter=1.5", "solver.max_iter"),          # wrong type
-    ("deformation.action=affine", "deformation.action"),  # unknown action
     ("phantom.target=cat", "phantom.target"),            # unknown phantom
     ("dtype=float16", "dtype"),
 ])
@@ -89,6 +88,8 @@ def test_composition_errors_name_the_key(override, key):
     ("noise.std=1.0", "noise.snr_db"),    # both snr_db and std
     ("+solver.foo=1", "solver.foo"),      # appended key the schema lacks
     ("logging.every=0", "logging.every"),
+    ("deformation.action=affine", "deformation.action"),  # unknown action (indreg.options: one check for both)
+    ("solver.name=newton", "solver.name"),
 ])
 def test_invalid_values_name_the_key(override, key):
     cfg = compose([override])

@@ -20,7 +20,7 @@ F64 = FAST + ["dtype=float64", "device=cpu", "solver=fast"]
 def test_fast_config_composes_validates_and_builds_the_multilevel_solver(experiment, shapes):
     cfg = compose([f"experiment={experiment}", "solver=fast"])
     validate(cfg)
-    assert cfg.solver.name.value == "fast" and cfg.deformation.interpolation.value == "compose"
+    assert cfg.solver.name == "fast" and cfg.deformation.interpolation == "compose"
     # the suite's objective is kept (gamma, iterations from the experiment preset)
     assert cfg.solver.gamma == compose([f"experiment={experiment}"]).solver.gamma
     solver = build(cfg).solver

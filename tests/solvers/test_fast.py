@@ -7,7 +7,7 @@ import torch
 from indreg import ImageDomain
 from indreg.deform.kernel import GaussianKernel
 from indreg.solvers import MultilevelSolver, SolverState
-from indreg.solvers.multilevel import coarse_problem, prolong, resample_time, restrict
+from indreg.solvers.multilevel import prolong, resample_time, restrict
 
 from solver_problems import make_problem
 
@@ -48,7 +48,7 @@ def test_resample_time_is_linear_and_keeps_the_ends():
 
 def test_coarse_problem_is_the_same_problem_on_a_coarser_grid():
     p = make_problem(n=32)
-    c = coarse_problem(p, (16, 16), 3, "autograd")
+    c = p.coarsened((16, 16), 3, "autograd")
     assert c.domain.shape == (16, 16) and c.domain.min_pt == p.domain.min_pt and c.num_steps == 3
     assert c.data is p.data and c.gamma == p.gamma and c.kernel.sigma == p.kernel.sigma
     assert c.ray_transform.geometry == p.ray_transform.geometry and c.deformation.backward == "autograd"

@@ -118,7 +118,7 @@ def test_torch_optim_decreases_and_its_gradients_are_the_l2_gradients(optimizer,
     start = solver.report(state)["objective"]
     info = solver.run(state)
     assert info["objective"] < 0.9 * start
-    _, grad_p, grad_q, *_ = solver._evaluate()
+    _, (grad_p, grad_q), *_ = solver._evaluate()
     _, h_nu, h_zeta, _ = problem.l2_gradient(state.momentum, state.source)
     torch.testing.assert_close(grad_p, problem.kernel.apply(h_nu), rtol=1e-8, atol=1e-12)
     torch.testing.assert_close(grad_q, problem.unmasked_source(h_zeta), rtol=1e-8, atol=1e-12)
@@ -176,9 +176,9 @@ def test_bad_input():
         MetamorphosisDescent(problem.lddmm)
     with pytest.raises(ValueError, match="source_step_size must be a finite number > 0"):
         MetamorphosisDescent(problem, source_step_size=0)
-    with pytest.raises(TypeError, match="state must be a MetamorphosisState"):
+    with pytest.raises(ValueError, match="iterate must be a tuple of 2 tensors"):
         MetamorphosisDescent(problem, source_step_size=1.0).step(SolverState(problem.zero_momentum()))
     with pytest.raises(ValueError, match="source must have shape"):
         problem.evaluate(problem.zero_momentum(), problem.zero_source()[:2])
-    with pytest.raises(ValueError, match="source_lr must equal lr for LBFGS"):
+    with pytest.raises(ValueError, match="L-BFGS takes one parameter group"):
         MetamorphosisTorchOptim(problem, "lbfgs", source_lr=0.1)

@@ -121,8 +121,6 @@ def test_register_3d(solver):
 def test_register_3d_refuses_2d_only_options():
     problem, _ = make_problem()
     args = (problem.template, problem.data, problem.ray_transform)
-    with pytest.raises(NotImplementedError, match="solver='fast'"):
-        indreg.register(*args, solver="fast", max_iter=1)
     with pytest.raises(NotImplementedError, match="metamorphosis is 2D only"):
         indreg.register(*args, model="metamorphosis", max_iter=1)
 

@@ -1,0 +1,133 @@
+"""The deformation models a registration can use, by name: the registry behind ``register(model=...)`` and the
+app's ``deformation.model``.
+
+A model is a :class:`Model`: its name, its own options (``indreg.options.Option``; they join ``register()``'s
+keywords and the app's config schema) and ``build(operator, template, data, kernel, options) -> problem``, which
+returns a registration problem (``indreg.solvers.RegistrationProblem``) and the keyword arguments its solvers need
+beyond the common ones. Everything above (``indreg.register``, the app, the run loop, the result builder) is
+model-agnostic, so a new model is a new problem class and one :func:`register_model` call (``docs/extending.md``).
+
+Built in:
+
+    lddmm          ``IndirectRegistration`` with ``LDDMMDeformation`` (the paper's method)
+    metamorphosis  ``MetamorphosisRegistration`` with ``MetamorphosisDeformation`` (intensities change too)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+
+from .options import ALGORITHM1, Option, OptionError, anything, is_torch_optim, number, optional
+
+MODELS: dict = {}
+
+
+@dataclass(frozen=True)
+class Model:
+    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``;
+    ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
+    ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
+    name: str
+    build: Callable
+    options: tuple = ()
+    doc: str = ""
+    check: Optional[Callable] = None   # check(options, label): cross-option checks, errors via label(name)
+
+
+def register_model(model: Model) -> Model:
+    """Add ``model`` to the registry (a name already there is replaced)."""
+    if not isinstance(model, Model):
+        raise TypeError(f"register_model takes an indreg.models.Model, got {type(model).__name__}")
+    MODELS[model.name] = model
+    return model
+
+
+def get(name: str) -> Model:
+    if name not in MODELS:
+        raise ValueError(f"model must be one of {', '.join(map(repr, MODELS))}, got {name!r}")
+    return MODELS[name]
+
+
+def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
+    from .deform import LDDMMDeformation
+    from .solvers import IndirectRegistration
+
+    W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
+                         backward=o["backward"] or "paper", interpolation=o["interpolation"])
+    return IndirectRegistration(operator, W, kernel, template, data, o["gamma"], tv_weight=o["tv_weight"]), {}
+
+
+def _source_mask(mask, template: torch.Tensor, domain, label: str):
+    """``source_mask``: None, ``"template"`` (the template's support, ``template_support``) or an array."""
+    from .solvers.metamorphosis import template_support
+
+    if mask is None:
+        return None
+    if isinstance(mask, str):
+        if mask != "template":
+            raise OptionError(label, mask, f"None, 'template' or an array {tuple(domain.shape)}")
+        return template_support(template, domain)
+    from .run import as_tensor
+
+    return as_tensor(mask, label, domain.shape, template.dtype, template.device)
+
+
+def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
+    from .deform import GaussianKernel, MetamorphosisDeformation
+    from .solvers import MetamorphosisRegistration
+
+    domain = kernel.domain
+    M = MetamorphosisDeformation(domain, num_steps=o["num_steps"], backward=o["backward"] or "adjoint",
+                                 interpolation=o["interpolation"])
+    source_kernel = None if o["source_sigma"] is None else GaussianKernel(domain, o["source_sigma"])
+    problem = MetamorphosisRegistration(operator, M, kernel, template, data, o["gamma"], o["tau"],
+                                        tv_weight=o["tv_weight"], source_kernel=source_kernel,
+                                        source_mask=_source_mask(o["source_mask"], template, domain, "source_mask"))
+    solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": o["source_start"]}},
+                      "torch": {"lrs": {"source": o["source_lr"]}}}
+    return problem, solver_options
+
+
+def _backward_in(allowed: tuple) -> Callable:
+    def check(o: dict, label) -> None:
+        if o["backward"] is not None and o["backward"] not in allowed:
+            raise OptionError(label("backward"), o["backward"], f"one of {', '.join(map(repr, allowed))} "
+                              f"for model={o['model']!r}")
+    return check
+
+
+def _check_metamorphosis(o: dict, label) -> None:
+    _backward_in(("adjoint", "autograd"))(o, label)
+    if o["action"] != "geometric":
+        raise OptionError(label("action"), o["action"], "'geometric' for model='metamorphosis'")
+    mask = o["source_mask"]
+    if isinstance(mask, str) and mask != "template":
+        raise OptionError(label("source_mask"), mask, "None, 'template' or an array")
+
+
+_META = ("metamorphosis",)
+register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)",
+                     check=_backward_in(("paper", "exact", "autograd"))))
+register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Metam:ODE): intensities change too",
+                     check=_check_metamorphosis, options=(
+    Option("tau", "deformation", "tau", 1.0, number(0.0), "weight of the source's penalty", float, models=_META),
+    Option("source_sigma", "deformation", "source_sigma", None, optional(number(0.0, strict=True)),
+           "None (the paper's L2 source) or the width of a Gaussian RKHS for the source", Optional[float],
+           models=_META),
+    Option("source_mask", "deformation", "source_mask", None, anything,
+           "None, 'template' (the template's support) or an array in [0, 1]", Optional[str], models=_META),
+    Option("source_step_size", "solver", "source_step_size", None, optional(number(0.0, strict=True)),
+           "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
+           models=_META),
+    Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
+           "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
+    Option("source_start", "solver", "source_start", 0, number(0, integer=True),
+           "Algorithm 1: iterations with the source frozen", int, solvers=(ALGORITHM1,), models=_META),
+)))
+
+
+def solver_kind(solver: str) -> str:
+    """``"algorithm1"``, ``"fast"`` or ``"torch"`` (the key of a model's ``solver_options``)."""
+    return "torch" if is_torch_optim(solver) else solver

@@ -1,0 +1,285 @@
+"""The options of a registration, declared once: ``indreg.register``'s keywords, the app's config keys
+(``kernel.*``, ``deformation.*``, ``solver.*``: the Hydra schema is generated from this table), their defaults,
+which solver / model each applies to, and their validation.
+
+Each :class:`Option` names its ``register()`` keyword and its config key, its default (and the app's, where the
+paper presets need another), and a check. :func:`resolve` is the one validation path: ``register()`` calls it with
+the keywords (errors name the keyword), the app with the config's values (errors name the config key). An
+option given with a non-default value to a solver or model it does not apply to is an error in ``register()``;
+the app drops such values silently, because its presets set them for their own solver (a preset's
+``solver.step_size`` is Algorithm 1's and must not become an optimizer's ``lr``).
+
+Models add their own options (``indreg.models.Model.options``), so a new model's options reach both entry
+points without editing this file.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Optional
+
+import torch
+
+#: ``register()``'s torch.optim solvers are named by their class name (``"lbfgs"``, ``"adam"``, ...).
+ALGORITHM1, FAST = "algorithm1", "fast"
+_NONE = object()
+
+
+class OptionError(ValueError):
+    """An invalid option value: ``label`` (keyword or config key), the value and what was expected.
+    ``kind`` is the exception type ``register()`` raises (TypeError for a wrong type, ValueError else)."""
+
+    def __init__(self, label: str, value, expected: str, kind=ValueError):
+        self.label, self.value, self.expected, self.kind = label, value, expected, kind
+        super().__init__(f"{label} must be {expected}, got {value!r}")
+
+
+# ---------------------------------------------------------------------------------------------------- checks
+def number(lo: float = -math.inf, strict: bool = False, integer: bool = False) -> Callable:
+    """A real (or integer) scalar ``>= lo`` (``> lo`` if ``strict``), finite; bools and strings are refused."""
+    what = ("an integer" if integer else "a finite number") + \
+        ("" if lo == -math.inf else f" {'>' if strict else '>='} {lo:g}")
+
+    def check(v, label):
+        if isinstance(v, (bool, str)) or not isinstance(v, numbers.Real) or (integer and not isinstance(v, numbers.Integral)):
+            raise OptionError(label, v, what, TypeError)
+        if not math.isfinite(float(v)) or (v <= lo if strict else v < lo):
+            raise OptionError(label, v, what)
+        return int(v) if integer else float(v)
+    return check
+
+
+def choice(values: Callable | tuple) -> Callable:
+    """One of ``values`` (a tuple, or a function returning one when the check runs, e.g. the registered models)."""
+    def check(v, label):
+        allowed = values() if callable(values) else values
+        if v not in allowed:
+            raise OptionError(label, v, f"one of {', '.join(map(repr, allowed))}")
+        return v
+    return check
+
+
+def boolean(v, label):
+    if not isinstance(v, bool):
+        raise OptionError(label, v, "True or False", TypeError)
+    return v
+
+
+def optional(check: Callable) -> Callable:
+    return lambda v, label: None if v is None else check(v, label)
+
+
+def mapping(v, label):
+    if v is None:
+        return {}
+    if not hasattr(v, "keys"):
+        raise OptionError(label, v, "a dict of keyword arguments", TypeError)
+    return dict(v)
+
+
+def anything(v, label):
+    return v
+
+
+def solver_name(v, label):
+    """``"algorithm1"``, ``"fast"`` or the name of a ``torch.optim`` optimizer (case-insensitive)."""
+    from .solvers.torch_optim import _optimizer_class
+
+    if not isinstance(v, str):
+        raise OptionError(label, v, "'algorithm1', 'fast' or a torch.optim optimizer name", TypeError)
+    if v.lower() in (ALGORITHM1, FAST):
+        return v.lower()
+    try:
+        _optimizer_class(v)
+    except ValueError:
+        raise OptionError(label, v, "'algorithm1', 'fast' or a torch.optim optimizer name (lbfgs, adam, sgd, ...)") \
+            from None
+    return v.lower()
+
+
+def is_torch_optim(solver: str) -> bool:
+    return solver not in (ALGORITHM1, FAST)
+
+
+# ---------------------------------------------------------------------------------------------------- options
+@dataclass(frozen=True)
+class Option:
+    """One option. ``group`` / ``key``: its config key ``group.key`` (group ``run``: ``register()`` only);
+    ``solvers``: the solvers it applies to (``"torch"`` stands for every torch.optim optimizer; None: all);
+    ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
+    ``default``; ``type``: its type in the Hydra schema."""
+    name: str
+    group: str
+    key: str
+    default: Any
+    check: Callable
+    doc: str
+    type: Any = Any
+    solvers: Optional[tuple] = None
+    models: Optional[tuple] = None
+    app_default: Any = _NONE
+
+    @property
+    def config_key(self) -> str:
+        return f"{self.group}.{self.key}"
+
+    @property
+    def schema_default(self):
+        return self.default if self.app_default is _NONE else self.app_default
+
+    def applies(self, solver: str, model: str) -> bool:
+        ok_solver = self.solvers is None or solver in self.solvers or ("torch" in self.solvers
+                                                                     and is_torch_optim(solver))
+        return ok_solver and (self.models is None or model in self.models)
+
+    def where(self) -> str:
+        """Which solver / model the option belongs to, for error messages."""
+        parts = []
+        if self.models is not None:
+            parts.append(" or ".join(f"model={m!r}" for m in self.models))
+        if self.solvers is not None:
+            parts.append(" or ".join("a torch.optim solver" if s == "torch" else f"solver={s!r}"
+                                     for s in self.solvers))
+        return " with ".join(parts)
+
+
+def _models():
+    from .models import MODELS
+
+    return tuple(MODELS)
+
+
+_positive = number(0.0, strict=True)
+_nonneg = number(0.0)
+
+CORE = (
+    Option("sigma", "kernel", "sigma", 6.0, _positive, "width of the Gaussian kernel of V (physical units)", float),
+    Option("num_steps", "deformation", "num_steps", 20, number(1, integer=True), "time steps N", int),
+    Option("action", "deformation", "action", "geometric", choice(("geometric", "mass_preserving")),
+           "group action: geometric or mass_preserving", str),
+    Option("interpolation", "deformation", "interpolation", None, optional(choice(("reinterpolate", "compose"))),
+           "reinterpolate (the paper's) or compose; None: compose with solver='fast', else reinterpolate",
+           Optional[str], app_default="reinterpolate"),
+    Option("backward", "deformation", "backward", None, optional(choice(("paper", "exact", "autograd", "adjoint"))),
+           "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
+           Optional[str], app_default="paper"),
+    Option("model", "deformation", "model", "lddmm", choice(_models), "the deformation model (indreg.models)", str),
+    Option("gamma", "solver", "gamma", 1e-6, _nonneg, "regularisation weight", float),
+    Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg, "weight of a TV term on the reconstruction", float),
+    Option("solver", "solver", "name", ALGORITHM1, solver_name,
+           "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
+    Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
+    Option("step_size", "solver", "step_size", None, optional(_positive), "Algorithm 1's step (None: 0.02)",
+           Optional[float], solvers=(ALGORITHM1,), app_default=0.02),
+    Option("lr", "solver", "lr", None, optional(_positive),
+           "the torch.optim learning rate (None: 1.0 for L-BFGS, required for the others)", Optional[float],
+           solvers=("torch",), app_default=1.0),
+    Option("step_halving", "solver", "step_halving", True, boolean,
+           "halve steps that increase the objective or fold", bool, solvers=(ALGORITHM1,), app_default=False),
+    Option("max_halvings", "solver", "max_halvings", 20, number(0, integer=True), "halvings within one iteration",
+           int, solvers=(ALGORITHM1,)),
+    Option("grad_tol", "solver", "grad_tol", 0.0, _nonneg, "stop when the gradient norm is below it (0: never)",
+           float),
+    Option("optimizer_kwargs", "solver", "optimizer_kwargs", None, mapping,
+           "keyword arguments of the torch.optim optimizer, or solver='fast''s options", Dict[str, Any],
+           solvers=(FAST, "torch"), app_default={}),
+)
+
+RUN = (
+    Option("device", "run", "device", None, anything, "None: the template's; 'auto', 'cpu', 'cuda[:i]'"),
+    Option("dtype", "run", "dtype", None, anything, "None: the template's (arrays: float32 unless float64)"),
+    Option("callback", "run", "callback", None, optional(lambda v, label: v if callable(v) else (_ for _ in ()).throw(
+        OptionError(label, v, "callable(state, info)", TypeError))), "called after every iteration"),
+    Option("progress", "run", "progress", False, boolean, "a progress bar / log lines"),
+    Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
+    Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),
+)
+
+
+def all_options() -> tuple:
+    """The core options, then every registered model's own, then the run options."""
+    from .models import MODELS
+
+    seen, out = set(), []
+    for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *RUN):
+        if o.name not in seen:
+            seen.add(o.name)
+            out.append(o)
+    return tuple(out)
+
+
+def defaults() -> dict:
+    return {o.name: o.default for o in all_options()}
+
+
+def _given(o: Option, value) -> bool:
+    """Whether ``value`` differs from the option's default (arrays count as given)."""
+    if isinstance(value, (torch.Tensor,)) or hasattr(value, "__array__"):
+        return True
+    return value is not o.default and value != o.default
+
+
+def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, strict: bool = True) -> dict:
+    """Validate ``values`` (option name -> value; missing: the default) and return them normalised.
+
+    ``label(option)`` names an option in errors (``register()``: the keyword; the app: the config key).
+    ``strict`` (``register()``): an unknown name is a TypeError, and an option given with a non-default value
+    to a solver or model it does not apply to is a TypeError; otherwise (the app) such values are reset to the
+    default. Raises ``OptionError`` (``kind`` TypeError or ValueError) naming the option.
+    """
+    options = {o.name: o for o in all_options()}
+    unknown = sorted(set(values) - set(options))
+    if unknown:
+        raise TypeError(f"unknown option(s) {', '.join(unknown)}; valid options: {', '.join(sorted(options))}")
+    out = {name: values.get(name, o.default) for name, o in options.items()}
+    for name in ("solver", "model"):
+        out[name] = options[name].check(out[name], label(options[name]))
+    for name, o in options.items():
+        if o.applies(out["solver"], out["model"]):
+            if name not in ("solver", "model"):
+                out[name] = o.check(out[name], label(o))
+        elif strict and _given(o, out[name]):
+            raise OptionError(label(o), out[name], f"left unset: it is an option of {o.where()}", TypeError)
+        else:
+            out[name] = o.default
+    _check_optimizer_kwargs(out, label(options["optimizer_kwargs"]))
+    from .models import get
+
+    model = get(out["model"])
+    if model.check is not None:
+        model.check(out, lambda name: label(options[name]))
+    return out
+
+
+def _check_optimizer_kwargs(o: dict, label: str) -> None:
+    """Every ``optimizer_kwargs`` key must be a keyword of the torch.optim optimizer's constructor (or an option
+    of solver='fast')."""
+    import inspect
+
+    from .solvers.multilevel import options as fast_options
+    from .solvers.torch_optim import _optimizer_class
+
+    if o["solver"] == FAST:
+        allowed, what = set(fast_options()), "an option of solver='fast' (indreg.solvers.MultilevelSolver"
+    elif is_torch_optim(o["solver"]):
+        cls = _optimizer_class(o["solver"])
+        allowed = set(inspect.signature(cls.__init__).parameters) - {"self", "params", "lr"}
+        what = f"a keyword of torch.optim {cls.__name__} ("
+    else:
+        return
+    for key in o["optimizer_kwargs"]:
+        if key not in allowed:
+            raise OptionError(f"{label}.{key}", o["optimizer_kwargs"][key], f"{what}: {', '.join(sorted(allowed))})",
+                              TypeError)
+
+
+def schema_fields(group: str) -> list:
+    """``(key, type, dataclasses.field(default=...))`` of a config group, for ``dataclasses.make_dataclass``."""
+    out = []
+    for o in all_options():
+        if o.group == group:
+            d = o.schema_default
+            f = field(default_factory=lambda d=d: dict(d)) if isinstance(d, dict) else field(default=d)
+            out.append((o.key, o.type, f))
+    return out

@@ -1,0 +1,333 @@
+"""One run of a registration, shared by ``indreg.register`` and the ``indreg-register`` app.
+
+:func:`setup` validates the inputs and the options (``indreg.options``), builds the kernel, the model's problem
+(``indreg.models``) and the solver; :class:`RegistrationLoop` iterates the solver (history, warnings, progress);
+:func:`build_result` assembles a :class:`RegistrationResult` from the final iterate. Nothing here depends on the
+model or on the operator type: a problem is used only through ``indreg.solvers.RegistrationProblem``'s protocol.
+The app adds checkpoints, TensorBoard, figures and files around the same three steps.
+
+Convention: ``template`` ``operator.domain.shape`` (axis 0 = x), ``data`` ``operator.range_shape``; torch tensors
+or numpy arrays, real and finite; the run's dtype / device default to the template's (numpy: the CPU, float64
+arrays stay float64, others become float32).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from . import models, options as opts
+
+log = logging.getLogger("indreg")
+
+#: Algorithm 1's step when none is given (the paper's suite-1 value).
+ALGORITHM1_STEP = 0.02
+
+
+# ---------------------------------------------------------------------------------------------------- inputs
+def resolve_dtype(dtype, template) -> torch.dtype:
+    if dtype is None:
+        if isinstance(template, torch.Tensor) and template.is_floating_point():
+            return template.dtype
+        return torch.float64 if getattr(template, "dtype", None) == np.float64 else torch.float32
+    d = getattr(torch, dtype, None) if isinstance(dtype, str) else dtype
+    if d not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be 'float32' or 'float64' (or the torch dtype), got {dtype!r}")
+    return d
+
+
+def resolve_device(device, template=None) -> torch.device:
+    """``None``: the template's device (the CPU for arrays); ``"auto"``: CUDA when available, else the CPU."""
+    if device is None:
+        return template.device if isinstance(template, torch.Tensor) else torch.device("cpu")
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        d = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be None, 'auto', 'cpu', 'cuda' or 'cuda:<index>', got {device!r}") from None
+    if d.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={device!r} was requested but CUDA is not available")
+    return d
+
+
+def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``x`` (tensor or array-like) as a real, finite tensor of ``shape`` in ``dtype`` / ``device``;
+    errors name the argument."""
+    if isinstance(x, torch.Tensor):
+        t = x.detach()
+    else:
+        a = np.asarray(x)
+        if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+            raise TypeError(f"{name} must be a numeric array or torch tensor, got {type(x).__name__} of {a.dtype}")
+        t = torch.from_numpy(np.ascontiguousarray(a))
+    if t.is_complex():
+        raise TypeError(f"{name} must be real, got the complex dtype {t.dtype}")
+    if tuple(t.shape) != tuple(shape):
+        raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {tuple(shape)}")
+    t = t.to(device=device, dtype=dtype)
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains non-finite values (nan or inf)")
+    return t
+
+
+# ---------------------------------------------------------------------------------------------------- setup
+def make_solver(problem, o: dict, solver_options: dict):
+    """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
+    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind."""
+    from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
+    from .solvers.multilevel import options as fast_options
+
+    kind = models.solver_kind(o["solver"])
+    extra = solver_options.get(kind, {})
+    if kind == opts.FAST:
+        unknown = sorted(set(o["optimizer_kwargs"]) - set(fast_options()))
+        if unknown:
+            raise TypeError(f"unknown optimizer_kwargs for solver='fast': {', '.join(unknown)}; valid: "
+                            f"{', '.join(fast_options())}")
+        return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
+                                **extra)
+    if kind == opts.ALGORITHM1:
+        return Algorithm1(problem, step_size=ALGORITHM1_STEP if o["step_size"] is None else o["step_size"],
+                          max_iter=o["max_iter"], grad_tol=o["grad_tol"], step_halving=o["step_halving"],
+                          max_halvings=o["max_halvings"], **extra)
+    return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
+                            grad_tol=o["grad_tol"], **extra, **o["optimizer_kwargs"])
+
+
+@dataclass
+class Setup:
+    """The problem and the solver built by :func:`setup`, with the run's (resolved) options."""
+    problem: object
+    solver: object
+    options: dict
+
+
+def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
+    """Validate inputs and options (``indreg.options.resolve``) and build kernel, problem and solver.
+
+    ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
+    solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
+    from .deform import GaussianKernel
+    from .forward.operator import check_operator
+
+    o = opts.resolve(options, label, strict)
+    check_operator(operator, "operator")
+    dtype = resolve_dtype(o["dtype"], template)
+    device = resolve_device(o["device"], template)
+    domain = operator.domain
+    template = as_tensor(template, "template", domain.shape, dtype, device)
+    data = as_tensor(data, "data", operator.range_shape, dtype, device)
+    if o["target"] is not None:
+        o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
+    if o["interpolation"] is None:
+        o["interpolation"] = "compose" if o["solver"] == opts.FAST else "reinterpolate"
+    kernel = GaussianKernel(domain, o["sigma"])
+    problem, solver_options = models.get(o["model"]).build(operator, template, data, kernel, o)
+    return Setup(problem, make_solver(problem, o, solver_options), o)
+
+
+def initial_state(problem):
+    """The solvers' starting iterate ``problem.zero_iterate()`` at iteration 0."""
+    from .solvers import SolverState
+
+    return SolverState.initial(problem)
+
+
+# ---------------------------------------------------------------------------------------------------- the loop
+def count_warnings(history) -> int:
+    """Iterations whose report carries a warning (the count shown on screen and stored in metrics)."""
+    return sum(1 for h in history if h.get("warning"))
+
+
+class Progress:
+    """``iteration i/total``, rate (it/s) and ETA for log lines, measured over this process's iterations."""
+
+    def __init__(self, total: int, start: int):
+        self.total, self.start, self.t0 = total, start, time.perf_counter()
+
+    def line(self, iteration: int) -> str:
+        done = iteration - self.start
+        elapsed = time.perf_counter() - self.t0
+        rate = done / elapsed if elapsed > 0 and done > 0 else math.nan
+        eta = (self.total - iteration) / rate if rate > 0 else math.nan
+        eta_s = "?" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
+        return f"iteration {iteration}/{self.total} ({rate:.3g} it/s, ETA {eta_s})"
+
+
+def _regularisers(info: dict) -> str:
+    """Every regulariser of the report beyond the velocity's, for the log line."""
+    extra = [k for k in info if k.endswith("_regulariser")]
+    if not extra:
+        return ""
+    return ", regularisers " + " / ".join(f"{k} {info[k]:.4g}" for k in ("regulariser", *extra))
+
+
+class RegistrationLoop:
+    """``info = solver.step(state)`` until done; history, warnings, progress log lines and a tqdm bar.
+
+    Subclasses (the experiment app) hook in with :meth:`before_step` (may return a stop status),
+    :meth:`after_step` (every iteration; may return a stop status) and :meth:`describe` (extra text for the
+    log line printed every ``every`` iterations). ``run()`` returns the status: ``completed``,
+    ``converged``, ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver
+    accepted), or what a hook returned. ``callback(state, info)`` returning True stops it (``stopped``).
+    """
+
+    def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
+                 desc: str = "indreg", history=None, seconds: float = 0.0, callback=None):
+        self.problem, self.solver, self.state = problem, solver, state
+        self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc
+        self.history = [] if history is None else history
+        self.seconds = seconds
+        self.callback = callback
+        self.warnings = count_warnings(self.history)
+
+    def before_step(self) -> Optional[str]:
+        return None
+
+    def after_step(self, info: dict, done: bool) -> Optional[str]:
+        if self.callback is not None and self.callback(self.state, info):
+            return "stopped"
+        return None
+
+    def describe(self, info: dict) -> str:
+        return ""
+
+    def _warn(self, it: int, info: dict) -> None:
+        """Count a warning; log the first one and then one every ``every`` iterations."""
+        self.warnings += 1
+        if self.warnings == 1 or it % self.every == 0:
+            log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+
+    def _halved(self) -> bool:
+        """Whether step halving shortened the step in the last iteration."""
+        h = self.history
+        return (getattr(self.solver, "step_halving", False) and len(h) > 1
+                and h[-1]["step_size"] < h[-2]["step_size"])
+
+    def run(self) -> str:
+        from tqdm import tqdm
+
+        state, status = self.state, "completed"
+        meter = Progress(self.max_iter, state.iteration)
+        bar = tqdm(total=self.max_iter, initial=state.iteration, desc=self.desc, dynamic_ncols=True,
+                   disable=not (self.progress and sys.stderr.isatty()))
+        try:
+            while state.iteration < self.max_iter:
+                stop = self.before_step()
+                if stop:
+                    status = stop
+                    break
+                t0 = time.perf_counter()
+                info = self.solver.step(state)
+                dt = time.perf_counter() - t0
+                self.seconds += dt
+                it = state.iteration
+                self.history.append(dict(info, iteration=it, seconds=dt))
+                if info.get("warning"):
+                    self._warn(it, info)
+                if self._halved():
+                    log.info("iteration %d: step size halved to %.4g (the longer step increased the objective or "
+                             "folded)", it, info["step_size"])
+                reason = self.solver.status(info)   # failed / converged / completed / None
+                if reason == "failed":              # non-finite: stop before any hook saves this iterate
+                    status = reason
+                    log.error("iteration %d: non-finite objective or gradient (%s); stopping", it,
+                              info.get("warning") or "grad_norm is not finite")
+                    break
+                done = reason is not None
+                stop = self.after_step(info, done)
+                if it % self.every == 0 and not done:
+                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s", meter.line(it),
+                             info["objective"], info["data_fit"], info["min_jacobian"], _regularisers(info),
+                             self.describe(info))
+                bar.update(1)
+                bar.set_postfix(objective=f"{info['objective']:.4g}")
+                if stop:
+                    status = stop
+                    break
+                if done:
+                    status = reason
+                    break
+        finally:
+            bar.close()
+        rejected = sum(1 for h in self.history if h.get("rejected"))
+        if self.warnings:
+            log.warning("%d of %d iterations reported a warning (%d rejected steps)", self.warnings,
+                        len(self.history), rejected)
+        return status
+
+
+# ---------------------------------------------------------------------------------------------------- the result
+@dataclass
+class RegistrationResult:
+    """What a run returns (:func:`build_result`).
+
+    Convention: ``deformed`` ``(nx, ny)`` = the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1));
+    ``trajectory`` ``(N+1, nx, ny)`` = the image path at ``t_i``; ``momentum`` and ``velocity`` ``(N+1, d, *shape)``
+    (``nu = K m``, component 0 = x); ``deformation`` ``(d, *shape)`` = phi_{1,0} (points, physical units);
+    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm; ``history``:
+    one dict per iteration (the solver's report plus ``seconds``); ``status``: ``completed`` (``max_iter``),
+    ``converged`` (``grad_tol``), ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``)
+    or ``stopped`` (the callback returned True). ``ssim`` / ``psnr`` only with a target. ``outputs``: the model's
+    own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I), ``intensity_part`` =
+    f(1) - W(nu, I)), also readable as attributes (``result.source``).
+    """
+    deformed: torch.Tensor
+    momentum: torch.Tensor
+    velocity: torch.Tensor
+    deformation: torch.Tensor
+    trajectory: torch.Tensor
+    history: list
+    iterations: int
+    objective: float
+    terms: dict
+    min_jacobian: float
+    residual: float
+    status: str
+    warnings: int
+    seconds: float
+    problem: object = field(repr=False)
+    outputs: dict = field(default_factory=dict, repr=False)
+    ssim: Optional[float] = None
+    psnr: Optional[float] = None
+
+    def __getattr__(self, name):
+        outputs = self.__dict__.get("outputs", {})
+        if name in outputs:
+            return outputs[name]
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+
+def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> float:
+    """``||T f - g|| / ||g||`` in the data norm (``operator.inner_data``)."""
+    with torch.no_grad():
+        r = operator(image) - data
+        return math.sqrt(float(operator.inner_data(r, r).sum()) / float(operator.inner_data(data, data).sum()))
+
+
+def build_result(problem, state, history: list, seconds: float, status: str, target=None) -> RegistrationResult:
+    """The result at ``state``: reconstruction, trajectory, velocity, phi_{1,0}, terms, min Jacobian, residual,
+    the model's outputs, and SSIM / PSNR of the reconstruction against ``target`` (float64, CPU) if given."""
+    from . import metrics
+
+    x = state.iterate
+    image = problem.reconstruction(x)
+    with torch.no_grad():
+        velocity = problem.velocity(x[0])
+    terms = problem.evaluate_iterate(x)
+    result = RegistrationResult(
+        deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
+        trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
+        objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
+        residual=relative_residual(problem.ray_transform, image, problem.data), status=status,
+        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x))
+    if target is not None:
+        result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
+    return result

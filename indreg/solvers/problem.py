@@ -1,0 +1,88 @@
+"""What a solver, the run loop and the result builder need from a registration problem (a model's objective).
+
+A *registration problem* is an objective ``E(x)`` over an iterate ``x = (x_0, x_1, ...)``, a tuple of tensors whose
+first entry is the momentum ``m`` of the velocity field ``nu = K m``. LDDMM (``IndirectRegistration``) has
+``x = (m,)``; metamorphosis (``MetamorphosisRegistration``) has ``x = (m, s)``, ``s`` the source iterate. Solvers
+(``Algorithm1``, ``TorchOptimSolver``), step control (``StepControl``), the run loop and the result builder
+(``indreg.run``) only use the members below, so a new model is a new subclass and one registry entry
+(``indreg.models``), with no change to any of them.
+
+Members a subclass implements:
+
+- ``iterate_names``: names of the iterate's entries (``("momentum",)``, ``("momentum", "source")``);
+- ``zero_iterate()``: the starting iterate (the identity deformation: all zeros);
+- ``check_iterate(x)``: one-line errors for a wrong shape / dtype / device;
+- ``gradient(x) -> (terms, h, nu)``: the objective's terms (python floats: ``objective`` and its parts), the L2
+  gradients ``h = (h_0, h_1, ...)`` (Algorithm 1 descends ``x_k <- x_k - alpha_k h_k``) and ``nu = K m``;
+- ``differentiable(x) -> (terms, aux, l2)``: the terms as 0-dim tensors differentiable through ``x`` (for autograd
+  and torch.optim), tensors ``aux`` (``aux[0] = nu``) whose autograd gradients ``l2(x, dx, daux)`` turns into ``h``;
+- ``reconstruction(x)`` (the image the iterate implies, ``f(1)``), ``image_trajectory(x)`` (``f(t_i)``),
+  ``evaluate_iterate(x)`` (the terms, python floats), ``outputs(x)`` (model-specific results by name),
+  ``scored`` (which of those are images to score against a target), ``hparams()``;
+- ``with_backward(backward)`` / ``for_line_search()``: the problem with another deformation backward (a line
+  search needs the exact gradient of the discrete map);
+- optionally ``default_step(name)`` for entries after the momentum, and ``coarsened(shape, num_steps,
+  backward)`` (the same problem on a coarser grid, for ``MultilevelSolver``).
+
+Shared here: the velocity ``nu = K m``, the discrete ``L2([0,1], L2)`` norm of a gradient, the minimum Jacobian
+determinant of ``phi_{1,0}``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+class RegistrationProblem:
+    """Base class of the registration objectives (module docstring: the protocol). Subclasses set ``kernel``,
+    ``deformation``, ``domain``, ``template``, ``data``, ``ray_transform``, ``num_steps``."""
+
+    iterate_names: tuple = ("momentum",)
+    #: names in ``outputs(x)`` that are images to compare with a target (SSIM / PSNR)
+    scored: tuple = ()
+
+    @property
+    def time_weight(self) -> float:
+        """Weight ``cell_volume / N`` of a torch entry in the discrete ``L2([0,1], L2)`` inner product."""
+        return self.domain.cell_volume / self.num_steps
+
+    def velocity(self, m: torch.Tensor) -> torch.Tensor:
+        """``nu = K m`` (differentiable)."""
+        return self.kernel.apply(m)
+
+    def gradient_norm(self, h: torch.Tensor) -> float:
+        """``||h||_{L2([0,1], L2)} = sqrt(sum_i (1/N) ||h_i||^2_L2)``."""
+        flat = h.reshape(-1)
+        return math.sqrt(self.time_weight * float(torch.dot(flat, flat)))
+
+    def min_jacobian(self, nu: torch.Tensor) -> float:
+        """Minimum Jacobian determinant of ``phi_{1,0}`` for velocity ``nu`` (folding when <= 0)."""
+        with torch.no_grad():
+            return float(self.deformation.min_jacobian(nu))
+
+    def deformation_field(self, nu: torch.Tensor) -> torch.Tensor:
+        """``phi_{1,0}`` of ``nu``, ``(d, *shape)`` (points, physical units)."""
+        with torch.no_grad():
+            return self.deformation.deformation(nu)
+
+    def check_iterate(self, x: tuple) -> None:
+        if not isinstance(x, tuple) or len(x) != len(self.iterate_names):
+            raise ValueError(f"the iterate must be a tuple of {len(self.iterate_names)} tensors "
+                             f"{self.iterate_names}, got {type(x).__name__} of length {len(x)}")
+
+    def default_step(self, name: str) -> float:
+        """Algorithm 1's step for the iterate's entry ``name`` when none is given (entries after the momentum)."""
+        raise TypeError(f"{type(self).__name__} has no default step for {name!r}: give one")
+
+    def for_line_search(self) -> "RegistrationProblem":
+        """The problem with a deformation backward that is the exact gradient of the discrete map."""
+        return self
+
+    def hparams(self) -> dict:
+        """The model's own hyperparameters for reports (TensorBoard's HParams, metrics.json)."""
+        return {}
+
+    def outputs(self, x: tuple) -> dict:
+        """Model-specific results at ``x`` by name (tensors), besides the reconstruction and the deformation."""
+        return {}
