@@ -66,5 +66,5 @@ def test_register_solver_fast():
     assert r.objective < 0.5 * start and r.ssim > indreg.metrics.ssim(template, target)
     with pytest.raises(TypeError, match=r"optimizer_kwargs.levls must be an option of solver='fast'"):
         indreg.register(template, data, T, solver="fast", optimizer_kwargs={"levls": [2]})
-    with pytest.raises(TypeError, match="takes neither lr nor step_size"):
+    with pytest.raises(TypeError, match="step_size must be left unset: it is an option of solver='algorithm1'"):
         indreg.register(template, data, T, solver="fast", step_size=0.1)
