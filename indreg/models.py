@@ -45,9 +45,27 @@ def register_model(model: Model) -> Model:
 
 
 def get(name: str) -> Model:
+    """The registered model ``name``; ``"package.module:attribute"`` imports a ``Model`` (or a module that
+    registers it) and registers it under that name, so the app takes ``deformation.model=my.module:MODEL``."""
+    if name not in MODELS and isinstance(name, str) and ":" in name:
+        _import(name)
     if name not in MODELS:
-        raise ValueError(f"model must be one of {', '.join(map(repr, MODELS))}, got {name!r}")
+        raise ValueError(f"model must be one of {', '.join(map(repr, MODELS))} or 'package.module:attribute', "
+                         f"got {name!r}")
     return MODELS[name]
+
+
+def _import(path: str) -> None:
+    import importlib
+
+    module, _, attr = path.partition(":")
+    try:
+        model = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"model {path!r} cannot be imported: {e}") from None
+    if not isinstance(model, Model):
+        raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
+    MODELS[path] = model
 
 
 def _lddmm(operator, template, data, kernel, o: dict) -> tuple:

@@ -144,10 +144,16 @@ class Option:
         return " with ".join(parts)
 
 
-def _models():
-    from .models import MODELS
+def _model(v, label):
+    from .models import get
 
-    return tuple(MODELS)
+    if not isinstance(v, str):
+        raise OptionError(label, v, "a model name (str)", TypeError)
+    try:
+        get(v)
+    except ValueError as e:
+        raise OptionError(label, v, str(e).split(", got ")[0].replace("model must be ", "")) from None
+    return v
 
 
 _positive = number(0.0, strict=True)
@@ -164,7 +170,8 @@ CORE = (
     Option("backward", "deformation", "backward", None, optional(choice(("paper", "exact", "autograd", "adjoint"))),
            "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
            Optional[str], app_default="paper"),
-    Option("model", "deformation", "model", "lddmm", choice(_models), "the deformation model (indreg.models)", str),
+    Option("model", "deformation", "model", "lddmm", lambda v, label: _model(v, label),
+           "the deformation model: a name in indreg.models or 'package.module:attribute'", str),
     Option("gamma", "solver", "gamma", 1e-6, _nonneg, "regularisation weight", float),
     Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg, "weight of a TV term on the reconstruction", float),
     Option("solver", "solver", "name", ALGORITHM1, solver_name,

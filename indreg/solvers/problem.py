@@ -12,10 +12,13 @@ Members a subclass implements:
 - ``iterate_names``: names of the iterate's entries (``("momentum",)``, ``("momentum", "source")``);
 - ``zero_iterate()``: the starting iterate (the identity deformation: all zeros);
 - ``check_iterate(x)``: one-line errors for a wrong shape / dtype / device;
-- ``gradient(x) -> (terms, h, nu)``: the objective's terms (python floats: ``objective`` and its parts), the L2
-  gradients ``h = (h_0, h_1, ...)`` (Algorithm 1 descends ``x_k <- x_k - alpha_k h_k``) and ``nu = K m``;
 - ``differentiable(x) -> (terms, aux, l2)``: the terms as 0-dim tensors differentiable through ``x`` (for autograd
-  and torch.optim), tensors ``aux`` (``aux[0] = nu``) whose autograd gradients ``l2(x, dx, daux)`` turns into ``h``;
+  and torch.optim), tensors ``aux`` (``aux[0] = nu``) and ``l2(x, dx, daux) -> h`` turning autograd's gradients
+  into the descent directions ``h = (h_0, h_1, ...)``; ``dx`` are the gradients with respect to the parameters
+  ``p_k = x_k / s``, ``s = N / cell_volume`` (the torch.optim solvers' parametrisation: ``dE/dp_0 = K h_0``);
+- ``gradient(x) -> (terms, h, nu)``: the objective's terms (python floats: ``objective`` and its parts), ``h``
+  (Algorithm 1 descends ``x_k <- x_k - alpha_k h_k``) and ``nu = K m``: by default autograd through
+  ``differentiable``; LDDMM and metamorphosis hand-write it (one forward / backward, in place);
 - ``reconstruction(x)`` (the image the iterate implies, ``f(1)``), ``image_trajectory(x)`` (``f(t_i)``),
   ``evaluate_iterate(x)`` (the terms, python floats), ``outputs(x)`` (model-specific results by name),
   ``scored`` (which of those are images to score against a target), ``hparams()``;
@@ -65,6 +68,17 @@ class RegistrationProblem:
         """``phi_{1,0}`` of ``nu``, ``(d, *shape)`` (points, physical units)."""
         with torch.no_grad():
             return self.deformation.deformation(nu)
+
+    def gradient(self, x: tuple) -> tuple:
+        """``(terms, h, nu)`` by autograd through ``differentiable(x)`` (module docstring)."""
+        s = self.num_steps / self.domain.cell_volume
+        k = len(x)
+        with torch.enable_grad():
+            leaves = tuple(t.detach().requires_grad_(True) for t in x)
+            terms, aux, l2 = self.differentiable(leaves)
+            grads = torch.autograd.grad(terms["objective"], (*leaves, *aux))
+        h = l2(tuple(t.detach() for t in x), tuple(s * g for g in grads[:k]), grads[k:])
+        return {key: float(v.detach()) for key, v in terms.items()}, h, aux[0].detach()
 
     def check_iterate(self, x: tuple) -> None:
         if not isinstance(x, tuple) or len(x) != len(self.iterate_names):
