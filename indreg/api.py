@@ -1,7 +1,7 @@
 """One call from Python: ``indreg.register(template, data, operator, **options) -> RegistrationResult``.
 
 It validates the options (``indreg.options``: the same table as the app's config), builds the kernel of V, the
-model's objective (``indreg.models``: ``"lddmm"``, ``"metamorphosis"`` or one you register) and a solver, runs the
+model's objective (``indreg.models``: the built-in ones or one you register) and a solver, runs the
 shared loop and returns the reconstruction with the deformation and a report (``indreg.run``). The
 ``indreg-register`` app runs the same code, adding checkpoints, TensorBoard, figures and files.
 
@@ -53,17 +53,12 @@ def register(template, data, operator, **options) -> RegistrationResult:
         gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
         action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose" (default
             "compose" with ``solver="fast"``, else "reinterpolate", the paper's).
-        backward: LDDMM: "paper" (Algorithm 1's gradient, the default), "exact" (the exact gradient of the
-            discrete map by its hand-written adjoint, about the paper's cost; torch.optim solvers use it in
-            place of "paper") or "autograd" (the same exact gradient, about 2x the cost); metamorphosis:
-            "adjoint" (default, its exact gradient) or "autograd".
-        model: "lddmm" (default), "metamorphosis" (the image path ``d/dt f + <grad f, nu> = zeta`` also
-            changes intensities, eq:Metam:ODE) or a model added with ``indreg.models.register_model``.
-            Metamorphosis' own options: ``tau`` (the source's penalty, 1.0), ``source_sigma`` (None: the paper's
-            L2 source; else the width of a Gaussian RKHS for the source), ``source_mask`` (None, ``"template"``:
-            intensities change only on the template's support dilated by 1 unit, or an array in [0, 1]),
-            ``source_step_size`` (Algorithm 1; default ``1 / (tau + ||T||^2)``), ``source_lr`` (torch.optim;
-            default ``lr``), ``source_start`` (Algorithm 1: iterations with the source frozen).
+        backward: None: the model's default (LDDMM: "paper", Algorithm 1's gradient); LDDMM also "exact" (the
+            exact gradient of the discrete map by its hand-written adjoint, about the paper's cost; torch.optim
+            solvers use it in place of "paper") or "autograd" (the same exact gradient, about 2x the cost).
+        model: "lddmm" (default), another name in ``indreg.models.MODELS`` or a model added with
+            ``indreg.models.register_model``; a model's own options (``indreg.models``, e.g. ``tau``) are
+            keywords too, and an option of another model or solver given a value is an error.
         solver: "algorithm1" (default), "fast" (coarse-to-fine, ``indreg.solvers.MultilevelSolver``; its
             options in ``optimizer_kwargs``), "lbfgs", or any ``torch.optim`` optimizer name (case-insensitive).
         max_iter: 200. grad_tol: stop when the gradient norm is below it (0: never).

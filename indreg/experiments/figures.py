@@ -87,7 +87,7 @@ def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"
     return fig
 
 
-def metamorphosis_figure(final, deformation_part, intensity_part, target=None, extent=None, title: str = ""):
+def parts_figure(final, deformation_part, intensity_part, target=None, extent=None, title: str = ""):
     """Metamorphosis: f(1), its pure-deformation part W(nu, I), its intensity part f(1) - W(nu, I) (own symmetric
     grey scale, 0 = mid grey) and the target; f(1), W(nu, I) and the target share the target's grey scale."""
     scale = final if target is None else target

@@ -324,8 +324,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     result that ``indreg.register`` would return (``indreg.run.build_result``).
 
     Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
-    data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (metamorphosis:
-    source and the parts of f(1)) are saved by name; those it scores (``problem.scored``) get SSIM / PSNR."""
+    data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (e.g. a source and
+    the parts of f(1)) are saved by name; those it scores (``problem.scored``) get SSIM / PSNR."""
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
@@ -407,7 +407,7 @@ def _figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -
         writer.image("images/deformation_part", parts[0], it)
         bound = max(float(parts[1].abs().max()), 1e-12)
         writer.image_scaled("images/intensity_part", parts[1], it, -bound, bound)
-        writer.figure("images/metamorphosis_parts", _parts_figure(exp, r.deformed, parts), it)
+        writer.figure("images/parts", _parts_figure(exp, r.deformed, parts), it)
 
 
 def _paper_figure(exp, traj, rec: dict, title: str):
@@ -440,10 +440,10 @@ def _ortho_figure(exp, traj, rec: dict, title: str = ""):
 
 
 def _parts_figure(exp, final, parts, title: str = ""):
-    """``figures.metamorphosis_figure`` of a run: f(1), W(nu, I), f(1) - W(nu, I), target."""
+    """``figures.parts_figure`` of a run: f(1), W(nu, I), f(1) - W(nu, I), target."""
     from . import figures
 
-    return figures.metamorphosis_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]),
+    return figures.parts_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]),
                                         None if exp.target_64 is None else exp.target_64.numpy(),
                                         extent=domain_extent(exp.domain), title=title)
 

@@ -3,13 +3,13 @@
 Tags::
 
     scalars  loss/objective, loss/data_fit, loss/regulariser, optim/grad_norm, optim/step_size,
-             deformation/min_jacobian (every iteration; metamorphosis adds loss/source_regulariser,
-             optim/source_grad_norm, optim/source_step_size); metrics/ssim, metrics/psnr, metrics/ssim_paper,
+             deformation/min_jacobian (every iteration; a model with more terms or iterate entries adds
+             them, e.g. loss/source_regulariser, optim/source_grad_norm, optim/source_step_size); metrics/ssim, metrics/psnr, metrics/ssim_paper,
              metrics/psnr_paper (every k iterations and at the end)
     images   images/deformed_template (every k), images/trajectory (t_i strip), images/template,
-             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}); metamorphosis:
-             images/deformed_template is f(1), plus images/deformation_part (W(nu, I)) and
-             images/intensity_part (f(1) - W(nu, I), its own grey scale) at the end
+             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}); a model whose
+             reconstruction f(1) has parts adds images/deformation_part (W(nu, I)),
+             images/intensity_part (f(1) - W(nu, I), its own grey scale) and images/parts at the end
     hparams  gamma, sigma, N, step_size, action, solver, phantom -> hparam/ssim, hparam/psnr, ... (HParams tab)
 
 View: ``tensorboard --logdir outputs`` (or a multirun dir to compare a sweep).

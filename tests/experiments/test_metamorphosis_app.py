@@ -132,5 +132,5 @@ def test_cli_end_to_end(tmp_path):
     ea = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
     ea.Reload()
     assert {"loss/source_regulariser", "loss/regulariser"} <= set(ea.Tags()["scalars"])
-    assert {"images/deformation_part", "images/intensity_part", "images/metamorphosis_parts"} <= \
+    assert {"images/deformation_part", "images/intensity_part", "images/parts"} <= \
         set(ea.Tags()["images"])
