@@ -1,0 +1,105 @@
+"""Record the golden numbers of every experiment preset (tests/data/presets_golden.json).
+
+Runs the ``indreg-register`` app in-process (``register.run``) for every preset in ``indreg/conf/experiment/``,
+unchanged except a few iterations (``MAX_ITER``, default ``DEFAULT_MAX_ITER``), no baselines, no TensorBoard /
+figure / progress bar, on the CPU; ``suite_et_3d`` also on a 32^3 grid with a 32-column detector (``SHRINK``: its
+64^3 grid takes about 50 s for 2 iterations on a 2-core CPU). Then ``VARIANTS``: suite 1 with the other solvers and
+deformation models, and a metamorphosis preset with its source updated from iteration 2 (the presets freeze it
+for their first 300-600 iterations). Then ``indreg.register`` on suite 1 (README, "Example") with ``API_CASES``.
+
+Stores, per case, the overrides (options) and the scalars of the metrics (result) but timings, config and device
+(``golden_helpers``); ``tests/experiments/test_presets_golden.py`` re-runs every case and compares.
+
+    python scripts/make_presets_golden.py            # writes tests/data/presets_golden.json
+    python scripts/make_presets_golden.py --out /tmp/golden.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "experiments")]  # this checkout's indreg and test helpers
+
+import torch  # noqa: E402
+
+from golden_helpers import GOLDEN, api_numbers, app_numbers  # noqa: E402
+
+PRESETS = ROOT / "indreg" / "conf" / "experiment"
+COMMON = ["baseline.enabled=false", "logging.tensorboard=false", "logging.figure=false", "logging.progress=false",
+          "device=cpu"]
+DEFAULT_MAX_ITER = 3                       # 256^2 and 438^2 presets: 0.3-1 s per iteration
+MAX_ITER = {"suite1_jv": 10, "own_data_example": 10, "suite_et_3d": 2}
+SHRINK = {"suite_et_3d": ["phantom.size=32", "geometry.det_count=32"]}  # same [-16, 16]^3, 1-unit voxels / columns
+VARIANTS = {
+    "suite1_jv-lbfgs": ["experiment=suite1_jv", "solver=lbfgs", "solver.max_iter=10"],
+    # level_iter 3, 3: both coarse levels and the problem's grid within 9 iterations
+    "suite1_jv-fast": ["experiment=suite1_jv", "solver=fast", "solver.max_iter=9",
+                       "solver.optimizer_kwargs.level_iter=[3,3]"],
+    "suite1_jv-adam": ["experiment=suite1_jv", "solver=adam", "solver.lr=1e-4", "solver.max_iter=10"],  # 1e-3 folds
+    "suite1_jv-mass_preserving": ["experiment=suite1_jv", "deformation=mass_preserving", "solver.max_iter=10"],
+    "suite1_jv-metamorphosis": ["experiment=suite1_jv", "deformation=metamorphosis", "solver.max_iter=10"],
+    "suite1_jv-backward_exact": ["experiment=suite1_jv", "deformation.backward=exact", "solver.max_iter=10"],
+    "suite4_missing_object_metamorphosis-source_start_1": [
+        "experiment=suite4_missing_object_metamorphosis", "solver.source_start=1", "solver.max_iter=3"],
+}
+API_CASES = {
+    "default": {"max_iter": 10},
+    "lbfgs": {"solver": "lbfgs", "max_iter": 5},
+    "fast": {"solver": "fast", "max_iter": 9, "optimizer_kwargs": {"level_iter": [3, 3]}},
+    "metamorphosis": {"model": "metamorphosis", "max_iter": 10},
+}
+
+
+def app_cases() -> dict:
+    """Case name -> overrides: every preset of the directory, then ``VARIANTS``."""
+    cases = {}
+    for path in sorted(PRESETS.glob("*.yaml")):
+        name = path.stem
+        cases[name] = ([f"experiment={name}", f"solver.max_iter={MAX_ITER.get(name, DEFAULT_MAX_ITER)}"]
+                       + SHRINK.get(name, []))
+    cases.update(VARIANTS)
+    return {k: v + COMMON for k, v in cases.items()}
+
+
+def _commit() -> str:
+    proc = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True)
+    return proc.stdout.strip() or "unknown"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=GOLDEN)
+    args = ap.parse_args()
+    golden = {"about": {"commit": _commit(), "torch": torch.__version__, "python": platform.python_version(),
+                        "threads": torch.get_num_threads()},
+              "app": {}, "api": {}}
+    rows = []
+    for name, overrides in app_cases().items():
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory() as out_dir:
+            numbers = app_numbers(overrides, out_dir)
+        golden["app"][name] = {"overrides": overrides, "metrics": numbers}
+        rows.append(("app", name, time.perf_counter() - t0, numbers))
+    for name, options in API_CASES.items():
+        t0 = time.perf_counter()
+        numbers = api_numbers(options)
+        golden["api"][name] = {"options": options, "result": numbers}
+        rows.append(("api", name, time.perf_counter() - t0, numbers))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(golden, indent=2, sort_keys=True) + "\n")
+    print("| kind | case | seconds | status | iterations | objective | SSIM |\n|---|---|---|---|---|---|---|")
+    for kind, name, seconds, m in rows:
+        print(f"| {kind} | {name} | {seconds:.1f} | {m['status']} | {m['iterations']} | {m['objective']:.6g} | "
+              f"{m.get('ssim', float('nan')):.4f} |")
+    print(f"\nwrote {args.out} ({len(rows)} cases)")
+
+
+if __name__ == "__main__":
+    main()
