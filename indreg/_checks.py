@@ -1,10 +1,21 @@
-"""Input validation shared by every operator: errors name the problem and the expected value."""
+"""Input validation shared by every operator: errors name the problem and the expected value.
+
+Scalars: a number is a python ``int`` / ``float``, a numpy real scalar or a 0-dim real numpy array / torch
+tensor; ``str``, ``bool`` (python or numpy), ``None``, complex numbers and arrays with more than one entry are
+refused with a ``TypeError`` (``float("6")`` and ``float(True)`` would otherwise pass as 6.0 and 1.0).
+"""
 from __future__ import annotations
 
+import math
+import numbers
+
+import numpy as np
 import torch
 
 
 FLOAT_DTYPES = (torch.float32, torch.float64)
+#: Largest integer parameter accepted (torch's index type, int64).
+INT_MAX = 2 ** 63 - 1
 
 
 def check_dtype(x: torch.Tensor, name: str) -> None:
@@ -15,8 +26,12 @@ def check_dtype(x: torch.Tensor, name: str) -> None:
         raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
 
 
-def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int | None = None) -> torch.Tensor:
-    """Check that ``x`` is a float32 / float64 tensor with finite values and the given trailing shape."""
+def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int | None = None,
+                 finite: bool = True) -> torch.Tensor:
+    """Check that ``x`` is a float32 / float64 tensor with the given trailing shape and (``finite``) finite values.
+
+    ``finite=False`` skips the pass over the values, for intermediate results (residuals, deformed images)
+    whose non-finite values the caller reports itself (a solver rejects a step with a non-finite objective)."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     check_dtype(x, name)
@@ -27,9 +42,16 @@ def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int
                 f"{name} must have shape (..., {', '.join(map(str, trailing_shape))}), got {tuple(x.shape)}")
     if min_dim is not None and x.dim() < min_dim:
         raise ValueError(f"{name} must have at least {min_dim} dims, got shape {tuple(x.shape)}")
-    if not bool(torch.isfinite(x).all()):
+    if finite and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name} contains non-finite values (nan or inf)")
     return x
+
+
+def check_nonempty(x: torch.Tensor, name: str, event_dims: int) -> None:
+    """Check that a batch ``(..., *event)`` (``event`` its last ``event_dims`` axes) holds at least one item."""
+    if x.numel() == 0:
+        raise ValueError(f"{name} is empty (shape {tuple(x.shape)}): give at least one item of "
+                         f"shape {tuple(x.shape[x.dim() - event_dims:])}")
 
 
 def check_same(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
@@ -40,25 +62,87 @@ def check_same(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> No
         raise ValueError(f"{name_a} is on {a.device} but {name_b} is on {b.device}; they must match")
 
 
-def check_positive(value, name: str) -> float:
-    """Check that a scalar parameter is a finite positive number."""
+def _shown(value) -> str:
+    """A short description of a refused value (arrays by shape and dtype, not by their entries)."""
+    if isinstance(value, (torch.Tensor, np.ndarray)):
+        return f"a {type(value).__name__} of shape {tuple(value.shape)} and dtype {value.dtype}"
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def check_number(value, name: str, expected: str = "a real number") -> float:
+    """``value`` as a python float if it is a real number (module docstring), else a ``TypeError``.
+
+    Any real number is accepted, nan and inf included (callers check the range)."""
+    scalar = value
+    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:
+        scalar = value.item()
+    if isinstance(scalar, (bool, np.bool_)) or not isinstance(scalar, numbers.Real):
+        raise TypeError(f"{name} must be {expected}, got {_shown(value)}")
     try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a positive number, got {value!r}") from None
-    if not (v > 0 and v < float("inf")):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        return float(scalar)
+    except OverflowError:  # an int beyond float64
+        raise ValueError(f"{name} must be {expected}, got {_shown(value)} (beyond float64)") from None
+
+
+def check_finite_in(value, name: str, dtype: torch.dtype | None) -> float:
+    """Check that a finite number stays finite, and nonzero if nonzero, when cast to the float ``dtype`` (e.g. a
+    step size used as ``alpha`` of a float32 ``torch.add``: ``1e39`` overflows to inf, ``1e-50`` underflows to
+    0). ``dtype=None`` checks nothing. Returns the float."""
+    v = check_number(value, name)
+    if dtype is None or not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        if dtype is None:
+            return v
+        raise TypeError(f"dtype must be a floating torch.dtype, got {dtype!r}")
+    cast = float(torch.tensor(v, dtype=torch.float64).to(dtype))
+    if math.isfinite(v) and not math.isfinite(cast):
+        raise ValueError(f"{name} must be representable in {dtype} (|value| <= {torch.finfo(dtype).max:.4g}), "
+                         f"got {value!r}")
+    if v != 0 and cast == 0:
+        raise ValueError(f"{name} must be representable in {dtype}, got {value!r}, which rounds to 0 there")
     return v
+
+
+def check_positive(value, name: str, dtype: torch.dtype | None = None) -> float:
+    """Check that a scalar parameter is a finite number > 0 (representable in ``dtype`` if given)."""
+    v = check_number(value, name, "a positive number")
+    if not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return check_finite_in(v, name, dtype)
+
+
+def check_nonnegative(value, name: str, dtype: torch.dtype | None = None) -> float:
+    """Check that a scalar parameter is a finite number >= 0 (representable in ``dtype`` if given)."""
+    v = check_number(value, name, "a number >= 0")
+    if not (v >= 0 and math.isfinite(v)):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return check_finite_in(v, name, dtype)
+
+
+def check_finite(value, name: str) -> float:
+    """Check that a scalar parameter is a finite real number (any sign)."""
+    v = check_number(value, name, "a finite number")
+    if not math.isfinite(v):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return v
+
+
+def check_bool(value, name: str) -> bool:
+    """Check that a flag is a bool (python or numpy): ``"no"`` or ``None`` would otherwise pass by truthiness."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {_shown(value)}")
+    return bool(value)
 
 
 def check_int(value, name: str, minimum: int) -> int:
     """Check that a parameter is an integer >= minimum (an integral float such as 4.0 is accepted)."""
-    try:
-        integral = not isinstance(value, bool) and int(value) == value
-    except (TypeError, ValueError, OverflowError):  # None, "a", nan, inf, ...
-        integral = False
+    scalar = value.item() if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0 else value
+    integral = (isinstance(scalar, numbers.Real) and not isinstance(scalar, (bool, np.bool_))
+                and math.isfinite(scalar) and int(scalar) == scalar)
     if not integral:
-        raise TypeError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    if int(value) < minimum:
+        raise TypeError(f"{name} must be an integer >= {minimum}, got {_shown(value)}")
+    if int(scalar) < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
+    if int(scalar) > INT_MAX:
+        raise ValueError(f"{name} must be an integer <= {INT_MAX} (int64), got {value!r}")
+    return int(scalar)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._checks import check_int, check_tensor
+from ._checks import check_int, check_number, check_tensor
 
 
 AXES = "xyz"
@@ -15,8 +15,10 @@ AXES = "xyz"
 def _corner(point, name: str, ndim: int) -> tuple:
     """A corner of the box as ``ndim`` finite floats (an infinite extent has no cells to sample)."""
     try:
-        values = tuple(float(v) for v in point)
-    except (TypeError, ValueError):
+        if isinstance(point, (str, bytes)):
+            raise TypeError
+        values = tuple(check_number(v, name) for v in point)
+    except TypeError:
         raise TypeError(f"{name} must be {ndim} finite numbers ({', '.join(AXES[:ndim])}), got {point!r}") from None
     if len(values) != ndim:
         raise ValueError(f"{name} must have {ndim} entries ({', '.join(AXES[:ndim])}) like shape, got {point!r}")
@@ -54,6 +56,8 @@ class ImageDomain:
     max_pt: tuple | None = None
 
     def __post_init__(self):
+        if isinstance(self.shape, (str, bytes)):
+            raise TypeError(f"shape must be 2 or 3 integers (nx, ny[, nz]), got {self.shape!r}")
         shape = tuple(self.shape) if hasattr(self.shape, "__len__") else (self.shape, self.shape)
         if len(shape) not in (2, 3):
             raise ValueError(f"shape must have 2 entries (nx, ny) or 3 (nx, ny, nz), got {self.shape!r}")

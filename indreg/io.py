@@ -32,6 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ._checks import check_positive
+from .domain import ImageDomain
+
 PICTURE = (".png", ".tif", ".tiff")
 MRC = (".mrc", ".st", ".ali")
 CONTAINER = (".npz", ".h5", ".hdf5")
@@ -61,9 +64,16 @@ def _fail(name: str, spec, problem) -> DataFileError:
     return DataFileError(_one_line(f"{name} file {spec}: {problem}"))
 
 
-def split_path(spec) -> tuple:
+def _as_path(spec, name: str) -> Path:
+    """``spec`` as a ``Path``; anything but a str / ``os.PathLike`` is a ``DataFileError`` naming ``name``."""
+    if not isinstance(spec, (str, os.PathLike)):
+        raise DataFileError(f"{name} path must be a str or os.PathLike, got {type(spec).__name__}")
+    return Path(spec)
+
+
+def split_path(spec, name: str = "data") -> tuple:
     """``(path, key)`` of a path ``file.npz:key`` / ``file.h5:/group/dataset`` (key ``None`` if not given)."""
-    text = str(spec)
+    text = str(_as_path(spec, name))
     match = _KEYED.match(text)
     if match and not Path(text).exists():
         return Path(match.group(1)), (match.group(2) or None)
@@ -167,7 +177,7 @@ _READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _rea
 
 def _load(spec, name: str) -> tuple:
     """``(raw array, suffix)`` of the file named by ``spec``; every failure is a ``DataFileError``."""
-    path, key = split_path(spec)
+    path, key = split_path(spec, name)
     suffix = path.suffix.lower()
     if suffix not in _READERS:
         raise _fail(name, spec, f"unknown format {suffix or '(no extension)'!r}; supported: {', '.join(FORMATS)}")
@@ -269,7 +279,7 @@ def read_volume(path, *, name: str = "template") -> np.ndarray:
     Raises:
         DataFileError: one line ``"{name} file {path}: {problem}"``.
     """
-    if split_path(path)[0].suffix.lower() in PICTURE:
+    if split_path(path, name)[0].suffix.lower() in PICTURE:
         raise _fail(name, path, f"a volume must be {', '.join(('.npy',) + CONTAINER + MRC)}, not a picture")
     raw, suffix = _load(path, name)
     volume = _numeric(raw, name, path, ndim=3)
@@ -280,7 +290,7 @@ def read_voxel_size(path, *, name: str = "volume") -> tuple:
     """Voxel (cell) size ``(hx, hy, hz)`` from an MRC header, as floats (MRC's unit, Angstrom by convention)."""
     import mrcfile
 
-    path = Path(path)
+    path = _as_path(path, name)
     if path.suffix.lower() not in MRC:
         raise _fail(name, path, f"only MRC files ({', '.join(MRC)}) carry a voxel size")
     if not path.is_file():
@@ -397,7 +407,7 @@ def tilt_angles_for(sinogram_path) -> Path | None:
 
     A ``:key`` suffix (``data.h5:/sino``) is ignored: the sibling of ``data.h5`` is ``data.tlt``.
     """
-    path, _ = split_path(sinogram_path)
+    path, _ = split_path(sinogram_path, "sinogram")
     for suffix in (".tlt", ".rawtlt"):
         candidate = path.with_suffix(suffix)
         if candidate.is_file():
@@ -417,7 +427,7 @@ def write_image(path, array) -> Path:
     Raises:
         DataFileError: unknown extension, non-numeric or non-finite data, or the file cannot be written.
     """
-    path = Path(path)
+    path = _as_path(path, "output")
     suffix = path.suffix.lower()
     if suffix not in WRITE_FORMATS:
         raise _fail("output", path, f"cannot write format {suffix or '(no extension)'!r}; use {WRITE_FORMATS}")
@@ -483,11 +493,13 @@ def write_volume(path, volume, domain=None) -> Path:
         DataFileError: unknown extension, not a finite real 3D array, a shape other than ``domain.shape``, or
         the file cannot be written.
     """
-    path = Path(path)
+    path = _as_path(path, "output")
     suffix = path.suffix.lower()
     if suffix not in WRITE_FORMATS:
         raise _fail("output", path, f"cannot write format {suffix or '(no extension)'!r}; use {WRITE_FORMATS}")
     data = _finite_array(volume, path, 3, "volume")
+    if domain is not None and not isinstance(domain, ImageDomain):
+        raise TypeError(f"domain must be an ImageDomain or None, got {type(domain).__name__}")
     if domain is not None and tuple(data.shape) != tuple(domain.shape):
         raise _fail("output", path, f"volume has shape {data.shape} but the domain has {tuple(domain.shape)}")
     if suffix == ".npy":
@@ -504,13 +516,15 @@ def write_tilt_series(path, data, angles, pixel_size: float | None = None) -> Pa
     """Write a tilt series ``(num_tilts, det_rows, det_cols)`` as an MRC stack (sections = tilts, as stored)
     and its angles (radians) as ``stem.tlt`` in degrees, one a line: what ``read_tilt_series`` reads.
     ``pixel_size``: the detector cell (x and y of the header; z = 1)."""
-    path = Path(path)
+    path = _as_path(path, "output")
     if path.suffix.lower() not in MRC:
         raise _fail("output", path, f"a tilt series is written as MRC ({', '.join(MRC)})")
     stack = _finite_array(data, path, 3, "tilt series")
     radians = np.asarray(angles.detach().cpu() if hasattr(angles, "detach") else angles, dtype=np.float64)
     if radians.shape != (stack.shape[0],) or not np.isfinite(radians).all():
         raise _fail("output", path, f"needs {stack.shape[0]} finite angles (one per tilt), got shape {radians.shape}")
+    if pixel_size is not None:
+        pixel_size = check_positive(pixel_size, "pixel_size")
     _write_mrc(path, stack, None if pixel_size is None else (pixel_size, pixel_size, 1.0))
     tlt = path.with_suffix(".tlt")
     try:

@@ -2,8 +2,9 @@
 
 Convention:
     - Every function takes ``(x, gt)``: the result first, the ground truth second, each a 2D image
-      ``(nx, ny)`` or a 3D volume ``(nx, ny, nz)`` as a torch tensor (any device/dtype) or numpy array;
-      compared in float64; returns a float.
+      ``(nx, ny)`` or a 3D volume ``(nx, ny, nz)`` as a torch tensor (any device, real dtype) or numpy array;
+      compared in float64; returns a float. Both must have the same shape, finite real values (complex and
+      boolean inputs are refused, not cast), and for SSIM at least 7 cells per axis.
     - ``ssim`` / ``psnr``: today's honest convention, ``data_range = gt.max() - gt.min()``.
     - ``ssim_paper`` / ``psnr_paper``: the 2017 scikit-image defaults (``compare_ssim`` / ``compare_psnr``) that
       the paper's numbers use: SSIM with data range 2 (the float dtype range -1..1); PSNR with data range 2 if
@@ -21,17 +22,30 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+#: Side of scikit-image's default SSIM window (cells).
+SSIM_WINDOW = 7
+
+
+def _real_array(a, name: str) -> np.ndarray:
+    """``a`` (torch tensor or numpy array) as a float64 numpy array; complex, boolean and non-numeric refused."""
+    if isinstance(a, torch.Tensor):
+        if a.is_complex() or a.dtype == torch.bool:
+            raise TypeError(f"{name} must have real numeric values, got dtype {a.dtype}")
+        return a.detach().cpu().to(torch.float64).numpy()
+    if not isinstance(a, np.ndarray):
+        raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(a).__name__}")
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must have real numeric values, got dtype {a.dtype}")
+    return a.astype(np.float64)
+
 
 def _pair(x, gt) -> tuple:
     arrays = []
     for a, name in ((x, "x"), (gt, "gt")):
-        if isinstance(a, torch.Tensor):
-            a = a.detach().cpu().numpy()
-        elif not isinstance(a, np.ndarray):
-            raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(a).__name__}")
-        if a.ndim not in (2, 3):
-            raise ValueError(f"{name} must be a 2D image (nx, ny) or a 3D volume (nx, ny, nz), got shape {a.shape}")
-        a = a.astype(np.float64)
+        a = _real_array(a, name)
+        if a.ndim not in (2, 3) or a.size == 0:
+            raise ValueError(f"{name} must be a non-empty 2D image (nx, ny) or 3D volume (nx, ny, nz), "
+                             f"got shape {a.shape}")
         if not np.isfinite(a).all():
             raise ValueError(f"{name} contains non-finite values (nan or inf)")
         arrays.append(a)
@@ -53,9 +67,18 @@ def _psnr(x: np.ndarray, gt: np.ndarray, data_range: float) -> float:
     return float(peak_signal_noise_ratio(gt, x, data_range=data_range))
 
 
+def _ssim_pair(x, gt) -> tuple:
+    """``_pair`` for SSIM, whose 7-pixel window needs every side >= 7."""
+    x, gt = _pair(x, gt)
+    if min(x.shape) < SSIM_WINDOW:
+        raise ValueError(f"x and gt must be at least {SSIM_WINDOW} cells along every axis for SSIM (its "
+                         f"{SSIM_WINDOW}-cell window), got shape {x.shape}")
+    return x, gt
+
+
 def ssim(x, gt) -> float:
     """Structural similarity, ``data_range = gt.max() - gt.min()`` (1 for identical images)."""
-    x, gt = _pair(x, gt)
+    x, gt = _ssim_pair(x, gt)
     return float(structural_similarity(x, gt, data_range=_gt_range(gt)))
 
 
@@ -67,7 +90,7 @@ def psnr(x, gt) -> float:
 
 def ssim_paper(x, gt) -> float:
     """Structural similarity as the paper computed it (2017 ``compare_ssim`` on floats: data range 2)."""
-    x, gt = _pair(x, gt)
+    x, gt = _ssim_pair(x, gt)
     return float(structural_similarity(x, gt, data_range=2.0))
 
 

@@ -13,11 +13,9 @@ Convention:
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
-from ._checks import check_int, check_tensor
+from ._checks import check_int, check_nonnegative, check_number, check_tensor
 
 #: SNR of the paper's test suites, in the authors' code convention (``convention="code"``).
 PAPER_SNR_DB = {"suite1": 4.87, "suite2": 4.75, "suite3": 7.06, "suite4_missing": 7.06, "suite4_extra": 6.46}
@@ -49,14 +47,6 @@ def snr_db(ideal: torch.Tensor, noise: torch.Tensor, convention: str = "code", e
     return factor * torch.log10(_centred_norm(ideal, k) / _centred_norm(noise, k))
 
 
-def _number(value, name: str, expected: str) -> float:
-    """``float(value)``, or a TypeError naming the parameter."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be {expected}, got {value!r}") from None
-
-
 def _generator(seed) -> torch.Generator:
     if isinstance(seed, torch.Generator):
         if seed.device.type != "cpu":
@@ -83,11 +73,8 @@ def add_white_noise(data: torch.Tensor, snr_db: float | None = None, std: float 
     if (snr_db is None) == (std is None):
         raise ValueError(f"give exactly one of snr_db and std, got snr_db={snr_db!r}, std={std!r}")
     if std is not None:
-        s = _number(std, "std", "a finite number >= 0")
-        if not (math.isfinite(s) and s >= 0):
-            raise ValueError(f"std must be a finite number >= 0, got {std!r}")
-        return _added(data, s * _draw(data, generator))
-    target = _number(snr_db, "snr_db", "a finite number (dB)")
+        return _added(data, check_nonnegative(std, "std") * _draw(data, generator))
+    target = check_number(snr_db, "snr_db", "a finite number (dB)")
     if not abs(target) <= _SNR_DB_MAX:
         raise ValueError(f"snr_db must be a finite number (dB) in [-{_SNR_DB_MAX:g}, {_SNR_DB_MAX:g}], got {snr_db!r}")
     signal = _centred_norm(data.detach().to(torch.float64).cpu(), k)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
+from .._checks import FLOAT_DTYPES, check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 
@@ -269,6 +269,7 @@ class LDDMMDeformation(torch.nn.Module):
         if not isinstance(velocity, torch.Tensor) or velocity.dtype not in FLOAT_DTYPES \
                 or velocity.shape[velocity.dim() - t:] != shape:
             check_tensor(velocity, "velocity", shape)
+        check_nonempty(velocity, "velocity", t)
         moving, finite = Fd.step_flags(velocity, d)
         if not finite:
             check_tensor(velocity, "velocity", shape)
@@ -277,6 +278,7 @@ class LDDMMDeformation(torch.nn.Module):
     def _check(self, velocity, template) -> list:
         moving = self._check_velocity(velocity)
         _check_fast(template, "template", self.domain.shape)
+        check_nonempty(template, "template", self.domain.ndim)
         check_same(velocity, template, "velocity", "template")
         d = self.domain.ndim
         try:

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from .._checks import check_int, check_same, check_tensor
+from .._checks import check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 from .lddmm import LDDMMDeformation
@@ -302,6 +302,7 @@ class MetamorphosisDeformation(torch.nn.Module):
             raise ValueError(f"source must have num_steps + 1 = {self.num_steps + 1} time points on axis -3 "
                              f"(shape (..., N+1, nx, ny)), got shape {tuple(source.shape)}")
         check_tensor(source, "source", (self.num_steps + 1, *self.domain.shape))
+        check_nonempty(source, "source", 3)
         check_same(velocity, source, "velocity", "source")
         try:
             batch = torch.broadcast_shapes(velocity.shape[:-4], source.shape[:-3], template.shape[:-2])

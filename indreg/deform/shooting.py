@@ -18,7 +18,7 @@ from typing import NamedTuple
 import torch
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
-from .._checks import check_int, check_same, check_tensor
+from .._checks import check_bool, check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as F
 from .kernel import GaussianKernel
@@ -161,7 +161,7 @@ class GeodesicShooting(torch.nn.Module):
         self.kernel = kernel
         self.num_steps = check_int(num_steps, "num_steps", 1)
         self.corrector_steps = check_int(corrector_steps, "corrector_steps", 0)
-        self.checkpoint = bool(checkpoint)
+        self.checkpoint = check_bool(checkpoint, "checkpoint")
         self.deformation = LDDMMDeformation(domain, num_steps=self.num_steps, action=action, backward=backward,
                                             interpolation=interpolation, scheme=scheme)
 
@@ -170,7 +170,9 @@ class GeodesicShooting(torch.nn.Module):
                 f"checkpoint={self.checkpoint}")
 
     def _check_momentum(self, momentum) -> torch.Tensor:
-        return check_tensor(momentum, "momentum", (self.domain.ndim, *self.domain.shape))
+        check_tensor(momentum, "momentum", (self.domain.ndim, *self.domain.shape))
+        check_nonempty(momentum, "momentum", self.domain.ndim + 1)
+        return momentum
 
     def _step(self, displacement, velocity, momentum):
         """One time step ``t_{i-1} -> t_i``: returns ``(u of phi_{t_i,0} (grid units), m_{t_i}, nu(t_i))``."""
@@ -220,6 +222,7 @@ class GeodesicShooting(torch.nn.Module):
         """Deform ``template`` along the geodesic shot from ``momentum`` (see the class docstring)."""
         m0 = self._check_momentum(momentum)
         template = self.domain.check_image(template, "template")
+        check_nonempty(template, "template", self.domain.ndim)
         check_same(m0, template, "momentum", "template")
         velocity, momenta, u = self.shoot(m0)
         deformed = self.deformation(velocity, template)

@@ -28,8 +28,9 @@ import math
 import torch
 from torch import nn
 
-from .._checks import check_positive, check_same, check_tensor
+from .._checks import check_positive, check_tensor
 from ..domain import ImageDomain
+from .operator import check_data_pair
 
 _INSTALL_HINT = 'deepinv is not installed; install the optional extra with: pip install "indreg[deepinv]"'
 _PROTOCOL = ("domain", "range_shape", "adjoint", "inner_data")
@@ -245,8 +246,8 @@ class PhysicsOperator(nn.Module):
 
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
         """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept."""
-        check_same(y1, y2, "y1", "y2")
-        return self.data_weight * (y1 * y2).sum(dim=tuple(range(-len(self.range_shape), 0)))
+        dims = check_data_pair(y1, y2, self.range_shape)
+        return self.data_weight * (y1 * y2).sum(dim=dims)
 
     def norm_data(self, y: torch.Tensor) -> torch.Tensor:
         """Weighted data norm over the data axes."""

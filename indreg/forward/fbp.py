@@ -39,7 +39,7 @@ import math
 import numpy as np
 import torch
 
-from .._checks import check_positive, check_tensor
+from .._checks import check_bool, check_int, check_nonempty, check_positive, check_tensor
 from .geometry import FanBeamGeometry, ParallelBeamGeometry
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hamming", "hann")
@@ -68,13 +68,14 @@ def fbp_filter(det_count: int, det_cell: float, filter: str = "ram-lak", frequen
     ``n_fft = 2 * det_count`` with padding (linear convolution), ``det_count`` without (circular).
     Units: ``1 / length`` (the response approximates ``|rho|``, ``rho`` in cycles per unit length).
     """
-    name = str(filter).lower()
+    name = filter.lower() if isinstance(filter, str) else filter
     if name not in FILTERS:
         raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
     scaling = check_positive(frequency_scaling, "frequency_scaling")
     if scaling > 1:
         raise ValueError(f"frequency_scaling must be in (0, 1], got {frequency_scaling!r}")
-    n_fft = 2 * det_count if padding else det_count
+    det_count, det_cell = check_int(det_count, "det_count", 1), check_positive(det_cell, "det_cell")
+    n_fft = 2 * det_count if check_bool(padding, "padding") else det_count
     offset = torch.fft.fftfreq(n_fft, 1.0 / n_fft, dtype=torch.float64)   # integer offsets n, fft order
     kernel = torch.where(offset.remainder(2) == 1, -1.0 / (math.pi * offset * det_cell) ** 2,
                          torch.zeros_like(offset))
@@ -113,6 +114,7 @@ def fbp(T, y: torch.Tensor, filter: str = "hamming", frequency_scaling: float = 
     if not isinstance(geometry, (ParallelBeamGeometry, FanBeamGeometry)):
         raise TypeError(f"fbp needs a RayTransform with a parallel- or fan-beam geometry, got {type(T).__name__}")
     y = check_tensor(y, "data", T.range_shape)
+    check_nonempty(y, "data", len(T.range_shape))
     if isinstance(geometry, FanBeamGeometry):
         T, y = _rebin_to_parallel(T, y)
         geometry = T.geometry

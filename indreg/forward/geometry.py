@@ -12,7 +12,7 @@ import math
 import numpy as np
 import torch
 
-from .._checks import check_int, check_positive
+from .._checks import check_finite, check_int, check_nonnegative, check_positive
 
 ANGLE_UNITS = ("rad", "deg")
 
@@ -169,16 +169,20 @@ def _check_detector(det_min, det_max) -> tuple:
     if det_min is None or det_max is None:
         raise ValueError(f"give both det_min and det_max, or neither (then the detector is fitted to the "
                          f"domain), got det_min={det_min}, det_max={det_max}")
-    lo, hi = float(det_min), float(det_max)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"det_min and det_max must be finite, got {det_min}, {det_max}")
+    lo, hi = check_finite(det_min, "det_min"), check_finite(det_max, "det_max")
     if not lo < hi:
         raise ValueError(f"det_min must be < det_max, got det_min={det_min} >= det_max={det_max}")
     return lo, hi
 
 
 def _check_weights(weights, n: int) -> torch.Tensor:
-    w = torch.as_tensor(weights, dtype=torch.float64).detach().cpu()
+    try:
+        w = torch.as_tensor(weights)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"angle_weights must be {n} finite positive numbers, got {type(weights).__name__}") from None
+    if w.is_complex() or w.dtype == torch.bool:
+        raise TypeError(f"angle_weights must be real numbers, got dtype {w.dtype}")
+    w = w.detach().cpu().to(torch.float64)
     if w.shape != (n,) or not bool(torch.isfinite(w).all()) or not bool((w > 0).all()):
         raise ValueError(f"angle_weights must be {n} finite positive numbers, got {w.tolist()}")
     return w
@@ -247,10 +251,12 @@ class ParallelBeamGeometry(_Geometry):
         Tilt 0 is ``theta = 0`` (rays along y, detector along x). FBP weighs every tilt by ``step_deg``.
         """
         step = check_positive(step_deg, "step_deg")
-        lo, hi = float(min_deg), float(max_deg)
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-            raise ValueError(f"tilt_series needs finite min_deg <= max_deg, got {min_deg}, {max_deg}")
+        lo, hi = check_finite(min_deg, "min_deg"), check_finite(max_deg, "max_deg")
+        if not lo <= hi:
+            raise ValueError(f"tilt_series needs min_deg <= max_deg, got {min_deg}, {max_deg}")
         count = (hi - lo) / step
+        if not math.isfinite(count):
+            raise ValueError(f"step_deg = {step_deg!r} is too small for [{lo}, {hi}] (infinitely many tilts)")
         if abs(count - round(count)) > 1e-9 * max(1.0, count):
             raise ValueError(f"max_deg - min_deg = {hi - lo} is not a multiple of step_deg = {step}")
         if hi - lo >= 180.0:
@@ -308,10 +314,7 @@ class FanBeamGeometry(_Geometry):
         if src_radius is None:
             raise ValueError("src_radius (source-to-origin distance, > 0) is required")
         self.src_radius = check_positive(src_radius, "src_radius")
-        det_radius = float(det_radius)
-        if not (math.isfinite(det_radius) and det_radius >= 0):
-            raise ValueError(f"det_radius (origin-to-detector distance) must be finite and >= 0, got {det_radius}")
-        self.det_radius = det_radius
+        self.det_radius = check_nonnegative(det_radius, "det_radius")  # origin-to-detector distance
         self._init_common(num_angles, det_count, det_min, det_max, angles, angle_unit, angle_weights,
                           2 * math.pi)
 

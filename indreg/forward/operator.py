@@ -19,7 +19,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from .._checks import check_int, check_same
+from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
 from ..domain import ImageDomain
 
 MEMBERS = ("domain", "range_shape", "__call__", "adjoint", "inner_data")
@@ -53,13 +53,32 @@ def check_operator(op, name: str = "operator"):
     return op
 
 
+def check_data_pair(y1, y2, range_shape) -> tuple:
+    """Check the arguments of ``inner_data``: tensors ``(..., *range_shape)`` of one float dtype and device whose
+    batch dims broadcast (values may be non-finite: a residual's nan / inf shows in the sum). Returns the data
+    axes ``(-k, ..., -1)``."""
+    shape = tuple(range_shape)
+    for y, name in ((y1, "y1"), (y2, "y2")):
+        check_tensor(y, name, shape, finite=False)
+    check_same(y1, y2, "y1", "y2")
+    k = len(shape)
+    try:
+        torch.broadcast_shapes(y1.shape[:y1.dim() - k], y2.shape[:y2.dim() - k])
+    except RuntimeError:
+        raise ValueError(f"batch dims of y1 {tuple(y1.shape[:y1.dim() - k])} and y2 "
+                         f"{tuple(y2.shape[:y2.dim() - k])} do not broadcast") from None
+    return tuple(range(-k, 0))
+
+
 def norm_data(op, y: torch.Tensor) -> torch.Tensor:
     """Weighted data norm ``sqrt(op.inner_data(y, y))``, batch dims kept."""
     return op.inner_data(y, y).sqrt()
 
 
 def _random_pair(op, dtype, device, seed: int) -> tuple:
-    gen = torch.Generator().manual_seed(seed)
+    if dtype not in FLOAT_DTYPES:
+        raise TypeError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    gen = torch.Generator().manual_seed(check_int(seed, "seed", 0))
     x = torch.randn(op.domain.shape, generator=gen, dtype=dtype).to(device)
     y = torch.randn(tuple(op.range_shape), generator=gen, dtype=dtype).to(device)
     return x, y
@@ -108,9 +127,12 @@ class WeightedDataMixin:
         return self.geometry.data_weight / self.domain.cell_volume
 
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept."""
-        check_same(y1, y2, "y1", "y2")
-        return self.geometry.data_weight * (y1 * y2).sum(dim=tuple(range(-len(self.range_shape), 0)))
+        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept.
+
+        Convention: ``y1``, ``y2`` ``(..., *range_shape)``, float32 / float64 alike, batch dims broadcast; values
+        are not checked for finiteness (a residual may hold nan / inf, which the sum then reports)."""
+        dims = check_data_pair(y1, y2, self.range_shape)
+        return self.geometry.data_weight * (y1 * y2).sum(dim=dims)
 
     def norm_data(self, y: torch.Tensor) -> torch.Tensor:
         """Weighted data norm over the data axes."""

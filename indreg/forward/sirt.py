@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from .._checks import check_int, check_tensor
+from .._checks import check_bool, check_int, check_tensor
 from .operator import check_operator
 
 
@@ -26,6 +26,17 @@ def _inverse_sums(sums: torch.Tensor, what: str) -> torch.Tensor:
         raise ValueError(f"sirt needs an operator with a nonnegative matrix, but {what} has negative entries")
     positive = sums > 1e-12 * scale
     return torch.where(positive, 1.0 / torch.where(positive, sums, torch.ones_like(sums)), torch.zeros_like(sums))
+
+
+def start_image(x0, batch: tuple, domain, y: torch.Tensor) -> torch.Tensor:
+    """A copy of the start image ``x0``, shape exactly ``(*batch, *domain.shape)`` (the data's batch), in the
+    dtype and device of the data ``y`` (shared by ``sirt`` and ``tv_reconstruction``)."""
+    shape = (*batch, *domain.shape)
+    check_tensor(x0, "x0", tuple(domain.shape))
+    if tuple(x0.shape) != shape:
+        raise ValueError(f"x0 must have shape {shape} (the data's batch dims, then the domain's), "
+                         f"got {tuple(x0.shape)}")
+    return x0.to(dtype=y.dtype, device=y.device).clone()
 
 
 @torch.no_grad()
@@ -47,10 +58,10 @@ def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None
     check_operator(T, "T")
     y = check_tensor(y, "y", tuple(T.range_shape))
     num_iter = check_int(num_iter, "num_iter", 1)
+    nonneg = check_bool(nonneg, "nonneg")
     dom = T.domain
     batch = y.shape[:y.dim() - len(T.range_shape)]
-    x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else \
-        check_tensor(x0, "x0", tuple(batch) + tuple(dom.shape)).to(dtype=y.dtype, device=y.device).clone()
+    x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else start_image(x0, batch, dom, y)
     row = _inverse_sums(T(dom.zeros(dtype=y.dtype, device=y.device) + 1.0), "T(1) (ray sums)")
     col = _inverse_sums(T.adjoint(torch.ones(T.range_shape, dtype=y.dtype, device=y.device)),
                         "T^*(1) (cell sums)")

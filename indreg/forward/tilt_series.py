@@ -7,6 +7,8 @@ of the forward product is the exact transpose, as in 2D. Conventions: docs/tilt_
 """
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torch import nn
 
@@ -21,9 +23,9 @@ TILT_ANGLE_UNITS = ("deg", "rad")
 
 def _axis_index(tilt_axis) -> int:
     """``"x"``/``"y"``/``"z"`` or 0/1/2 -> the array axis 0, 1 or 2."""
-    if isinstance(tilt_axis, str) and tilt_axis in AXES:
+    if isinstance(tilt_axis, str) and len(tilt_axis) == 1 and tilt_axis in AXES:
         return AXES.index(tilt_axis)
-    if not isinstance(tilt_axis, bool) and tilt_axis in (0, 1, 2):
+    if isinstance(tilt_axis, numbers.Integral) and not isinstance(tilt_axis, bool) and tilt_axis in (0, 1, 2):
         return int(tilt_axis)
     raise ValueError(f"tilt_axis must be 'x', 'y', 'z' (or 0, 1, 2), got {tilt_axis!r}")
 

@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import torch
 
-from .._checks import check_int, check_positive, check_tensor
+from .._checks import check_bool, check_int, check_nonnegative, check_positive, check_tensor
 from ..domain import ImageDomain
 from .operator import check_operator
+from .sirt import start_image
 
 
 def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
@@ -63,6 +64,10 @@ def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0
     ``grad f = 0`` (a subgradient); ``smoothing > 0`` gives the smooth approximation (``TV_eps >= TV``,
     ``TV_eps - TV <= eps |Omega|``), differentiable everywhere.
     """
+    if not isinstance(domain, ImageDomain):
+        raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
+    check_tensor(f, "f", domain.shape, finite=False)  # a deformed template: non-finite values show in the sum
+    smoothing = check_nonnegative(smoothing, "smoothing")
     sq = (gradient(f, domain) ** 2).sum(dim=-domain.ndim - 1)
     if smoothing > 0:
         mag = (sq + smoothing ** 2).sqrt()
@@ -117,10 +122,10 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     check_tensor(y, "y", tuple(T.range_shape))
     mu = check_positive(mu, "mu")
     num_iter = check_int(num_iter, "num_iter", 1)
+    nonneg = check_bool(nonneg, "nonneg")
     dom = T.domain
     batch = y.shape[:y.dim() - len(T.range_shape)]
-    x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else \
-        check_tensor(x0, "x0", tuple(batch) + tuple(dom.shape)).to(dtype=y.dtype, device=y.device).clone()
+    x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else start_image(x0, batch, dom, y)
     opnorm = _normal_operator_norm(T, dom.shape, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1))
     tau = sigma = 1.0 / (1.1 * opnorm)
     vec = -dom.ndim - 1                               # the axis of the gradient's components

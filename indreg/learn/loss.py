@@ -6,9 +6,21 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from .._checks import check_positive, check_same, check_tensor
+from .._checks import check_nonnegative, check_same, check_tensor
 from ..deform.shooting import GeodesicShooting
 from ..forward.operator import LinearOperator, check_operator
+
+
+def _integer_index(index) -> torch.Tensor:
+    """``index`` (a tensor, array or list of transform numbers) as a flat long CPU tensor; floats, booleans and
+    complex numbers are refused (casting 0.7 to 0 would silently pick the wrong transform)."""
+    try:
+        t = torch.as_tensor(index)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"index must be a (B,) integer tensor or list, got {type(index).__name__}") from None
+    if t.dtype == torch.bool or t.is_floating_point() or t.is_complex():
+        raise TypeError(f"index must hold integers (transform numbers), got dtype {t.dtype}")
+    return t.detach().to("cpu", torch.long).reshape(-1)
 
 
 class IndirectShootingLoss(nn.Module):
@@ -58,19 +70,19 @@ class IndirectShootingLoss(nn.Module):
         self.shooting = shooting
         self.transforms = list(transforms)  # operators, not necessarily nn.Modules
         self.shared = shared
-        self.gamma = 0.0 if gamma == 0 else check_positive(gamma, "gamma")
+        self.gamma = check_nonnegative(gamma, "gamma")
         self.reduction = reduction
 
     def _assignment(self, batch: int, index) -> torch.Tensor:
         """Which transform each sample uses: ``(B,)`` long tensor (on CPU)."""
-        if self.shared:
-            return torch.zeros(batch, dtype=torch.long)
         if index is None:
+            if self.shared:
+                return torch.zeros(batch, dtype=torch.long)
             if len(self.transforms) != batch:
                 raise ValueError(f"{len(self.transforms)} ray transforms for a batch of {batch}: give one per "
                                  "sample or an index (B,) into the list")
             return torch.arange(batch)
-        index = torch.as_tensor(index).detach().to("cpu", torch.long).reshape(-1)
+        index = _integer_index(index)
         if index.numel() != batch:
             raise ValueError(f"index must have one entry per sample ({batch}), got {index.numel()}")
         if int(index.min()) < 0 or int(index.max()) >= len(self.transforms):

@@ -19,21 +19,28 @@ import math
 
 import torch
 
-from .._checks import check_same, check_tensor
+from .._checks import check_nonnegative, check_same, check_tensor
+from ..deform.kernel import GaussianKernel
+from ..deform.lddmm import LDDMMDeformation
+from ..domain import ImageDomain
 from ..forward.operator import check_operator
 from ..forward.tv import total_variation
 from .problem import RegistrationProblem
 
 
-def check_nonnegative(value, name: str) -> float:
-    """Check that a scalar parameter is a finite number >= 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number >= 0, got {value!r}") from None
-    if not (v >= 0 and math.isfinite(v)):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
+def _check_parts(ray_transform, deformation, kernel) -> ImageDomain:
+    """Check the operators of the problem (one line naming the argument); returns their common domain."""
+    if not isinstance(deformation, LDDMMDeformation):
+        raise TypeError(f"deformation must be an LDDMMDeformation, got {type(deformation).__name__}")
+    if not isinstance(kernel, GaussianKernel):
+        raise TypeError(f"kernel must be a GaussianKernel, got {type(kernel).__name__}")
+    check_operator(ray_transform, "ray_transform")
+    domain = kernel.domain
+    if ray_transform.domain != domain:
+        raise ValueError(f"ray_transform.domain {ray_transform.domain} differs from kernel.domain {domain}")
+    if deformation.domain != domain:
+        raise ValueError(f"deformation.domain {deformation.domain} differs from kernel.domain {domain}")
+    return domain
 
 
 class IndirectRegistration(RegistrationProblem):
@@ -67,12 +74,7 @@ class IndirectRegistration(RegistrationProblem):
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tv_weight=0.0,
                  tv_smoothing=1e-3):
-        domain = kernel.domain
-        check_operator(ray_transform, "ray_transform")
-        if ray_transform.domain != domain:
-            raise ValueError(f"ray_transform.domain {ray_transform.domain} differs from kernel.domain {domain}")
-        if deformation.domain != domain:
-            raise ValueError(f"deformation.domain {deformation.domain} differs from kernel.domain {domain}")
+        domain = _check_parts(ray_transform, deformation, kernel)
         check_tensor(template, "template")
         if tuple(template.shape) != tuple(domain.shape):
             raise ValueError(f"template must have shape {tuple(domain.shape)} (the domain's), "
@@ -88,9 +90,9 @@ class IndirectRegistration(RegistrationProblem):
         self.domain = domain
         self.template = template
         self.data = data
-        self.gamma = check_nonnegative(gamma, "gamma")
-        self.tv_weight = check_nonnegative(tv_weight, "tv_weight")
-        self.tv_smoothing = check_nonnegative(tv_smoothing, "tv_smoothing")
+        self.gamma = check_nonnegative(gamma, "gamma", template.dtype)
+        self.tv_weight = check_nonnegative(tv_weight, "tv_weight", template.dtype)
+        self.tv_smoothing = check_nonnegative(tv_smoothing, "tv_smoothing", template.dtype)
         self.num_steps = int(deformation.num_steps)
 
     def __repr__(self):
