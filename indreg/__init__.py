@@ -13,6 +13,7 @@ from .solvers import MetamorphosisRegistration, MetamorphosisDescent, Metamorpho
 from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 from .api import RegistrationResult, register
+from .inputs import RegistrationInputs, load
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform",
@@ -20,5 +21,6 @@ __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransfo
            "MultilevelSolver",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
+           "load", "RegistrationInputs",
            "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"
