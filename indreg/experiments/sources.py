@@ -99,10 +99,11 @@ def resolve(name: str) -> Callable:
     if name in SOURCES:
         return SOURCES[name]
     try:
-        fn = _import(name) if ":" in name else _entry_point(name)
+        fn, problem = (_import(name) if ":" in name else _entry_point(name)), None
     except Exception as e:   # the user's module: a missing module or attribute, a syntax error, ... as one line
-        raise ConfigError(f"invalid config value data.source={name!r}: cannot import it "
-                          f"({type(e).__name__}: {' '.join(str(e).split())})") from None
+        fn, problem = None, f"{type(e).__name__}: {' '.join(str(e).split())}"
+    if problem is not None:   # raised outside the except: no chained context in the one-line message
+        raise ConfigError(f"invalid config value data.source={name!r}: cannot import it ({problem})")
     if fn is None:
         known = sorted(SOURCES) + sorted(ep.name for ep in _entry_points())
         raise ConfigError(f"invalid config value data.source={name!r}: expected one of {', '.join(known)} or an "

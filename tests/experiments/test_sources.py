@@ -2,6 +2,7 @@
 user's source as ``module:function`` or an ``indreg.sources`` entry point runs through the app; a bad source is one
 ``ConfigError`` line; ``sources`` does not import ``config`` (no import cycle)."""
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -14,7 +15,7 @@ import indreg
 from indreg.experiments import sources
 from indreg.experiments.config import DATA_DIR, ConfigError, validate
 
-from experiment_helpers import FAST, compose, run_app, write_tilt_series_files
+from experiment_helpers import FAST, compose, run_app, run_cli, write_tilt_series_files
 
 
 def same(loaded, data):
@@ -91,11 +92,31 @@ def user_source(tmp_path, monkeypatch):
 
 def test_module_function_source_runs_through_the_app(tmp_path, user_source):
     template, data, args = user_source
-    m = run_app(["data.source=user_source_bundle:bundle", *args, *FAST], tmp_path / "run")
+    m = run_app(["data=files", "data.source=user_source_bundle:bundle", *args, *FAST], tmp_path / "run")
     assert m["status"] == "completed" and m["hparams"]["template"] == "array" and "ssim" not in m
+    assert m["config"]["data"]["source"] == "user_source_bundle:bundle" and m["config"]["solver"]["step_halving"]
     np.testing.assert_array_equal(np.load(tmp_path / "run" / "template.npy"), template.numpy())
     np.testing.assert_array_equal(np.load(tmp_path / "run" / "data.npy"), data.numpy())
     assert m["objective"] < json.loads((tmp_path / "run" / "history.json").read_text())[0]["objective"]
+
+
+@pytest.mark.slow
+def test_module_function_source_from_the_cli(tmp_path, user_source):
+    """``indreg-register data.source=module:function`` with the module on PYTHONPATH; an unimportable one is one
+    line, exit status 1, nothing written."""
+    path = os.pathsep.join(p for p in (str(tmp_path), os.environ.get("PYTHONPATH")) if p)
+    quick = ["deformation.num_steps=3", "solver.max_iter=3", "baseline=none", "logging.figure=false",
+             "logging.progress=false", "logging.tensorboard=false"]
+    proc = run_cli(["data=files", "data.source=user_source_bundle:bundle", *user_source[2], *quick,
+                    f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, env={"PYTHONPATH": path})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["iterations"] == 3
+    proc = run_cli(["data.source=user_source_bundl:bundle", f"hydra.run.dir={tmp_path / 'bad'}"], cwd=tmp_path,
+                   env={"PYTHONPATH": path})
+    assert proc.returncode == 1 and not (tmp_path / "bad").exists()
+    assert proc.stderr.strip().splitlines() == ["indreg-register: error: invalid config value data.source="
+                                                "'user_source_bundl:bundle': cannot import it (ModuleNotFoundError: "
+                                                "No module named 'user_source_bundl')"]
 
 
 def test_entry_point_source(tmp_path, user_source):
