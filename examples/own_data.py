@@ -1,4 +1,4 @@
-"""The shipped example (``indreg-register experiment=own_data_example``) in Python: ``indreg.load`` + ``indreg.register``.
+"""The shipped example (`indreg-register experiment=own_data_example`) in Python: indreg.load + indreg.register.
 
 Reads the files of ``indreg/data/own_data_*`` (see ``make_own_data_example.py``) with the values of the preset
 (``indreg/conf/experiment/own_data_example.yaml``), registers the template to the limited-angle data and saves the

@@ -10,7 +10,8 @@
               ``[project.entry-points."indreg.sources"]`` table of your package's pyproject.toml)
     my_package.my_module:my_source
               any importable ``module:function``, no installation needed (the module on ``sys.path`` /
-              ``PYTHONPATH``): ``indreg-register data.source=my_package.my_module:my_source data.template=...``
+              ``PYTHONPATH``): ``indreg-register data=files data.source=my_package.my_module:my_source
+              data.sinogram=...`` (``data=files`` first: the settings for measured data, docs/own_data.md)
 
 The contract of a source: ``fn(cfg)`` gets the composed, validated config (a ``DictConfig`` of
 ``indreg.experiments.config.RegisterConfig``: ``cfg.data.template``, ``cfg.data.sinogram``, ``cfg.data.target``,
