@@ -15,6 +15,7 @@ from .deform.shooting import GeodesicShooting, ShootingResult
 from .learn.loss import IndirectShootingLoss
 from . import models
 from .api import RegistrationResult, register
+from .inputs import RegistrationInputs, load
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform",
@@ -22,5 +23,6 @@ __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransfo
            "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
+           "load", "RegistrationInputs",
            "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"

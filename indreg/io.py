@@ -305,6 +305,18 @@ def read_voxel_size(path, *, name: str = "volume") -> tuple:
     return float(size.x), float(size.y), float(size.z)
 
 
+def read_stack(path, *, name: str = "tilt series") -> np.ndarray:
+    """Read a stack of projections as stored: float64 ``(num_tilts, det_rows, det_cols)`` (MRC sections = tilts,
+    no transposition; ``.npy``/``.npz``/``.h5`` the same ``(tilt, row, column)`` array). ``read_tilt_series``
+    adds the angles.
+
+    Raises:
+        DataFileError: one line ``"{name} file {path}: {problem}"``.
+    """
+    raw, _ = _load(path, name)
+    return _numeric(raw, name, path, ndim=3)
+
+
 def read_tilt_series(path, angles=None, unit: str = "deg", *, name: str = "tilt series") -> tuple:
     """Read a tilt series and its angles: ``(data, angles)``, float64 ``(num_tilts, det_rows, det_cols)`` and
     radians ``(num_tilts,)``.
@@ -323,8 +335,7 @@ def read_tilt_series(path, angles=None, unit: str = "deg", *, name: str = "tilt 
     """
     if unit not in ANGLE_UNITS:
         raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")
-    raw, suffix = _load(path, name)
-    data = _numeric(raw, name, path, ndim=3)
+    data = read_stack(path, name=name)
     origin = "angles"
     if angles is None:
         angles = tilt_angles_for(path)

@@ -40,6 +40,8 @@ from dataclasses import make_dataclass
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
+from . import sources
+from .errors import ConfigError   # re-exported: ``from indreg.experiments.config import ConfigError``
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
 Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
@@ -98,7 +100,8 @@ class PhantomConfig:
 
 @dataclass
 class DataConfig:
-    """Where template and data come from: ``source`` names an entry of ``indreg.experiments.sources.SOURCES``.
+    """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
+    ``module:function`` (``indreg.experiments.sources``).
 
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
@@ -227,10 +230,6 @@ def register_schema() -> None:
     register_resolvers()
 
 
-class ConfigError(ValueError):
-    """An invalid config value; the message names the key (e.g. ``solver.gamma``)."""
-
-
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 _NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")  # a single path component (it names the run dir)
 
@@ -313,15 +312,13 @@ def check_registration(cfg: DictConfig) -> dict:
 
 def _validate_data(c: DictConfig) -> None:
     """The ``data`` and ``geometry`` groups (which keys a source needs is its own business, checked here)."""
-    from .sources import SOURCES
-
     d, g = c.data, c.geometry
-    _require(d.source in SOURCES, "data.source", f"one of {sorted(SOURCES)}", d.source)
+    sources.resolve(d.source)
     if d.source == "files":
         for key in ("template", "sinogram"):
             _require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
         _require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
-    else:
+    elif d.source == "phantom":
         _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None
                  or g.kind.value == "tilt_series", "geometry.num_angles", "an integer >= 1 (or geometry.angles)",
                  g.num_angles)

@@ -1,21 +1,34 @@
 """Data sources of the experiment app: where the template, the data and the forward operator come from.
 
-A source is a function ``cfg -> Data`` registered under a name with :func:`source`; ``data.source=<name>`` picks
-it (config group ``data``: ``conf/data/<name>.yaml``). The run loop only sees :class:`Data`, so adding a source
-means one function here and one yaml file, nothing else.
+``data.source`` picks a function ``fn(cfg) -> Data`` (:func:`resolve`):
 
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
-    files     your own data: template, sinogram (and optionally a target) read by ``indreg.io``; with
+    files     your own data: ``indreg.load`` (:mod:`indreg.inputs`) with the config's ``data`` and ``geometry``
+              values: template, sinogram (and optionally a target) read by ``indreg.io``; with
               ``geometry=tilt_series`` a template volume and an MRC tilt series with its .tlt angles
+    NAME      an entry point ``NAME = "my_package.my_module:my_source"`` of the group ``indreg.sources`` (in the
+              ``[project.entry-points."indreg.sources"]`` table of your package's pyproject.toml)
+    my_package.my_module:my_source
+              any importable ``module:function``, no installation needed (the module on ``sys.path`` /
+              ``PYTHONPATH``): ``indreg-register data=files data.source=my_package.my_module:my_source
+              data.sinogram=...`` (``data=files`` first: the settings for measured data, docs/own_data.md)
 
-Convention: images ``(n, n)`` (or volumes ``(n, n, n)``) float64 on the CPU, axis 0 = x, on
-``[-half_width, half_width]^d`` (square / cubic cells); data ``(num_angles, det_count)`` (a tilt series:
-``(num_tilts, det_rows, det_cols)``) float64 on the CPU. Every input problem of the ``files`` source raises
-``indreg.io.DataFileError`` naming the file (or config key) before any computation.
+The contract of a source: ``fn(cfg)`` gets the composed, validated config (a ``DictConfig`` of
+``indreg.experiments.config.RegisterConfig``: ``cfg.data.template``, ``cfg.data.sinogram``, ``cfg.data.target``,
+``cfg.data.half_width``, the ``geometry`` group, ``cfg.seed``, ...) and returns a :class:`Data` record, or what
+``indreg.load`` returns (a ``RegistrationInputs``, e.g. ``return indreg.load(my_template, my_data, ...)``).
+Invalid input raises one line before any computation: ``indreg.io.DataFileError`` (a file),
+:class:`~indreg.experiments.errors.ConfigError` (a config value) or ``ValueError`` (shown as an invalid
+configuration). The run loop only sees :class:`Data`, so a new source is one function (built in: one here with
+:func:`source` and a ``conf/data/<name>.yaml``).
+
+Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, axis 0 = x, on
+``[-half_width, half_width]^d`` (square / cubic cells); data ``operator.range_shape``: ``(num_angles, det_count)``
+(a tilt series: ``(num_tilts, det_rows, det_cols)``) float64 on the CPU.
 """
 from __future__ import annotations
 
-import math
+import importlib
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -24,10 +37,20 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import phantoms
 from ..domain import ImageDomain
-from ..forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
-from .config import ConfigError
+from ..inputs import RegistrationInputs, make_geometry, make_operator, square_domain
+from ..inputs import load as load_inputs
+from ..io import DataFileError, read_angles
+from .errors import ConfigError
 
+#: The entry-point group of installed sources (``data.source=<entry point name>``).
+ENTRY_POINTS = "indreg.sources"
+#: The built-in sources by name (:func:`source`).
 SOURCES: dict = {}
+#: How ``indreg.load``'s messages name its arguments in the app: the config keys.
+CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "data.target",
+               "half_width": "data.half_width", "geometry": "geometry.kind", "angles": "geometry.angles",
+               "angle_unit": "geometry.angle_unit", "num_angles": "geometry.num_angles",
+               "det_count": "geometry.det_count", "tilt_axis": "geometry.tilt_axis"}
 
 
 @dataclass
@@ -44,9 +67,15 @@ class Data:
     clean_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
 
+    @classmethod
+    def from_inputs(cls, d: RegistrationInputs) -> "Data":
+        """The record of measured data loaded by ``indreg.load``."""
+        return cls(domain=d.domain, geometry=d.geometry, operator=d.operator, template_64=d.template,
+                   data_64=d.data, label=d.label, target_64=d.target)
+
 
 def source(name: str) -> Callable:
-    """Register ``fn(cfg) -> Data`` as the data source ``name``."""
+    """Register ``fn(cfg) -> Data`` as the built-in data source ``name``."""
     def register(fn):
         SOURCES[name] = fn
         return fn
@@ -54,22 +83,66 @@ def source(name: str) -> Callable:
 
 
 def load(cfg: DictConfig) -> Data:
-    """The data of ``cfg.data.source``."""
-    return SOURCES[cfg.data.source](cfg)
+    """The data of ``cfg.data.source`` (:func:`resolve`)."""
+    data = resolve(cfg.data.source)(cfg)
+    if isinstance(data, RegistrationInputs):
+        return Data.from_inputs(data)
+    if not isinstance(data, Data):
+        raise ConfigError(f"data.source={cfg.data.source} returned a {type(data).__name__}: expected an "
+                          "indreg.experiments.sources.Data or what indreg.load returns")
+    return data
 
 
-def square_domain(n: int, half_width: float, ndim: int = 2) -> ImageDomain:
-    """``n`` cells per axis on ``[-half_width, half_width]^ndim``."""
-    return ImageDomain((n,) * ndim, (-half_width,) * ndim, (half_width,) * ndim)
+def resolve(name: str) -> Callable:
+    """The source function of ``data.source=name``: a built-in source, else an entry point ``name`` of the group
+    ``indreg.sources``, else ``module:function`` imported. Raises :class:`ConfigError` (one line) when it is none
+    of these or cannot be imported."""
+    if name in SOURCES:
+        return SOURCES[name]
+    try:
+        fn, problem = (_import(name) if ":" in name else _entry_point(name)), None
+    except Exception as e:   # the user's module: a missing module or attribute, a syntax error, ... as one line
+        fn, problem = None, f"{type(e).__name__}: {' '.join(str(e).split())}"
+    if problem is not None:   # raised outside the except: no chained context in the one-line message
+        raise ConfigError(f"invalid config value data.source={name!r}: cannot import it ({problem})")
+    if fn is None:
+        known = sorted(SOURCES) + sorted(ep.name for ep in _entry_points())
+        raise ConfigError(f"invalid config value data.source={name!r}: expected one of {', '.join(known)} or an "
+                          "importable module:function (e.g. my_package.my_module:my_source)")
+    if not callable(fn):
+        raise ConfigError(f"invalid config value data.source={name!r}: {type(fn).__name__} is not callable; "
+                          "expected a function cfg -> Data")
+    return fn
+
+
+def _import(path: str):
+    """The object ``module:attribute`` (attribute may be dotted, as in entry points)."""
+    module, _, attribute = path.partition(":")
+    obj = importlib.import_module(module)
+    for part in attribute.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _entry_points() -> tuple:
+    from importlib.metadata import entry_points
+
+    return tuple(entry_points(group=ENTRY_POINTS))
+
+
+def _entry_point(name: str):
+    """The loaded entry point ``name`` of the group ``indreg.sources``, or None."""
+    for ep in _entry_points():
+        if ep.name == name:
+            return ep.load()
+    return None
 
 
 def _angles(g) -> Optional[torch.Tensor]:
     """``geometry.angles`` (a text-file path or a list, in ``geometry.angle_unit``) in radians, or None."""
-    from ..io import DataFileError, read_angles
-
-    if g.angles is None:
+    spec = _angle_spec(g)
+    if spec is None:
         return None
-    spec = OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles) else str(g.angles)
     try:
         angles = read_angles(spec, g.angle_unit.value, name="geometry.angles")
     except DataFileError:
@@ -79,34 +152,19 @@ def _angles(g) -> Optional[torch.Tensor]:
     return torch.as_tensor(angles, dtype=torch.float64)
 
 
-def make_geometry(g, domain: ImageDomain, det_count: int, angles: Optional[torch.Tensor] = None):
-    """The geometry of ``g`` (the ``geometry`` group): explicit ``angles`` (radians) or ``num_angles`` of
-    ``partition`` (a tilt series: ``tilt_min:tilt_step:tilt_max``); ``det_min = det_max = null``: the operator
-    fits the detector to the domain."""
-    if g.kind.value == "tilt_series":
-        if angles is None:
-            deg = 1.0 if g.angle_unit.value == "deg" else 180 / math.pi
-            return TiltSeriesGeometry.uniform(g.tilt_min * deg, g.tilt_max * deg, g.tilt_step * deg, det_count,
-                                              g.det_min, g.det_max, g.tilt_axis.value)
-        return TiltSeriesGeometry(angles, det_count, g.det_min, g.det_max, g.tilt_axis.value, angle_unit="rad")
-    paper = angles is None and g.partition.value == "paper"
-    if paper and g.kind.value == "parallel":
-        return ParallelBeamGeometry.paper(g.num_angles, det_count, det_min=g.det_min, det_max=g.det_max)
-    if paper:
-        angles = torch.arange(g.num_angles, dtype=torch.float64) * (math.pi / (g.num_angles - 0.5))
-    if g.kind.value == "fan_flat":
-        return FanBeamGeometry(num_angles=None if angles is not None else g.num_angles,
-                                       det_count=det_count, src_radius=g.src_radius, det_radius=g.det_radius,
-                                       det_min=g.det_min, det_max=g.det_max, angles=angles)
-    return ParallelBeamGeometry(num_angles=None if angles is not None else g.num_angles, det_count=det_count,
-                                det_min=g.det_min, det_max=g.det_max, angles=angles)
+def _angle_spec(g):
+    """``geometry.angles`` as plain Python: a path (str), a list, or None."""
+    if g.angles is None:
+        return None
+    return OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles) else str(g.angles)
 
 
-def make_operator(domain: ImageDomain, geometry):
-    """The forward operator of ``geometry`` on ``domain``: a ``TiltSeriesTransform`` or a ``RayTransform``."""
-    if isinstance(geometry, TiltSeriesGeometry):
-        return TiltSeriesTransform(domain, geometry)
-    return RayTransform(domain, geometry)
+def geometry_options(g) -> dict:
+    """The ``geometry`` group as keywords of ``indreg.inputs.make_geometry`` (all but ``det_count``, ``angles``)."""
+    return {"num_angles": g.num_angles, "partition": g.partition.value, "det_min": g.det_min, "det_max": g.det_max,
+            "src_radius": g.src_radius, "det_radius": g.det_radius, "tilt_axis": g.tilt_axis.value,
+            "tilt_min": g.tilt_min, "tilt_max": g.tilt_max, "tilt_step": g.tilt_step,
+            "angle_unit": g.angle_unit.value}
 
 
 def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
@@ -128,129 +186,30 @@ def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
 def phantom_data(cfg: DictConfig) -> Data:
     """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
     (noise drawn with the run's seed), so the same config gives the same data on every device."""
-    p = cfg.phantom
+    p, g = cfg.phantom, cfg.geometry
     domain = square_domain(p.size, p.half_width, p.ndim)
-    geometry = make_geometry(cfg.geometry, domain, cfg.geometry.det_count, _angles(cfg.geometry))
-    T = make_operator(domain, geometry)
-    geometry = T.geometry                      # with the detector extent resolved
+    T = make_operator(domain, make_geometry(g.kind.value, g.det_count, angles=_angles(g), **geometry_options(g)))
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)
     clean, noisy, snr = make_data(cfg, T, target)
-    return Data(domain=domain, geometry=geometry, operator=T, template_64=template, data_64=noisy,
+    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=template, data_64=noisy,
                 label=p.template.value, target_64=target, clean_64=clean, snr_db=snr)
-
-
-TILT_SERIES = (".mrc", ".st", ".ali")
-
-
-def _file_angles(cfg: DictConfig, num_rows: int) -> torch.Tensor:
-    """Angles of a measured sinogram: ``geometry.angles``, else a .tlt / .rawtlt next to an MRC tilt series."""
-    from ..io import DataFileError, read_angles, split_path, tilt_angles_for
-
-    g, sinogram = cfg.geometry, cfg.data.sinogram
-    angles, origin = _angles(g), "geometry.angles"
-    if angles is None:
-        tilt = tilt_angles_for(sinogram) if split_path(sinogram)[0].suffix.lower() in TILT_SERIES else None
-        if tilt is None:
-            raise DataFileError("geometry.angles is required with data=files: a text file (one angle a line) or a "
-                                "list, in geometry.angle_unit (an .mrc/.st/.ali sinogram may instead have a "
-                                "sibling .tlt/.rawtlt file)")
-        origin = str(tilt)
-        angles = torch.as_tensor(read_angles(str(tilt), g.angle_unit.value, name=origin), dtype=torch.float64)
-    if angles.numel() != num_rows:
-        raise DataFileError(f"data.sinogram {sinogram}: {num_rows} rows (one per angle) but {origin} gives "
-                            f"{angles.numel()} angles")
-    if g.num_angles is not None and g.num_angles != num_rows:
-        raise DataFileError(f"data.sinogram {sinogram}: {num_rows} rows but geometry.num_angles={g.num_angles}")
-    return angles
-
-
-def _target(path, template, read) -> Optional[torch.Tensor]:
-    """The optional ground truth ``data.target`` (``read``: ``read_image`` or ``read_volume``), shaped as the
-    template."""
-    from ..io import DataFileError
-
-    if not path:
-        return None
-    target = read(path, name="data.target")
-    if target.shape != template.shape:
-        raise DataFileError(f"data.target {path}: shape {target.shape} differs from the template's {template.shape}")
-    return torch.from_numpy(target)
-
-
-def box_domain(shape: tuple, half_width: float) -> ImageDomain:
-    """Cubic cells of side ``2 half_width / max(shape)``, centred: the longest axis spans
-    ``[-half_width, half_width]`` (a slab of electron tomography keeps its aspect ratio)."""
-    h = 2.0 * half_width / max(shape)
-    return ImageDomain(tuple(shape), tuple(-h * n / 2 for n in shape), tuple(h * n / 2 for n in shape))
-
-
-def _tilt_series_files(cfg: DictConfig) -> Data:
-    """``data=files`` with ``geometry=tilt_series``: a template volume and a tilt series (with its angles).
-    ``geometry.det_min = det_max = null``: the detector columns have the voxels' width, centred on the axis."""
-    from ..io import DataFileError, read_tilt_series, read_volume, split_path
-
-    d, g = cfg.data, cfg.geometry
-    template = read_volume(d.template, name="data.template")
-    domain = box_domain(template.shape, d.half_width)
-    spec = None if g.angles is None else (OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles)
-                                          else str(g.angles))
-    try:
-        data, angles = read_tilt_series(d.sinogram, spec, g.angle_unit.value, name="data.sinogram")
-    except ValueError as e:
-        if isinstance(e, DataFileError):
-            raise
-        raise ConfigError(f"geometry.angles: {e}") from None
-    target = _target(d.target, template, read_volume)
-    det_min, det_max = g.det_min, g.det_max
-    if det_min is None:  # measured data: detector columns as wide as the volume's voxels, centred
-        u = 0 if g.tilt_axis.value != "x" else 1
-        det_max = data.shape[2] * domain.cell_sides[u] / 2
-        det_min = -det_max
-    try:
-        geometry = TiltSeriesGeometry(torch.as_tensor(angles, dtype=torch.float64), data.shape[2], det_min, det_max,
-                                      g.tilt_axis.value, angle_unit="rad")
-        T = make_operator(domain, geometry)
-    except ValueError as e:
-        raise DataFileError(f"geometry: {e}") from None
-    if tuple(data.shape) != tuple(T.range_shape):
-        raise DataFileError(f"data.sinogram {d.sinogram}: shape {tuple(data.shape)} but the template "
-                            f"{tuple(template.shape)} with tilt axis {g.tilt_axis.value} needs "
-                            f"{tuple(T.range_shape)} (tilts, rows along the tilt axis, columns)")
-    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=torch.from_numpy(template),
-                data_64=torch.from_numpy(data), label=split_path(d.template)[0].name, target_64=target)
 
 
 @source("files")
 def file_data(cfg: DictConfig) -> Data:
-    """Template, sinogram and optional target from files (``indreg.io``).
-
-    Requires a square template (``n x n``: the domain ``[-half_width, half_width]^2`` then has square cells) and
-    a target of the template's shape; ``det_count`` is the sinogram's width (``geometry.det_count``, if set,
-    must agree). No noise is added.
-    """
-    from ..io import DataFileError, read_image, read_sinogram, split_path
-
+    """``indreg.load`` with the ``data`` and ``geometry`` groups' values (messages name the config keys): a square
+    template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
+    the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree). No noise is added."""
     d, g = cfg.data, cfg.geometry
-    if g.kind.value == "tilt_series":
-        return _tilt_series_files(cfg)
-    template = read_image(d.template, name="data.template")
-    nx, ny = template.shape
-    if nx != ny:
-        raise DataFileError(f"data.template {d.template}: shape {nx} x {ny} is not square; the domain "
-                            f"[-{d.half_width:g}, {d.half_width:g}]^2 needs n x n pixels (square cells): pad "
-                            "or resample the image")
-    sinogram = read_sinogram(d.sinogram, name="data.sinogram")
-    angles = _file_angles(cfg, sinogram.shape[0])
-    if g.det_count is not None and g.det_count != sinogram.shape[1]:
-        raise DataFileError(f"data.sinogram {d.sinogram}: {sinogram.shape[1]} detector bins but "
-                            f"geometry.det_count={g.det_count}")
-    target = _target(d.target, template, read_image)
-    domain = square_domain(nx, d.half_width)
     try:
-        geometry = make_geometry(g, domain, sinogram.shape[1], angles)
-        T = RayTransform(domain, geometry)
-    except ValueError as e:
-        raise DataFileError(f"geometry: {e}") from None
-    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=torch.from_numpy(template),
-                data_64=torch.from_numpy(sinogram), label=split_path(d.template)[0].name, target_64=target)
+        inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
+                             angle_unit=g.angle_unit.value, target=d.target or None, half_width=d.half_width,
+                             det_min=g.det_min, det_max=g.det_max, det_count=g.det_count, num_angles=g.num_angles,
+                             tilt_axis=g.tilt_axis.value, src_radius=g.src_radius, det_radius=g.det_radius,
+                             names=CONFIG_KEYS)
+    except DataFileError:
+        raise
+    except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key
+        raise ConfigError(str(e)) from None
+    return Data.from_inputs(inputs)

@@ -37,3 +37,18 @@ def entry_point():
 def run_cli(args, cwd, timeout=240, env=None):
     return subprocess.run(entry_point() + list(args), cwd=cwd, capture_output=True, text=True, timeout=timeout,
                           env=dict(os.environ, **(env or {})))
+
+
+def write_tilt_series_files(d):
+    """A 16 x 16 x 12 slab (1-unit voxels, ``data.half_width=8``) as ``template.mrc`` and its 7 tilts about y
+    (-60..60 step 20, 16 columns on [-8, 8]) of a deformed phantom as ``tilts.mrc`` with ``tilts.tlt``."""
+    from indreg import ImageDomain, phantoms
+    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+    from indreg.io import write_tilt_series, write_volume
+
+    dom = ImageDomain((16, 16, 12), (-8.0, -8.0, -6.0), (8.0, 8.0, 6.0))
+    g = TiltSeriesGeometry.uniform(-60, 60, 20, det_count=16, det_min=-8.0, det_max=8.0)
+    template = phantoms.get("shepp_logan_3d", ImageDomain.paper(16, ndim=3))[:, :, 2:14]
+    data = TiltSeriesTransform(dom, g)(phantoms.get("shepp_logan_3d_swirl", ImageDomain.paper(16, ndim=3))[:, :, 2:14])
+    write_volume(d / "template.mrc", template.numpy(), dom)
+    write_tilt_series(d / "tilts.mrc", data.numpy(), g.angles, pixel_size=1.0)

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from experiment_helpers import compose, run_app, run_cli
+from experiment_helpers import compose, run_app, run_cli, write_tilt_series_files
 
 # 16^3, 7 tilts (-60..60 step 20), N = 3, 3 iterations
 TINY_3D = ["experiment=suite_et_3d", "phantom.size=16", "geometry.det_count=16", "geometry.tilt_step=20",
@@ -33,17 +33,7 @@ def test_cli_suite_et_3d_tiny(tmp_path):
 def test_tilt_series_files_resume_like_uninterrupted(tmp_path):
     """data=files with geometry=tilt_series: an MRC volume and an MRC stack with its .tlt; stopping after 2
     iterations and resuming gives the numbers of an uninterrupted run."""
-    from indreg import ImageDomain, phantoms
-    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
-    from indreg.io import write_tilt_series, write_volume
-
-    dom = ImageDomain((16, 16, 12), (-8.0, -8.0, -6.0), (8.0, 8.0, 6.0))   # a slab, 1-unit voxels
-    g = TiltSeriesGeometry.uniform(-60, 60, 20, det_count=16, det_min=-8.0, det_max=8.0)
-    T = TiltSeriesTransform(dom, g)
-    template = phantoms.get("shepp_logan_3d", ImageDomain.paper(16, ndim=3))[:, :, 2:14]
-    data = T(phantoms.get("shepp_logan_3d_swirl", ImageDomain.paper(16, ndim=3))[:, :, 2:14])
-    write_volume(tmp_path / "template.mrc", template.numpy(), dom)
-    write_tilt_series(tmp_path / "tilts.mrc", data.numpy(), g.angles, pixel_size=1.0)
+    write_tilt_series_files(tmp_path)
     args = ["data=files", f"data.template={tmp_path / 'template.mrc'}", f"data.sinogram={tmp_path / 'tilts.mrc'}",
             "data.half_width=8", "geometry=tilt_series", "deformation.num_steps=3",
             "solver.max_iter=4", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",

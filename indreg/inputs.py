@@ -1,0 +1,271 @@
+"""Your data as plain Python: ``indreg.load`` reads (or takes) a template, measured data and their angles and builds
+the image domain, the acquisition geometry and the forward operator, i.e. the arguments of ``indreg.register``::
+
+    d = indreg.load("template.png", "sino.npy", "parallel", angles="angles.tlt", det_min=-24, det_max=24)
+    result = indreg.register(d.template, d.data, d.operator, target=d.target)
+
+The experiment app's ``data=files`` source is this function called with the config's values
+(``indreg.experiments.sources``); its ``phantom`` source builds its geometry with :func:`make_geometry` too.
+
+Geometries (``geometry=``)::
+
+    parallel     2D parallel beam (ParallelBeamGeometry)
+    fan_flat     2D fan beam, flat detector (FanBeamGeometry: src_radius, det_radius)
+    tilt_series  3D single-axis tilt series of electron tomography (TiltSeriesGeometry: tilt_axis)
+
+Convention:
+    - 2D: template ``(n, n)`` on ``[-half_width, half_width]^2`` (square, so that the cells are square), data
+      ``(num_angles, det_count)``, one row per angle. 3D: template ``(nx, ny, nz)`` on cubic cells of side
+      ``2 half_width / max(nx, ny, nz)``, centred (a slab keeps its aspect ratio), data
+      ``(num_tilts, det_rows, det_cols)`` (docs/tilt_series.md). Axis 0 = x.
+    - ``template``, ``data``, ``target``: a path (any format of :mod:`indreg.io`: ``file.npz:key``,
+      ``file.h5:/dataset``, ...) or an array (numpy, torch) in indreg's layout. ``angles``: a text file (one angle
+      a line, IMOD ``.tlt``) or a list, in ``angle_unit``; without it, the ``.tlt`` / ``.rawtlt`` next to the
+      data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
+    - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
+      agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
+      tilt series gets columns as wide as the voxels, centred on the tilt axis.
+    - The returned tensors are float64 on the CPU.
+    - Bad input raises one line before any computation: :class:`indreg.io.DataFileError` for a file (naming it),
+      a count or shape that does not fit, or a geometry that cannot be built; ``ValueError`` / ``TypeError`` for
+      an argument's value (inline angles, ``angle_unit``, ``half_width``, an array).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from . import io
+from ._checks import check_positive
+from .domain import AXES, ImageDomain
+from .forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
+from .io import DataFileError
+
+GEOMETRIES = ("parallel", "fan_flat", "tilt_series")
+#: How error messages call :func:`load`'s arguments; the app passes its config keys instead.
+NAMES = {key: key for key in ("template", "data", "target", "geometry", "angles", "angle_unit", "half_width",
+                              "num_angles", "det_count", "tilt_axis")}
+
+
+@dataclass
+class RegistrationInputs:
+    """What :func:`load` returns: ``indreg.register(d.template, d.data, d.operator, target=d.target)``.
+
+    ``template`` / ``target`` ``operator.domain.shape``, ``data`` ``operator.range_shape``: float64 on the CPU;
+    ``geometry`` is the operator's (detector extent resolved); ``target`` is ``None`` without a ground truth;
+    ``label`` names the template (its file name, ``"array"`` for an array)."""
+    template: torch.Tensor
+    data: torch.Tensor
+    operator: object
+    domain: ImageDomain
+    geometry: object
+    target: Optional[torch.Tensor] = None
+    label: str = "array"
+
+
+def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit: str = "deg", target=None,
+         half_width: float = 16.0, det_min: Optional[float] = None, det_max: Optional[float] = None,
+         det_count: Optional[int] = None, num_angles: Optional[int] = None, tilt_axis: str = "y",
+         src_radius: Optional[float] = None, det_radius: float = 0.0,
+         names: Optional[dict] = None) -> RegistrationInputs:
+    """Template, data, operator (and optionally the ground truth ``target``) of a registration from files or
+    arrays (see the module's Convention).
+
+    ``geometry``: ``parallel``, ``fan_flat`` (needs ``src_radius``; ``det_radius`` origin to detector) or
+    ``tilt_series`` (rotation about ``tilt_axis``, ``"x"``, ``"y"`` or ``"z"``). ``det_min`` / ``det_max``: the
+    detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
+    (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``).
+
+    Raises:
+        DataFileError: a problem with a file, a count or shape that does not fit, a geometry that cannot be built.
+        ValueError, TypeError: a bad argument value.
+    """
+    key = {**NAMES, **(names or {})}
+    _check_arguments(geometry, angle_unit, half_width, tilt_axis, key)
+    ndim = 3 if geometry == "tilt_series" else 2
+    f = _image(template, key["template"], ndim)
+    if ndim == 2 and f.shape[0] != f.shape[1]:
+        raise DataFileError(f"{_where(key['template'], template)}: shape {f.shape[0]} x {f.shape[1]} is not square; "
+                            f"the domain [-{half_width:g}, {half_width:g}]^2 needs n x n pixels (square cells): pad "
+                            "or resample the image")
+    g = _measurements(data, key["data"], ndim)
+    radians = _angles(angles, angle_unit, data, g.shape[0], ndim, key)
+    _check_counts(g.shape, data, num_angles, det_count, ndim, key)
+    truth = _target(target, f, ndim, key)
+    domain = square_domain(f.shape[0], half_width) if ndim == 2 else box_domain(f.shape, half_width)
+    if ndim == 3 and det_min is None and det_max is None:   # measured data: columns as wide as the voxels
+        det_max = g.shape[2] * domain.cell_sides[1 if tilt_axis == "x" else 0] / 2
+        det_min = -det_max
+    try:
+        T = make_operator(domain, make_geometry(geometry, g.shape[-1], angles=radians, det_min=det_min,
+                                                det_max=det_max, src_radius=src_radius, det_radius=det_radius,
+                                                tilt_axis=tilt_axis))
+    except ValueError as e:
+        raise DataFileError(f"geometry: {e}") from None
+    if tuple(g.shape) != tuple(T.range_shape):
+        raise DataFileError(f"{_where(key['data'], data)}: shape {tuple(g.shape)} but the template {tuple(f.shape)} "
+                            f"with tilt axis {tilt_axis} needs {tuple(T.range_shape)} (tilts, rows along the tilt "
+                            "axis, columns)")
+    label = io.split_path(template)[0].name if _is_path(template) else "array"
+    return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=T, domain=domain,
+                              geometry=T.geometry, target=truth, label=label)
+
+
+def square_domain(n: int, half_width: float, ndim: int = 2) -> ImageDomain:
+    """``n`` cells per axis on ``[-half_width, half_width]^ndim``."""
+    return ImageDomain((n,) * ndim, (-half_width,) * ndim, (half_width,) * ndim)
+
+
+def box_domain(shape: tuple, half_width: float) -> ImageDomain:
+    """Cubic cells of side ``2 half_width / max(shape)``, centred: the longest axis spans
+    ``[-half_width, half_width]`` (a slab of electron tomography keeps its aspect ratio)."""
+    h = 2.0 * half_width / max(shape)
+    return ImageDomain(tuple(shape), tuple(-h * n / 2 for n in shape), tuple(h * n / 2 for n in shape))
+
+
+def make_geometry(kind: str, det_count: int, *, angles: Optional[torch.Tensor] = None,
+                  num_angles: Optional[int] = None, partition: str = "uniform", det_min: Optional[float] = None,
+                  det_max: Optional[float] = None, src_radius: Optional[float] = None, det_radius: float = 0.0,
+                  tilt_axis: str = "y", tilt_min: float = -60.0, tilt_max: float = 60.0, tilt_step: float = 2.0,
+                  angle_unit: str = "deg"):
+    """The geometry ``kind`` (:data:`GEOMETRIES`) with ``det_count`` detector bins (columns) on
+    ``[det_min, det_max]`` (``None`` both: the operator fits the detector to the domain).
+
+    Angles: ``angles`` (radians, 1D), else ``num_angles`` of ``partition`` (``paper``: ODL's
+    ``uniform_partition(0, pi, n, nodes_on_bdry=(True, False))``, ``k pi / (n - 1/2)``; ``uniform``: the
+    geometry's own equispaced angles), else for a tilt series ``tilt_min, tilt_min + tilt_step, ..., tilt_max``
+    (in ``angle_unit``).
+    """
+    if kind == "tilt_series":
+        if angles is None:
+            deg = 1.0 if angle_unit == "deg" else 180 / math.pi
+            return TiltSeriesGeometry.uniform(tilt_min * deg, tilt_max * deg, tilt_step * deg, det_count, det_min,
+                                              det_max, tilt_axis)
+        return TiltSeriesGeometry(angles, det_count, det_min, det_max, tilt_axis, angle_unit="rad")
+    paper = angles is None and partition == "paper"
+    if paper and kind == "parallel":
+        return ParallelBeamGeometry.paper(num_angles, det_count, det_min=det_min, det_max=det_max)
+    if paper:
+        angles = torch.arange(num_angles, dtype=torch.float64) * (math.pi / (num_angles - 0.5))
+    count = None if angles is not None else num_angles
+    if kind == "fan_flat":
+        return FanBeamGeometry(num_angles=count, det_count=det_count, src_radius=src_radius, det_radius=det_radius,
+                               det_min=det_min, det_max=det_max, angles=angles)
+    return ParallelBeamGeometry(num_angles=count, det_count=det_count, det_min=det_min, det_max=det_max,
+                                angles=angles)
+
+
+def make_operator(domain: ImageDomain, geometry):
+    """The forward operator of ``geometry`` on ``domain``: a ``TiltSeriesTransform`` or a ``RayTransform``."""
+    if isinstance(geometry, TiltSeriesGeometry):
+        return TiltSeriesTransform(domain, geometry)
+    return RayTransform(domain, geometry)
+
+
+# --- the checks of load -------------------------------------------------------------------------------------
+
+def _is_path(value) -> bool:
+    return isinstance(value, (str, os.PathLike))
+
+
+def _where(name: str, value) -> str:
+    """How a message names an argument: ``"data.template t.png"`` for a file, the name alone for an array."""
+    return f"{name} {value}" if _is_path(value) else name
+
+
+def _check_arguments(geometry, angle_unit, half_width, tilt_axis, key: dict) -> None:
+    if geometry not in GEOMETRIES:
+        raise ValueError(f"{key['geometry']} must be one of {', '.join(GEOMETRIES)}, got {geometry!r}")
+    if angle_unit not in io.ANGLE_UNITS:
+        raise ValueError(f"{key['angle_unit']} must be 'deg' or 'rad', got {angle_unit!r}")
+    check_positive(half_width, key["half_width"])
+    if tilt_axis not in tuple(AXES):
+        raise ValueError(f"{key['tilt_axis']} must be 'x', 'y' or 'z', got {tilt_axis!r}")
+
+
+def _array(value, name: str, ndim: int) -> np.ndarray:
+    """A float64 copy of an array argument after the checks ``indreg.io`` makes on a file's array."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu()
+        value = value.numpy() if value.is_complex() else value.double().numpy()
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):   # ragged nested lists
+        raise TypeError(f"{name} must be a path or a numeric array, got {type(value).__name__}") from None
+    if a.dtype.kind == "c":
+        raise TypeError(f"{name} has complex values (dtype {a.dtype}); give the real data")
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be a path or a real numeric array, got {type(value).__name__} of {a.dtype}")
+    if a.ndim != ndim or a.size == 0:
+        raise ValueError(f"{name} must be a non-empty {ndim}D array, got shape {a.shape}")
+    out = np.array(a, dtype=np.float64, order="C")
+    bad = int(np.count_nonzero(~np.isfinite(out)))
+    if bad:
+        raise ValueError(f"{name} has {bad} non-finite values (NaN or Inf) of {out.size}")
+    return out
+
+
+def _image(value, name: str, ndim: int) -> np.ndarray:
+    """A template / target ``(nx, ny[, nz])``: read from a file (``io.read_image`` / ``read_volume``) or given."""
+    return io.read_image(value, name=name, ndim=ndim) if _is_path(value) else _array(value, name, ndim)
+
+
+def _measurements(value, name: str, ndim: int) -> np.ndarray:
+    """The data: a sinogram (``io.read_sinogram``) or a stack of projections (``io.read_stack``), or given."""
+    if not _is_path(value):
+        return _array(value, name, ndim)
+    return io.read_sinogram(value, name=name) if ndim == 2 else io.read_stack(value, name=name)
+
+
+def _may_have_sibling(data, ndim: int) -> bool:
+    """Whether the data file's angles may come from the ``.tlt`` / ``.rawtlt`` next to it (2D: MRC only)."""
+    return _is_path(data) and (ndim == 3 or io.split_path(data)[0].suffix.lower() in io.MRC)
+
+
+def _angles(angles, unit: str, data, count: int, ndim: int, key: dict) -> torch.Tensor:
+    """The data's angles in radians, one per row (2D) or tilt (3D): ``angles``, else the sibling angle file."""
+    if angles is None:
+        angles = io.tilt_angles_for(data) if _may_have_sibling(data, ndim) else None
+        if angles is None:
+            raise DataFileError(f"{key['angles']} is required: a text file (one angle a line) or a list, in "
+                                f"{key['angle_unit']}{_sibling_hint(data, ndim, key)}")
+    origin = str(angles) if _is_path(angles) else key["angles"]
+    radians = io.read_angles(angles, unit, name=key["angles"])
+    if radians.size != count:
+        what = "rows (one per angle)" if ndim == 2 else "tilts (sections)"
+        raise DataFileError(f"{_where(key['data'], data)}: {count} {what} but {origin} gives {radians.size} "
+                            "angles")
+    return torch.as_tensor(radians, dtype=torch.float64)
+
+
+def _sibling_hint(data, ndim: int, key: dict) -> str:
+    if _may_have_sibling(data, ndim):
+        return f", or a file {io.split_path(data)[0].with_suffix('.tlt').name} (or .rawtlt) next to {data}"
+    if _is_path(data):
+        return " (an .mrc/.st/.ali sinogram may instead have a sibling .tlt/.rawtlt file)"
+    return ""
+
+
+def _check_counts(shape: tuple, data, num_angles, det_count, ndim: int, key: dict) -> None:
+    """``num_angles`` / ``det_count``, when given, must be the data's."""
+    rows, bins = ("rows", "detector bins") if ndim == 2 else ("tilts", "detector columns")
+    if num_angles is not None and num_angles != shape[0]:
+        raise DataFileError(f"{_where(key['data'], data)}: {shape[0]} {rows} but {key['num_angles']}={num_angles}")
+    if det_count is not None and det_count != shape[-1]:
+        raise DataFileError(f"{_where(key['data'], data)}: {shape[-1]} {bins} but {key['det_count']}={det_count}")
+
+
+def _target(target, template: np.ndarray, ndim: int, key: dict) -> Optional[torch.Tensor]:
+    """The optional ground truth, shaped as the template."""
+    if target is None:
+        return None
+    truth = _image(target, key["target"], ndim)
+    if truth.shape != template.shape:
+        raise DataFileError(f"{_where(key['target'], target)}: shape {truth.shape} differs from the template's "
+                            f"{template.shape}")
+    return torch.from_numpy(truth)
