@@ -10,4 +10,5 @@ if ! { python3 -m venv "$venv" && "$venv/bin/pip" install -q "torch==2.14.1" "to
     echo "deepinv interop tests SKIPPED: could not install deepinv in $venv"
     exit 0
 fi
-OMP_NUM_THREADS=1 "$venv/bin/python" -m pytest -q -p no:cacheprovider tests/forward/test_deepinv.py
+OMP_NUM_THREADS=1 "$venv/bin/python" -m pytest -q -p no:cacheprovider tests/forward/test_deepinv.py \
+    "tests/test_docstrings.py::test_docstring_examples[indreg.forward.deepinv]"

@@ -52,7 +52,11 @@ class GaussianKernel:
 
     Example:
         >>> K = GaussianKernel(ImageDomain.paper(64), sigma=6.0)
-        >>> v = K(torch.randn(21, 2, 64, 64))
+        >>> m = torch.zeros(21, 2, 64, 64)
+        >>> m[:, 0, 32, 32] = 1.0                               # a point momentum along x at each time
+        >>> v = K(m)                                            # a Gaussian bump of velocity around it
+        >>> v.shape, bool(v[:, 1].eq(0).all())
+        (torch.Size([21, 2, 64, 64]), True)
     """
 
     def __init__(self, domain: ImageDomain, sigma: float, method: str = "auto"):

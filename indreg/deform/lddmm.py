@@ -225,9 +225,17 @@ class LDDMMDeformation(torch.nn.Module):
         times and memory: docs/3d.md.
 
     Example:
-        >>> W = LDDMMDeformation(ImageDomain.paper(64), num_steps=20)
-        >>> v = torch.zeros(21, 2, 64, 64, requires_grad=True)
-        >>> deformed = W(v, template)
+        >>> from indreg import phantoms
+        >>> dom = ImageDomain.paper(32)
+        >>> W = LDDMMDeformation(dom, num_steps=10)
+        >>> template = phantoms.get("j", dom)                   # (32, 32), float64
+        >>> v = torch.zeros(11, 2, 32, 32, dtype=torch.float64, requires_grad=True)
+        >>> deformed = W(v, template)                           # the zero velocity: the identity map
+        >>> torch.allclose(deformed, template)
+        True
+        >>> deformed.square().sum().backward()                  # the paper's gradient as the backward pass
+        >>> v.grad.shape
+        torch.Size([11, 2, 32, 32])
     """
 
     def __init__(self, domain: ImageDomain, num_steps: int = 20, action: str = "geometric",

@@ -254,8 +254,15 @@ class MetamorphosisDeformation(torch.nn.Module):
         inputs'). Images and sources are 0 outside the domain.
 
     Example:
-        >>> M = MetamorphosisDeformation(ImageDomain.paper(64), num_steps=20)
-        >>> f1 = M(M.zero_velocity(), M.zero_source(), template)     # == template
+        >>> from indreg import phantoms
+        >>> dom = ImageDomain.paper(32)
+        >>> M = MetamorphosisDeformation(dom, num_steps=10)
+        >>> template = phantoms.get("j", dom)
+        >>> torch.allclose(M(M.zero_velocity(), M.zero_source(), template), template)   # no motion, no source
+        True
+        >>> source = M.zero_source() + 0.5                      # zeta = 0.5 for t in [0, 1]: adds 0.5 in total
+        >>> torch.allclose(M(M.zero_velocity(), source, template), template + 0.5)
+        True
     """
 
     def __init__(self, domain: ImageDomain, num_steps: int = 20, backward: str = "adjoint",

@@ -141,10 +141,16 @@ class GeodesicShooting(torch.nn.Module):
         ``(nx, ny, nz)``): ``m0 (..., 3, nx, ny, nz)``, template ``(..., nx, ny, nz)``, 3x3 Jacobians.
 
     Example:
-        >>> dom = ImageDomain.paper(64)
-        >>> shoot = GeodesicShooting(dom, GaussianKernel(dom, 6.0), num_steps=20)
-        >>> deformed = shoot(m0, template)          # m0 (B, 2, 64, 64), template (64, 64)
-        >>> energy = shoot.energy(m0)               # <m0, K m0> = ||v||^2_{L2([0,1], V)} on a geodesic
+        >>> from indreg import phantoms
+        >>> dom = ImageDomain.paper(32)
+        >>> shoot = GeodesicShooting(dom, GaussianKernel(dom, 6.0), num_steps=10)
+        >>> template = phantoms.get("j", dom)                   # (32, 32)
+        >>> m0 = torch.zeros(4, 2, 32, 32, dtype=torch.float64)  # a batch of 4 initial momenta
+        >>> m0[1, 0] = 0.01                                     # the second one pushes along x
+        >>> shoot(m0, template).shape
+        torch.Size([4, 32, 32])
+        >>> shoot.energy(m0) > 0                                # <m0, K m0> = ||v||^2_{L2([0,1], V)}
+        tensor([False,  True, False, False])
     """
 
     def __init__(self, domain: ImageDomain, kernel: GaussianKernel, num_steps: int, action: str = "geometric",

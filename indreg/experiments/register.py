@@ -52,6 +52,7 @@ from omegaconf import DictConfig
 from ..io import DataFileError
 from ..run import RegistrationLoop, build_result, initial_state
 from . import checkpoint as ckpt
+from . import cli
 from .build import build, seed_everything
 from .config import CONFIG_DIR, ConfigError, register_schema, to_plain, validate
 
@@ -461,6 +462,7 @@ def _pair(result: dict, name: str) -> str:
 
 
 _CONFIG_NAME = "config"
+PROG = "indreg-register"
 register_schema()
 
 
@@ -497,39 +499,14 @@ def _task(cfg: DictConfig):
 
 def _exit_error(message: str) -> None:
     """``indreg-register: error: <message>`` on stderr (one line), exit status 1."""
-    print("indreg-register: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
-    sys.exit(1)
-
-
-def _error_chain(exc: BaseException) -> str:
-    """The messages of an exception and its causes, in one line."""
-    parts, e = [], exc
-    while e is not None:
-        parts.append(" ".join(str(e).split()))
-        e = e.__cause__ or e.__context__
-    return ": ".join(p for p in dict.fromkeys(parts) if p)
+    cli.exit_error(PROG, message)
 
 
 def preflight(argv) -> None:
-    """Compose and validate a single run's config before Hydra creates its run directory, so that a bad value
-    ends in one line (``indreg-register: error: ...``, exit 1) with nothing written. Multirun (``-m``) and
-    Hydra's own flags (``--help``, ``--cfg``, ...) are left to Hydra; ``hydra.*`` overrides are not needed
-    to validate the job's config."""
-    if any(a.startswith("-") for a in argv):
-        return
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-
-    overrides = [a for a in argv if not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    try:
-        with initialize_config_dir(version_base="1.3", config_dir=str(CONFIG_DIR), job_name="preflight"):
-            validate(compose(_CONFIG_NAME, overrides=overrides))
-    except (HydraException, ConfigError, ValueError) as e:
-        _exit_error(_error_chain(e))
-    finally:
-        from hydra.core.global_hydra import GlobalHydra
-
-        GlobalHydra.instance().clear()
+    """Check the command line before Hydra creates the run directory (:func:`indreg.experiments.cli.preflight`:
+    launcher plugin, composition, the config's values, the run directory), so that a problem ends in one line
+    (``indreg-register: error: ...``, exit 1) with nothing written."""
+    cli.preflight(argv, PROG, CONFIG_DIR, _CONFIG_NAME, validate=validate)
 
 
 def main() -> None:

@@ -33,12 +33,19 @@ def collect(multirun_dir) -> list:
     """One record per ``metrics.json`` below ``multirun_dir``: gamma, sigma, figures of merit, run dir."""
     records = []
     for path in sorted(Path(multirun_dir).rglob("metrics.json")):
-        with open(path) as f:
-            m = json.load(f)
-        hp = m["hparams"]
-        records.append({"gamma": float(hp["gamma"]), "sigma": float(hp["sigma"]), "run": str(path.parent),
-                        "iterations": m.get("iterations"),
-                        **{k: float(m[k]) for k in ("ssim", "psnr", "ssim_paper", "psnr_paper")}})
+        try:
+            with open(path) as f:
+                m = json.load(f)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path} is not JSON ({e})") from None
+        try:
+            hp = m["hparams"]
+            records.append({"gamma": float(hp["gamma"]), "sigma": float(hp["sigma"]), "run": str(path.parent),
+                            "iterations": m.get("iterations"),
+                            **{k: float(m[k]) for k in ("ssim", "psnr", "ssim_paper", "psnr_paper")}})
+        except (KeyError, TypeError) as e:
+            raise ValueError(f"{path} is not the metrics.json of a finished indreg-register run with a target "
+                             f"(status {m.get('status') if isinstance(m, dict) else None!r}, missing {e})") from None
     if not records:
         raise FileNotFoundError(f"no metrics.json below {multirun_dir} (a multirun dir of indreg-register)")
     return records
@@ -96,21 +103,37 @@ def csv_text(records: list) -> str:
     return buf.getvalue()
 
 
+PROG = "indreg-sweep-table"
+
+
 def main(argv=None) -> None:
+    """Console entry point ``indreg-sweep-table MULTIRUN_DIR`` (also ``python -m indreg.experiments.sweep``):
+    writes ``table.md`` and ``table.csv`` and prints the table. Without arguments: a usage error (exit 2); a
+    directory without runs: one line ``indreg-sweep-table: error: ...`` (exit 1)."""
     import argparse
 
-    ap = argparse.ArgumentParser(description="Suite-3 table (sigma x gamma, SSIM / PSNR) from a multirun dir, "
-                                             "side by side with the paper's numbers.")
-    ap.add_argument("multirun_dir")
+    from .cli import exit_error
+
+    ap = argparse.ArgumentParser(prog=PROG, description="The paper's suite-3 table (sigma rows x gamma columns, "
+                                 "SSIM / PSNR) from a multirun directory of indreg-register, next to the "
+                                 "paper's numbers; writes table.md and table.csv.")
+    ap.add_argument("multirun_dir", help="hydra.sweep.dir of the multirun (e.g. multirun/suite3_table)")
     ap.add_argument("--convention", choices=sorted(CONVENTIONS), default="paper",
                     help="paper: the paper's SSIM/PSNR convention (default); range: data range of the target")
     ap.add_argument("--out", default=None, help="write table.md and table.csv here (default: the multirun dir)")
     args = ap.parse_args(argv)
-    records = collect(args.multirun_dir)
-    md = markdown(records, args.convention)
-    out = Path(args.out or args.multirun_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "table.md").write_text(md)
-    (out / "table.csv").write_text(csv_text(records))
+    try:
+        records = collect(args.multirun_dir)
+        md = markdown(records, args.convention)
+        out = Path(args.out or args.multirun_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "table.md").write_text(md)
+        (out / "table.csv").write_text(csv_text(records))
+    except (OSError, ValueError) as e:  # no runs, an unreadable or foreign metrics.json, an unwritable --out
+        exit_error(PROG, str(e))
     print(md)
     print(f"wrote {out / 'table.md'} and {out / 'table.csv'} ({len(records)} runs)")
+
+
+if __name__ == "__main__":
+    main()

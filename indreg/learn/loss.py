@@ -46,9 +46,17 @@ class IndirectShootingLoss(nn.Module):
         (default), ``"sum"`` or ``"none"`` (``(B,)``).
 
     Example:
-        >>> loss_fn = IndirectShootingLoss(GeodesicShooting(dom, K, 10), T, gamma=1e-3)
-        >>> loss = loss_fn(net(inputs), template, sinograms)
+        >>> from indreg import GaussianKernel, ImageDomain, ParallelBeamGeometry, RayTransform, phantoms
+        >>> dom = ImageDomain.paper(32)
+        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(6, 46))
+        >>> loss_fn = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 6.0), 5), T, gamma=1e-3)
+        >>> template = phantoms.get("j", dom)
+        >>> sinograms = T(phantoms.get("v", dom)).expand(2, 6, 46)   # a batch of 2
+        >>> m0 = torch.zeros(2, 2, 32, 32, dtype=torch.float64, requires_grad=True)   # a network's output
+        >>> loss = loss_fn(m0, template, sinograms)
         >>> loss.backward()
+        >>> m0.grad.shape
+        torch.Size([2, 2, 32, 32])
     """
 
     def __init__(self, shooting: GeodesicShooting, ray_transform, gamma: float, reduction: str = "mean"):

@@ -5,8 +5,8 @@ The network (``MomentumUNet``) is trained with the indirect loss ``||T(W(m0, I))
 TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``, DDP: gloo on CPU, nccl on
 CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
 
-Entry point: ``python scripts/train_momentum.py [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
-``torchrun --standalone --nproc_per_node=2 scripts/train_momentum.py ...`` for DDP.
+Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
+``torchrun --standalone --nproc_per_node=2 -m indreg.learn.train ...`` for DDP.
 
 Batches: step ``s`` draws a global batch of ``batch_size * world_size`` distinct samples from a generator
 seeded by ``(seed, s)``; rank ``r`` takes its slice. The batch sequence is thus a function of the step only
@@ -273,26 +273,45 @@ def train(cfg, run_dir) -> dict:
     return metrics
 
 
+PROG = "indreg-train-momentum"
+CONFIG_NAME = "train_momentum"
+
+
 def _task(cfg) -> None:
     """The Hydra task; a damaged or foreign checkpoint ends in one line on stderr and exit status 1."""
-    import sys
-
     from hydra.core.hydra_config import HydraConfig
+
+    from ..experiments import cli
 
     try:
         train(cfg, HydraConfig.get().runtime.output_dir)
     except ckpt.CheckpointError as e:
-        print("indreg-train-momentum: error: " + " ".join(str(e).split()), file=sys.stderr, flush=True)
-        sys.exit(1)
+        cli.exit_error(PROG, str(e))
 
 
-def main() -> None:
-    """Console entry point (Hydra parses ``sys.argv``; config ``indreg/conf/train_momentum.yaml``)."""
-    import hydra
+def base_config():
+    """``train_momentum.yaml`` without Hydra's section: every key this app reads (it has no config groups)."""
+    from omegaconf import OmegaConf
 
     from ..experiments.config import CONFIG_DIR
 
-    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train_momentum")(_task)()
+    cfg = OmegaConf.load(CONFIG_DIR / f"{CONFIG_NAME}.yaml")
+    cfg.pop("hydra")
+    return cfg
+
+
+def main() -> None:
+    """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
+    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``)."""
+    import sys
+
+    import hydra
+
+    from ..experiments import cli
+    from ..experiments.config import CONFIG_DIR
+
+    cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, base=base_config())
+    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 
 
 if __name__ == "__main__":

@@ -13,9 +13,6 @@ from indreg.experiments.sweep import PAPER, collect, csv_text, main, markdown
 
 from experiment_helpers import FAST, run_cli
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "sweep_table.py"
-
-
 def _fake_multirun(root: Path, cells):
     for k, (sigma, gamma) in enumerate(cells):
         d = root / str(k)
@@ -65,6 +62,7 @@ def test_two_job_multirun_with_joblib_launcher(tmp_path):
     assert all(r["sigma"] == 2.0 and r["iterations"] == 10 for r in records)
     for job in ("0", "1"):
         assert list((sweep_dir / job / "tensorboard").glob("events.out.tfevents.*"))
-    proc = subprocess.run([sys.executable, str(SCRIPT), str(sweep_dir)], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([sys.executable, "-m", "indreg.experiments.sweep", str(sweep_dir)], capture_output=True,
+                          text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "| 2 |" in (sweep_dir / "table.md").read_text()

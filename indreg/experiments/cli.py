@@ -1,0 +1,187 @@
+"""What the entry points check before Hydra starts, and their one-line errors.
+
+Hydra composes the config, creates the run directory and sets up logging before the task runs; whatever fails
+on the way (a broken yaml file on the search path, a launcher whose plugin is not installed, a run directory
+that cannot be created) would end in Hydra's traceback, some files already written. :func:`preflight` does the
+same composition first and turns every such problem into one line ``<prog>: error: ...`` and exit status 1,
+with nothing written.
+"""
+from __future__ import annotations
+
+import copy
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+#: ``hydra/launcher=<name>`` -> (the extra of indreg that installs it, the plugin's module).
+LAUNCHER_EXTRAS = {
+    "joblib": ("joblib", "hydra_plugins.hydra_joblib_launcher"),
+    "slurm": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
+    "submitit_slurm": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
+    "submitit_local": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
+    "ray": ("ray", "hydra_plugins.hydra_ray_launcher"),
+    "ray_aws": ("ray", "hydra_plugins.hydra_ray_launcher"),
+}
+
+#: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
+#: ``--info``, ``-cd``, ...) is Hydra's business alone.
+_MULTIRUN_FLAGS = ("-m", "--multirun")
+
+
+class UsageError(Exception):
+    """A problem with the command line or the config files; the message is the one line shown."""
+
+
+def exit_error(prog: str, message: str) -> None:
+    """``<prog>: error: <message>`` on stderr (one line), exit status 1."""
+    print(f"{prog}: error: " + " ".join(str(message).split()), file=sys.stderr, flush=True)
+    sys.exit(1)
+
+
+def error_chain(exc: BaseException) -> str:
+    """The messages of an exception and its causes, in one line."""
+    parts, e = [], exc
+    while e is not None:
+        parts.append(" ".join(str(e).split()))
+        e = e.__cause__ or e.__context__
+    return ": ".join(p for p in dict.fromkeys(parts) if p)
+
+
+def _key(override: str) -> str:
+    """The key of an override: ``+solver.foo=1`` -> ``solver.foo``, ``hydra/launcher=joblib`` -> ``hydra/launcher``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def _plugin_installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def check_launcher(overrides) -> None:
+    """A ``hydra/launcher=<name>`` whose plugin is missing names the extra that installs it."""
+    for o in overrides:
+        if _key(o) != "hydra/launcher" or "=" not in o:
+            continue
+        name = o.split("=", 1)[1]
+        if name in LAUNCHER_EXTRAS:
+            extra, module = LAUNCHER_EXTRAS[name]
+            if not _plugin_installed(module):
+                raise UsageError(f"hydra/launcher={name} needs its Hydra plugin, which is not installed: "
+                                 f"pip install \"indreg[{extra}]\"")
+
+
+def check_keys(overrides, base, prog: str) -> None:
+    """Overrides of an app without config groups or schema may only set the keys of its config ``base`` (a
+    key it does not read would be ignored)."""
+    for o in overrides:
+        key = _key(o)
+        if key.startswith(("hydra.", "hydra/")):
+            continue
+        if o.startswith("~"):
+            raise UsageError(f"{o}: {prog} needs every key of its config; set a value instead")
+        node, path = base, []
+        for part in key.replace("/", ".").split("."):
+            if not hasattr(node, "keys") or part not in node:
+                where = f"'{'.'.join(path)}'" if path else prog
+                known = ", ".join(node.keys()) if hasattr(node, "keys") else "none (it is a value)"
+                raise UsageError(f"{o}: {prog} has no key '{key}'; the keys of {where} are {known} "
+                                 f"(see {prog} --help)")
+            node, path = node[part], path + [part]
+
+
+def check_writable_dir(key: str, path) -> None:
+    """``path`` (a directory to be created or written) can be: its nearest existing ancestor is a writable
+    directory. Writes nothing."""
+    p = Path(os.path.abspath(path))
+    existing = p
+    while not os.path.lexists(existing):
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"{key}={path} cannot be created: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        what = "the run directory" if existing == p else f"{existing}, where it would be created,"
+        raise UsageError(f"{key}={path} is not writable: {what} is read-only for this user; choose another {key}")
+
+
+def _split_sweeps(overrides) -> list:
+    """The overrides without sweeps (``a=1,2``, ``range(...)``, ...): a multirun's common config."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    return [o.input_line for o in parsed if not o.is_sweep_override()]
+
+
+def compose(config_dir, config_name: str, overrides):
+    """The config of ``config_name`` with ``overrides`` (Hydra's section ``hydra`` included)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(config_dir), job_name="preflight"):
+            return hydra_compose(config_name, overrides=list(overrides), return_hydra_config=True)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def job_config(cfg):
+    """``cfg`` without Hydra's section: what the task receives."""
+    from omegaconf import open_dict, read_write
+
+    job = copy.deepcopy(cfg)
+    with read_write(job), open_dict(job):
+        del job["hydra"]
+    return job
+
+
+def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base=None) -> None:
+    """Check a command line before Hydra sees it; a problem ends in ``<prog>: error: ...``, exit status 1.
+
+    Checked: the launcher's plugin (``hydra/launcher=joblib`` without ``indreg[joblib]`` names the extra), the
+    keys of an app without config groups (``base``, its config), the composition (a broken yaml file, an unknown
+    group or option, ``hydra.searchpath`` included), the job's config (``validate``; a multirun's sweeps are
+    left to its jobs) and the run directory (``hydra.run.dir``, or ``hydra.sweep.dir`` with ``-m``): it must be
+    creatable and writable. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
+    """
+    flags = [a for a in argv if a.startswith("-")]
+    if any(f not in _MULTIRUN_FLAGS for f in flags):
+        return
+    multirun = bool(flags)
+    overrides = [a for a in argv if not a.startswith("-")]
+    try:
+        check_launcher(overrides)
+        if base is not None:
+            check_keys(overrides, base, prog)
+        cfg = _compose_or_fail(config_dir, config_name, _split_sweeps(overrides) if multirun else overrides)
+        if validate is not None and not multirun:
+            validate(job_config(cfg))
+        key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+        check_writable_dir(key, _resolved(cfg, key))
+    except UsageError as e:
+        exit_error(prog, str(e))
+    except ValueError as e:  # the app's ConfigError (a ValueError naming the key)
+        exit_error(prog, error_chain(e))
+
+
+def _compose_or_fail(config_dir, config_name, overrides):
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+    from yaml import YAMLError
+
+    try:
+        return compose(config_dir, config_name, overrides)
+    except (HydraException, OmegaConfBaseException, YAMLError, ValueError) as e:
+        raise UsageError(error_chain(e)) from None
+
+
+def _resolved(cfg, key: str) -> str:
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return str(OmegaConf.select(cfg, key, throw_on_missing=True))
+    except OmegaConfBaseException as e:
+        raise UsageError(f"{key}: {error_chain(e)}") from None
