@@ -43,7 +43,7 @@ import torch
 from . import io
 from ._checks import check_positive
 from .domain import AXES, ImageDomain
-from .forward import FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
+from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry
 from .io import DataFileError
 
 GEOMETRIES = ("parallel", "fan_flat", "tilt_series")
@@ -161,10 +161,10 @@ def make_geometry(kind: str, det_count: int, *, angles: Optional[torch.Tensor] =
 
 
 def make_operator(domain: ImageDomain, geometry):
-    """The forward operator of ``geometry`` on ``domain``: a ``TiltSeriesTransform`` or a ``RayTransform``."""
-    if isinstance(geometry, TiltSeriesGeometry):
-        return TiltSeriesTransform(domain, geometry)
-    return RayTransform(domain, geometry)
+    """The forward operator of ``geometry`` on ``domain`` (``indreg.forward.operator_for``)."""
+    from .forward import operator_for
+
+    return operator_for(domain, geometry)
 
 
 # --- the checks of load -------------------------------------------------------------------------------------

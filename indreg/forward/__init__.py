@@ -12,6 +12,20 @@ from .fbp import fbp
 from .sirt import sirt
 from .tv import tv_reconstruction
 
+#: The forward operator of each geometry type (``operator_for``); a new geometry adds its entry here.
+OPERATORS = {ParallelBeamGeometry: RayTransform, FanBeamGeometry: RayTransform, TiltSeriesGeometry: TiltSeriesTransform}
+
+
+def operator_for(domain, geometry):
+    """The forward operator of ``geometry`` on ``domain`` (``OPERATORS``: ``RayTransform`` for the 2D beams,
+    ``TiltSeriesTransform`` for a tilt series)."""
+    for cls in type(geometry).__mro__:
+        if cls in OPERATORS:
+            return OPERATORS[cls](domain, geometry)
+    raise TypeError(f"no forward operator is registered for a {type(geometry).__name__} "
+                    f"(indreg.forward.OPERATORS: {', '.join(c.__name__ for c in OPERATORS)})")
+
+
 __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_projector", "LinearOperator",
            "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "TiltSeriesGeometry",
-           "TiltSeriesTransform"]
+           "TiltSeriesTransform", "OPERATORS", "operator_for"]
