@@ -113,7 +113,7 @@ def check_positive(value, name: str, dtype: torch.dtype | None = None) -> float:
 
 def check_nonnegative(value, name: str, dtype: torch.dtype | None = None) -> float:
     """Check that a scalar parameter is a finite number >= 0 (representable in ``dtype`` if given)."""
-    v = check_number(value, name, "a number >= 0")
+    v = check_number(value, name, "a finite number >= 0")
     if not (v >= 0 and math.isfinite(v)):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return check_finite_in(v, name, dtype)

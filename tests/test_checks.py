@@ -27,7 +27,7 @@ def test_numbers_in_every_form_are_accepted(value):
 
 @pytest.mark.parametrize("value", NOT_NUMBERS, ids=repr)
 def test_str_bool_none_complex_and_arrays_are_refused(value):
-    for check, what in ((check_positive, "a positive number"), (check_nonnegative, "a number >= 0"),
+    for check, what in ((check_positive, "a positive number"), (check_nonnegative, "a finite number >= 0"),
                         (check_finite, "a finite number"), (check_number, "a real number")):
         with pytest.raises(TypeError, match=f"^sigma must be {what}, got "):
             check(value, "sigma")

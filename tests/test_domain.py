@@ -86,6 +86,12 @@ def test_to_grid_matches_grid_sample_at_cell_centres():
     (dict(shape=(4, 4), min_pt=(-1e308, 0.0), max_pt=(1e308, 1.0)), "max_pt - min_pt must be finite"),
     (dict(shape=(4, 4), min_pt="ab"), r"min_pt must be 2 finite numbers \(x, y\), got 'ab'"),
     (dict(shape=(4, 4), min_pt=(0.0, 0.0, 0.0)), "min_pt must have 2 entries"),
+    # float() took "-1" and True; a string shape was iterated by characters
+    (dict(shape=(4, 4), min_pt=("-1", "-1")), r"^min_pt must be 2 finite numbers \(x, y\), got \('-1', '-1'\)"),
+    (dict(shape=(4, 4), max_pt=(True, 1.0)), r"^max_pt must be 2 finite numbers \(x, y\), got \(True, 1.0\)"),
+    (dict(shape=(4, 4), max_pt=(1 + 0j, 1.0)), r"^max_pt must be 2 finite numbers"),
+    (dict(shape="44"), r"^shape must be 2 or 3 integers \(nx, ny\[, nz\]\), got '44'"),
+    (dict(shape=(True, 4)), r"^shape entry must be an integer >= 1, got True"),
 ])
 def test_invalid_domain(kwargs, match):
     with pytest.raises((ValueError, TypeError), match=match):

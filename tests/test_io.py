@@ -410,3 +410,21 @@ def test_3d_bad_input_one_line_errors(tmp_path):
         read_voxel_size(tmp_path / "flat.npy")
     with pytest.raises(ValueError, match="ndim must be 2 or 3"):
         read_image(tmp_path / "v.mrc", ndim=4)
+
+
+def test_paths_and_scalar_arguments_are_type_checked(tmp_path):
+    # Path(None) raised pathlib's TypeError; pixel_size "1.5", True or nan went into the MRC header
+    v = volume()
+    for call, name in ((lambda p: read_image(p), "template"), (lambda p: read_volume(p), "template"),
+                       (lambda p: read_sinogram(p), "sinogram"), (lambda p: read_voxel_size(p), "volume"),
+                       (lambda p: tilt_angles_for(p), "sinogram"), (lambda p: write_image(p, v), "output"),
+                       (lambda p: write_volume(p, v), "output"), (lambda p: write_tilt_series(p, v, np.zeros(len(v))),
+                                                                   "output")):
+        for bad in (None, 3, True, ["a.npy"]):
+            with pytest.raises(DataFileError, match=f"^{name} path must be a str or os.PathLike, got "):
+                call(bad)
+    for bad, error in (("1.5", TypeError), (True, TypeError), (math.nan, ValueError), (0.0, ValueError)):
+        with pytest.raises(error, match="^pixel_size must be a "):
+            write_tilt_series(tmp_path / "ts.mrc", v, np.zeros(len(v)), pixel_size=bad)
+    with pytest.raises(TypeError, match="^domain must be an ImageDomain or None, got tuple"):
+        write_volume(tmp_path / "w.mrc", v, domain=v.shape)

@@ -75,3 +75,32 @@ def test_3d_volumes():
     one_slice[:, :, 8] += noise[:, :, 8]
     assert ssim(gt + noise, gt) < ssim(one_slice, gt) < 1.0  # a 7^3 window sees every slice's error
     assert psnr(gt + 0.01, gt) == pytest.approx(40.0)
+
+
+@pytest.mark.parametrize("metric", [ssim, psnr, ssim_paper, psnr_paper, relative_error])
+def test_complex_boolean_and_small_inputs_are_refused(metric):
+    # issue #19: psnr(I + 5j, I) cast the complex image to its real part, i.e. I, and returned inf
+    x, gt = images()
+    xt = torch.from_numpy(x)
+    for bad, dtype in ((x + 5j, "complex128"), (xt + 5j, "torch.complex128"), (x > 0.5, "bool"),
+                       (xt > 0.5, "torch.bool"), (x.astype(str), "<U32")):
+        with pytest.raises(TypeError, match=f"^x must have real numeric values, got dtype {dtype}"):
+            metric(bad, gt)
+        with pytest.raises(TypeError, match=f"^gt must have real numeric values, got dtype {dtype}"):
+            metric(gt, bad)
+    with pytest.raises(ValueError, match=r"^x must be a non-empty 2D image .* got shape \(0, 32\)"):
+        metric(x[:0], gt[:0])
+    with pytest.raises(ValueError, match="^gt contains non-finite values"):
+        metric(x, np.where(gt > 0.25, np.inf, gt))
+    with pytest.raises(ValueError, match=r"^x and gt must have the same shape, got \(32, 32\) and \(32, 31\)"):
+        metric(x, gt[:, :-1])
+    assert metric(xt.to(torch.bfloat16), gt) == pytest.approx(metric(xt.to(torch.bfloat16).double(), gt))
+
+
+def test_ssim_needs_its_window():
+    x, gt = images()
+    for metric in (ssim, ssim_paper):
+        with pytest.raises(ValueError, match=r"^x and gt must be at least 7 cells along every axis for SSIM .* "
+                                             r"got shape \(6, 32\)"):
+            metric(x[8:14], gt[8:14])
+    assert psnr(x[8:14], gt[8:14]) > 0  # PSNR has no window

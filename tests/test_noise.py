@@ -98,6 +98,11 @@ def test_errors():
         add_white_noise(g, snr_db="a")
     with pytest.raises(TypeError, match=r"std must be a finite number >= 0, got \[1.0\]"):
         add_white_noise(g, std=[1.0])
+    for bad in ("1", True, 1 + 0j):  # float() took "1" and True
+        with pytest.raises(TypeError, match="^std must be a finite number >= 0, got "):
+            add_white_noise(g, std=bad)
+        with pytest.raises(TypeError, match=r"^snr_db must be a finite number \(dB\), got "):
+            add_white_noise(g, snr_db=bad)
     with pytest.raises(TypeError, match="data must be float32 or float64, got torch.float16"):
         add_white_noise(g.half(), std=1.0)
     with pytest.raises(ValueError, match="convention"):

@@ -72,8 +72,8 @@ def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0
     if smoothing > 0:
         mag = (sq + smoothing ** 2).sqrt()
     else:
-        positive = sq > 0
-        mag = torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
+        zero = sq == 0  # not "sq > 0": a nan must stay nan (a non-finite image has no TV of 0)
+        mag = torch.where(zero, torch.zeros_like(sq), torch.where(zero, torch.ones_like(sq), sq).sqrt())
     return domain.cell_volume * mag.sum(dim=domain.dims)
 
 

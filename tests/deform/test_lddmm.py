@@ -540,3 +540,19 @@ def test_template_only_requires_grad(backward):
     t = template.clone().requires_grad_()
     (W(v, t) * grad_out).sum().backward()
     torch.testing.assert_close(t.grad, grads(W, v, template, grad_out)[1])
+
+
+def test_empty_batch_is_refused():
+    # issue #19: an empty batch ended in an amax() IndexError deep in functional.step_flags
+    dom = ImageDomain.paper(8)
+    W = LDDMMDeformation(dom, 4)
+    v, template = W.zero_velocity(), dom.zeros()
+    for call in (lambda x: W(x, template), lambda x: W.trajectory(x, template), W.jacobian, W.min_jacobian,
+                 W.jacobian_determinant, W.deformation):
+        with pytest.raises(ValueError, match=r"^velocity is empty \(shape \(0, 5, 2, 8, 8\)\): give at least one "
+                                             r"item of shape \(5, 2, 8, 8\)"):
+            call(v[None][:0])
+    with pytest.raises(ValueError, match=r"^template is empty \(shape \(0, 8, 8\)\)"):
+        W(v, template[None][:0])
+    with pytest.raises(ValueError, match=r"^template is empty"):
+        W(v.requires_grad_(True), template[None][:0])

@@ -214,3 +214,15 @@ def test_bad_input():
         MetamorphosisDeformation(dom, 4, interpolation="cubic")
     with pytest.raises(ValueError, match="backward must be one of"):
         MetamorphosisDeformation(dom, 4, backward="paper")
+
+
+def test_empty_batch_is_refused():
+    dom, v, z, template, _ = random_problem()
+    M = MetamorphosisDeformation(dom, 4)
+    for call in (M, M.trajectory, M.parts):
+        with pytest.raises(ValueError, match=r"^velocity is empty \(shape \(0, 5, 2, 12, 12\)\)"):
+            call(v[None][:0], z, template)
+        with pytest.raises(ValueError, match=r"^source is empty \(shape \(0, 5, 12, 12\)\)"):
+            call(v, z[None][:0], template)
+        with pytest.raises(ValueError, match=r"^template is empty \(shape \(0, 12, 12\)\)"):
+            call(v, z, template[None][:0])

@@ -242,3 +242,19 @@ def test_checkpointing_bounds_the_saved_memory():
              for ckpt in (True, False) for n in (4, 8)}
     assert saved[True, 8] - saved[True, 4] <= 4 * 4         # <= 4 fields per time step (velocity, displacement, ...)
     assert saved[True, 8] < 0.25 * saved[False, 8]
+
+
+def test_empty_batch_and_flag_types_are_refused(small):
+    dom, K = small
+    shoot = GeodesicShooting(dom, K, 2)
+    m0 = torch.zeros(1, 2, 16, 16, dtype=torch.float64)
+    for call in (lambda m: shoot(m, disc(dom)), shoot.shoot, shoot.velocity):
+        with pytest.raises(ValueError, match=r"^momentum is empty \(shape \(0, 2, 16, 16\)\)"):
+            call(m0[:0])
+    with pytest.raises(ValueError, match=r"^template is empty \(shape \(0, 16, 16\)\)"):
+        shoot(m0, disc(dom)[None][:0])
+    for bad in ("no", None, 1):
+        with pytest.raises(TypeError, match="^checkpoint must be True or False, got "):
+            GeodesicShooting(dom, K, 2, checkpoint=bad)
+    with pytest.raises(TypeError, match="^corrector_steps must be an integer >= 0, got True"):
+        GeodesicShooting(dom, K, 2, corrector_steps=True)

@@ -124,3 +124,16 @@ def test_tv_reconstruction_3d_decreases_objective():
     assert float(obj[-1]) < 0.1 * float(obj[0])
     truth = phantoms.ellipsoid_phantom(dom, BALL)
     assert float(dom.norm(x - truth)) < 0.5 * float(dom.norm(truth))
+
+
+def test_sirt_start_image_and_flag_errors():
+    dom = ImageDomain.paper(16)
+    T = RayTransform(dom, ParallelBeamGeometry(6, 24))
+    y = T(torch.rand(2, 16, 16, dtype=torch.float64))
+    for bad in (dom.zeros(0), dom.zeros(3, 2), dom.zeros()):
+        with pytest.raises(ValueError, match=r"^x0 must have shape \(2, 16, 16\) \(the data's batch dims"):
+            sirt(T, y, num_iter=1, x0=bad)
+    with pytest.raises(TypeError, match="^nonneg must be True or False, got None"):
+        sirt(T, y, num_iter=1, nonneg=None)
+    x, _ = sirt(T, y, num_iter=1, x0=dom.zeros(2, dtype=torch.float32))  # the start follows the data's dtype
+    assert x.dtype == torch.float64

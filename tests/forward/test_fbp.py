@@ -183,3 +183,15 @@ def test_fbp_needs_a_ray_transform():
 
     with pytest.raises(TypeError, match="fbp needs a RayTransform.*got Blur"):
         fbp(Blur(), torch.zeros(8, 8, dtype=torch.float64))
+
+
+def test_empty_batch_and_padding_flag(op128):
+    # an empty batch ended in an MKL FFT error; padding="no" was truthy
+    y = torch.zeros(op128.range_shape, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^data is empty \(shape \(0, 180, 182\)\): give at least one item"):
+        fbp(op128, y[None][:0])
+    for bad in ("no", None, 1):
+        with pytest.raises(TypeError, match="^padding must be True or False, got "):
+            fbp(op128, y, padding=bad)
+    with pytest.raises(TypeError, match="^det_count must be an integer >= 1, got 8.5"):
+        fbp_filter(8.5, 1.0)

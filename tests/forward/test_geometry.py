@@ -183,3 +183,31 @@ def test_fan_source_inside_the_domain_is_rejected():
         RayTransform(ImageDomain.paper(16), FanBeamGeometry(8, 10, src_radius=20.0))
     with pytest.raises(ValueError, match="src_radius=20.0 must exceed"):
         RayTransform(ImageDomain.paper(16), FanBeamGeometry(8, 10, src_radius=20.0, det_min=-30.0, det_max=30.0))
+
+
+def test_scalar_parameters_refuse_str_bool_and_complex():
+    # float() took "1" and True; the detector extent, fan distances and tilt range go through _checks now
+    for kwargs, error, match in (
+            (dict(det_min="-1", det_max=1.0), TypeError, "^det_min must be a finite number, got '-1'"),
+            (dict(det_min=-1.0, det_max=True), TypeError, "^det_max must be a finite number, got True"),
+            (dict(det_min=-1.0, det_max=1 + 0j), TypeError, r"^det_max must be a finite number, got \(1\+0j\)"),
+            (dict(det_min=-1.0, det_max=math.inf), ValueError, "^det_max must be a finite number, got inf"),
+            (dict(angle_weights=[1.0 + 0j] * 3), TypeError, "^angle_weights must be real numbers, got dtype "
+                                                             "torch.complex"),
+            (dict(angle_weights=[True] * 3), TypeError, "^angle_weights must be real numbers, got dtype torch.bool"),
+            (dict(angle_weights=["1"] * 3), TypeError, "^angle_weights must be 3 finite positive numbers, got list")):
+        with pytest.raises(error, match=match):
+            ParallelBeamGeometry(3, 4, **kwargs)
+    for bad, error in (("5", TypeError), (True, TypeError), (math.inf, ValueError)):
+        with pytest.raises(error, match="^det_radius must be a finite number >= 0, got "):
+            FanBeamGeometry(4, 3, src_radius=10.0, det_radius=bad)
+    with pytest.raises(TypeError, match="^src_radius must be a positive number, got '10'"):
+        FanBeamGeometry(4, 3, src_radius="10")
+    with pytest.raises(TypeError, match="^min_deg must be a finite number, got '-60'"):
+        ParallelBeamGeometry.tilt_series("-60", 60, 2, det_count=8)
+    with pytest.raises(ValueError, match=r"^step_deg = 1e-320 is too small for \[-60.0, 60.0\]"):
+        ParallelBeamGeometry.tilt_series(-60, 60, 1e-320, det_count=8)
+    with pytest.raises(TypeError, match="^num_angles must be an integer >= 1, got True"):
+        ParallelBeamGeometry(True, 4)
+    g = ParallelBeamGeometry(np.int64(3), 4, np.float32(-1), torch.tensor(1.0))  # numpy / torch scalars are fine
+    assert (g.num_angles, g.det_min, g.det_max) == (3, -1.0, 1.0)

@@ -68,3 +68,40 @@ def test_ray_transforms_follow_the_protocol(geometry):
     assert isinstance(T, LinearOperator) and check_operator(T) is T
     assert adjointness(T) < 1e-14
     assert T.operator_norm(num_iter=30) == operator_norm(T, num_iter=30)
+
+
+def test_inner_data_checks_both_arguments_against_the_range():
+    # issue #19: T.inner_data(g, g[:3]) ended in a torch broadcasting traceback
+    dom = ImageDomain.paper(16)
+    T = RayTransform(dom, ParallelBeamGeometry(6, 20))
+    g = T(torch.rand(2, 16, 16, dtype=torch.float64))
+    for bad, match in ((g[0, :3], r"y2 must have shape \(\.\.\., 6, 20\), got \(3, 20\)"),
+                       (g[..., :-1], r"y2 must have shape \(\.\.\., 6, 20\), got \(2, 6, 19\)"),
+                       (g[0, 0], r"y2 must have shape \(\.\.\., 6, 20\), got \(20,\)")):
+        with pytest.raises(ValueError, match="^" + match):
+            T.inner_data(g, bad)
+    with pytest.raises(ValueError, match=r"^y1 must have shape \(\.\.\., 6, 20\), got \(3, 20\)"):
+        T.inner_data(g[0, :3], g)
+    for bad, error, match in ((g.tolist(), TypeError, "y2 must be a torch.Tensor, got list"),
+                              (2.0, TypeError, "y2 must be a torch.Tensor, got float"),
+                              (g.to(torch.complex128), TypeError, "y2 must have a floating dtype"),
+                              (g.long(), TypeError, "y2 must have a floating dtype"),
+                              (g.float(), TypeError, "y1 has dtype torch.float64 but y2 has dtype torch.float32"),
+                              (torch.cat([g, g, g]), ValueError, r"batch dims of y1 \(2,\) and y2 \(6,\) do not "
+                                                                 r"broadcast")):
+        with pytest.raises(error, match="^" + match):
+            T.inner_data(g, bad)
+    with pytest.raises(ValueError, match=r"^y1 must have shape"):
+        T.norm_data(g[0, 0])
+    # a residual's non-finite values are the caller's to report: they show in the sum, batch dims broadcast
+    assert torch.isnan(T.inner_data(g * math.nan, g)).all()
+    torch.testing.assert_close(T.inner_data(g, g[0]), T.inner_data(g, g[[0, 0]]))
+
+
+def test_adjointness_seed_and_dtype_are_checked():
+    T = RayTransform(ImageDomain.paper(8), ParallelBeamGeometry(4, 12))
+    for bad in (True, "0", 0.5, -1, None):
+        with pytest.raises((TypeError, ValueError), match="^seed must be an integer >= 0, got "):
+            adjointness(T, seed=bad)
+    with pytest.raises(TypeError, match="^dtype must be torch.float32 or torch.float64, got torch.int64"):
+        operator_norm(T, dtype=torch.int64)

@@ -2,6 +2,7 @@
 integrals, autograd (gradcheck), batches, conventions and bad input."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -135,3 +136,12 @@ def test_bad_input_one_line_errors():
         TiltSeriesGeometry(TILTS, 11, angle_unit="deg").shape
     with pytest.raises(ValueError, match="RayTransform needs a 2D domain"):
         RayTransform(DOMAIN, ParallelBeamGeometry(4, 8))
+
+
+def test_tilt_axis_is_one_axis_name_or_number():
+    # "xy" and "" are substrings of "xyz" and were taken as axis 0; numpy's True == 1 was axis 1
+    for bad in ("xy", "", "Y", np.bool_(True), True, 1.0, 3, None):
+        with pytest.raises(ValueError, match="^tilt_axis must be 'x', 'y', 'z' \\(or 0, 1, 2\\), got "):
+            TiltSeriesGeometry(TILTS, 11, tilt_axis=bad, angle_unit="deg")
+    for good, axis in (("z", 2), (0, 0), (np.int64(2), 2)):
+        assert TiltSeriesGeometry(TILTS, 11, tilt_axis=good, angle_unit="deg").axis == axis

@@ -231,3 +231,29 @@ def test_suite1_tv_beats_fbp(suite1):
     xf = fbp_mod.fbp(T, y, filter="hamming", frequency_scaling=0.4)
     assert ssim(x, gt) > ssim(xf, gt) + 0.1        # measured: 0.55 vs 0.39
     assert ssim_paper(x, gt) > ssim_paper(xf, gt) + 0.1
+
+
+def test_total_variation_and_start_image_errors():
+    f = torch.rand(8, 6, dtype=torch.float64)
+    for bad, error, match in ((f.numpy(), TypeError, "f must be a torch.Tensor, got ndarray"),
+                              (f.long(), TypeError, "f must have a floating dtype"),
+                              (f + 0j, TypeError, "f must have a floating dtype"),
+                              (f[:, :5], ValueError, r"f must have shape \(\.\.\., 8, 6\), got \(8, 5\)")):
+        with pytest.raises(error, match="^" + match):
+            total_variation(bad, DOM)
+    with pytest.raises(TypeError, match="^domain must be an ImageDomain, got tuple"):
+        total_variation(f, (8, 6))
+    for bad, error in ((True, TypeError), ("0.1", TypeError), (math.nan, ValueError), (-0.1, ValueError)):
+        with pytest.raises(error, match="^smoothing must be a finite number >= 0, got "):
+            total_variation(f, DOM, bad)
+    for smoothing in (0.0, 0.1):  # a deformed template's nan shows in the value (plain TV once gave 0)
+        assert torch.isnan(total_variation(f * math.nan, DOM, smoothing))
+    # the start image has exactly the data's batch dims (an extra or an empty batch broke the history)
+    T = DenseOperator(DOM, (9, 7))
+    y = torch.zeros(9, 7, dtype=torch.float64)
+    for bad in (f[None][:0], f.expand(2, 8, 6)):
+        with pytest.raises(ValueError, match=r"^x0 must have shape \(8, 6\) \(the data's batch dims, then the "
+                                             r"domain's\), got \("):
+            tv_reconstruction(T, y, mu=1.0, num_iter=1, x0=bad)
+    with pytest.raises(TypeError, match="^nonneg must be True or False, got 'yes'"):
+        tv_reconstruction(T, y, mu=1.0, num_iter=1, nonneg="yes")

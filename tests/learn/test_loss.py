@@ -133,3 +133,25 @@ def test_data_on_another_device(setup):
     dom, shoot, m0, tmpl, (T, _) = setup
     with pytest.raises(ValueError, match="data is on cuda:0 but momentum is on cpu"):
         IndirectShootingLoss(shoot, T, 1.0)(m0, tmpl, T(tmpl).cuda())
+
+
+def test_index_and_gamma_are_type_checked(setup):
+    # issue #19: index=[0.7] silently used transform 0
+    dom, shoot, m0, tmpl, transforms = setup
+    loss = IndirectShootingLoss(shoot, transforms, 1.0)
+    data = [transforms[0](tmpl[b]) for b in range(3)]
+    for bad, match in (([0.7, 0.0, 0.0], "float32"), (torch.tensor([0.0, 1.0, 0.0]), "float32"),
+                       ([True, False, True], "bool")):
+        with pytest.raises(TypeError, match=f"^index must hold integers \\(transform numbers\\), got dtype torch.{match}"):
+            loss(m0, tmpl, data, bad)
+    with pytest.raises(TypeError, match="^index must be a \\(B,\\) integer tensor or list, got str"):
+        loss(m0, tmpl, data, "012")
+    # a shared transform has only transform 0
+    with pytest.raises(ValueError, match=r"^index entries must lie in \[0, 0\], got \[0, 1, 0\]"):
+        IndirectShootingLoss(shoot, transforms[0], 1.0)(m0, tmpl, transforms[0](tmpl), [0, 1, 0])
+    for bad in (False, "0", None):
+        with pytest.raises(TypeError, match="^gamma must be a finite number >= 0, got "):
+            IndirectShootingLoss(shoot, transforms[0], bad)
+    assert IndirectShootingLoss(shoot, transforms[0], 0).gamma == 0.0
+    with pytest.raises(ValueError, match=r"^momentum is empty \(shape \(0, 2, 16, 16\)\)"):
+        IndirectShootingLoss(shoot, transforms[0], 1.0)(m0[:0], tmpl[:0], transforms[0](tmpl[:0]))

@@ -125,3 +125,29 @@ def test_bad_input(problem):
         IndirectRegistration(T, W, K, I, g * float("nan"), gamma=1.0)
     with pytest.raises(ValueError, match="momentum must have shape"):
         problem.evaluate(torch.zeros(3, 2, 32, 32, dtype=torch.float64))
+
+
+def test_constructor_arguments_are_type_checked(problem):
+    # issue #19: gamma='1e-3' was accepted as 0.001 and kernel=None ended in an AttributeError traceback
+    T, W, K, I, g = problem.ray_transform, problem.deformation, problem.kernel, problem.template, problem.data
+    for bad in ("1e-3", True, None, 1e-3 + 0j):
+        with pytest.raises(TypeError, match="^gamma must be a finite number >= 0, got "):
+            IndirectRegistration(T, W, K, I, g, gamma=bad)
+    with pytest.raises(TypeError, match="^tv_smoothing must be a finite number >= 0, got '0'"):
+        IndirectRegistration(T, W, K, I, g, gamma=1.0, tv_smoothing="0")
+    with pytest.raises(TypeError, match="^kernel must be a GaussianKernel, got NoneType"):
+        IndirectRegistration(T, W, None, I, g, gamma=1.0)
+    with pytest.raises(TypeError, match="^deformation must be an LDDMMDeformation, got GaussianKernel"):
+        IndirectRegistration(T, K, K, I, g, gamma=1.0)
+    with pytest.raises(TypeError, match="^ray_transform must be a linear operator .*NoneType lacks domain"):
+        IndirectRegistration(None, W, K, I, g, gamma=1.0)
+    with pytest.raises(TypeError, match="^template must be a torch.Tensor, got ndarray"):
+        IndirectRegistration(T, W, K, I.numpy(), g, gamma=1.0)
+    with pytest.raises(TypeError, match="^data must be a torch.Tensor, got list"):
+        IndirectRegistration(T, W, K, I, g.tolist(), gamma=1.0)
+    with pytest.raises(TypeError, match="^template must have a floating dtype"):
+        IndirectRegistration(T, W, K, I.long(), g, gamma=1.0)
+    # a weight must survive the cast to the problem's dtype (alpha of the float32 update)
+    with pytest.raises(ValueError, match="^gamma must be representable in torch.float32"):
+        IndirectRegistration(T, W, K, I.float(), g.float(), gamma=1e39)
+    assert IndirectRegistration(T, W, K, I, g, gamma=1e39).gamma == 1e39
