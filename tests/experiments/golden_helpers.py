@@ -72,8 +72,8 @@ def _same(stored, new) -> bool:
 
 
 def mismatches(stored: dict, new: dict) -> list:
-    """One line per stored key that is missing from ``new`` or differs (floats: ``|new - stored| <= ATOL + RTOL |stored|``); new keys
-    are allowed."""
+    """One line per stored key that is missing from ``new`` or differs (floats: more than
+    ``ATOL + RTOL |stored|``); new keys are allowed."""
     lines = []
     for k, v in sorted(stored.items()):
         if k not in new:
