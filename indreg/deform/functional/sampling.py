@@ -56,13 +56,17 @@ def sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str = "zeros") -> 
     (same batch dims; d = ``grid.shape[-1]``, 2 or 3).
 
     Returns ``(..., C, *out_shape)``. Adjoint (what autograd uses): a scatter of the incoming values with the
-    interpolation weights. ``grid_sample`` parallelises over the batch only; a single image on a CPU with ``k``
+    interpolation weights. In 3D on a CPU with the output on the input's grid, points displaced by at most a
+    cell along x are sampled plane by plane (``_planewise_sample``; else ``grid_sample``).
+    ``grid_sample`` parallelises over the batch only; a single image on a CPU with ``k``
     threads is sampled as ``k`` bands of output rows (along x; the image expanded, not copied): the same
     values, ``k`` threads at work (at 256^2 with 2 threads: 2x faster forward, 1.7x backward).
     """
     d = grid.shape[-1]
     batch, (c, *shape), out_shape = f.shape[:-d - 1], f.shape[-d - 1:], grid.shape[-d - 1:-1]
     f, grid = f.reshape(-1, c, *shape), grid.reshape(-1, *out_shape, d)
+    if _planewise_applies(f, grid):
+        return _PlanewiseSample.apply(f, grid, padding_mode).reshape(*batch, c, *out_shape)
     bands = _bands(f, *out_shape)
     if bands > 1:
         f, grid = f.expand(bands, c, *shape), grid.reshape(bands, out_shape[0] // bands, *out_shape[1:], d)
@@ -134,3 +138,76 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
         gi = gi.sum(0)
     return (gi.reshape(*batch, c, *shape) if need_input else None), \
         (gg.reshape(*batch, *shape, d) if need_grid else None)
+
+
+
+# ----------------------------------------------------------------------------------------------------------
+# trilinear interpolation plane by plane: linear along x of bilinear interpolations in the (y, z) planes
+def _planewise_applies(f: torch.Tensor, grid: torch.Tensor) -> bool:
+    """Whether ``sample`` tries ``_planewise_sample``: 3D on a CPU with the output on the input's grid
+    (``grid (B, *shape, 3)`` for ``f (B, C, *shape)``). Measured (``scripts/bench_sampler.py``): ``grid_sample``'s
+    3D CPU kernel is a scalar loop, its 2D one vectorised; in 2D and on a GPU ``grid_sample`` is kept."""
+    return grid.shape[-1] == 3 and f.device.type == "cpu" and f.shape[-3:] == grid.shape[-4:-1]
+
+
+def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> torch.Tensor | None:
+    """``grid_sample(f, grid, "bilinear", padding_mode, align_corners=False)`` for ``f (B, C, nx, ny, nz)`` and
+    ``grid (B, nx, ny, nz, 3)``, or None when some point lies more than a cell along x from its own plane.
+
+    The point of output node ``(i, j, k)`` has the pixel coordinate ``x = ((g_x + 1) nx - 1) / 2`` along x
+    (``"border"``: clamped to ``[0, nx-1]``, ``grid_sample``'s clipping). If ``s = x - i`` lies in ``[-1, 1]``,
+    linear interpolation along x is the 3-point stencil ``relu(-s) f[i-1] + (1 - |s|) f[i] + relu(s) f[i+1]``
+    (the hat functions: the two weights of the cell ``x`` falls in and a 0), so the trilinear value is that
+    stencil applied to the bilinear interpolations, at the point's ``(y, z)``, of the planes ``i-1, i, i+1``
+    (zero planes beyond the domain; ``"border"`` never weights them). Those are one batched 2D
+    ``grid_sample`` (vectorised on a CPU): batch ``i``, channels the three planes (a strided view, no copy
+    but the x padding). The same values as the 3D ``grid_sample`` up to rounding.
+    """
+    _, c, nx, ny, nz = f.shape
+    g = grid[..., 2]
+    node = torch.arange(nx, dtype=g.dtype, device=g.device).view(-1, 1, 1)
+    if padding_mode == "zeros":
+        s = torch.add((nx - 1) / 2 - node, g, alpha=nx / 2)
+    else:
+        s = torch.mul(g, nx / 2).add_((nx - 1) / 2).clamp_(0, nx - 1).sub_(node)
+    low, high = torch.aminmax(s)
+    if not (low >= -1 and high <= 1):
+        return None
+    behind, ahead = s.clamp(max=0).neg_().unsqueeze(-3), s.clamp(min=0).unsqueeze(-3)
+    weights = (behind, torch.rsub(behind, 1).sub_(ahead), ahead)  # (B, nx, 1, ny, nz)
+    out = f.new_empty(f.shape)
+    for b in range(f.shape[0]):
+        padded = F.pad(f[b], (0, 0, 0, 0, 1, 1)).movedim(0, 1).contiguous()  # (nx+2, C, ny, nz)
+        planes = padded.as_strided((nx, 3 * c, ny, nz), (c * ny * nz, ny * nz, nz, 1))
+        bilinear = F.grid_sample(planes, grid[b, ..., :2], mode="bilinear", padding_mode=padding_mode,
+                                 align_corners=False).unflatten(1, (3, c))  # (nx, 3, C, ny, nz)
+        target = out[b].movedim(0, 1)
+        torch.mul(bilinear[:, 0], weights[0][b], out=target)
+        target.addcmul_(bilinear[:, 1], weights[1][b]).addcmul_(bilinear[:, 2], weights[2][b])
+    return out
+
+
+class _PlanewiseSample(torch.autograd.Function):
+    """``sample`` of ``f (B, C, nx, ny, nz)`` at ``grid (B, nx, ny, nz, 3)`` by ``_planewise_sample``
+    (``grid_sample`` where it does not apply), with ``_sample_adjoint`` as backward. A backward that records a
+    graph (double backward) differentiates ``grid_sample`` instead: the same derivative, differentiable again."""
+
+    @staticmethod
+    def forward(ctx, f, grid, padding_mode):
+        ctx.save_for_backward(f, grid)
+        ctx.padding_mode = padding_mode
+        out = _planewise_sample(f, grid, padding_mode)
+        if out is None:
+            out = F.grid_sample(f, grid, mode="bilinear", padding_mode=padding_mode, align_corners=False)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        f, grid = ctx.saved_tensors
+        need = ctx.needs_input_grad[:2]
+        if torch.is_grad_enabled():
+            inputs = [t for t, n in zip((f, grid), need) if n]
+            out = F.grid_sample(f, grid, mode="bilinear", padding_mode=ctx.padding_mode, align_corners=False)
+            grads = iter(torch.autograd.grad(out, inputs, grad, create_graph=True))
+            return (*(next(grads) if n else None for n in need), None)
+        return (*_sample_adjoint(grad, f, grid, ctx.padding_mode, *need), None)
