@@ -114,6 +114,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
 
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
+    from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
 
@@ -128,6 +129,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
     if o["interpolation"] is None:
         o["interpolation"] = "compose" if o["solver"] == opts.FAST else "reinterpolate"
+    for option in opts.all_options():   # a step must stay finite (and nonzero) in the run's dtype
+        if option.name in ("step_size", "lr") and o[option.name] is not None:
+            check_finite_in(o[option.name], label(option), dtype)
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = models.get(o["model"]).build(operator, template, data, kernel, o)
     return Setup(problem, make_solver(problem, o, solver_options), o)

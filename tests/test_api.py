@@ -160,3 +160,9 @@ def test_max_halvings_covers_large_intensity_scales(tiny):
     few = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, max_halvings=5)
     assert not default.history[0]["rejected"] and default.objective < few.objective
     assert few.history[0]["rejected"] and few.warnings == 1 and torch.count_nonzero(few.momentum) == 0
+
+
+def test_a_step_that_overflows_the_working_dtype_is_refused_in_one_line(tiny):
+    T, template, _, data = tiny
+    with pytest.raises(ValueError, match=r"step_size must be representable in torch\.float32"):
+        indreg.register(template.float(), data.float(), T, step_size=1e39, max_iter=1)

@@ -313,3 +313,23 @@ def test_read_only_run_dir_or_checkpoint_fails_before_computing(tmp_path, stoppe
             run_app(F64, out / "sub")
     finally:
         out.chmod(0o755)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda p: p.update(iteration=99), r"iteration 99, past solver\.max_iter=10"),
+    (lambda p: p.update(iteration=-3), r"iteration -3 is not an integer"),
+    (lambda p: p["state"].update(iteration=5), r"state\.iteration 5 differs from iteration 2"),
+    (lambda p: p["state"].update(momentum=p["state"]["momentum"].long()), r"state\.momentum is a torch\.int64 tensor"),
+    (lambda p: p["state"].update(momentum=p["state"]["momentum"][:2]), r"state\.momentum is a torch\.float64 tensor "
+                                                                       r"of shape \(2,"),
+    (lambda p: p.update(history=p["history"][:1]), r"history has 1 entries, expected one report per iteration \(2\)"),
+    (lambda p: p.update(seconds=float("nan")), r"seconds nan is not a finite number"),
+])
+def test_edited_checkpoint_with_a_valid_checksum_is_checked_against_the_run(tmp_path, stopped, edit, match):
+    """A checkpoint edited and re-saved (valid checksum) must still fit the run: types, shapes, ranges."""
+    out = _copy_run(stopped, tmp_path)
+    payload = checkpoint.load(out / "checkpoint.pt", keys=KEYS)
+    edit(payload)
+    checkpoint.save(out / "checkpoint.pt", payload)
+    with pytest.raises(CheckpointError, match=match):
+        run_app(F64 + ["resume=true"], out)
