@@ -8,6 +8,15 @@ from indreg.deform.functional import sampling as S
 SHAPE = (6, 7, 5)
 
 
+@pytest.fixture
+def one_thread():
+    """``sample`` takes the plane-wise path with one CPU thread (``_planewise_applies``)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def grid_of(shape, batch, reach, dtype, seed=0):
     """Cell centres displaced uniformly by up to ``reach`` cells per axis (x, y, z), ``(batch, *shape, 3)``."""
     g = torch.Generator().manual_seed(seed)
@@ -45,7 +54,7 @@ def test_planewise_at_nodes_and_cell_edges(padding_mode):
                                    rtol=0, atol=1e-14)
 
 
-def test_planewise_declines_beyond_a_cell_along_x():
+def test_planewise_declines_beyond_a_cell_along_x(one_thread):
     f = torch.randn(1, 1, *SHAPE, dtype=torch.float64)
     grid = grid_of(SHAPE, 1, (0.5, 0, 0), torch.float64)
     grid[0, 2, 3, 1, 2] += 2.5 * 2 / SHAPE[0]
@@ -58,7 +67,7 @@ def test_planewise_declines_beyond_a_cell_along_x():
 
 
 @pytest.mark.parametrize("padding_mode", ("zeros", "border"))
-def test_sample_uses_planewise_in_3d_and_its_transpose_is_the_scatter(padding_mode):
+def test_sample_uses_planewise_in_3d_and_its_transpose_is_the_scatter(padding_mode, one_thread):
     """<S f, g> = <f, S^T g> with S^T = _sample_adjoint, and sample's autograd backward equal to it."""
     f = torch.randn(2, 3, *SHAPE, dtype=torch.float64, requires_grad=True)
     grid = grid_of(SHAPE, 2, (0.9, 2.0, 2.0), torch.float64).requires_grad_()
@@ -73,7 +82,7 @@ def test_sample_uses_planewise_in_3d_and_its_transpose_is_the_scatter(padding_mo
 
 
 @pytest.mark.parametrize("padding_mode", ("zeros", "border"))
-def test_planewise_sample_gradcheck(padding_mode):
+def test_planewise_sample_gradcheck(padding_mode, one_thread):
     f = torch.randn(1, 2, 4, 3, 5, dtype=torch.float64, requires_grad=True)
     grid = grid_of((4, 3, 5), 1, (0.8, 1.5, 1.5), torch.float64, seed=3).requires_grad_()
     assert torch.autograd.gradcheck(lambda a, b: S.sample(a, b, padding_mode), (f, grid))

@@ -56,8 +56,8 @@ def sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str = "zeros") -> 
     (same batch dims; d = ``grid.shape[-1]``, 2 or 3).
 
     Returns ``(..., C, *out_shape)``. Adjoint (what autograd uses): a scatter of the incoming values with the
-    interpolation weights. In 3D on a CPU with the output on the input's grid, points displaced by at most a
-    cell along x are sampled plane by plane (``_planewise_sample``; else ``grid_sample``).
+    interpolation weights. In 3D on a CPU with one thread and the output on the input's grid, points displaced
+    by at most a cell along x are sampled plane by plane (``_planewise_sample``; else ``grid_sample``).
     ``grid_sample`` parallelises over the batch only; a single image on a CPU with ``k``
     threads is sampled as ``k`` bands of output rows (along x; the image expanded, not copied): the same
     values, ``k`` threads at work (at 256^2 with 2 threads: 2x faster forward, 1.7x backward).
@@ -144,10 +144,18 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
 # ----------------------------------------------------------------------------------------------------------
 # trilinear interpolation plane by plane: linear along x of bilinear interpolations in the (y, z) planes
 def _planewise_applies(f: torch.Tensor, grid: torch.Tensor) -> bool:
-    """Whether ``sample`` tries ``_planewise_sample``: 3D on a CPU with the output on the input's grid
-    (``grid (B, *shape, 3)`` for ``f (B, C, *shape)``). Measured (``scripts/bench_sampler.py``): ``grid_sample``'s
-    3D CPU kernel is a scalar loop, its 2D one vectorised; in 2D and on a GPU ``grid_sample`` is kept."""
-    return grid.shape[-1] == 3 and f.device.type == "cpu" and f.shape[-3:] == grid.shape[-4:-1]
+    """Whether ``sample`` tries ``_planewise_sample``: 3D on a CPU with one thread, the output on the input's
+    grid (``grid (B, *shape, 3)`` for ``f (B, C, *shape)``).
+
+    Measured (``scripts/bench_sampler.py``, median CPU ms, float32, one channel, points up to 0.75 cells away):
+    1 thread, 64^3 8.3 (3D ``grid_sample``, a scalar loop) vs 6.0 (plane-wise: its 2D kernel is vectorised),
+    128^3 66.8 vs 40.1 (1.7x). With 2 threads ``sample``'s row bands of the 3D kernel won (128^3: 64-69 vs
+    124-128 CPU ms, 190 vs 355 ms wall), hence one thread only. In 2D ``grid_sample`` is already vectorised;
+    on a GPU its kernels are parallel (not measured here): both keep ``grid_sample``. Where a point moves more
+    than a cell along x (large velocity steps: the 3D tilt-series benchmark reaches 3 cells per step at
+    N = 10) the check costs one pass (``aminmax``) and ``grid_sample`` runs."""
+    return grid.shape[-1] == 3 and f.device.type == "cpu" and f.shape[-3:] == grid.shape[-4:-1] \
+        and torch.get_num_threads() == 1
 
 
 def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> torch.Tensor | None:
