@@ -240,7 +240,13 @@ def _require(ok: bool, key: str, expected: str, value) -> None:
 
 
 def _finite(v) -> bool:
-    return v is not None and math.isfinite(float(v))
+    """A finite real number (bools and strings are not numbers)."""
+    from .._checks import check_number
+
+    try:
+        return v is not None and math.isfinite(check_number(v, "value"))
+    except (TypeError, ValueError):
+        return False
 
 
 def _unknown_keys(node, schema, prefix: str = "") -> list:

@@ -14,7 +14,7 @@ Usage (configs in ``indreg/conf/``, the checkout's ``configs/``; every key can b
         hydra.sweep.dir=multirun/suite3_table
     indreg-register -m sweep=suite3_table hydra/launcher=slurm hydra.launcher.partition=<partition> \
         hydra.sweep.dir=multirun/suite3_table resume=true
-    python scripts/sweep_table.py multirun/suite3_table          # the paper's table (table.md, table.csv)
+    indreg-sweep-table multirun/suite3_table                    # the paper's table (table.md, table.csv)
     tensorboard --logdir outputs                      # or the multirun dir (HParams tab compares the sweep)
 
 A fixed ``hydra.run.dir`` / ``hydra.sweep.dir`` (the defaults contain the date and time) is what makes a run or

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from .._checks import check_int, check_positive
+from .._checks import check_bool, check_int, check_positive
 from .objective import check_nonnegative
 from .problem import RegistrationProblem
 from .state import IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems
@@ -67,15 +67,16 @@ class Algorithm1(IterativeSolver):
             if key not in self.names[1:]:
                 raise ValueError(f"steps / frozen name entries of the iterate after the momentum "
                                  f"{self.names[1:]}, got {key!r}")
-        self.step_sizes = [check_positive(step_size, "step_size")]
+        dtype = problem.template.dtype   # steps must stay finite and nonzero in the run's dtype
+        self.step_sizes = [check_positive(step_size, "step_size", dtype)]
         for name in self.names[1:]:
             s = steps.get(name)
             self.step_sizes.append(check_positive(problem.default_step(name) if s is None else s,
-                                                  f"{name}_step_size"))
+                                                  f"{name}_step_size", dtype))
         self.frozen = {self.names.index(k): check_int(v, f"{k}_start", 0) for k, v in frozen.items()}
         self.max_iter = check_int(max_iter, "max_iter", 0)
         self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
-        self.control = StepControl(step_halving, check_int(max_halvings, "max_halvings", 0))
+        self.control = StepControl(check_bool(step_halving, "step_halving"), check_int(max_halvings, "max_halvings", 0))
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)
         self.evaluations = 0
         self._current = None   # (mark of the iterate, terms, h, nu) of the last evaluation

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .._checks import check_int, check_positive
+from .._checks import check_bool, check_int, check_positive
 from ..deform.lddmm import BACKWARDS
 from .algorithm1 import Algorithm1, check_problem
 from .objective import check_nonnegative
@@ -155,8 +155,8 @@ class MultilevelSolver(IterativeSolver):
         self.rtol = check_nonnegative(rtol, "rtol")
         self.window = check_int(window, "window", 1)
         self.inner, self.backward = inner, backward
-        self.step_size = check_positive(step_size, "step_size")
-        self.step_halving = bool(step_halving)
+        self.step_size = check_positive(step_size, "step_size", problem.template.dtype)
+        self.step_halving = check_bool(step_halving, "step_halving")
         self.max_halvings = check_int(max_halvings, "max_halvings", 0)
         self.history_size = check_int(history_size, "history_size", 1)
         self.jacobian_every = check_int(jacobian_every, "jacobian_every", 1)

@@ -89,12 +89,12 @@ class TorchOptimSolver(IterativeSolver):
         cls = _optimizer_class(optimizer)
         if lr is None and cls is not torch.optim.LBFGS:
             raise ValueError(f"lr is required for {cls.__name__} (see TorchOptimSolver for its scale)")
-        self.lr = check_positive(1.0 if lr is None else lr, "lr")
+        self.lr = check_positive(1.0 if lr is None else lr, "lr", problem.template.dtype)
         lrs = dict(lrs or {})
         for key in lrs:
             if key not in self.names[1:]:
                 raise ValueError(f"lrs name entries of the iterate after the momentum {self.names[1:]}, got {key!r}")
-        self.lrs = [self.lr] + [self.lr if lrs.get(n) is None else check_positive(lrs[n], f"{n}_lr")
+        self.lrs = [self.lr] + [self.lr if lrs.get(n) is None else check_positive(lrs[n], f"{n}_lr", problem.template.dtype)
                                 for n in self.names[1:]]
         self.parameters = [torch.nn.Parameter(x) for x in problem.zero_iterate()]
         if cls is torch.optim.LBFGS:
