@@ -1,7 +1,7 @@
 """Benchmark of GaussianKernel (issue 20): ms per application of each method, accuracy against the dense form.
 
     python scripts/bench_kernel.py                       # the table below, CPU (and CUDA when available)
-    python scripts/bench_kernel.py --sizes 64,64 128,128,128 --sigma 3 --repeats 5
+    python scripts/bench_kernel.py --sizes 64,64 128,128,128 --sigma 3 --repeats 5 --threads 2
 
 Per size: a field ``(N + 1, d, *shape)`` = (11, d, ...) in float32 on the paper's domain ``[-16, 16]^d`` (a
 slab keeps cubic cells: ``[-16, 16]^2 x [-6, 6]`` for 256 x 256 x 96), sigma 3 (the ET preset). Times are the
@@ -81,7 +81,7 @@ def bench(shape, sigma, repeats, device, a):
     def fmt(m):
         if m not in ms:
             return "skipped"
-        return ("~" if m in skip else "") + f"{ms[m]:.0f}"
+        return ("~" if m in skip else "") + (f"{ms[m]:.1f}" if ms[m] < 100 else f"{ms[m]:.0f}")
 
     print(f"| {device.type} | {cell} | {sigma / domain.cell_sides[0]:.1f} | {ranks} | "
           + " | ".join(fmt(m) for m in METHODS)
@@ -94,15 +94,17 @@ def main():
     p.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES), help="shapes as nx,ny[,nz]")
     p.add_argument("--sigma", type=float, default=3.0)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: steadier on a shared machine)")
     p.add_argument("--fft-max-gb", type=float, default=2.0)
     p.add_argument("--matrix-max-gmac", type=float, default=100.0)
     a = p.parse_args()
+    torch.set_num_threads(a.threads)
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
     print(f"### GaussianKernel on (11, d, *shape) float32 fields, sigma {a.sigma}, {torch.get_num_threads()} "
           f"CPU thread(s), median ms of {a.repeats}\n")
     print("| device | shape | sigma / h | rank r | matrix | fft | lowrank | auto | auto picks "
           "| matrix / auto | dense rounding | max rel diff fft | lowrank |")
-    print("|" + "---|" * 14)
+    print("|" + "---|" * 13)
     for device in devices:
         for size in a.sizes:
             bench(tuple(int(n) for n in size.split(",")), a.sigma, a.repeats, device, a)
