@@ -78,9 +78,9 @@ def test_unknown_option_lists_the_valid_ones(tiny):
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"solver": "nadam2"}, "optimizer must be"),
-    ({"solver": "adam", "step_size": 0.1}, "takes lr"),
-    ({"lr": 0.1}, "takes step_size"),
+    ({"solver": "nadam2"}, "solver must be 'algorithm1', 'fast' or a torch.optim optimizer name"),
+    ({"solver": "adam", "step_size": 0.1}, "step_size must be left unset: it is an option of solver='algorithm1'"),
+    ({"lr": 0.1}, "lr must be left unset: it is an option of a torch.optim solver"),
     ({"dtype": "float16"}, "dtype must be"),
     ({"sigma": -1}, "sigma"),
     ({"callback": 3}, "callback must be callable"),
