@@ -1,9 +1,11 @@
 """Coarse-to-fine registration: the same objective solved on coarser grids first, then on the problem's grid.
 
-The domain is physical, so a coarser grid of the same rectangle discretises the same problem: the kernel width
-``sigma``, ``gamma`` and the data ``g`` keep their meaning; only the template (area averages over the coarse
-cells), the ray transform (rebuilt on the coarse grid with the same geometry) and the number of time steps
-change. Each level is solved by L-BFGS (``TorchOptimSolver``, strong Wolfe line search, exact gradient of
+The domain is physical, so a coarser grid of the same rectangle (box, in 3D) discretises the same problem: the
+kernel width ``sigma``, ``gamma`` and the data ``g`` keep their meaning; only the template (area / volume
+averages over the coarse cells), the forward operator (rebuilt on the coarse grid with the same geometry:
+``RayTransform``, ``TiltSeriesTransform``) and the number of time steps change. A tilt series has one detector
+row per slice along the tilt axis; a coarse slice is the average of the fine slices it covers, so it projects
+to the average of their rows: the data are cell-averaged along the rows (``IndirectRegistration.coarsened``). Each level is solved by L-BFGS (``TorchOptimSolver``, strong Wolfe line search, exact gradient of
 the discrete map) or by Algorithm 1, and its momentum is prolongated to the next level.
 """
 from __future__ import annotations
@@ -122,8 +124,9 @@ class MultilevelSolver(IterativeSolver):
         min_size: smallest grid of a coarse level.
         jacobian_every: compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
 
-    Convention: ``state.momentum`` ``(N+1, 2, nx, ny)`` of the problem; ``restrict`` / ``prolong`` act on the
-    image axes (x, y[, z]), ``resample_time`` on axis 0 (``t_i = i/N``).
+    Convention: ``state.momentum`` ``(N+1, d, *shape)`` of the problem (``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny,
+    nz)``); ``restrict`` / ``prolong`` act on the image axes (x, y[, z]), ``resample_time`` on axis 0
+    (``t_i = i/N``); a level's ``grid`` is its size on axis 0 (x).
     """
 
     def __init__(self, problem, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
