@@ -10,6 +10,8 @@ the discrete map) or by Algorithm 1, and its momentum is prolongated to the next
 """
 from __future__ import annotations
 
+import logging
+
 import torch
 import torch.nn.functional as F
 
@@ -21,6 +23,7 @@ from .state import IterativeSolver, SolverState
 from .torch_optim import TorchOptimSolver
 
 INNER = ("lbfgs", "algorithm1")
+log = logging.getLogger("indreg")
 
 
 def options() -> tuple:
@@ -76,6 +79,17 @@ def _check_coarsenable(problem) -> None:
     if not callable(getattr(T, "on_domain", None)):
         raise TypeError(f"coarse levels rebuild the forward operator on a coarser grid with T.on_domain(domain); "
                         f"a {type(T).__name__} has no on_domain: use levels=() (no coarse level) with this operator")
+
+
+def _warn_unreached(schedule: list, max_iter: int) -> None:
+    """Log a warning when the coarse levels' budgets can use up ``max_iter`` (the problem's grid is then reached
+    only if a coarse level stalls first)."""
+    coarse = sum(it for _, _, it in schedule[:-1])
+    if coarse >= max_iter:
+        grid = "x".join(map(str, schedule[-1][0]))
+        log.warning("solver='fast': the coarse levels may take all max_iter=%d iterations (level_iter sum to %d): "
+                    "the %s grid is reached only if they stall first; raise max_iter or lower level_iter",
+                    max_iter, coarse, grid)
 
 
 class MultilevelSolver(IterativeSolver):
@@ -173,6 +187,7 @@ class MultilevelSolver(IterativeSolver):
         self.schedule.append((tuple(problem.domain.shape), problem.num_steps, None))
         if len(self.schedule) > 1:
             _check_coarsenable(problem)
+            _warn_unreached(self.schedule, self.max_iter)
         self.level = -1          # index into schedule of the running level (-1: not started)
         self.level_start = 0     # the global iteration at which it started
         self.evaluations = 0     # of the finished levels (the running level's solver counts its own)
