@@ -391,10 +391,9 @@ def _figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -
         if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
     quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
                else f"relative data residual {result['residual']:.4f}")
-    if cfg.logging.figure and volume:
-        figures.save(_ortho_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
-    elif cfg.logging.figure:
-        figures.save(_paper_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+    if cfg.logging.figure:
+        figure = _ortho_figure if volume else _paper_figure
+        figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
         if parts is not None:
             figures.save(_parts_figure(exp, r.deformed, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
     n = traj.shape[0] - 1
@@ -441,12 +440,15 @@ def _ortho_figure(exp, traj, rec: dict, title: str = ""):
 
 
 def _parts_figure(exp, final, parts, title: str = ""):
-    """``figures.parts_figure`` of a run: f(1), W(nu, I), f(1) - W(nu, I), target."""
+    """``figures.parts_figure`` of a run (volumes: ``parts_ortho_figure``): f(1), W(nu, I), f(1) - W(nu, I),
+    target."""
     from . import figures
 
-    return figures.parts_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]),
-                                        None if exp.target_64 is None else exp.target_64.numpy(),
-                                        extent=domain_extent(exp.domain), title=title)
+    target = None if exp.target_64 is None else exp.target_64.numpy()
+    if exp.domain.ndim == 3:
+        return figures.parts_ortho_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]), target, title=title)
+    return figures.parts_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]), target,
+                                extent=domain_extent(exp.domain), title=title)
 
 
 def domain_extent(domain) -> tuple:

@@ -223,8 +223,9 @@ class IndirectRegistration(RegistrationProblem):
     def coarsened(self, shape: tuple, num_steps: int, backward: str) -> "IndirectRegistration":
         """The problem on a ``shape`` grid of the same box with ``num_steps`` time steps (``MultilevelSolver``):
         the template's cell averages, the operator rebuilt by ``T.on_domain(coarse)`` (the data cell-averaged to its
-        range where that changes, e.g. a tilt series' rows), the same
-        kernel width, gamma and TV weight; the deformation's action, interpolation and scheme with ``backward``."""
+        range where that changes: a tilt series' detector rows, one per slice along the tilt axis, since a coarse
+        slice projects to the average of its fine slices' rows), the same kernel width, gamma and TV weight; the
+        deformation's action, interpolation and scheme with ``backward``."""
         from ..deform import GaussianKernel
         from ..domain import ImageDomain
         from .multilevel import restrict
