@@ -128,7 +128,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if o["target"] is not None:
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
     if o["interpolation"] is None:
-        o["interpolation"] = "compose" if o["solver"] == opts.FAST else "reinterpolate"
+        o["interpolation"] = "compose" if o["solver"] == opts.FAST or o["velocity_factor"] > 1 else "reinterpolate"
     for option in opts.all_options():   # a step must stay finite (and nonzero) in the run's dtype
         if option.name in ("step_size", "lr") and o[option.name] is not None:
             check_finite_in(o[option.name], label(option), dtype)

@@ -124,3 +124,28 @@ def test_3d_config_errors(overrides, match):
 
     with pytest.raises(ConfigError, match=match):
         validate(compose(overrides))
+
+
+def test_velocity_factor_through_the_app(tmp_path):
+    """deformation.velocity_factor=2: the momentum and velocity on 8^3, the volumes and phi_{1,0} on 16^3."""
+    m = run_app(TINY_3D + ["deformation.velocity_factor=2", "baseline.enabled=false", "logging.figure=false",
+                           "logging.tensorboard=false"], tmp_path)
+    assert m["status"] == "completed" and m["iterations"] == 3 and np.isfinite(m["ssim"]) and m["min_jacobian"] > 0
+    assert np.load(tmp_path / "momentum.npy").shape == np.load(tmp_path / "velocity.npy").shape == (4, 3, 8, 8, 8)
+    assert np.load(tmp_path / "deformation.npy").shape == (3, 16, 16, 16)
+    assert np.load(tmp_path / "final.npy").shape == (16, 16, 16)
+
+
+@pytest.mark.parametrize("overrides,match", [
+    (["experiment=suite_et_3d", "phantom.size=16", "deformation.velocity_factor=3"],
+     r"velocity_factor=3: expected an integer >= 1 dividing every axis of the grid \(16, 16, 16\)"),
+    (["deformation.velocity_factor=2"], r"deformation\.interpolation='reinterpolate': expected 'compose'"),
+])
+def test_velocity_factor_config_errors(overrides, match):
+    from indreg.experiments.build import build
+    from indreg.experiments.config import ConfigError, validate
+
+    cfg = compose(overrides)
+    with pytest.raises(ConfigError, match=match):
+        validate(cfg)
+        build(cfg)
