@@ -269,7 +269,8 @@ def count_halvings(history) -> int:
 
 #: A run with step halving stalls (status ``stalled``) when the step was halved and the objective then decreased
 #: by less than float rounding (``rounding_tolerance``, relative) over this many iterations: the step has
-#: collapsed (the own-data example halves it to 4e-14 and stays at one objective for 70 iterations).
+#: collapsed (the own-data example stalls at iteration 130 of 200 with a step of 4.7e-12; run on, it halves it to
+#: 4e-14 and keeps one objective for 70 iterations).
 STALL_WINDOW = 10
 
 

@@ -63,7 +63,8 @@ class SolverState:
 def rounding_tolerance(dtype: torch.dtype) -> float:
     """Relative objective changes within floating-point rounding: ``100 eps`` of the run's dtype (float32
     1.2e-5, float64 2.2e-14). The objective sums every data value and pixel, so its float32 rounding reaches
-    about 1e-5 of its value: suite 1 with the paper's fixed step "increases" it from 183.6354 to 183.6369 (8e-6)."""
+    about 1e-5 of its value: float32 cannot tell suite 1's increase from 183.6354 to 183.6369 (8e-6, paper's
+    fixed step) from rounding."""
     return 100.0 * torch.finfo(dtype).eps
 
 
