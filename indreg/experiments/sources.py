@@ -29,6 +29,7 @@ Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, 
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -39,7 +40,7 @@ from .. import phantoms
 from ..domain import ImageDomain
 from ..inputs import RegistrationInputs, make_geometry, make_operator, square_domain
 from ..inputs import load as load_inputs
-from ..io import DataFileError, read_angles
+from ..io import DataFileError, check_file, read_angles
 from .errors import ConfigError
 
 #: The entry-point group of installed sources (``data.source=<entry point name>``).
@@ -56,7 +57,8 @@ CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "
 @dataclass
 class Data:
     """What a source provides (float64, CPU). ``target_64`` / ``clean_64`` / ``snr_db`` are ``None`` when
-    unknown (measured data). ``label``: a short name of the template for hparams and titles."""
+    unknown (measured data). ``label``: a short name of the template for hparams and titles. ``paper``: the
+    paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``, ``psnr_paper``)."""
     domain: ImageDomain
     geometry: object
     operator: object
@@ -66,6 +68,7 @@ class Data:
     target_64: Optional[torch.Tensor] = None
     clean_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
+    paper: bool = False
 
     @classmethod
     def from_inputs(cls, d: RegistrationInputs) -> "Data":
@@ -193,7 +196,22 @@ def phantom_data(cfg: DictConfig) -> Data:
     template = phantoms.get(p.template.value, domain)
     clean, noisy, snr = make_data(cfg, T, target)
     return Data(domain=domain, geometry=T.geometry, operator=T, template_64=template, data_64=noisy,
-                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr)
+                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, paper=True)
+
+
+def check_files(cfg: DictConfig) -> None:
+    """``data=files``: the files named by the config exist and have a known format (``indreg.io.check_file``;
+    an angle file exists), checked before the app creates its run directory; their contents are read by the run.
+    Raises ``DataFileError`` naming the key."""
+    d, g = cfg.data, cfg.geometry
+    if d.source != "files":
+        return
+    for key in ("template", "sinogram", "target"):
+        if d[key]:
+            check_file(d[key], f"data.{key}")
+    spec = _angle_spec(g)
+    if isinstance(spec, str) and not Path(spec).is_file():
+        raise DataFileError(f"geometry.angles file {spec}: no such file")
 
 
 @source("files")
