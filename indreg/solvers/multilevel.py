@@ -81,15 +81,17 @@ def _check_coarsenable(problem) -> None:
                         f"a {type(T).__name__} has no on_domain: use levels=() (no coarse level) with this operator")
 
 
-def _warn_unreached(schedule: list, max_iter: int) -> None:
-    """Log a warning when the coarse levels' budgets can use up ``max_iter`` (the problem's grid is then reached
-    only if a coarse level stalls first)."""
+def _fit_budgets(schedule: list, max_iter: int) -> list:
+    """Coarse levels whose budgets would use up ``max_iter`` (the problem's grid then reached only if they stall)
+    get budgets scaled down in proportion to half of ``max_iter`` (at least 1 each), logged; others are kept."""
     coarse = sum(it for _, _, it in schedule[:-1])
-    if coarse >= max_iter:
-        grid = "x".join(map(str, schedule[-1][0]))
-        log.warning("solver='fast': the coarse levels may take all max_iter=%d iterations (level_iter sum to %d): "
-                    "the %s grid is reached only if they stall first; raise max_iter or lower level_iter",
-                    max_iter, coarse, grid)
+    if coarse < max_iter or len(schedule) < 2:
+        return schedule
+    scaled = [(shape, n, max(1, it * (max_iter // 2) // coarse)) for shape, n, it in schedule[:-1]]
+    log.info("solver='fast': the coarse levels' budgets (%d iterations in all) would use up max_iter=%d; scaled to "
+             "%s so that the %s grid gets the rest", coarse, max_iter, [it for _, _, it in scaled],
+             "x".join(map(str, schedule[-1][0])))
+    return scaled + schedule[-1:]
 
 
 class MultilevelSolver(IterativeSolver):
@@ -187,7 +189,7 @@ class MultilevelSolver(IterativeSolver):
         self.schedule.append((tuple(problem.domain.shape), problem.num_steps, None))
         if len(self.schedule) > 1:
             _check_coarsenable(problem)
-            _warn_unreached(self.schedule, self.max_iter)
+            self.schedule = _fit_budgets(self.schedule, self.max_iter)
         self.level = -1          # index into schedule of the running level (-1: not started)
         self.level_start = 0     # the global iteration at which it started
         self.evaluations = 0     # of the finished levels (the running level's solver counts its own)

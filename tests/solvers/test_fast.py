@@ -149,12 +149,12 @@ def test_levels_below_min_size_are_skipped():
     assert [s[0] for s in solver.schedule] == [(8, 8), (16, 16), (32, 32)]
 
 
-def test_coarse_budgets_that_use_up_max_iter_are_warned_about(caplog):
+def test_coarse_budgets_that_use_up_max_iter_are_scaled_to_half_of_it(caplog):
+    """The problem's grid always gets iterations: coarse budgets summing to max_iter or more are scaled to half."""
     problem = make_problem(n=32)
-    with caplog.at_level("WARNING", logger="indreg"):
-        MultilevelSolver(problem, max_iter=6, **LEVELS)
-    assert "coarse levels may take all max_iter=6 iterations (level_iter sum to 6): the 32x32 grid" in caplog.text
-    caplog.clear()
-    with caplog.at_level("WARNING", logger="indreg"):
-        MultilevelSolver(problem, max_iter=7, **LEVELS)
-    assert caplog.text == ""
+    with caplog.at_level("INFO", logger="indreg"):
+        solver = MultilevelSolver(problem, max_iter=6, **LEVELS)
+    assert "would use up max_iter=6" in caplog.text
+    assert sum(it for _, _, it in solver.schedule[:-1]) <= 3 and all(it >= 1 for _, _, it in solver.schedule[:-1])
+    kept = MultilevelSolver(problem, max_iter=7, **LEVELS)
+    assert [it for _, _, it in kept.schedule[:-1]] == list(LEVELS["level_iter"])
