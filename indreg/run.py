@@ -82,8 +82,8 @@ def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devi
 #: Template and data agree in units when ``||T I|| / ||g||`` and ``c = <T I, g> / <T I, T I>`` lie in
 #: ``[1 / UNIT_RANGE, UNIT_RANGE]`` (the paper's suites: 0.68-1.3); outside, a warning names both.
 UNIT_RANGE = 3.0
-#: Data look offset when the median of the detector's outermost columns (``border_level``) or of all the data is
-#: below zero, or the border is away from zero, by more than this fraction of the data's range.
+#: Data look offset when the median of the detector's outermost columns (``border_level``) is away from zero, or
+#: the median of all the data is below zero, by more than this fraction of the data's range.
 OFFSET_FRACTION = 0.05
 
 
@@ -131,14 +131,44 @@ def check_offset(data: torch.Tensor, label: str) -> None:
                     "subtract the border level, or %s=<number>", border, median, spread, label, label)
 
 
+def compare_units(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
+    """``(||T I|| / ||g||, c = <T I, g> / <T I, T I>)`` in the data inner product ``operator.inner_data``."""
+    with torch.no_grad():
+        TI = operator(template)
+        tt = float(operator.inner_data(TI, TI).sum())
+        tg = float(operator.inner_data(TI, data).sum())
+        gg = float(operator.inner_data(data, data).sum())
+    return math.sqrt(_ratio(tt, gg)), _ratio(tg, tt)
+
+
+def _template_factor(template_scale, units: Units, key: str) -> float:
+    """The template's factor for ``template_scale`` (None: 1 and a warning if the units look different)."""
+    if template_scale == "auto":
+        if not (math.isfinite(units.scale_fit) and units.scale_fit > 0):
+            raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
+                             f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
+                             f"both, or give {key}=<number>")
+        log.info("template scaled by c = %.6g (%s='auto'; ||T I|| / ||g|| was %.4g)", units.scale_fit, key,
+                 units.projection_ratio)
+        return units.scale_fit
+    if template_scale is not None:
+        return float(template_scale)
+    if not all(1 / UNIT_RANGE <= v <= UNIT_RANGE for v in (units.projection_ratio, units.scale_fit)):
+        log.warning("template and data look like different units: ||T I|| / ||g|| = %.4g and the least-squares "
+                    "scale c = <T I, g> / <T I, T I> = %.4g (expected in [1/%g, %g]); pass %s='auto' to scale the "
+                    "template by c, %s=<number>, or bring the template to the data's units", units.projection_ratio,
+                    units.scale_fit, UNIT_RANGE, UNIT_RANGE, key, key)
+    return 1.0
+
+
 def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
             label=lambda name: name) -> tuple:
     """Bring template and data to one unit before the run: ``(template, data, Units)``.
 
     ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is subtracted from the data; without it
-    a warning when the data look offset (:func:`check_offset`). Then ``||T I|| / ||g||`` and ``c = <T I, g> /
-    <T I, T I>`` compare the template's projection with the data; ``template_scale`` (None, ``"auto"``: ``c``,
-    or a number) multiplies the template. Without a scale, a warning names both numbers when either is outside
+    a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
+    template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
+    the template; without a scale a warning names both numbers when either is outside
     ``[1/UNIT_RANGE, UNIT_RANGE]``. ``label(name)`` names the option in messages (the app: its config key).
     Raises ValueError when ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the
     data)."""
@@ -150,30 +180,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
         data = data - units.background
         log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
                  background)
-    with torch.no_grad():
-        TI = operator(template)
-        tt = float(operator.inner_data(TI, TI).sum())
-        tg = float(operator.inner_data(TI, data).sum())
-        gg = float(operator.inner_data(data, data).sum())
-    units.projection_ratio, units.scale_fit = math.sqrt(_ratio(tt, gg)), _ratio(tg, tt)
-    key = label("template_scale")
-    if template_scale == "auto":
-        if not (math.isfinite(units.scale_fit) and units.scale_fit > 0):
-            raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
-                             f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
-                             f"both, or give {key}=<number>")
-        units.template_scale = units.scale_fit
-        log.info("template scaled by c = %.6g (%s='auto'; ||T I|| / ||g|| was %.4g)", units.scale_fit, key,
-                 units.projection_ratio)
-    elif template_scale is not None:
-        units.template_scale = float(template_scale)
-    else:
-        bounds = (1 / UNIT_RANGE, UNIT_RANGE)
-        if not all(bounds[0] <= v <= bounds[1] for v in (units.projection_ratio, units.scale_fit)):
-            log.warning("template and data look like different units: ||T I|| / ||g|| = %.4g and the least-squares "
-                        "scale c = <T I, g> / <T I, T I> = %.4g (expected in [1/%g, %g]); pass %s='auto' to scale "
-                        "the template by c, %s=<number>, or bring the template to the data's units",
-                        units.projection_ratio, units.scale_fit, UNIT_RANGE, UNIT_RANGE, key, key)
+    units.projection_ratio, units.scale_fit = compare_units(template, data, operator)
+    units.template_scale = _template_factor(template_scale, units, label("template_scale"))
     if units.template_scale != 1.0:
         template = template * units.template_scale
     return template, data, units
