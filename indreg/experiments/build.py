@@ -27,7 +27,8 @@ from .config import ConfigError, registration_values
 class Experiment:
     """Everything a run needs. Images ``(nx, ny)``, data ``(num_angles, det_count)``: float64 on the CPU
     (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
-    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth."""
+    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth;
+    ``validation`` the held-out angles (``validation.holdout``) or None."""
     domain: ImageDomain
     geometry: object
     ray_transform: object
@@ -41,6 +42,7 @@ class Experiment:
     target_64: Optional[torch.Tensor] = None
     clean_data_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
+    validation: object = None
 
 
 def seed_everything(seed: int) -> None:
@@ -66,4 +68,4 @@ def build(cfg: DictConfig) -> Experiment:
     return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator, template=template,
                       template_64=data.template_64, noisy_data_64=data.data_64, problem=s.problem, solver=s.solver,
                       label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db)
+                      snr_db=data.snr_db, validation=s.validation)

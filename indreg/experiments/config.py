@@ -17,6 +17,7 @@ Config groups (one sub-config each) and top-level keys::
     solver       gamma, step size, iterations; Algorithm 1 or a torch.optim parametrisation
     baseline     FBP (filter, frequency scaling) and TV (mu, iterations) reconstructions from the same data
     logging      evaluation / image / checkpoint period k, TensorBoard, progress bar, figure
+    validation   held-out angles (``holdout``) and early stopping (``patience``)
     experiment   presets of the paper's test suites (package _global_), ``suite1_jv`` by default
     sweep        multirun presets (``sweep=suite3_table``: the paper's sensitivity table)
     name, seed, dtype, device, resume, stop_after
@@ -164,6 +165,10 @@ SolverConfig = _group("SolverConfig", "Solver: ``name`` algorithm1, fast, torch_
                       "``step_size`` is Algorithm 1's, ``lr`` torch.optim's: each is used only by its solver, so an "
                       "``experiment=`` preset never changes an optimizer's learning rate.",
                       extra=[("optimizer", str, field(default="lbfgs"))])
+ValidationConfig = _group("ValidationConfig", "Validation without a ground truth (``indreg.validation``): "
+                          "``holdout`` angles (every k-th, or a list of indices) are left out of the fit and their "
+                          "relative residual is evaluated every ``logging.every`` iterations; ``patience``: early "
+                          "stopping after that many evaluations without a new minimum.")
 
 
 @dataclass
@@ -207,6 +212,7 @@ class RegisterConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
 
 
 SCHEMA_NAME = "indreg_schema"

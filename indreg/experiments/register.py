@@ -173,7 +173,8 @@ class AppLoop(RegistrationLoop):
 
     def __init__(self, cfg, exp, state, writer, path: Path, problem_cfg: dict, history, seconds):
         super().__init__(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
-                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds)
+                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
+                         validation=exp.validation)
         self.cfg, self.exp, self.writer, self.path, self.problem_cfg = cfg, exp, writer, path, problem_cfg
         self.stop = StopRequest()
         self._fom = ""
@@ -190,6 +191,8 @@ class AppLoop(RegistrationLoop):
     def after_step(self, info: dict, done: bool):
         it, lg, exp = self.state.iteration, self.cfg.logging, self.exp
         self.writer.scalars(info, it)
+        if "holdout_residual" in info:
+            self.writer.validation(info["holdout_residual"], it)
         self._fom = ""
         if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
             deformed = self.problem.reconstruction(self.state.iterate)
@@ -330,7 +333,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
-    r = build_result(problem, state, history, seconds, status)
+    r = build_result(problem, state, history, seconds, status, validation=exp.validation)
     target = exp.target_64
     result = {}
     if target is not None:
@@ -348,6 +351,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "evaluations": history[-1]["evaluations"] if history else 0,
         "warnings": r.warnings, "rejected_steps": sum(1 for h in history if h.get("rejected")),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
+    result.update(r.holdout)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
     arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
@@ -368,7 +372,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
     _figures(cfg, exp, r, rec, result, out, writer, it)
     writer.metrics(result, it)
-    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
+    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
+                                                        if k in result})
     if target is not None:
         log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
                  "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
@@ -377,6 +382,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     else:
         log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
                  it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+    if r.holdout:
+        log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)", r.holdout["holdout_indices"],
+                 r.holdout["holdout_residual"], r.holdout["holdout_best_residual"], r.holdout["holdout_best_iteration"])
     return result
 
 
