@@ -9,7 +9,7 @@ same code as ``indreg.register`` (``indreg.run.setup``).
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -28,7 +28,8 @@ class Experiment:
     """Everything a run needs. Images ``(nx, ny)``, data ``(num_angles, det_count)``: float64 on the CPU
     (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
     ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth;
-    ``validation`` the held-out angles (``validation.holdout``) or None."""
+    ``validation`` the held-out angles (``validation.holdout``) or None; ``report``: the data's numbers for
+    metrics.json (``sources.Data.report``)."""
     domain: ImageDomain
     geometry: object
     ray_transform: object
@@ -43,6 +44,7 @@ class Experiment:
     clean_data_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
     validation: object = None
+    report: dict = field(default_factory=dict)
 
 
 def seed_everything(seed: int) -> None:
@@ -68,4 +70,4 @@ def build(cfg: DictConfig) -> Experiment:
     return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator, template=template,
                       template_64=data.template_64, noisy_data_64=data.data_64, problem=s.problem, solver=s.solver,
                       label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db, validation=s.validation)
+                      snr_db=data.snr_db, validation=s.validation, report=data.report)

@@ -352,6 +352,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "warnings": r.warnings, "rejected_steps": sum(1 for h in history if h.get("rejected")),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
+    result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
     arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
