@@ -13,6 +13,19 @@ template against the ground truth (never given to the solver).
 Prints a Markdown table: per suite the iteration of the least held-out residual, the iteration of the largest SSIM,
 their relative difference ``|i_holdout - i_ssim| / i_ssim``, and the SSIM at both. ``--json FILE`` writes the
 curves.
+
+Measured on the 2-core reference machine (float32, CPU), 30 angles, every 5th held out (2, 7, ..., 27):
+
+| preset | solver | iterations (every) | least held-out residual at | SSIM peak at | difference | SSIM there / at peak |
+|---|---|---|---|---|---|---|
+| suite1_jv | Algorithm 1 (preset) | 1000 (10) | 1000 (0.2448) | 1000 | 0 % | 0.9135 / 0.9135 |
+| suite3_shepp_logan | Algorithm 1 (preset) | 1000 (20) | 1000 (0.1438) | 1000 | 0 % | 0.9023 / 0.9023 |
+| suite1_jv | ``--override solver=lbfgs`` | 300 (5) | 300 (0.2399) | 130 | 131 % | 0.9308 / 0.9436 |
+
+With the presets both curves still rise (fall) at 1000 iterations, so they agree trivially. L-BFGS over-fits
+suite 1's noise (4.87 dB): the SSIM peaks at iteration 130 and falls to 0.931, while the held-out residual keeps
+falling by 0.9 % (0.2420 at 130): the noise of the held-out angles dominates their residual, and it cannot see the
+loss. (Suite 3 with L-BFGS folds the deformation, min Jacobian -459 at iteration 165: no usable curve.)
 """
 from __future__ import annotations
 
