@@ -1,5 +1,4 @@
 """The app's ``geometry.tilt_axis_angle`` and the tilt-axis check in metrics.json."""
-import json
 
 import numpy as np
 import pytest
