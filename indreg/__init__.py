@@ -6,7 +6,7 @@ _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of 
 from .domain import ImageDomain
 from .forward import (FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry,
                       TiltSeriesTransform)
-from .deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
+from .deform import CoarseVelocityDeformation, GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver, RegistrationProblem
 from .solvers import SolverState, StepControl
@@ -19,7 +19,7 @@ from .inputs import RegistrationInputs, load
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform",
-           "GaussianKernel", "LDDMMDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
+           "GaussianKernel", "LDDMMDeformation", "CoarseVelocityDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
            "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",

@@ -68,6 +68,13 @@ def register(template, data, operator, **options) -> RegistrationResult:
         max_halvings: 20: halvings tried within one iteration (2^-20: intensities up to ~1000x the paper's
             0..1 are handled in the first iteration); the halved step is kept for later iterations.
         tv_weight: weight of a TV term on the deformed template, 0.
+        template_scale: None (default: the template is used as given; a warning before the run when
+            ``||T I|| / ||g||`` or the least-squares scale ``c = <T I, g> / <T I, T I>`` is outside [1/3, 3]),
+            "auto" (the template is multiplied by ``c``) or a number > 0 (the template is multiplied by it).
+        background: None (default; a warning when the data look offset), "auto" (the median of the detector's
+            outermost columns over all angles) or a number: subtracted from the data before the run. What was
+            applied is in ``result.template_scale`` / ``result.background`` (with ``projection_ratio``,
+            ``scale_fit``).
         device, dtype: default the template's (numpy input: CPU; float64 arrays stay float64, others float32).
         callback: ``callback(state, info)`` after every iteration; returning True stops the run.
         progress: True shows a tqdm bar on a terminal, else progress lines on the "indreg" logger
@@ -109,4 +116,4 @@ def register(template, data, operator, **options) -> RegistrationResult:
     finally:
         if handler is not None:
             log.removeHandler(handler)
-    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.validation)
+    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation)

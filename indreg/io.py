@@ -24,6 +24,7 @@ See ``docs/file_formats.md`` for the table of formats and how to export data fro
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
@@ -41,6 +42,10 @@ CONTAINER = (".npz", ".h5", ".hdf5")
 FORMATS = (".npy",) + CONTAINER + MRC + PICTURE
 WRITE_FORMATS = (".npy", ".mrc")
 ANGLE_UNITS = ("deg", "rad")
+#: Angles in degrees spanning at most this many (a little over pi) are probably radians: a warning says so.
+RADIAN_SPAN = 3.2
+
+log = logging.getLogger("indreg")
 #: ITU-R BT.709 luminance weights of R, G, B (``skimage.color.rgb2gray``).
 LUMINANCE = (0.2125, 0.7154, 0.0721)
 _KEYED = re.compile(r"^(.*\.(?:npy|npz|h5|hdf5|mrc|st|ali|png|tif|tiff)):(.*)$", re.IGNORECASE)
@@ -175,8 +180,9 @@ _READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _rea
             **{ext: _read_mrc for ext in MRC}}
 
 
-def _load(spec, name: str) -> tuple:
-    """``(raw array, suffix)`` of the file named by ``spec``; every failure is a ``DataFileError``."""
+def check_file(spec, name: str = "data") -> tuple:
+    """``(path, key, suffix)`` of a data file that exists, in a known format, with the right leading bytes,
+    without reading it (the app checks its files before creating a run directory). Raises ``DataFileError``."""
     path, key = split_path(spec, name)
     suffix = path.suffix.lower()
     if suffix not in _READERS:
@@ -189,6 +195,15 @@ def _load(spec, name: str) -> tuple:
         raise _fail(name, spec, "is not a file")
     try:
         _check_signature(path, suffix)
+    except _Problem as problem:
+        raise _fail(name, spec, problem) from None
+    return path, key, suffix
+
+
+def _load(spec, name: str) -> tuple:
+    """``(raw array, suffix)`` of the file named by ``spec``; every failure is a ``DataFileError``."""
+    path, key, suffix = check_file(spec, name)
+    try:
         raw = _READERS[suffix](path, key)
     except _Problem as problem:
         raise _fail(name, spec, problem) from None
@@ -397,7 +412,8 @@ def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
         - ``spec`` is a path to a text file (one angle per line, IMOD ``.tlt``/``.rawtlt`` style; blank
           lines and ``#`` comments allowed) or an inline list/tuple/array of numbers.
         - ``unit`` is ``"deg"`` or ``"rad"``: the unit of the given numbers. The angle ``theta`` is that of
-          the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``).
+          the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``). Degrees that
+          span at most about pi (:data:`RADIAN_SPAN`) log a warning that they may be radians.
 
     Raises:
         DataFileError: a problem with the file (missing, junk line N, no angles, non-finite angle).
@@ -410,7 +426,19 @@ def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
     else:
         values = _inline_angles(spec, name)
     angles = np.asarray(values, dtype=np.float64)
-    return np.deg2rad(angles) if unit == "deg" else angles
+    if unit == "deg":
+        _check_degrees(angles, name)
+        return np.deg2rad(angles)
+    return angles
+
+
+def _check_degrees(angles: np.ndarray, name: str) -> None:
+    """Warn when angles read as degrees span at most :data:`RADIAN_SPAN` (e.g. 0..3.1 or -1.05..1.05): they are
+    probably radians (``ParallelBeamGeometry`` refuses the reverse, radians beyond 2 pi)."""
+    span = float(angles.max() - angles.min()) if angles.size > 1 else 0.0
+    if 0 < span <= RADIAN_SPAN:
+        log.warning("%s span only %.4g degrees (%.4g .. %.4g): they may be radians; if so, give the unit 'rad' "
+                    "(angle_unit='rad', geometry.angle_unit=rad)", name, span, angles.min(), angles.max())
 
 
 def tilt_angles_for(sinogram_path) -> Path | None:

@@ -72,9 +72,26 @@ def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
     from .deform import LDDMMDeformation
     from .solvers import IndirectRegistration
 
-    W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
-                         backward=o["backward"] or "paper", interpolation=o["interpolation"])
+    if o["velocity_factor"] > 1:
+        W, kernel = _coarse_velocity(kernel, o)
+    else:
+        W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
+                             backward=o["backward"] or "paper", interpolation=o["interpolation"])
     return IndirectRegistration(operator, W, kernel, template, data, o["gamma"], tv_weight=o["tv_weight"]), {}
+
+
+def _coarse_velocity(kernel, o: dict) -> tuple:
+    """``velocity_factor > 1``: ``CoarseVelocityDeformation`` and the kernel on the coarse grid (``backward``
+    "paper", the app's default, runs the exact gradient: the paper's formula has no coarse-grid form)."""
+    from .deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
+
+    domain, f = kernel.domain, o["velocity_factor"]
+    if any(n % f for n in domain.shape):
+        raise OptionError("velocity_factor", f, f"an integer >= 1 dividing every axis of the grid {domain.shape}")
+    velocity_domain = coarse_domain(domain, f)
+    backward = "exact" if o["backward"] in (None, "paper") else o["backward"]
+    W = CoarseVelocityDeformation(domain, velocity_domain, o["num_steps"], o["action"], backward, o["interpolation"])
+    return W, GaussianKernel(velocity_domain, kernel.sigma, kernel.method)
 
 
 def _source_mask(mask, template: torch.Tensor, domain, label: str):
@@ -116,6 +133,13 @@ def _backward_in(allowed: tuple) -> Callable:
     return check
 
 
+def _check_lddmm(o: dict, label) -> None:
+    _backward_in(("paper", "exact", "autograd"))(o, label)
+    if o["velocity_factor"] > 1 and o["interpolation"] == "reinterpolate":
+        raise OptionError(label("interpolation"), o["interpolation"], "'compose' (or None) with velocity_factor > 1: "
+                          "the template is sampled once at the interpolated phi_{1,0}")
+
+
 def _check_metamorphosis(o: dict, label) -> None:
     _backward_in(("adjoint", "autograd"))(o, label)
     if o["action"] != "geometric":
@@ -126,8 +150,12 @@ def _check_metamorphosis(o: dict, label) -> None:
 
 
 _META = ("metamorphosis",)
-register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)",
-                     check=_backward_in(("paper", "exact", "autograd"))))
+register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", check=_check_lddmm, options=(
+    Option("velocity_factor", "deformation", "velocity_factor", 1, number(1, integer=True),
+           "the momentum, velocity, kernel and flow on the grid coarsened this many times per axis (it must divide "
+           "every axis), phi_{1,0} interpolated to the image's grid (CoarseVelocityDeformation: interpolation "
+           "compose, the exact gradient); 1: the image's grid", int, models=("lddmm",)),
+)))
 register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Metam:ODE): intensities change too",
                      check=_check_metamorphosis, options=(
     Option("tau", "deformation", "tau", 1.0, number(0.0), "weight of the source's penalty", float, models=_META),

@@ -78,6 +78,20 @@ def mapping(v, label):
     return dict(v)
 
 
+def auto_or(check: Callable, what: str) -> Callable:
+    """None, ``"auto"`` or a value that passes ``check`` (``what`` names it in the message)."""
+    def checked(v, label):
+        if v is None or v == "auto":
+            return v
+        if isinstance(v, str):
+            raise OptionError(label, v, f"None, 'auto' or {what}")
+        try:
+            return check(v, label)
+        except OptionError as e:
+            raise OptionError(label, v, f"None, 'auto' or {what}", e.kind) from None
+    return checked
+
+
 def anything(v, label):
     return v
 
@@ -187,7 +201,8 @@ CORE = (
     Option("action", "deformation", "action", "geometric", choice(("geometric", "mass_preserving")),
            "group action: geometric or mass_preserving", str),
     Option("interpolation", "deformation", "interpolation", None, optional(choice(("reinterpolate", "compose"))),
-           "reinterpolate (the paper's) or compose; None: compose with solver='fast', else reinterpolate",
+           "reinterpolate (the paper's) or compose; None: compose with solver='fast' or velocity_factor > 1, "
+           "else reinterpolate",
            Optional[str], app_default="reinterpolate"),
     Option("backward", "deformation", "backward", None, optional(choice(("paper", "exact", "autograd", "adjoint"))),
            "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
@@ -221,6 +236,16 @@ CORE = (
            "(None: never)", Optional[int]),
 )
 
+#: How the inputs are brought to one unit before the run (``indreg.run.prepare``): the app's ``data.*`` keys.
+INPUTS = (
+    Option("template_scale", "data", "template_scale", None, auto_or(_positive, "a finite number > 0"),
+           "the template's intensity factor: None (a warning if ||T I|| / ||g|| is outside [1/3, 3]), 'auto' "
+           "(the least-squares c = <T I, g> / <T I, T I>) or a number", Optional[Any]),
+    Option("background", "data", "background", None, auto_or(number(), "a finite number"),
+           "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
+           "a number", Optional[Any]),
+)
+
 RUN = (
     Option("device", "run", "device", None, anything, "None: the template's; 'auto', 'cpu', 'cuda[:i]'"),
     Option("dtype", "run", "dtype", None, anything, "None: the template's (arrays: float32 unless float64)"),
@@ -237,7 +262,7 @@ def all_options() -> tuple:
     from .models import MODELS
 
     seen, out = set(), []
-    for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *RUN):
+    for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *INPUTS, *RUN):
         if o.name not in seen:
             seen.add(o.name)
             out.append(o)

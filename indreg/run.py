@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from . import models, options as opts
+from .solvers.state import rounding_tolerance
 
 log = logging.getLogger("indreg")
 
@@ -77,6 +78,107 @@ def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devi
     return t
 
 
+# ---------------------------------------------------------------------------------------------------- units
+#: Template and data agree in units when ``||T I|| / ||g||`` and ``c = <T I, g> / <T I, T I>`` lie in
+#: ``[1 / UNIT_RANGE, UNIT_RANGE]`` (the paper's suites: 0.68-1.3); outside, a warning names both.
+UNIT_RANGE = 3.0
+#: Data look offset when the median of the detector's outermost columns (``border_level``) or of all the data is
+#: below zero, or the border is away from zero, by more than this fraction of the data's range.
+OFFSET_FRACTION = 0.05
+
+
+@dataclass
+class Units:
+    """What :func:`prepare` did to the inputs, for the result and metrics.json.
+
+    ``template_scale``: the factor applied to the template (1.0: none); ``background``: the offset subtracted
+    from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
+    ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
+    ``T.inner_data``)."""
+    template_scale: float = 1.0
+    background: float = 0.0
+    projection_ratio: float = math.nan
+    scale_fit: float = math.nan
+
+    def as_dict(self) -> dict:
+        return {"template_scale": self.template_scale, "background": self.background,
+                "projection_ratio": self.projection_ratio, "scale_fit": self.scale_fit}
+
+
+def border_level(data: torch.Tensor) -> float:
+    """The median of the outermost ``max(1, n // 16)`` detector columns on each side (the last axis: bins of a
+    sinogram, columns of a tilt series) over all angles (and rows): the level of the detector outside the
+    object's shadow, 0 for projections of an object inside the field of view."""
+    n = data.shape[-1]
+    k = max(1, n // 16)
+    border = torch.cat([data[..., :k].reshape(-1), data[..., n - k:].reshape(-1)]) if n > 1 else data.reshape(-1)
+    return float(border.double().median())
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b != 0 else (math.nan if a == 0 else math.inf)
+
+
+def check_offset(data: torch.Tensor, label: str) -> None:
+    """Warn when the data look offset: their border level or their median is far from zero (a fraction
+    ``OFFSET_FRACTION`` of their range) where projections of an object would be about zero outside it and
+    mostly positive."""
+    spread = float(data.max() - data.min())
+    border, median = border_level(data), float(data.double().median())
+    if spread > 0 and (abs(border) > OFFSET_FRACTION * spread or median < -OFFSET_FRACTION * spread):
+        log.warning("the data look offset: the median of the outermost detector columns is %.4g and of all values "
+                    "%.4g, with a range of %.4g (projections are about 0 outside the object); pass %s='auto' to "
+                    "subtract the border level, or %s=<number>", border, median, spread, label, label)
+
+
+def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
+            label=lambda name: name) -> tuple:
+    """Bring template and data to one unit before the run: ``(template, data, Units)``.
+
+    ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is subtracted from the data; without it
+    a warning when the data look offset (:func:`check_offset`). Then ``||T I|| / ||g||`` and ``c = <T I, g> /
+    <T I, T I>`` compare the template's projection with the data; ``template_scale`` (None, ``"auto"``: ``c``,
+    or a number) multiplies the template. Without a scale, a warning names both numbers when either is outside
+    ``[1/UNIT_RANGE, UNIT_RANGE]``. ``label(name)`` names the option in messages (the app: its config key).
+    Raises ValueError when ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the
+    data)."""
+    units = Units()
+    if background is None:
+        check_offset(data, label("background"))
+    else:
+        units.background = border_level(data) if background == "auto" else float(background)
+        data = data - units.background
+        log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
+                 background)
+    with torch.no_grad():
+        TI = operator(template)
+        tt = float(operator.inner_data(TI, TI).sum())
+        tg = float(operator.inner_data(TI, data).sum())
+        gg = float(operator.inner_data(data, data).sum())
+    units.projection_ratio, units.scale_fit = math.sqrt(_ratio(tt, gg)), _ratio(tg, tt)
+    key = label("template_scale")
+    if template_scale == "auto":
+        if not (math.isfinite(units.scale_fit) and units.scale_fit > 0):
+            raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
+                             f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
+                             f"both, or give {key}=<number>")
+        units.template_scale = units.scale_fit
+        log.info("template scaled by c = %.6g (%s='auto'; ||T I|| / ||g|| was %.4g)", units.scale_fit, key,
+                 units.projection_ratio)
+    elif template_scale is not None:
+        units.template_scale = float(template_scale)
+    else:
+        bounds = (1 / UNIT_RANGE, UNIT_RANGE)
+        if not all(bounds[0] <= v <= bounds[1] for v in (units.projection_ratio, units.scale_fit)):
+            log.warning("template and data look like different units: ||T I|| / ||g|| = %.4g and the least-squares "
+                        "scale c = <T I, g> / <T I, T I> = %.4g (expected in [1/%g, %g]); pass %s='auto' to scale "
+                        "the template by c, %s=<number>, or bring the template to the data's units",
+                        units.projection_ratio, units.scale_fit, UNIT_RANGE, UNIT_RANGE, key, key)
+    if units.template_scale != 1.0:
+        template = template * units.template_scale
+    return template, data, units
+
+
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
     """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
@@ -103,18 +205,21 @@ def make_solver(problem, o: dict, solver_options: dict):
 
 @dataclass
 class Setup:
-    """The problem and the solver built by :func:`setup`, with the run's (resolved) options; ``validation``: the
-    held-out angles (``indreg.validation.Validation``) when ``holdout`` is set, else None."""
+    """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
+    did to the inputs, and ``validation``: the held-out angles (``indreg.validation.Validation``) when ``holdout``
+    is set, else None."""
     problem: object
     solver: object
     options: dict
+    units: Units = field(default_factory=Units)
     validation: object = None
 
 
 def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
     """Validate inputs and options (``indreg.options.resolve``) and build kernel, problem and solver.
 
-    With ``holdout`` the problem is built on the operator and data restricted to the kept angles
+    The inputs are first brought to one unit (:func:`prepare`: ``template_scale``, ``background``); with
+    ``holdout`` the problem is then built on the operator and the prepared data restricted to the kept angles
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
@@ -133,17 +238,19 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if o["target"] is not None:
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
     if o["interpolation"] is None:
-        o["interpolation"] = "compose" if o["solver"] == opts.FAST else "reinterpolate"
+        o["interpolation"] = "compose" if o["solver"] == opts.FAST or o["velocity_factor"] > 1 else "reinterpolate"
     for option in opts.all_options():   # a step must stay finite (and nonzero) in the run's dtype
         if option.name in ("step_size", "lr") and o[option.name] is not None:
             check_finite_in(o[option.name], label(option), dtype)
+    names = {option.name: option for option in opts.all_options()}
+    template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
+                                    lambda name: label(names[name]))
     validation = None
-    if o["holdout"] is not None:
-        name = label(next(option for option in opts.all_options() if option.name == "holdout"))
-        operator, data, validation = split(operator, data, o["holdout"], o["patience"], name)
+    if o["holdout"] is not None:   # the split is of the prepared data (background removed)
+        operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = models.get(o["model"]).build(operator, template, data, kernel, o)
-    return Setup(problem, make_solver(problem, o, solver_options), o, validation)
+    return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
 
 
 def initial_state(problem):
@@ -157,6 +264,23 @@ def initial_state(problem):
 def count_warnings(history) -> int:
     """Iterations whose report carries a warning (the count shown on screen and stored in metrics)."""
     return sum(1 for h in history if h.get("warning"))
+
+
+def count_rejected(history) -> int:
+    """Iterations whose step was rejected after every halving (the iterate kept)."""
+    return sum(1 for h in history if h.get("rejected"))
+
+
+def count_halvings(history) -> int:
+    """Step halvings in all (the sum of the counts in the "step size halved" log lines)."""
+    return sum(int(h.get("halvings", 0)) for h in history)
+
+
+#: A run with step halving stalls (status ``stalled``) when the step was halved and the objective then decreased
+#: by less than float rounding (``rounding_tolerance``, relative) over this many iterations: the step has
+#: collapsed (the own-data example stalls at iteration 130 of 200 with a step of 4.7e-12; run on, it halves it to
+#: 4e-14 and keeps one objective for 70 iterations).
+STALL_WINDOW = 10
 
 
 class Progress:
@@ -192,9 +316,9 @@ class RegistrationLoop:
     Subclasses (the experiment app) hook in with :meth:`before_step` (may return a stop status),
     :meth:`after_step` (every iteration; may return a stop status) and :meth:`describe` (extra text for the
     log line printed every ``every`` iterations). ``run()`` returns the status: ``completed``,
-    ``converged``, ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver
-    accepted), ``early_stopped`` (``validation`` ran out of patience), or what a hook returned.
-    ``callback(state, info)`` returning True stops it (``stopped``).
+    ``converged``, ``stalled`` (:data:`STALL_WINDOW`), ``failed`` (a non-finite objective or gradient; the state
+    keeps the last iterate the solver accepted), ``early_stopped`` (``validation`` ran out of patience), or what a
+    hook returned. ``callback(state, info)`` returning True stops it (``stopped``).
 
     ``validation`` (``indreg.validation.Validation``, from ``holdout``): every ``every`` iterations the held-out
     residual of the current reconstruction goes into ``info`` and the history as ``holdout_residual`` (before
@@ -209,6 +333,7 @@ class RegistrationLoop:
         self.seconds = seconds
         self.callback = callback
         self.warnings = count_warnings(self.history)
+        self.rtol = rounding_tolerance(state.iterate[0].dtype)
         self.validation = validation
         if validation is not None:
             validation.restore(self.history)
@@ -245,11 +370,13 @@ class RegistrationLoop:
                  "iteration %d); stopping", it, v.patience, value, best)
         return "early_stopped"
 
-    def _halved(self) -> bool:
-        """Whether step halving shortened the step in the last iteration."""
-        h = self.history
-        return (getattr(self.solver, "step_halving", False) and len(h) > 1
-                and h[-1]["step_size"] < h[-2]["step_size"])
+    def _stalled(self) -> bool:
+        """Step halving has collapsed the step (:data:`STALL_WINDOW`)."""
+        h, solver = self.history, self.solver
+        if not (getattr(solver, "step_halving", False) and hasattr(solver, "step_sizes")) or len(h) <= STALL_WINDOW:
+            return False
+        old, new = h[-1 - STALL_WINDOW]["objective"], h[-1]["objective"]
+        return any(x.get("halvings") for x in h) and old - new <= self.rtol * abs(old)
 
     def run(self) -> str:
         from tqdm import tqdm
@@ -272,10 +399,15 @@ class RegistrationLoop:
                 self.history.append(dict(info, iteration=it, seconds=dt))
                 if info.get("warning"):
                     self._warn(it, info)
-                if self._halved():
-                    log.info("iteration %d: step size halved to %.4g (the longer step increased the objective or "
-                             "folded)", it, info["step_size"])
+                if info.get("halvings"):
+                    log.info("iteration %d: step size halved %d time(s) to %.4g (the longer step increased the "
+                             "objective or folded)", it, info["halvings"], info["step_size"])
                 reason = self.solver.status(info)   # failed / converged / completed / None
+                if reason is None and self._stalled():
+                    reason = "stalled"
+                    log.warning("iteration %d: stalled: the objective decreased by less than %.2g (relative) over the "
+                                "last %d iterations while step halving shrank the step to %.4g; stopping", it,
+                                self.rtol, STALL_WINDOW, info["step_size"])
                 if reason == "failed":              # non-finite: stop before any hook saves this iterate
                     status = reason
                     log.error("iteration %d: non-finite objective or gradient (%s); stopping", it,
@@ -298,10 +430,10 @@ class RegistrationLoop:
                     break
         finally:
             bar.close()
-        rejected = sum(1 for h in self.history if h.get("rejected"))
+        rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
-            log.warning("%d of %d iterations reported a warning (%d rejected steps)", self.warnings,
-                        len(self.history), rejected)
+            log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)", self.warnings,
+                        len(self.history), rejected, halvings)
         return status
 
 
@@ -313,14 +445,17 @@ class RegistrationResult:
     Convention: ``deformed`` ``(nx, ny)`` = the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1));
     ``trajectory`` ``(N+1, nx, ny)`` = the image path at ``t_i``; ``momentum`` and ``velocity`` ``(N+1, d, *shape)``
     (``nu = K m``, component 0 = x); ``deformation`` ``(d, *shape)`` = phi_{1,0} (points, physical units);
-    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm; ``history``:
-    one dict per iteration (the solver's report plus ``seconds``); ``status``: ``completed`` (``max_iter``),
-    ``converged`` (``grad_tol``), ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``)
-    ``stopped`` (the callback returned True) or ``early_stopped`` (``patience`` held-out evaluations without a new
-    minimum). ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``): ``holdout_residual`` (the
-    final reconstruction's relative residual on the held-out angles), ``holdout_best_residual`` /
-    ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every`` iterations; the curve is in
-    ``history``) and ``holdout_indices``; empty without. ``outputs``: the model's
+    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (on the fitted
+    data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
+    ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
+    step, ``indreg.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
+    ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
+    non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
+    ``template_scale``, ``background``, ``projection_ratio``, ``scale_fit``: what was done to the inputs before the
+    run (:class:`Units`). ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
+    ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
+    ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
+    iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``outputs``: the model's
     own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I), ``intensity_part`` =
     f(1) - W(nu, I)), also readable as attributes (``result.source``).
     """
@@ -342,6 +477,10 @@ class RegistrationResult:
     outputs: dict = field(default_factory=dict, repr=False)
     ssim: Optional[float] = None
     psnr: Optional[float] = None
+    template_scale: float = 1.0
+    background: float = 0.0
+    projection_ratio: float = math.nan
+    scale_fit: float = math.nan
     holdout: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
@@ -358,11 +497,23 @@ def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> floa
         return math.sqrt(float(operator.inner_data(r, r).sum()) / float(operator.inner_data(data, data).sum()))
 
 
+def final_status(status: str, residual: float) -> str:
+    """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1`` (or not
+    finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so)."""
+    if status in ("completed", "converged", "stalled", "early_stopped") and not residual < 1:
+        log.warning("the run diverged: relative data residual ||T f - g|| / ||g|| = %.4g >= 1, worse than a zero "
+                    "image; check the units of template and data (template_scale, background) and the step",
+                    residual)
+        return "diverged"
+    return status
+
+
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
-                 validation=None) -> RegistrationResult:
+                 units: Optional[Units] = None, validation=None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory, velocity, phi_{1,0}, terms, min Jacobian, residual
     (on the fitted data), the model's outputs, SSIM / PSNR of the reconstruction against ``target`` (float64, CPU)
-    if given, and the held-out residuals of ``validation`` if given."""
+    if given, and the held-out residuals of ``validation`` if given; ``status`` becomes ``diverged`` if the
+    residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
     from . import metrics
 
     x = state.iterate
@@ -370,12 +521,13 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     with torch.no_grad():
         velocity = problem.velocity(x[0])
     terms = problem.evaluate_iterate(x)
+    residual = relative_residual(problem.ray_transform, image, problem.data)
     result = RegistrationResult(
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
-        residual=relative_residual(problem.ray_transform, image, problem.data), status=status,
-        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x))
+        residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
+        problem=problem, outputs=problem.outputs(x), **(units or Units()).as_dict())
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:

@@ -69,6 +69,18 @@ def test_held_out_residual_and_curve(tiny):
     assert r.residual == pytest.approx(math.sqrt(float((res ** 2).sum() / (data[kept] ** 2).sum())), rel=1e-10)
 
 
+
+def test_holdout_after_units(tiny):
+    """``template_scale`` / ``background`` act first (``indreg.run.prepare``), the split is of the prepared data:
+    the same run and held-out residuals as with the inputs already in one unit."""
+    T, template, target, data = tiny
+    r = indreg.register(template, data + 5.0, T, holdout=3, template_scale=2.0, background=5.0, **FAST)
+    ref = indreg.register(2.0 * template, data, T, holdout=3, **FAST)
+    torch.testing.assert_close(r.momentum, ref.momentum, rtol=1e-9, atol=1e-12)
+    assert r.holdout["holdout_residual"] == pytest.approx(ref.holdout["holdout_residual"], rel=1e-9)
+    assert (r.template_scale, r.background) == (2.0, 5.0)
+    assert r.status == ref.status == "completed"
+
 def test_early_stopping(tiny):
     """Held-out rows that hold the template's projections: their residual grows from the first evaluation, so
     the run stops ``patience`` evaluations later."""

@@ -28,6 +28,7 @@ class _Config:
     action: str
     interpolation: str
     scheme: str
+    velocity_domain: ImageDomain | None = None  # a coarser grid of the velocity (CoarseVelocityDeformation)
 
 
 class _PaperDeformation(torch.autograd.Function):
@@ -106,18 +107,27 @@ class _ExactDeformation(torch.autograd.Function):
             ctx.record = None
         d = c.domain.ndim
         batch = grad_out.shape[:-d]
-        grad_v, grad_i = Fd.exact_gradient(
-            grad_out, template.expand(*batch, *template.shape[-d:]),
-            velocity.expand(*batch, *velocity.shape[-d - 2:]), record, c.domain, c.action, c.interpolation, c.scheme,
-            need_velocity=need_velocity, need_template=need_template, moving=ctx.moving)
+        inputs = (grad_out, template.expand(*batch, *template.shape[-d:]),
+                  velocity.expand(*batch, *velocity.shape[-d - 2:]), record)
+        if c.velocity_domain is None:
+            grad_v, grad_i = Fd.exact_gradient(*inputs, c.domain, c.action, c.interpolation, c.scheme,
+                                               need_velocity=need_velocity, need_template=need_template,
+                                               moving=ctx.moving)
+        else:
+            grad_v, grad_i = Fd.coarse_gradient(*inputs, c.velocity_domain, c.domain, c.action, c.scheme,
+                                                need_velocity=need_velocity, need_template=need_template,
+                                                moving=ctx.moving)
         grad_v = grad_v.sum_to_size(velocity.shape) if need_velocity else None
         grad_i = grad_i.sum_to_size(template.shape) if need_template else None
         return grad_v, grad_i, None, None
 
 
 def _exact_record(velocity, template, config, moving) -> tuple:
-    """``functional.exact_record`` of the broadcast inputs."""
+    """``functional.exact_record`` (``coarse_record`` for a coarser velocity grid) of the broadcast inputs."""
     template, velocity = _broadcast(velocity, template, config.domain.ndim)
+    if config.velocity_domain is not None:
+        return Fd.coarse_record(template, velocity, config.velocity_domain, config.domain, config.action,
+                                config.scheme, moving)
     return Fd.exact_record(template, velocity, config.domain, config.action, config.interpolation, config.scheme,
                            moving)
 
@@ -248,7 +258,7 @@ class LDDMMDeformation(torch.nn.Module):
                                      ("scheme", scheme, Fd.SCHEMES)):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
-        self.domain = domain
+        self.domain = self.velocity_domain = domain
         self.num_steps = check_int(num_steps, "num_steps", 1)
         self.action, self.backward, self.interpolation, self.scheme = action, backward, interpolation, scheme
         self._config = _Config(domain, action, interpolation, scheme)
@@ -257,9 +267,18 @@ class LDDMMDeformation(torch.nn.Module):
         return (f"shape={self.domain.shape}, num_steps={self.num_steps}, action={self.action!r}, "
                 f"backward={self.backward!r}, interpolation={self.interpolation!r}, scheme={self.scheme!r}")
 
+    def arguments(self) -> dict:
+        """The constructor's arguments by name (``replace``)."""
+        return {"domain": self.domain, "num_steps": self.num_steps, "action": self.action,
+                "backward": self.backward, "interpolation": self.interpolation, "scheme": self.scheme}
+
+    def replace(self, **changes) -> "LDDMMDeformation":
+        """The same kind of operator with some constructor arguments changed (e.g. ``backward="exact"``)."""
+        return type(self)(**{**self.arguments(), **changes})
+
     def velocity_shape(self, *batch) -> tuple:
-        """Shape ``(*batch, N+1, d, *shape)`` of a velocity field for this operator."""
-        return (*batch, self.num_steps + 1, self.domain.ndim, *self.domain.shape)
+        """Shape ``(*batch, N+1, d, *shape)`` of a velocity field for this operator (``velocity_domain.shape``)."""
+        return (*batch, self.num_steps + 1, self.domain.ndim, *self.velocity_domain.shape)
 
     def zero_velocity(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
         """The zero velocity field ``(*batch, N+1, d, *shape)``."""
@@ -342,7 +361,7 @@ class LDDMMDeformation(torch.nn.Module):
         """
         moving = self._check_velocity(velocity)
         with torch.no_grad():
-            return Fd.displacement_determinant(Fd.displacement_10(velocity, self.domain, moving), self.domain)
+            return Fd.displacement_determinant(self._displacement_10(velocity, moving), self.domain)
 
     def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
         """Minimum over the grid of ``jacobian_determinant``, ``(...)``: the computed map folds when ``<= 0``.
@@ -358,4 +377,8 @@ class LDDMMDeformation(torch.nn.Module):
         """``phi_{1,0}`` as physical points ``(..., d, *shape)`` (composed displacements; deformed-grid plots)."""
 
         moving = self._check_velocity(velocity)
-        return self.domain.points(velocity.dtype, velocity.device) + Fd.displacement_10(velocity, self.domain, moving)
+        return self.domain.points(velocity.dtype, velocity.device) + self._displacement_10(velocity, moving)
+
+    def _displacement_10(self, velocity: torch.Tensor, moving: list) -> torch.Tensor:
+        """``phi_{1,0} - Id`` (physical units) on the image's grid, ``(..., d, *shape)``."""
+        return Fd.displacement_10(velocity, self.domain, moving)

@@ -20,6 +20,10 @@ the source, each ``zeta_i`` transported from its time ``t_i`` to 1 (``zeta_0`` a
 ``"compose"`` splits ``f_N = P + S_N``: the template part ``P = I o (Id + u_N)`` with the composed
 displacement ``u_N = phi_{1,0} - Id`` of ``functional.displacements_t0`` (LDDMM's compose mode, no
 accumulated blur), the source part by the recursion ``S_0 = 0``, ``S_i = S_{i-1} o b_i + (1/N) zeta_i``.
+
+2D and 3D share one code path (as ``functional``): d = ``domain.ndim`` image axes, images ``(..., *shape)``,
+sources ``(..., N+1, *shape)``, velocities ``(..., N+1, d, *shape)``; interpolation is bilinear / trilinear and
+its exact transposes are ``grid_sampler_2d_backward`` / ``grid_sampler_3d_backward`` (``functional.sampling``).
 """
 from __future__ import annotations
 
@@ -32,10 +36,11 @@ from torch.autograd.function import once_differentiable
 from .._checks import check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
+from .functional.differences import _differenced
+from .functional.sampling import _sample_adjoint
 from .lddmm import LDDMMDeformation
 
 BACKWARDS = ("adjoint", "autograd")
-_PADDING = {"zeros": 0, "border": 1}
 
 
 @dataclass(frozen=True)
@@ -47,102 +52,107 @@ class _Config:
 # ----------------------------------------------------------------------------------------------------------
 # forward recursions
 def _transport(start: torch.Tensor, source: torch.Tensor, steps: "Fd._Steps", n: int, out: list | None = None):
-    """``x_i = x_{i-1} o b_i + (1/N) zeta_i`` from ``x_0 = start``; returns ``x_N`` (and appends ``x_0..x_{N-1}``
-    to ``out``). Differentiable by autograd when ``steps`` records."""
-    x, zeta = start, source.unbind(-3)
+    """``x_i = x_{i-1} o b_i + (1/N) zeta_i`` from ``x_0 = start (..., *shape)``; returns ``x_N`` (and appends
+    ``x_0..x_{N-1}`` to ``out``). Differentiable by autograd when ``steps`` records."""
+    c = -steps.ndim - 1  # the time axis of the source, the channel axis of a sampled image
+    x, zeta = start, source.unbind(c)
     for i in range(1, n + 1):
         if out is not None:
             out.append(x)
-        x = torch.add(steps.move(x.unsqueeze(-3), i, "zeros").squeeze(-3), zeta[i], alpha=1.0 / n)
+        x = torch.add(steps.move(x.unsqueeze(c), i, "zeros").squeeze(c), zeta[i], alpha=1.0 / n)
     return x
 
 
 def metamorphosis_trajectory(template: torch.Tensor, velocity: torch.Tensor, source: torch.Tensor,
                              domain: ImageDomain, interpolation: str = "reinterpolate",
                              moving: list | None = None) -> torch.Tensor:
-    """``f_i`` for ``i = 0..N``, ``(..., N+1, nx, ny)``, for inputs whose batch dims already agree.
+    """``f_i`` for ``i = 0..N``, ``(..., N+1, *shape)``, for inputs whose batch dims already agree.
 
     ``"reinterpolate"``: the recursion ``f_i = f_{i-1} o b_i + zeta_i / N``; ``"compose"``: ``f_i = I o (Id + u_i)
     + S_i`` (module docstring). Differentiable by plain autograd.
     """
     Fd._check_interpolation(interpolation)
-    n = velocity.shape[-4] - 1
+    c = -domain.ndim - 1
+    n = velocity.shape[c - 1] - 1
     steps = Fd._Steps(velocity, domain, -1.0, moving)
     frames = []
     if interpolation == "reinterpolate":
         frames.append(_transport(template, source, steps, n, frames))
-        return torch.stack(frames, dim=-3)
+        return torch.stack(frames, dim=c)
     accumulated = []
     accumulated.append(_transport(torch.zeros_like(template), source, steps, n, accumulated))
-    return Fd.template_trajectory(template, velocity, domain, "compose", moving) + torch.stack(accumulated, dim=-3)
+    return Fd.template_trajectory(template, velocity, domain, "compose", moving) + torch.stack(accumulated, dim=c)
 
 
 def _forward_record(template, velocity, source, config, moving) -> tuple:
     """``f_N`` and what the backward reads: the transported images ``x_0..x_{N-1}`` and, for ``"compose"``,
     the displacements ``u_0..u_N`` (grid units). No autograd."""
-    n = velocity.shape[-4] - 1
+    c = -config.domain.ndim - 1
+    n = velocity.shape[c - 1] - 1
     steps = Fd._Steps(velocity, config.domain, -1.0, moving)
     frames = []
     if config.interpolation == "reinterpolate":
-        return _transport(template, source, steps, n, frames), torch.stack(frames, dim=-3), None
+        return _transport(template, source, steps, n, frames), torch.stack(frames, dim=c), None
     displacements = Fd.displacements_t0(velocity, config.domain)
-    part = Fd._sample_displaced(template.unsqueeze(-3), displacements[..., -1, :, :, :], config.domain,
-                                "zeros").squeeze(-3)
+    part = Fd._sample_displaced(template.unsqueeze(c), displacements.select(c - 1, -1), config.domain,
+                                "zeros").squeeze(c)
     accumulated = _transport(torch.zeros_like(template), source, steps, n, frames)
-    return part + accumulated, torch.stack(frames, dim=-3), displacements
+    return part + accumulated, torch.stack(frames, dim=c), displacements
 
 
 # ----------------------------------------------------------------------------------------------------------
 # the adjoint recursion (backward)
 def _sample_vjp(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> tuple:
-    """Exact vector-Jacobian product of ``functional.sample(f, grid)``, ``f (..., C, nx, ny)``, ``grid (..., nx, ny,
-    2)``: ``(A^T grad, d<grad, f o grid>/d grid)``, the bilinear scatter and the cell slopes of ``f`` at the points
-    times ``grad`` (``grid_sample``'s own backward), the grid derivative returned planar ``(..., 2, nx, ny)`` in
-    grid units with component 0 = x."""
-    batch, (c, nx, ny) = f.shape[:-3], f.shape[-3:]
-    grad_f, grad_grid = torch.ops.aten.grid_sampler_2d_backward(
-        grad.reshape(-1, c, nx, ny).contiguous(), f.reshape(-1, c, nx, ny).contiguous(),
-        grid.reshape(-1, nx, ny, 2).contiguous(), 0, _PADDING[padding_mode], False, [True, True])
-    return grad_f.reshape(*batch, c, nx, ny), grad_grid.reshape(*batch, nx, ny, 2).movedim(-1, -3).flip(-3)
+    """Exact vector-Jacobian product of ``functional.sample(f, grid)``, ``f (..., C, *shape)``, ``grid (..., *shape,
+    d)``: ``(A^T grad, d<grad, f o grid>/d grid)``, the bilinear / trilinear scatter and the cell slopes of ``f`` at
+    the points times ``grad`` (``grid_sample``'s own backward, ``sampling._sample_adjoint``), the grid derivative
+    returned planar ``(..., d, *shape)`` in grid units with component 0 = x (``grid_sample``'s order reversed)."""
+    d = grid.shape[-1]
+    grad_f, grad_grid = _sample_adjoint(grad, f, grid, padding_mode, True, True)
+    return grad_f, grad_grid.movedim(-1, -d - 1).flip(-d - 1)
 
 
-def _node_slopes(grad: torch.Tensor, f: torch.Tensor, padding_mode: str) -> torch.Tensor:
-    """``_sample_vjp``'s grid derivative at the identity grid (a step with ``nu_i = 0``), where bilinear
-    interpolation has a kink at every node: the mean of the two one-sided slopes, i.e. central differences of
-    ``f (..., C, nx, ny)`` continued by ``padding_mode``, times ``grad``, summed over channels, in grid units."""
-    shape = f.shape
-    p = F.pad(f.reshape(-1, *shape[-3:]), (1, 1, 1, 1), mode="constant" if padding_mode == "zeros" else "replicate")
-    p = p.reshape(*shape[:-2], shape[-2] + 2, shape[-1] + 2)
-    nx, ny = shape[-2:]
-    dx = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * (0.25 * nx)  # d/d(grid x) = (extent / 2) d/dx, h = extent / nx
-    dy = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * (0.25 * ny)
-    return torch.stack(((grad * dx).sum(-3), (grad * dy).sum(-3)), dim=-3)
+def _node_slopes(grad: torch.Tensor, f: torch.Tensor, padding_mode: str, ndim: int) -> torch.Tensor:
+    """``_sample_vjp``'s grid derivative at the identity grid (a step with ``nu_i = 0``), where bilinear /
+    trilinear interpolation has a kink at every node: the mean of the two one-sided slopes, i.e. central
+    differences of ``f (..., C, *shape)`` (``ndim`` image axes) continued by ``padding_mode``, times ``grad``,
+    summed over channels, planar ``(..., ndim, *shape)`` in grid units."""
+    c, shape = -ndim - 1, f.shape[-ndim:]
+    mode = "constant" if padding_mode == "zeros" else "replicate"
+    p = F.pad(f.reshape(-1, *f.shape[c:]), (1, 1) * ndim, mode=mode)
+    p = p.reshape(*f.shape[:-ndim], *(s + 2 for s in shape))
+    # d/d(grid x_k) = (extent_k / 2) d/dx_k and h_k = extent_k / n_k: the central quotient times n_k / 4
+    return torch.stack([(grad * torch.sub(*_differenced(p, k, ndim, "central"))).sum(c) * (0.25 * n)
+                        for k, n in enumerate(shape)], dim=c)
 
 
 def _step_vjp(grad, f, steps, i, padding_mode) -> tuple:
-    """VJP of ``f o b_i`` (``f (..., C, nx, ny)``): ``(A_i^T grad, d/dw_i)`` with ``w_i = -nu(t_i)/N`` in grid units."""
+    """VJP of ``f o b_i`` (``f (..., C, *shape)``): ``(A_i^T grad, d/dw_i)`` with ``w_i = -nu(t_i)/N`` in grid
+    units, planar ``(..., d, *shape)``."""
     if steps.moves(i):
         return _sample_vjp(grad, f, steps.grid(i), padding_mode)
-    return grad, _node_slopes(grad, f, padding_mode)
+    return grad, _node_slopes(grad, f, padding_mode, steps.ndim)
 
 
 def _grid_to_velocity(grad_w: torch.Tensor, domain: ImageDomain, n: int) -> torch.Tensor:
-    """``dL/dnu_i`` from ``dL/dw_i``, ``w_i = -(nu_i / N) (2 / extent)`` (grid units), ``(..., 2, nx, ny)``."""
+    """``dL/dnu_i`` from ``dL/dw_i``, ``w_i = -(nu_i / N) (2 / extent)`` (grid units), ``(..., d, *shape)``."""
     return grad_w * Fd._grid_units(domain, grad_w.dtype, grad_w.device) * (-1.0 / n)
 
 
 def adjoint_gradient(grad_out, template, velocity, source, frames, displacements, domain, moving) -> tuple:
     """``(dL/dnu, dL/dzeta, dL/dI)`` (torch entries) from ``G = dL/df_N`` by the adjoint recursion
     (equations in ``MetamorphosisDeformation``'s docstring). ``frames``: ``x_0..x_{N-1}`` of the transport
-    recursion, ``(..., N, nx, ny)``; ``displacements``: ``u_0..u_N`` (``"compose"``) or None. No autograd."""
-    n = velocity.shape[-4] - 1
+    recursion, ``(..., N, *shape)``; ``displacements``: ``u_0..u_N`` (``"compose"``) or None. No autograd."""
+    c = -domain.ndim - 1  # the time axis of images / sources; that of velocities is c - 1
+    n = velocity.shape[c - 1] - 1
     steps = Fd._Steps(velocity, domain, -1.0, moving)
     grad_w, grad_z = torch.zeros_like(velocity), torch.zeros_like(source)
-    lam, x = grad_out.unsqueeze(-3), frames.unbind(-3)
+    lam, x = grad_out.unsqueeze(c), frames.unbind(c)
     for i in range(n, 0, -1):  # lambda_{i-1} = A_i^T lambda_i; dL/dzeta_i = lambda_i / N
-        torch.div(lam.squeeze(-3), n, out=grad_z[..., i, :, :])
-        lam, grad_w[..., i, :, :, :] = _step_vjp(lam, x[i - 1].unsqueeze(-3), steps, i, "zeros")
-    grad_i = lam.squeeze(-3)
+        torch.div(lam.squeeze(c), n, out=grad_z.select(c, i))
+        lam, slope = _step_vjp(lam, x[i - 1].unsqueeze(c), steps, i, "zeros")
+        grad_w.select(c - 1, i).copy_(slope)
+    grad_i = lam.squeeze(c)
     if displacements is not None:
         grad_i = _template_part_adjoint(grad_out, template, displacements, grad_w, steps, domain)
     return _grid_to_velocity(grad_w, domain, n), grad_z, grad_i
@@ -154,17 +164,18 @@ def _template_part_adjoint(grad_out, template, displacements, grad_w, steps, dom
     ``dL/du_N = G (D I)(Id + u_N)``, then the displacement recursion ``u_i = u_{i-1} o (Id + w_i) + w_i``
     backwards: ``dL/dw_i += ubar_i + (D u_{i-1})(Id + w_i)^T ubar_i``, ``ubar_{i-1} = A_i^T ubar_i`` (border
     padding, as the forward)."""
-    u = displacements.unbind(-4)
-    g, image = grad_out.unsqueeze(-3), template.unsqueeze(-3)
+    c = -domain.ndim - 1
+    u, w = displacements.unbind(c - 1), grad_w.unbind(c - 1)
+    g, image = grad_out.unsqueeze(c), template.unsqueeze(c)
     if bool(u[-1].ne(0).any()):
         grad_i, ubar = _sample_vjp(g, image, Fd.displaced_grid(u[-1], domain), "zeros")
     else:  # P = I exactly (functional._sample_displaced skips the identity)
-        grad_i, ubar = g, _node_slopes(g, image, "zeros")
+        grad_i, ubar = g, _node_slopes(g, image, "zeros", domain.ndim)
     for i in range(len(u) - 1, 0, -1):
-        grad_w[..., i, :, :, :] += ubar
+        w[i].add_(ubar)
         ubar, slopes = _step_vjp(ubar, u[i - 1], steps, i, "border")
-        grad_w[..., i, :, :, :] += slopes
-    return grad_i.squeeze(-3)
+        w[i].add_(slopes)
+    return grad_i.squeeze(c)
 
 
 class _MetamorphosisFunction(torch.autograd.Function):
@@ -250,8 +261,10 @@ class MetamorphosisDeformation(torch.nn.Module):
     Convention:
         ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, physical units per unit time), ``source (..., N+1,
         nx, ny)`` (image units per unit time), ``template (..., nx, ny)``; batch dims broadcast (gradients are
-        summed back to each input's shape); output ``(..., nx, ny)``. float32 / float64, any device (the
-        inputs'). Images and sources are 0 outside the domain.
+        summed back to each input's shape); output ``(..., nx, ny)``. 3D (a domain of shape ``(nx, ny, nz)``):
+        ``velocity (..., N+1, 3, nx, ny, nz)``, ``source (..., N+1, nx, ny, nz)``, ``template`` and output
+        ``(..., nx, ny, nz)``, trilinear interpolation (the same code path; "bilinear" above reads "trilinear").
+        float32 / float64, any device (the inputs'). Images and sources are 0 outside the domain.
 
     Example:
         >>> from indreg import phantoms
@@ -270,9 +283,6 @@ class MetamorphosisDeformation(torch.nn.Module):
         super().__init__()
         if not isinstance(domain, ImageDomain):
             raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
-        if domain.ndim != 2:
-            raise NotImplementedError(f"metamorphosis is 2D only; domain has shape {domain.shape} (use model='lddmm' "
-                                      f"in 3D)")
         for name, value, allowed in (("backward", backward, BACKWARDS),
                                      ("interpolation", interpolation, Fd.INTERPOLATIONS)):
             if value not in allowed:
@@ -287,57 +297,60 @@ class MetamorphosisDeformation(torch.nn.Module):
                 f"interpolation={self.interpolation!r}")
 
     def velocity_shape(self, *batch) -> tuple:
-        """Shape ``(*batch, N+1, 2, nx, ny)`` of a velocity field."""
-        return (*batch, self.num_steps + 1, 2, *self.domain.shape)
+        """Shape ``(*batch, N+1, d, *shape)`` of a velocity field."""
+        return (*batch, self.num_steps + 1, self.domain.ndim, *self.domain.shape)
 
     def source_shape(self, *batch) -> tuple:
-        """Shape ``(*batch, N+1, nx, ny)`` of a source term."""
+        """Shape ``(*batch, N+1, *shape)`` of a source term."""
         return (*batch, self.num_steps + 1, *self.domain.shape)
 
     def zero_velocity(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
-        """The zero velocity field ``(*batch, N+1, 2, nx, ny)``."""
+        """The zero velocity field ``(*batch, N+1, d, *shape)``."""
         return torch.zeros(self.velocity_shape(*batch), dtype=dtype, device=device)
 
     def zero_source(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
-        """The zero source ``(*batch, N+1, nx, ny)``."""
+        """The zero source ``(*batch, N+1, *shape)``."""
         return torch.zeros(self.source_shape(*batch), dtype=dtype, device=device)
 
     def _check(self, velocity, source, template) -> tuple:
         """Validates the inputs (before any work); returns the step flags and the common batch shape."""
         moving = self.lddmm._check(velocity, template)
-        if isinstance(source, torch.Tensor) and source.dim() >= 3 and source.shape[-3] != self.num_steps + 1:
-            raise ValueError(f"source must have num_steps + 1 = {self.num_steps + 1} time points on axis -3 "
-                             f"(shape (..., N+1, nx, ny)), got shape {tuple(source.shape)}")
+        d = self.domain.ndim
+        if isinstance(source, torch.Tensor) and source.dim() > d and source.shape[-d - 1] != self.num_steps + 1:
+            layout = "(..., N+1, nx, ny)" if d == 2 else "(..., N+1, nx, ny, nz)"
+            raise ValueError(f"source must have num_steps + 1 = {self.num_steps + 1} time points on axis {-d - 1} "
+                             f"(shape {layout}), got shape {tuple(source.shape)}")
         check_tensor(source, "source", (self.num_steps + 1, *self.domain.shape))
-        check_nonempty(source, "source", 3)
+        check_nonempty(source, "source", d + 1)
         check_same(velocity, source, "velocity", "source")
         try:
-            batch = torch.broadcast_shapes(velocity.shape[:-4], source.shape[:-3], template.shape[:-2])
+            batch = torch.broadcast_shapes(velocity.shape[:-d - 2], source.shape[:-d - 1], template.shape[:-d])
         except RuntimeError:
-            raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-4])}, source "
-                             f"{tuple(source.shape[:-3])} and template {tuple(template.shape[:-2])} "
+            raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-d - 2])}, source "
+                             f"{tuple(source.shape[:-d - 1])} and template {tuple(template.shape[:-d])} "
                              f"do not broadcast") from None
         return moving, batch
 
-    @staticmethod
-    def _expand(velocity, source, template, batch) -> tuple:
-        return (velocity.expand(*batch, *velocity.shape[-4:]), source.expand(*batch, *source.shape[-3:]),
-                template.expand(*batch, *template.shape[-2:]))
+    def _expand(self, velocity, source, template, batch) -> tuple:
+        d = self.domain.ndim
+        return (velocity.expand(*batch, *velocity.shape[-d - 2:]), source.expand(*batch, *source.shape[-d - 1:]),
+                template.expand(*batch, *template.shape[-d:]))
 
     def forward(self, velocity: torch.Tensor, source: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
-        """``f(1)``, ``(..., nx, ny)``."""
+        """``f(1)``, ``(..., *shape)``."""
         moving, batch = self._check(velocity, source, template)
         v, z, t = self._expand(velocity, source, template, batch)
         recording = torch.is_grad_enabled() and any(x.requires_grad for x in (velocity, source, template))
         if recording and self.backward == "adjoint":
             return _MetamorphosisFunction.apply(v, z, t, self._config, moving)[0]
         if recording:
-            return metamorphosis_trajectory(t, v, z, self.domain, self.interpolation, moving)[..., -1, :, :]
+            path = metamorphosis_trajectory(t, v, z, self.domain, self.interpolation, moving)
+            return path.select(-self.domain.ndim - 1, -1)
         with torch.no_grad():
             return _forward_record(t, v, z, self._config, moving)[0]
 
     def trajectory(self, velocity: torch.Tensor, source: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
-        """``f(t_i)`` for ``i = 0..N``, ``(..., N+1, nx, ny)`` (differentiable by plain autograd)."""
+        """``f(t_i)`` for ``i = 0..N``, ``(..., N+1, *shape)`` (differentiable by plain autograd)."""
         moving, batch = self._check(velocity, source, template)
         v, z, t = self._expand(velocity, source, template, batch)
         return metamorphosis_trajectory(t, v, z, self.domain, self.interpolation, moving)
@@ -352,7 +365,7 @@ class MetamorphosisDeformation(torch.nn.Module):
         return deformed, f1 - deformed
 
     def deformation(self, velocity: torch.Tensor) -> torch.Tensor:
-        """``phi_{1,0}`` as physical points ``(..., 2, nx, ny)`` (``LDDMMDeformation.deformation``)."""
+        """``phi_{1,0}`` as physical points ``(..., d, *shape)`` (``LDDMMDeformation.deformation``)."""
         return self.lddmm.deformation(velocity)
 
     def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:

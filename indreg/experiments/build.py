@@ -27,7 +27,9 @@ from .config import ConfigError, registration_values
 class Experiment:
     """Everything a run needs. Images ``(nx, ny)``, data ``(num_angles, det_count)``: float64 on the CPU
     (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
-    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth;
+    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth.
+    ``template_64`` / ``noisy_data_64`` are the inputs as the run uses them (``units``: the template's scale and
+    the data's background, ``indreg.run.prepare``); ``paper``: the paper's simulated suites (``psnr_paper``);
     ``validation`` the held-out angles (``validation.holdout``) or None; ``report``: the data's numbers for
     metrics.json (``sources.Data.report``)."""
     domain: ImageDomain
@@ -43,6 +45,8 @@ class Experiment:
     target_64: Optional[torch.Tensor] = None
     clean_data_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
+    units: run.Units = field(default_factory=run.Units)
+    paper: bool = False
     validation: object = None
     report: dict = field(default_factory=dict)
 
@@ -67,7 +71,9 @@ def build(cfg: DictConfig) -> Experiment:
                       device=device, **registration_values(cfg))
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
-    return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator, template=template,
-                      template_64=data.template_64, noisy_data_64=data.data_64, problem=s.problem, solver=s.solver,
+    u = s.units   # the template's scale and the data's background, as the run uses them
+    return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator,
+                      template=template * u.template_scale, template_64=data.template_64 * u.template_scale,
+                      noisy_data_64=data.data_64 - u.background, problem=s.problem, solver=s.solver,
                       label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db, validation=s.validation, report=data.report)
+                      snr_db=data.snr_db, units=u, paper=data.paper, validation=s.validation, report=data.report)

@@ -100,19 +100,24 @@ class PhantomConfig:
 
 
 @dataclass
-class DataConfig:
-    """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
-    ``module:function`` (``indreg.experiments.sources``).
-
-    ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
-    ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
-    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
-    """
+class _DataFiles:
     source: str = "phantom"
     template: Optional[str] = None
     sinogram: Optional[str] = None
     target: Optional[str] = None
     half_width: float = 16.0
+
+
+DataConfig = make_dataclass("DataConfig", _options.schema_fields("data"), bases=(_DataFiles,))
+DataConfig.__doc__ = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
+    ``module:function`` (``indreg.experiments.sources``).
+
+    ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
+    ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
+    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
+    ``template_scale`` / ``background`` (``indreg.options``, the same as ``indreg.register``'s): the template's
+    intensity factor and the data's offset, applied before the run (``indreg.run.prepare``).
+    """
 
 
 @dataclass
@@ -177,12 +182,14 @@ ValidationConfig = _group("ValidationConfig", "Validation without a ground truth
 @dataclass
 class BaselineConfig:
     """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock); for volumes also
-    SIRT (``sirt_iterations``, nonnegative)."""
+    SIRT (``sirt_iterations``, nonnegative). ``tv_mu`` is relative to the data's intensity unit
+    (``indreg.forward.intensity_scale``: TV's weight is ``tv_mu`` times it, so the baseline does not depend on
+    the data's units; suite 1's 9.096 is the paper's mu = 3.0 on its data)."""
     enabled: bool = True
     fbp_filter: FBPFilter = FBPFilter.hamming
     fbp_frequency_scaling: float = 0.4
     fbp_padding: bool = True
-    tv_mu: float = 3.0
+    tv_mu: float = 9.096
     tv_iterations: int = 1000
     sirt_iterations: int = 100
 

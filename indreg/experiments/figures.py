@@ -107,6 +107,16 @@ def parts_figure(final, deformation_part, intensity_part, target=None, extent=No
     return fig
 
 
+def parts_ortho_figure(final, deformation_part, intensity_part, target=None, title: str = ""):
+    """``parts_figure`` of volumes: one row of orthogonal slices (``ortho_figure``) for each of f(1), W(nu, I),
+    f(1) - W(nu, I) (own symmetric grey scale, 0 = mid grey) and the target (the target's grey scale)."""
+    scale = final if target is None else target
+    bound = max(float(np.max(np.abs(intensity_part))), 1e-12)
+    panels = [("f(1)", final), ("W(nu, I)", deformation_part),
+              (f"f(1) - W(nu, I) (+-{bound:.3g})", intensity_part, (-bound, bound)), ("target", target)]
+    return ortho_figure(panels, float(np.min(scale)), float(np.max(scale)), title=title)
+
+
 PLANES = ("xy", "xz", "yz")
 
 
@@ -122,21 +132,22 @@ def orthoslices(volume) -> tuple:
 
 def ortho_figure(panels, vmin=None, vmax=None, title: str = ""):
     """One row of orthogonal slices (xy, xz, yz) per volume: ``panels`` is a list of ``(label, volume)``
-    (``volume`` None: an empty row), all on the grey scale ``[vmin, vmax]`` (default: the first volume's)."""
-    panels = [(label, v) for label, v in panels]
-    first = next(np.asarray(v) for _, v in panels if v is not None)
+    (``volume`` None: an empty row), all on the grey scale ``[vmin, vmax]`` (default: the first volume's), or
+    ``(label, volume, (vmin, vmax))`` for a row on its own grey scale."""
+    first = next(np.asarray(p[1]) for p in panels if p[1] is not None)
     vmin = float(first.min()) if vmin is None else vmin
     vmax = float(first.max()) if vmax is None else vmax
     fig = Figure(figsize=(8.4, 2.8 * len(panels)), layout="constrained")
     axes = fig.subplots(len(panels), 3, squeeze=False)
-    for row, (label, volume) in zip(axes, panels):
+    for row, (label, volume, *scale) in zip(axes, panels):
         if volume is None:
             for ax in row:
                 ax.set_axis_off()
             row[0].set_title(f"{label} (off)")
             continue
+        low, high = scale[0] if scale else (vmin, vmax)
         for ax, plane, image in zip(row, PLANES, orthoslices(volume)):
-            show_image(ax, image, f"{label}: {plane}", vmin, vmax)
+            show_image(ax, image, f"{label}: {plane}", low, high)
     if title:
         fig.suptitle(title)
     return fig

@@ -50,7 +50,7 @@ import torch
 from omegaconf import DictConfig
 
 from ..io import DataFileError
-from ..run import RegistrationLoop, build_result, initial_state
+from ..run import RegistrationLoop, build_result, count_halvings, count_rejected, initial_state
 from . import checkpoint as ckpt
 from . import cli
 from .build import build, seed_everything
@@ -96,23 +96,37 @@ def _numpy(x) -> np.ndarray:
     return x.detach().to("cpu", torch.float64).numpy()
 
 
-def figures_of_merit(image, target_64) -> dict:
-    """SSIM / PSNR against the target: data range of the target, and the paper's convention (docs/paper_notes.md)."""
+def figures_of_merit(image, target_64, paper: bool = True) -> dict:
+    """SSIM / PSNR against the target (data range of the target) and, for the paper's phantoms (``paper``:
+    grey levels 0..1), also in the paper's convention (``ssim_paper`` / ``psnr_paper``: a fixed data range 2 / 1
+    that means nothing for other units; docs/paper_notes.md)."""
     from .. import metrics
 
     x = image.detach().to("cpu", torch.float64)
-    return {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64),
-            "ssim_paper": metrics.ssim_paper(x, target_64), "psnr_paper": metrics.psnr_paper(x, target_64)}
+    out = {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64)}
+    if paper:
+        out.update(ssim_paper=metrics.ssim_paper(x, target_64), psnr_paper=metrics.psnr_paper(x, target_64))
+    return out
+
+
+def tv_mu(cfg: DictConfig, exp) -> float:
+    """The TV baseline's absolute weight: ``baseline.tv_mu`` times the data's intensity unit
+    (``indreg.forward.intensity_scale``), so that the baseline is the same for data in any units."""
+    from ..forward import intensity_scale
+
+    return float(cfg.baseline.tv_mu) * intensity_scale(exp.ray_transform, exp.noisy_data_64)
 
 
 def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     """FBP and TV reconstructions from the noisy data (float64 on the run's device, returned on the CPU);
-    cached in ``baselines.npz`` so that a resumed run does not recompute them."""
+    cached in ``baselines.npz`` so that a resumed run does not recompute them. FBP and SIRT are linear in the
+    data; TV's weight scales with them (:func:`tv_mu`)."""
     if not cfg.baseline.enabled:
         return {}
     b = cfg.baseline
     volume = exp.domain.ndim == 3
-    key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, b.tv_mu, b.tv_iterations,
+    mu = tv_mu(cfg, exp)
+    key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, repr(mu), b.tv_iterations,
                     b.sirt_iterations if volume else 0], dtype=str)
     cache = out / "baselines.npz"
     if cache.is_file():
@@ -128,10 +142,11 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
                       padding=b.fbp_padding)}
     if volume:  # electron tomography's iterative baseline
         rec["sirt"] = sirt(T, g, num_iter=b.sirt_iterations, nonneg=True)[0]
-    rec["tv"] = tv_reconstruction(T, g, mu=b.tv_mu, num_iter=b.tv_iterations)[0]
+    rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations)[0]
     rec = {k: v.detach().to("cpu", torch.float64) for k, v in rec.items()}
-    log.info("baselines (%s) in %.1f s", ", ".join(rec).upper().replace("TV", f"TV {b.tv_iterations} iterations"),
-             time.perf_counter() - t0)
+    log.info("baselines (%s) in %.1f s", ", ".join(rec).upper().replace(
+        "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the data's intensity unit"),
+        time.perf_counter() - t0)
     np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
     return rec
 
@@ -197,7 +212,7 @@ class AppLoop(RegistrationLoop):
         if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
             deformed = self.problem.reconstruction(self.state.iterate)
             if exp.target_64 is not None:
-                fom = figures_of_merit(deformed, exp.target_64)
+                fom = figures_of_merit(deformed, exp.target_64, exp.paper)
                 self.writer.metrics(fom, it)
                 self._fom = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
             self.writer.image("images/deformed_template", deformed, it)
@@ -220,11 +235,13 @@ def run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
     The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
-    ``failed`` (a non-finite objective or gradient: ``metrics.json`` and ``history.json`` hold the status, the
-    iteration and the warning; the checkpoint keeps the last finite iterate), ``stopped`` (``stop_after``) or
-    ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed`` and ``converged`` runs write the
-    final outputs. A bad config value, a bad data file, a bad run directory or a damaged / foreign / mismatched
-    checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
+    ``stalled`` (step halving collapsed the step: ``indreg.run.STALL_WINDOW``), ``diverged`` (finished with a
+    relative data residual >= 1), ``failed`` (a non-finite objective or gradient: ``metrics.json`` and
+    ``history.json`` hold the status, the iteration and the warning; the checkpoint keeps the last finite iterate),
+    ``early_stopped`` (``validation.patience`` held-out evaluations without a new minimum), ``stopped``
+    (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed``, ``converged``,
+    ``stalled``, ``early_stopped`` and ``diverged`` runs write the final outputs. A bad config value, a bad data file,
+    a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
     """
     from .tblog import RunWriter
 
@@ -270,7 +287,7 @@ def run(cfg: DictConfig, output_dir) -> dict:
             writer.image(f"images/{k}", v, 0)
         writer.image("images/deformed_template", exp.template_64, 0)
         if exp.target_64 is not None:
-            writer.metrics(figures_of_merit(exp.template_64, exp.target_64), 0)
+            writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper), 0)
 
     loop = AppLoop(cfg, exp, state, writer, path, problem_cfg, history, seconds)
     status = loop.run()
@@ -333,23 +350,27 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
-    r = build_result(problem, state, history, seconds, status, validation=exp.validation)
+    r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation)
     target = exp.target_64
     result = {}
     if target is not None:
-        result.update(figures_of_merit(r.deformed, target))
+        def fom(image):
+            return figures_of_merit(image, target, exp.paper)
+
+        result.update(fom(r.deformed))
         for name, image in rec.items():
-            result.update({f"{name}_{k}": v for k, v in figures_of_merit(image, target).items()})
-        result.update({f"template_{k}": v for k, v in figures_of_merit(exp.template_64, target).items()})
+            result.update({f"{name}_{k}": v for k, v in fom(image).items()})
+        result.update({f"template_{k}": v for k, v in fom(exp.template_64).items()})
         for name in problem.scored:
-            result.update({f"{name}_{k}": v for k, v in figures_of_merit(r.outputs[name], target).items()})
+            result.update({f"{name}_{k}": v for k, v in fom(r.outputs[name]).items()})
     result.update(r.terms)
     result.update({
-        "status": status, "residual": r.residual, "iterations": it,
+        "status": r.status, "residual": r.residual, "iterations": it,
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": r.warnings, "rejected_steps": sum(1 for h in history if h.get("rejected")),
+        "warnings": r.warnings, "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
     result.update(exp.report)
@@ -375,14 +396,15 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     writer.metrics(result, it)
     writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
+    done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     if target is not None:
-        log.info("done: %d iterations, SSIM %.4f, PSNR %.2f dB (paper convention %.4f / %.2f); FBP %s; TV %s; "
-                 "%d warnings", it, result["ssim"], result["psnr"], result["ssim_paper"], result["psnr_paper"],
-                 _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec
-                                                               else ""), result["warnings"])
+        paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
+        log.info("%s, SSIM %.4f, PSNR %.2f dB%s; FBP %s; TV %s; %d warnings", done, result["ssim"], result["psnr"],
+                 paper, _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec
+                                                                     else ""), result["warnings"])
     else:
-        log.info("done: %d iterations, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings",
-                 it, result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
+                 result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
     if r.holdout:
         log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)", r.holdout["holdout_indices"],
                  r.holdout["holdout_residual"], r.holdout["holdout_best_residual"], r.holdout["holdout_best_iteration"])
@@ -400,10 +422,9 @@ def _figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -
         if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
     quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
                else f"relative data residual {result['residual']:.4f}")
-    if cfg.logging.figure and volume:
-        figures.save(_ortho_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
-    elif cfg.logging.figure:
-        figures.save(_paper_figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+    if cfg.logging.figure:
+        figure = _ortho_figure if volume else _paper_figure
+        figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
         if parts is not None:
             figures.save(_parts_figure(exp, r.deformed, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
     n = traj.shape[0] - 1
@@ -450,12 +471,15 @@ def _ortho_figure(exp, traj, rec: dict, title: str = ""):
 
 
 def _parts_figure(exp, final, parts, title: str = ""):
-    """``figures.parts_figure`` of a run: f(1), W(nu, I), f(1) - W(nu, I), target."""
+    """``figures.parts_figure`` of a run (volumes: ``parts_ortho_figure``): f(1), W(nu, I), f(1) - W(nu, I),
+    target."""
     from . import figures
 
-    return figures.parts_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]),
-                                        None if exp.target_64 is None else exp.target_64.numpy(),
-                                        extent=domain_extent(exp.domain), title=title)
+    target = None if exp.target_64 is None else exp.target_64.numpy()
+    if exp.domain.ndim == 3:
+        return figures.parts_ortho_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]), target, title=title)
+    return figures.parts_figure(_numpy(final), _numpy(parts[0]), _numpy(parts[1]), target,
+                                extent=domain_extent(exp.domain), title=title)
 
 
 def domain_extent(domain) -> tuple:
@@ -488,8 +512,9 @@ def _prefix_job_logs(cfg_hydra) -> None:
 
 
 def _task(cfg: DictConfig):
-    """The Hydra task. Exit status: 0 done (completed, converged, stopped); 1 a user error (``ConfigError``,
-    ``DataFileError``, ``CheckpointError``) or a failed run, with one line ``indreg-register: error: ...`` on stderr;
+    """The Hydra task. Exit status: 0 done (completed, converged, stalled, early_stopped, stopped); 1 a user
+    error (``ConfigError``, ``DataFileError``, ``CheckpointError``) or a failed or diverged run, with one line
+    ``indreg-register: error: ...`` on stderr;
     128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
 
@@ -498,12 +523,27 @@ def _task(cfg: DictConfig):
     try:
         result = run(cfg, hc.runtime.output_dir)
     except (ConfigError, DataFileError, ckpt.CheckpointError) as e:  # user errors: one line, no traceback
+        _log_to_file(str(e))
         _exit_error(str(e))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))
     if result["status"] == "failed":
         _exit_error(f"the run failed at iteration {result['iteration']}: {result['warning']}")
+    if result["status"] == "diverged":
+        _exit_error(f"the run diverged: relative data residual {result['residual']:.4g} >= 1 after "
+                    f"{result['iterations']} iterations (worse than a zero image); check the units of template and "
+                    "data (data.template_scale=auto, data.background=auto) and the step (outputs in "
+                    f"{hc.runtime.output_dir})")
     return result.get("ssim")
+
+
+def _log_to_file(message: str) -> None:
+    """``message`` as an error in the run's log file (the console gets the one-line error), so that a run
+    directory never keeps an empty log."""
+    record = logging.LogRecord(log.name, logging.ERROR, __file__, 0, " ".join(message.split()), None, None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
 
 
 def _exit_error(message: str) -> None:
@@ -511,11 +551,19 @@ def _exit_error(message: str) -> None:
     cli.exit_error(PROG, message)
 
 
+def _check_config(cfg: DictConfig) -> None:
+    """The config's values and (``data=files``) that its files exist, before any directory is created."""
+    from .sources import check_files
+
+    validate(cfg)
+    check_files(cfg)
+
+
 def preflight(argv) -> None:
     """Check the command line before Hydra creates the run directory (:func:`indreg.experiments.cli.preflight`:
-    launcher plugin, composition, the config's values, the run directory), so that a problem ends in one line
-    (``indreg-register: error: ...``, exit 1) with nothing written."""
-    cli.preflight(argv, PROG, CONFIG_DIR, _CONFIG_NAME, validate=validate)
+    launcher plugin, composition, the config's values, the data files, the run directory), so that a problem
+    ends in one line (``indreg-register: error: ...``, exit 1) with nothing written."""
+    cli.preflight(argv, PROG, CONFIG_DIR, _CONFIG_NAME, validate=_check_config)
 
 
 def main() -> None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import importlib
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Optional
 
 import torch
@@ -40,7 +41,7 @@ from .. import phantoms
 from ..domain import ImageDomain
 from ..inputs import RegistrationInputs, make_geometry, make_operator, square_domain
 from ..inputs import load as load_inputs
-from ..io import DataFileError, read_angles
+from ..io import DataFileError, check_file, read_angles
 from ..tilt_axis import check_tilt_axis
 from .errors import ConfigError
 
@@ -62,7 +63,9 @@ CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "
 class Data:
     """What a source provides (float64, CPU). ``target_64`` / ``clean_64`` / ``snr_db`` are ``None`` when
     unknown (measured data). ``label``: a short name of the template for hparams and titles. ``report``: numbers
-    of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.tilt_axis``)."""
+    of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.tilt_axis``).
+    ``paper``: the paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``,
+    ``psnr_paper``)."""
     domain: ImageDomain
     geometry: object
     operator: object
@@ -73,6 +76,7 @@ class Data:
     clean_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
     report: dict = field(default_factory=dict)
+    paper: bool = False
 
     @classmethod
     def from_inputs(cls, d: RegistrationInputs) -> "Data":
@@ -205,7 +209,23 @@ def phantom_data(cfg: DictConfig) -> Data:
         log.info("simulated tilt series: %s", check.describe())
         report = {"tilt_axis_angle": None, **check.metrics()}
     return Data(domain=domain, geometry=T.geometry, operator=T, template_64=template, data_64=noisy,
-                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, report=report)
+                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, report=report,
+                paper=True)
+
+
+def check_files(cfg: DictConfig) -> None:
+    """``data=files``: the files named by the config exist and have a known format (``indreg.io.check_file``;
+    an angle file exists), checked before the app creates its run directory; their contents are read by the run.
+    Raises ``DataFileError`` naming the key."""
+    d, g = cfg.data, cfg.geometry
+    if d.source != "files":
+        return
+    for key in ("template", "sinogram", "target"):
+        if d[key]:
+            check_file(d[key], f"data.{key}")
+    spec = _angle_spec(g)
+    if isinstance(spec, str) and not Path(spec).is_file():
+        raise DataFileError(f"geometry.angles file {spec}: no such file")
 
 
 @source("files")

@@ -10,7 +10,7 @@ from .ray_transform import RayTransform, register_projector
 from .tilt_series import TiltSeriesGeometry, TiltSeriesTransform
 from .fbp import fbp
 from .sirt import sirt
-from .tv import tv_reconstruction
+from .tv import intensity_scale, tv_reconstruction
 
 #: The forward operator of each geometry type (``operator_for``); a new geometry adds its entry here.
 OPERATORS = {ParallelBeamGeometry: RayTransform, FanBeamGeometry: RayTransform, TiltSeriesGeometry: TiltSeriesTransform}
@@ -27,5 +27,5 @@ def operator_for(domain, geometry):
 
 
 __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_projector", "LinearOperator",
-           "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "TiltSeriesGeometry",
+           "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "intensity_scale", "TiltSeriesGeometry",
            "TiltSeriesTransform", "OPERATORS", "operator_for"]

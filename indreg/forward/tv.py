@@ -92,6 +92,20 @@ def _normal_operator_norm(T, shape, dtype, device, num_iter: int) -> float:
     return float(lam.sqrt())
 
 
+def intensity_scale(T, y: torch.Tensor) -> float:
+    """The data's intensity unit: ``max |T^* y| / max T^* T 1``, the intensity of a uniform image on the domain
+    whose backprojection peaks as high as the data's (``1`` image of ones). It scales with the data (``y -> c y``
+    gives ``c`` times it) and not with the geometry's sampling, so a TV weight ``mu = mu_rel * intensity_scale``
+    means the same for data in any units (the app's ``baseline.tv_mu``). Convention: ``y``
+    ``T.range_shape``."""
+    check_operator(T, "T")
+    check_tensor(y, "y", tuple(T.range_shape))
+    with torch.no_grad():
+        ones = torch.ones(T.domain.shape, dtype=y.dtype, device=y.device)
+        peak = float(T.adjoint(T(ones)).abs().max())
+        return float(T.adjoint(y).abs().max()) / peak
+
+
 def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: torch.Tensor | None = None,
                       callback=None, nonneg: bool = False, opnorm_iter: int = 100) -> tuple:
     """Minimise ``||T x - y||^2 + mu TV(x)`` (module docstring) by Chambolle-Pock with ``K = [T; grad]``.

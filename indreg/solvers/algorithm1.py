@@ -9,7 +9,8 @@ import torch
 from .._checks import check_bool, check_int, check_positive
 from .objective import check_nonnegative
 from .problem import RegistrationProblem
-from .state import IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems
+from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
+                    rounding_tolerance)
 
 
 def check_problem(problem) -> None:
@@ -37,9 +38,10 @@ class Algorithm1(IterativeSolver):
             ``<= grad_tol``; 0 disables the test.
         step_halving, max_halvings: ``StepControl``: reject a step whose objective is non-finite, larger than
             the current one, or folds (``min Jacobian <= 0``); halve every step and retry, at most
-            ``max_halvings`` times (the halved steps are kept for later iterations). If all retries fail the
-            iterate is kept and ``info["rejected"]`` is True. Without it such steps are taken and reported in
-            ``info["warning"]``.
+            ``max_halvings`` times (the halved steps are kept for later iterations; ``info["halvings"]`` counts
+            them). If all retries fail the iterate is kept and ``info["rejected"]`` is True. Without it such steps
+            are taken and reported in ``info["warning"]`` (an increase only beyond float rounding,
+            ``rounding_tolerance``).
         jacobian_every: compute ``min_jacobian`` (one extra Jacobian recursion, about the cost of the
             deformation's forward) every this many iterations, ``nan`` in between; with ``step_halving``
             it is computed at every step (folding must be checked).
@@ -123,9 +125,9 @@ class Algorithm1(IterativeSolver):
             return self.problem.min_jacobian(nu)
         return math.nan
 
-    def _info(self, iteration, terms, h, min_jac, steps, rejected, warnings) -> dict:
+    def _info(self, iteration, terms, h, min_jac, steps, rejected, warnings, halvings=0) -> dict:
         return make_info(iteration, terms, [self.problem.gradient_norm(g) for g in h], min_jac, steps,
-                         self.evaluations, rejected, warnings, self.names)
+                         self.evaluations, rejected, warnings, self.names, halvings)
 
     def report(self, state: SolverState) -> dict:
         """The report at ``state.iterate`` (no step; ``min_jacobian`` always computed)."""
@@ -149,8 +151,9 @@ class Algorithm1(IterativeSolver):
             new = self._evaluate(x_new)
             return (x_new, new), new[0]["objective"], self._min_jacobian(new[2], it + 1)
 
-        (x_new, new), min_jac, steps, warnings, rejected = self.control.search(self.step_sizes, terms["objective"],
-                                                                               trial)
+        rtol = rounding_tolerance(state.iterate[0].dtype)
+        (x_new, new), min_jac, steps, warnings, rejected, halvings = self.control.search(
+            self.step_sizes, terms["objective"], trial, rtol)
         if rejected:
             new = (terms, h, nu)
             min_jac = self._min_jacobian(nu, it + 1)
@@ -158,7 +161,7 @@ class Algorithm1(IterativeSolver):
             state.iterate = x_new
             self._current = (mark(x_new), *new)
         state.iteration += 1
-        return self._info(state.iteration, new[0], new[1], min_jac, steps, rejected, warnings)
+        return self._info(state.iteration, new[0], new[1], min_jac, steps, rejected, warnings, halvings)
 
     def state_dict(self) -> dict:
         """Step sizes (they may have been halved), the evaluation counter and whether it counts the iterate's."""

@@ -48,14 +48,15 @@ class MetamorphosisRegistration(RegistrationProblem):
         tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``).
         source_kernel: None (the paper's L2 norm) or a ``GaussianKernel`` ``K_s`` on the domain: RKHS source
             ``zeta = K_s s`` (module docstring).
-        source_mask: None or a ``(nx, ny)`` tensor with values in [0, 1] (the template's dtype / device): the
+        source_mask: None or a ``domain.shape`` tensor with values in [0, 1] (the template's dtype / device): the
             source is multiplied by it (module docstring; ``template_support`` builds one).
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
 
     Convention:
-        momentum / velocity ``(N+1, 2, nx, ny)``, source ``(N+1, nx, ny)`` at ``t_i = i/N``; the discrete
+        momentum / velocity ``(N+1, 2, nx, ny)``, source ``(N+1, nx, ny)`` at ``t_i = i/N`` (3D: ``(N+1, 3, nx,
+        ny, nz)`` and ``(N+1, nx, ny, nz)``, template ``(nx, ny, nz)``: the same code); the discrete
         ``L2([0,1], X)`` inner products are ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (N+1 terms, as LDDMM's);
         ``zeta_0`` does not enter ``f(1)`` (right Riemann sum), so it only feels the penalty and stays 0.
     """
@@ -94,18 +95,18 @@ class MetamorphosisRegistration(RegistrationProblem):
 
     @property
     def source_shape(self) -> tuple:
-        """``(N+1, nx, ny)``."""
+        """``(N+1, *shape)``."""
         return (self.num_steps + 1, *self.domain.shape)
 
     def zero_momentum(self) -> torch.Tensor:
         return self.lddmm.zero_momentum()
 
     def zero_source(self) -> torch.Tensor:
-        """``zeta = 0`` (no intensity change), ``(N+1, nx, ny)`` in the template's dtype/device."""
+        """``zeta = 0`` (no intensity change), ``(N+1, *shape)`` in the template's dtype/device."""
         return torch.zeros(self.source_shape, dtype=self.template.dtype, device=self.template.device)
 
     def check(self, m, zeta) -> None:
-        """Validate a momentum ``(N+1, 2, nx, ny)`` and a source ``(N+1, nx, ny)`` (the template's dtype/device)."""
+        """Validate a momentum ``(N+1, d, *shape)`` and a source ``(N+1, *shape)`` (the template's dtype/device)."""
         self.lddmm.check_momentum(m)
         check_tensor(zeta, "source", self.source_shape)
         check_same(zeta, self.template, "source", "template")
@@ -121,7 +122,7 @@ class MetamorphosisRegistration(RegistrationProblem):
         return u if self.source_mask is None else u * self.source_mask
 
     def image(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        """``f(1) = M(K m, zeta, I)``, ``(nx, ny)`` (``s``: the source iterate, ``zeta = source(s)``)."""
+        """``f(1) = M(K m, zeta, I)``, ``(*shape)`` (``s``: the source iterate, ``zeta = source(s)``)."""
         with torch.no_grad():
             return self.deformation(self.velocity(m), self.source(s), self.template)
 
@@ -131,7 +132,7 @@ class MetamorphosisRegistration(RegistrationProblem):
             return self.deformation.parts(self.velocity(m), self.source(s), self.template)
 
     def trajectory(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        """``f(t_i)`` for ``i = 0..N``, ``(N+1, nx, ny)``."""
+        """``f(t_i)`` for ``i = 0..N``, ``(N+1, *shape)``."""
         with torch.no_grad():
             return self.deformation.trajectory(self.velocity(m), self.source(s), self.template)
 
@@ -256,15 +257,16 @@ class MetamorphosisRegistration(RegistrationProblem):
 
 
 def template_support(template: torch.Tensor, domain, margin: float = 1.0, threshold: float = 0.01) -> torch.Tensor:
-    """A ``source_mask``: 1 where ``|I| > threshold max |I|`` or within ``margin`` (physical units, a square
-    neighbourhood) of such a pixel, else 0; ``(nx, ny)`` in the template's dtype / device."""
-    kx, ky = (2 * max(int(round(margin / h)), 0) + 1 for h in domain.cell_sides)
+    """A ``source_mask``: 1 where ``|I| > threshold max |I|`` or within ``margin`` (physical units, a square /
+    cubic neighbourhood) of such a pixel, else 0; ``domain.shape`` (2D or 3D) in the template's dtype / device."""
+    sizes = tuple(2 * max(int(round(margin / h)), 0) + 1 for h in domain.cell_sides)
     inside = (template.abs() > threshold * template.abs().max()).to(template.dtype)[None, None]
-    return torch.nn.functional.max_pool2d(inside, (kx, ky), stride=1, padding=(kx // 2, ky // 2))[0, 0]
+    pool = torch.nn.functional.max_pool2d if domain.ndim == 2 else torch.nn.functional.max_pool3d
+    return pool(inside, sizes, stride=1, padding=tuple(k // 2 for k in sizes))[0, 0]
 
 
 class MetamorphosisState(SolverState):
-    """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source iterate ``s`` (``(N+1, nx, ny)``;
+    """The iterate of a metamorphosis solver: momentum ``m`` (``nu = K m``), source iterate ``s`` (``(N+1, *shape)``;
     ``zeta = problem.source(s)``: ``s`` itself for the L2 source), iteration count (``SolverState`` with
     ``source``)."""
 

@@ -1,12 +1,16 @@
 """Coarse-to-fine registration: the same objective solved on coarser grids first, then on the problem's grid.
 
-The domain is physical, so a coarser grid of the same rectangle discretises the same problem: the kernel width
-``sigma``, ``gamma`` and the data ``g`` keep their meaning; only the template (area averages over the coarse
-cells), the ray transform (rebuilt on the coarse grid with the same geometry) and the number of time steps
-change. Each level is solved by L-BFGS (``TorchOptimSolver``, strong Wolfe line search, exact gradient of
+The domain is physical, so a coarser grid of the same rectangle (box, in 3D) discretises the same problem: the
+kernel width ``sigma``, ``gamma`` and the data ``g`` keep their meaning; only the template (area / volume
+averages over the coarse cells), the forward operator (rebuilt on the coarse grid with the same geometry:
+``RayTransform``, ``TiltSeriesTransform``) and the number of time steps change. A tilt series has one detector
+row per slice along the tilt axis; a coarse slice is the average of the fine slices it covers, so it projects
+to the average of their rows: the data are cell-averaged along the rows (``IndirectRegistration.coarsened``). Each level is solved by L-BFGS (``TorchOptimSolver``, strong Wolfe line search, exact gradient of
 the discrete map) or by Algorithm 1, and its momentum is prolongated to the next level.
 """
 from __future__ import annotations
+
+import logging
 
 import torch
 import torch.nn.functional as F
@@ -19,6 +23,7 @@ from .state import IterativeSolver, SolverState
 from .torch_optim import TorchOptimSolver
 
 INNER = ("lbfgs", "algorithm1")
+log = logging.getLogger("indreg")
 
 
 def options() -> tuple:
@@ -76,6 +81,17 @@ def _check_coarsenable(problem) -> None:
                         f"a {type(T).__name__} has no on_domain: use levels=() (no coarse level) with this operator")
 
 
+def _warn_unreached(schedule: list, max_iter: int) -> None:
+    """Log a warning when the coarse levels' budgets can use up ``max_iter`` (the problem's grid is then reached
+    only if a coarse level stalls first)."""
+    coarse = sum(it for _, _, it in schedule[:-1])
+    if coarse >= max_iter:
+        grid = "x".join(map(str, schedule[-1][0]))
+        log.warning("solver='fast': the coarse levels may take all max_iter=%d iterations (level_iter sum to %d): "
+                    "the %s grid is reached only if they stall first; raise max_iter or lower level_iter",
+                    max_iter, coarse, grid)
+
+
 class MultilevelSolver(IterativeSolver):
     """Coarse-to-fine minimisation of E (``IndirectRegistration``): grids ``n/f`` for ``f`` in ``levels``, then
     the problem's grid; ``solver="fast"`` of the app and of ``indreg.register``.
@@ -122,8 +138,9 @@ class MultilevelSolver(IterativeSolver):
         min_size: smallest grid of a coarse level.
         jacobian_every: compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
 
-    Convention: ``state.momentum`` ``(N+1, 2, nx, ny)`` of the problem; ``restrict`` / ``prolong`` act on the
-    image axes (x, y[, z]), ``resample_time`` on axis 0 (``t_i = i/N``).
+    Convention: ``state.momentum`` ``(N+1, d, *shape)`` of the problem (``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny,
+    nz)``); ``restrict`` / ``prolong`` act on the image axes (x, y[, z]), ``resample_time`` on axis 0
+    (``t_i = i/N``); a level's ``grid`` is its size on axis 0 (x).
     """
 
     def __init__(self, problem, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
@@ -170,6 +187,7 @@ class MultilevelSolver(IterativeSolver):
         self.schedule.append((tuple(problem.domain.shape), problem.num_steps, None))
         if len(self.schedule) > 1:
             _check_coarsenable(problem)
+            _warn_unreached(self.schedule, self.max_iter)
         self.level = -1          # index into schedule of the running level (-1: not started)
         self.level_start = 0     # the global iteration at which it started
         self.evaluations = 0     # of the finished levels (the running level's solver counts its own)

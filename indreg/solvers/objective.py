@@ -28,19 +28,22 @@ from ..forward.tv import total_variation
 from .problem import RegistrationProblem
 
 
-def _check_parts(ray_transform, deformation, kernel) -> ImageDomain:
-    """Check the operators of the problem (one line naming the argument); returns their common domain."""
+def _check_parts(ray_transform, deformation, kernel) -> tuple:
+    """Check the operators of the problem (one line naming the argument); returns ``(image_domain,
+    velocity_domain)``: the operator's and the deformation's, and the kernel's and the velocity's."""
     if not isinstance(deformation, LDDMMDeformation):
         raise TypeError(f"deformation must be an LDDMMDeformation, got {type(deformation).__name__}")
     if not isinstance(kernel, GaussianKernel):
         raise TypeError(f"kernel must be a GaussianKernel, got {type(kernel).__name__}")
     check_operator(ray_transform, "ray_transform")
-    domain = kernel.domain
-    if ray_transform.domain != domain:
-        raise ValueError(f"ray_transform.domain {ray_transform.domain} differs from kernel.domain {domain}")
-    if deformation.domain != domain:
-        raise ValueError(f"deformation.domain {deformation.domain} differs from kernel.domain {domain}")
-    return domain
+    image_domain, velocity_domain = deformation.domain, deformation.velocity_domain
+    if kernel.domain != velocity_domain:
+        raise ValueError(f"kernel.domain {kernel.domain} differs from the deformation's velocity_domain "
+                         f"{velocity_domain}")
+    if ray_transform.domain != image_domain:
+        raise ValueError(f"ray_transform.domain {ray_transform.domain} differs from deformation.domain "
+                         f"{image_domain}")
+    return image_domain, velocity_domain
 
 
 class IndirectRegistration(RegistrationProblem):
@@ -51,8 +54,9 @@ class IndirectRegistration(RegistrationProblem):
     Args:
         ray_transform: the forward operator ``T``: ``indreg.RayTransform`` or any ``indreg.forward.LinearOperator``
             (``domain``, ``range_shape``, ``__call__``, ``adjoint``, weighted data norm ``inner_data``).
-        deformation: ``indreg.LDDMMDeformation`` ``W`` (geometric or mass-preserving action, eq:DeforOpX).
-        kernel: ``indreg.GaussianKernel`` ``K`` of V.
+        deformation: ``indreg.LDDMMDeformation`` ``W`` (geometric or mass-preserving action, eq:DeforOpX), or
+            ``indreg.CoarseVelocityDeformation`` (the velocity on a coarser grid of the box).
+        kernel: ``indreg.GaussianKernel`` ``K`` of V, on the velocity's grid ``deformation.velocity_domain``.
         template: the template ``I`` (nx, ny).
         data: the data ``g``, shape ``T.range_shape`` (``(num_angles, det_count)`` for a ray transform), same
             dtype/device as ``template``.
@@ -70,14 +74,18 @@ class IndirectRegistration(RegistrationProblem):
         ``h = gamma m + (N / cell_volume) dL/dnu`` with ``L`` the matching term (data fit + TV) and
         ``dL/dnu`` the torch gradient of the deformation's backward (``LDDMMDeformation``, "Gradient scale"); the
         V-gradient (eq:GradGoalFunctionalVRHKS(_mp), halved) is ``K h``.
+
+        Two grids of one box: ``image_domain`` (the template's, the operator's, the TV term's) and ``domain`` (the
+        momentum's, the velocity's, the kernel's: ``cell_volume`` above is its own). They are one grid unless the
+        deformation is a ``CoarseVelocityDeformation`` (``velocity_factor``).
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tv_weight=0.0,
                  tv_smoothing=1e-3):
-        domain = _check_parts(ray_transform, deformation, kernel)
+        image_domain, domain = _check_parts(ray_transform, deformation, kernel)
         check_tensor(template, "template")
-        if tuple(template.shape) != tuple(domain.shape):
-            raise ValueError(f"template must have shape {tuple(domain.shape)} (the domain's), "
+        if tuple(template.shape) != tuple(image_domain.shape):
+            raise ValueError(f"template must have shape {tuple(image_domain.shape)} (the domain's), "
                              f"got {tuple(template.shape)}")
         check_tensor(data, "data")
         if tuple(data.shape) != tuple(ray_transform.range_shape):
@@ -87,7 +95,7 @@ class IndirectRegistration(RegistrationProblem):
         self.ray_transform = ray_transform
         self.deformation = deformation
         self.kernel = kernel
-        self.domain = domain
+        self.domain, self.image_domain = domain, image_domain
         self.template = template
         self.data = data
         self.gamma = check_nonnegative(gamma, "gamma", template.dtype)
@@ -138,7 +146,7 @@ class IndirectRegistration(RegistrationProblem):
         residual = self.ray_transform(f) - self.data
         data_fit = 0.5 * self.ray_transform.inner_data(residual, residual).sum()
         if self.tv_weight > 0:
-            tv = self.tv_weight * total_variation(f, self.domain, self.tv_smoothing).sum()
+            tv = self.tv_weight * total_variation(f, self.image_domain, self.tv_smoothing).sum()
         else:
             tv = torch.zeros((), dtype=f.dtype, device=f.device)
         return {"data_fit": data_fit, "tv": tv}
@@ -213,33 +221,40 @@ class IndirectRegistration(RegistrationProblem):
         return self.evaluate(x[0])
 
     def with_backward(self, backward: str) -> "IndirectRegistration":
-        W = self.deformation
-        return self.with_deformation(type(W)(W.domain, W.num_steps, W.action, backward, W.interpolation, W.scheme))
+        return self.with_deformation(self.deformation.replace(backward=backward))
 
     def for_line_search(self) -> "IndirectRegistration":
         """The paper's backward is replaced by ``"exact"`` (a line search needs the gradient of what it evaluates)."""
         return self.with_backward("exact") if self.deformation.backward == "paper" else self
 
     def coarsened(self, shape: tuple, num_steps: int, backward: str) -> "IndirectRegistration":
-        """The problem on a ``shape`` grid of the same box with ``num_steps`` time steps (``MultilevelSolver``):
-        the template's cell averages, the operator rebuilt by ``T.on_domain(coarse)`` (the data cell-averaged to its
-        range where that changes, e.g. a tilt series' rows), the same
-        kernel width, gamma and TV weight; the deformation's action, interpolation and scheme with ``backward``."""
+        """The problem with the velocity on a ``shape`` grid of the same box and ``num_steps`` time steps
+        (``MultilevelSolver``): the image's grid coarsened as much (the same grid unless the velocity lives on a
+        coarser one: ``velocity_factor`` is kept), the template's cell averages, the operator rebuilt by
+        ``T.on_domain(coarse)`` (the data cell-averaged to its range where that changes: a tilt series' detector
+        rows, one per slice along the tilt axis, since a coarse slice projects to the average of its fine slices'
+        rows), the same kernel width, gamma and TV weight; the deformation's action, interpolation and scheme with
+        ``backward``."""
         from ..deform import GaussianKernel
         from ..domain import ImageDomain
         from .multilevel import restrict
 
-        d, W, T = self.domain, self.deformation, self.ray_transform
+        d, e, W, T = self.domain, self.image_domain, self.deformation, self.ray_transform
         if tuple(shape) == tuple(d.shape):
-            domain, T_level, template, K = d, T, self.template, self.kernel
+            domain, image_domain, T_level, template, K = d, e, T, self.template, self.kernel
         else:
             domain = ImageDomain(tuple(shape), d.min_pt, d.max_pt)
-            T_level = T.on_domain(domain)
-            template = restrict(self.template, shape)
+            image_domain = domain if e == d else \
+                ImageDomain(tuple(s * n // m for s, n, m in zip(shape, e.shape, d.shape)), e.min_pt, e.max_pt)
+            T_level = T.on_domain(image_domain)
+            template = restrict(self.template, image_domain.shape)
             K = GaussianKernel(domain, self.kernel.sigma)
         data = self.data
         if tuple(T_level.range_shape) != tuple(data.shape):  # e.g. a tilt series: one detector row per slice
             data = restrict(data, tuple(T_level.range_shape)[-2:])
-        W_level = type(W)(domain, num_steps, W.action, backward, W.interpolation, W.scheme)
+        grids = {"domain": image_domain}
+        if "velocity_domain" in W.arguments():
+            grids["velocity_domain"] = domain
+        W_level = W.replace(num_steps=num_steps, backward=backward, **grids)
         return IndirectRegistration(T_level, W_level, K, template, data, self.gamma, self.tv_weight,
                                     self.tv_smoothing)

@@ -27,6 +27,11 @@ Members a subclass implements:
 - optionally ``default_step(name)`` for entries after the momentum, and ``coarsened(shape, num_steps,
   backward)`` (the same problem on a coarser grid, for ``MultilevelSolver``).
 
+Grids: ``domain`` is the momentum's and the velocity's (its ``cell_volume`` weighs the iterate's ``L2`` inner
+product: ``time_weight``, ``gradient_norm``, the torch.optim scale); the template, the operator and the images
+live on ``image_domain`` where a problem has one (``IndirectRegistration`` with ``velocity_factor > 1``), else on
+``domain`` too.
+
 Shared here: the velocity ``nu = K m``, the discrete ``L2([0,1], L2)`` norm of a gradient, the minimum Jacobian
 determinant of ``phi_{1,0}``.
 """

@@ -60,25 +60,35 @@ class SolverState:
         return state
 
 
-def problems(objective: float, min_jacobian: float, previous: float | None = None) -> list:
+def rounding_tolerance(dtype: torch.dtype) -> float:
+    """Relative objective changes within floating-point rounding: ``100 eps`` of the run's dtype (float32
+    1.2e-5, float64 2.2e-14). The objective sums every data value and pixel, so its float32 rounding reaches
+    about 1e-5 of its value: float32 cannot tell suite 1's increase from 183.6354 to 183.6369 (8e-6, paper's
+    fixed step) from rounding."""
+    return 100.0 * torch.finfo(dtype).eps
+
+
+def problems(objective: float, min_jacobian: float, previous: float | None = None, rtol: float = 0.0) -> list:
     """Warnings for an iterate: non-finite objective, folding (min Jacobian <= 0; nan = not computed),
-    increase over ``previous``."""
+    increase over ``previous`` by more than ``rtol |previous|`` (``rounding_tolerance``: smaller increases are
+    rounding, not a warning)."""
     out = []
     if not math.isfinite(objective):
         out.append(f"non-finite objective ({objective})")
     if min_jacobian <= 0:
         out.append(f"folding: min Jacobian determinant {min_jacobian:.4g} <= 0")
-    if previous is not None and math.isfinite(objective) and objective > previous:
+    if previous is not None and math.isfinite(objective) and objective > previous + rtol * abs(previous):
         out.append(f"objective increased from {previous:.10g} to {objective:.10g}")
     return out
 
 
 def make_info(iteration, terms, grad_norms, min_jacobian, step_sizes, evaluations, rejected, warnings,
-              names=("momentum",)) -> dict:
+              names=("momentum",), halvings: int = 0) -> dict:
     """The per-iteration report (python floats) returned by ``solver.step``.
 
     ``grad_norm`` is the norm of the whole gradient (``hypot`` of the entries' ``L2([0,1], L2)`` norms) and
-    ``step_size`` the momentum's step; an iterate of several entries adds ``velocity_grad_norm`` and, per further
+    ``step_size`` the momentum's step (``halvings``: how many times step control halved it in this iteration);
+    an iterate of several entries adds ``velocity_grad_norm`` and, per further
     entry ``<name>``, ``<name>_grad_norm`` and ``<name>_step_size``. Every term of ``terms`` is reported.
     """
     grad_norms, step_sizes = tuple(grad_norms), tuple(step_sizes)
@@ -86,8 +96,8 @@ def make_info(iteration, terms, grad_norms, min_jacobian, step_sizes, evaluation
             "regulariser": terms["regulariser"], "tv": terms["tv"]}
     info.update({k: v for k, v in terms.items() if k not in info})
     info.update(grad_norm=float(math.hypot(*grad_norms)), min_jacobian=float(min_jacobian),
-                step_size=float(step_sizes[0]), evaluations=int(evaluations), rejected=bool(rejected),
-                warning="; ".join(warnings))
+                step_size=float(step_sizes[0]), halvings=int(halvings), evaluations=int(evaluations),
+                rejected=bool(rejected), warning="; ".join(warnings))
     if len(names) > 1:
         info["velocity_grad_norm"] = float(grad_norms[0])
         for name, g, s in zip(names[1:], grad_norms[1:], step_sizes[1:]):
@@ -98,31 +108,32 @@ def make_info(iteration, terms, grad_norms, min_jacobian, step_sizes, evaluation
 class StepControl:
     """Safeguarded descent steps on any iterate (a tuple of tensors).
 
-    ``search(steps, objective, trial)`` calls ``trial(steps) -> (result, new_objective, min_jacobian)``; with
-    ``halving`` a trial whose objective is non-finite, larger than ``objective``, or whose deformation folds
+    ``search(steps, objective, trial, rtol)`` calls ``trial(steps) -> (result, new_objective, min_jacobian)``;
+    with ``halving`` a trial whose objective is non-finite, larger than ``objective``, or whose deformation folds
     (``min_jacobian <= 0``) is rejected, every step size halved and the trial repeated, at most ``max_halvings``
     times (the halved sizes are kept for later iterations). Without ``halving`` the first trial is taken and its
-    problems are only reported.
+    problems are only reported, an increase only when larger than ``rtol |objective|`` (``rounding_tolerance``).
 
-    Returns ``(result, min_jacobian, steps_tried, warnings, rejected)``: ``rejected`` when every trial failed
-    (the caller keeps its iterate); ``steps_tried`` are the sizes of the last trial.
+    Returns ``(result, min_jacobian, steps_tried, warnings, rejected, halvings)``: ``rejected`` when every trial
+    failed (the caller keeps its iterate); ``steps_tried`` are the sizes of the last trial; ``halvings`` how
+    many times the sizes were halved.
     """
 
     def __init__(self, halving: bool, max_halvings: int):
         self.halving, self.max_halvings = bool(halving), int(max_halvings)
 
-    def search(self, steps: list, objective: float, trial) -> tuple:
+    def search(self, steps: list, objective: float, trial, rtol: float = 0.0) -> tuple:
         retries = self.max_halvings if self.halving else 0
         for attempt in range(retries + 1):
             tried = tuple(steps)
             result, new_objective, min_jac = trial(tried)
             warnings = problems(new_objective, min_jac, objective)
             if not (self.halving and warnings):
-                return result, min_jac, tried, warnings, False
+                return result, min_jac, tried, problems(new_objective, min_jac, objective, rtol), False, attempt
             if attempt < retries:
                 steps[:] = [s / 2 for s in steps]
         return result, min_jac, tried, [f"step rejected after {retries} halvings (kept the iterate): "
-                                        + "; ".join(warnings)], True
+                                        + "; ".join(warnings)], True, retries
 
 
 class IterativeSolver:

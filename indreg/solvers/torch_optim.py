@@ -10,7 +10,7 @@ from .._checks import check_int, check_positive
 from .algorithm1 import check_problem
 from .objective import check_nonnegative
 from .problem import RegistrationProblem
-from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems
+from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems, rounding_tolerance
 
 _DEFAULTS = {
     # one solver iteration = one L-BFGS iteration; stopping is ours (grad_tol, max_iter), not L-BFGS's
@@ -158,7 +158,8 @@ class TorchOptimSolver(IterativeSolver):
     def _info(self, iteration, terms, h, min_jac, step_size, previous=None) -> dict:
         return make_info(iteration, terms, [self.problem.gradient_norm(g) for g in h], min_jac,
                          [step_size, *self.lrs[1:]], self.evaluations, False,
-                         problems(terms["objective"], min_jac, previous), self.names)
+                         problems(terms["objective"], min_jac, previous, rounding_tolerance(self.parameter.dtype)),
+                         self.names)
 
     def report(self, state: SolverState) -> dict:
         """The report at ``state.iterate`` (no step; ``min_jacobian`` always computed)."""

@@ -30,6 +30,67 @@ def test_cli_suite_et_3d_tiny(tmp_path):
     assert (out / "figure.png").stat().st_size > 10_000 and (out / "sirt.npy").is_file()
 
 
+# solver=fast on the tiny volume: one coarse level 8^3 (N = 3, 2 iterations), then 16^3
+FAST_3D = ["solver=fast", "solver.optimizer_kwargs.levels=[2]", "solver.optimizer_kwargs.level_steps=[3]",
+           "solver.optimizer_kwargs.level_iter=[2]", "solver.optimizer_kwargs.min_size=8"]
+
+
+def _check_3d_outputs(out, iterations):
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["iterations"] == iterations
+    assert np.isfinite(m["ssim"]) and m["min_jacobian"] > 0
+    assert m["objective"] < json.loads((out / "history.json").read_text())[0]["objective"]
+    from indreg.io import read_volume
+    np.testing.assert_allclose(read_volume(out / "final.mrc"), np.load(out / "final.npy"), rtol=1e-6, atol=1e-6)
+    return m
+
+
+@pytest.mark.slow
+def test_cli_suite_et_3d_fast(tmp_path):
+    """``experiment=suite_et_3d solver=fast``: coarse to fine on the volume, 2 iterations on 8^3, 2 on 16^3."""
+    out = tmp_path / "run"
+    proc = run_cli(TINY_3D + FAST_3D + ["solver.max_iter=4", "baseline=none", f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = _check_3d_outputs(out, 4)
+    history = json.loads((out / "history.json").read_text())
+    assert [h["level"] for h in history] == [0, 0, 1, 1] and [h["grid"] for h in history] == [8, 8, 16, 16]
+    assert m["hparams"]["solver"] == "fast" and np.load(out / "momentum.npy").shape == (4, 3, 16, 16, 16)
+
+
+@pytest.mark.slow
+def test_cli_suite_et_3d_metamorphosis(tmp_path):
+    """``experiment=suite_et_3d deformation=metamorphosis``: the volume, its source and parts, parts.png."""
+    out = tmp_path / "run"
+    proc = run_cli(TINY_3D + ["deformation=metamorphosis", "baseline=none", f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = _check_3d_outputs(out, 3)
+    assert m["hparams"]["model"] == "metamorphosis" and m["source_regulariser"] > 0
+    assert np.isfinite(m["deformation_part_ssim"])
+    assert np.load(out / "source.npy").shape == (4, 16, 16, 16)
+    final, parts = np.load(out / "final.npy"), [np.load(out / f"{k}.npy") for k in ("deformation_part", "intensity_part")]
+    np.testing.assert_allclose(parts[0] + parts[1], final, atol=1e-5)
+    assert (out / "parts.png").stat().st_size > 10_000 and (out / "figure.png").is_file()
+
+
+@pytest.mark.slow
+def test_fast_3d_resume_like_uninterrupted(tmp_path):
+    """solver=fast on the volume stopped on the coarse level and on the fine level, resumed: the uninterrupted
+    run's history exactly."""
+    args = TINY_3D + FAST_3D + ["solver.max_iter=5", "baseline.enabled=false", "logging.figure=false",
+                                "logging.tensorboard=false", "dtype=float64"]
+    ref = run_app(args, tmp_path / "ref")
+    out = tmp_path / "run"
+    assert run_app(args + ["stop_after=1"], out)["status"] == "stopped"
+    assert run_app(args + ["stop_after=3", "resume=true"], out)["status"] == "stopped"
+    res = run_app(args + ["resume=true"], out)
+    a, b = (json.loads((d / "history.json").read_text()) for d in (tmp_path / "ref", out))
+    assert [h["level"] for h in a] == [0, 0, 1, 1, 1] and [h["grid"] for h in a] == [8, 8, 16, 16, 16]
+    for key in ("iteration", "objective", "evaluations", "grad_norm", "step_size", "level"):
+        assert [h[key] for h in b] == [h[key] for h in a], key
+    assert res["objective"] == ref["objective"] and res["evaluations"] == ref["evaluations"]
+    np.testing.assert_array_equal(np.load(out / "final.npy"), np.load(tmp_path / "ref" / "final.npy"))
+
+
 def test_tilt_series_files_resume_like_uninterrupted(tmp_path):
     """data=files with geometry=tilt_series: an MRC volume and an MRC stack with its .tlt; stopping after 2
     iterations and resuming gives the numbers of an uninterrupted run."""
@@ -63,3 +124,28 @@ def test_3d_config_errors(overrides, match):
 
     with pytest.raises(ConfigError, match=match):
         validate(compose(overrides))
+
+
+def test_velocity_factor_through_the_app(tmp_path):
+    """deformation.velocity_factor=2: the momentum and velocity on 8^3, the volumes and phi_{1,0} on 16^3."""
+    m = run_app(TINY_3D + ["deformation.velocity_factor=2", "baseline.enabled=false", "logging.figure=false",
+                           "logging.tensorboard=false"], tmp_path)
+    assert m["status"] == "completed" and m["iterations"] == 3 and np.isfinite(m["ssim"]) and m["min_jacobian"] > 0
+    assert np.load(tmp_path / "momentum.npy").shape == np.load(tmp_path / "velocity.npy").shape == (4, 3, 8, 8, 8)
+    assert np.load(tmp_path / "deformation.npy").shape == (3, 16, 16, 16)
+    assert np.load(tmp_path / "final.npy").shape == (16, 16, 16)
+
+
+@pytest.mark.parametrize("overrides,match", [
+    (["experiment=suite_et_3d", "phantom.size=16", "deformation.velocity_factor=3"],
+     r"velocity_factor=3: expected an integer >= 1 dividing every axis of the grid \(16, 16, 16\)"),
+    (["deformation.velocity_factor=2"], r"deformation\.interpolation='reinterpolate': expected 'compose'"),
+])
+def test_velocity_factor_config_errors(overrides, match):
+    from indreg.experiments.build import build
+    from indreg.experiments.config import ConfigError, validate
+
+    cfg = compose(overrides)
+    with pytest.raises(ConfigError, match=match):
+        validate(cfg)
+        build(cfg)

@@ -38,3 +38,16 @@ def test_to_display_of_a_volume_is_three_upright_slices():
     xy = to_display(figures.orthoslices(v)[0], float(v.min()), float(v.max()))
     assert np.array_equal(tile[:, 2:, :6], xy)  # bottom-aligned, padded white above
     assert np.all(tile[:, :2, :6] == 1.0)
+
+
+def test_parts_ortho_figure_rows_and_the_intensity_rows_own_scale():
+    v = volume()
+    change = np.zeros_like(v)
+    change[1, 2, 3] = -0.5
+    fig = figures.parts_ortho_figure(v + change, v, change, target=v)
+    axes = fig.get_axes()
+    assert len(axes) == 12
+    assert [ax.get_title() for ax in axes[::3]] == ["f(1): xy", "W(nu, I): xy", "f(1) - W(nu, I) (+-0.5): xy",
+                                                  "target: xy"]
+    assert axes[3].get_images()[0].get_clim() == (float(v.min()), float(v.max()))
+    assert axes[6].get_images()[0].get_clim() == (-0.5, 0.5)

@@ -147,3 +147,14 @@ def test_levels_below_min_size_are_skipped():
     problem = make_problem(n=32)
     solver = MultilevelSolver(problem, levels=(8, 4, 2), level_steps=(2, 3, 4), level_iter=(1, 1, 1), min_size=8)
     assert [s[0] for s in solver.schedule] == [(8, 8), (16, 16), (32, 32)]
+
+
+def test_coarse_budgets_that_use_up_max_iter_are_warned_about(caplog):
+    problem = make_problem(n=32)
+    with caplog.at_level("WARNING", logger="indreg"):
+        MultilevelSolver(problem, max_iter=6, **LEVELS)
+    assert "coarse levels may take all max_iter=6 iterations (level_iter sum to 6): the 32x32 grid" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="indreg"):
+        MultilevelSolver(problem, max_iter=7, **LEVELS)
+    assert caplog.text == ""

@@ -1,4 +1,5 @@
-"""Indirect metamorphosis: objective terms, L2 gradients by finite differences, descent, torch.optim, errors."""
+"""Indirect metamorphosis: objective terms, L2 gradients by finite differences, descent, torch.optim, errors
+(2D; the objective's terms, gradients and descent also in 3D with a tilt series on an 8^3 volume)."""
 import math
 
 import pytest
@@ -6,15 +7,19 @@ import torch
 
 from indreg import ImageDomain, phantoms
 from indreg.deform import GaussianKernel, MetamorphosisDeformation
-from indreg.forward import ParallelBeamGeometry, RayTransform
+from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
 from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
                             MetamorphosisState, MetamorphosisTorchOptim, SolverState)
 from indreg.solvers.metamorphosis import template_support
 
 
 def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,
-                 mask=False):
-    """J -> V with the target's grey values scaled and offset (an intensity change LDDMM cannot make)."""
+                 mask=False, ndim=2):
+    """J -> V with the target's grey values scaled and offset (an intensity change LDDMM cannot make);
+    ``ndim=3``: ``make_problem_3d``."""
+    if ndim == 3:
+        return make_problem_3d(num_steps=num_steps - 1, gamma=gamma, tau=tau, interpolation=interpolation,
+                               source_sigma=source_sigma, mask=mask)
     dom = ImageDomain.paper(n)
     T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(n * 92 / 64))))
     target = 0.6 * phantoms.get("v", dom).double() + 0.3 * (phantoms.get("v", dom).double() > 0.5)
@@ -26,6 +31,25 @@ def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinter
                                      source_mask=template_support(template, dom, 2.0) if mask else None), target
 
 
+def blob(domain, centre, widths):
+    return torch.exp(-sum(((p - c) / w) ** 2 for p, c, w in zip(domain.points(), centre, widths)) / 2)
+
+
+def make_problem_3d(n=8, num_steps=3, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,
+                    mask=False):
+    """A blob -> a shifted blob of another grey value, a tilt series about y (-60..60, 7 tilts) of an ``n^3``
+    volume on [-8, 8]^3."""
+    dom = ImageDomain((n,) * 3, (-8.0,) * 3, (8.0,) * 3)
+    T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 20, det_count=n, det_min=-8.0, det_max=8.0))
+    template = blob(dom, (0.0, 0.0, 0.0), (3.0, 2.5, 2.5)).double()
+    target = 1.5 * blob(dom, (1.0, -0.5, 0.5), (3.0, 2.5, 2.5)).double()
+    M = MetamorphosisDeformation(dom, num_steps, interpolation=interpolation)
+    source_kernel = None if source_sigma is None else GaussianKernel(dom, source_sigma)
+    return MetamorphosisRegistration(T, M, GaussianKernel(dom, 4.0), template, T(target), gamma, tau,
+                                     source_kernel=source_kernel,
+                                     source_mask=template_support(template, dom, 2.0) if mask else None), target
+
+
 def random_point(problem, seed=0):
     g = torch.Generator().manual_seed(seed)
     m = torch.randn(problem.momentum_shape, generator=g, dtype=torch.float64)
@@ -33,31 +57,37 @@ def random_point(problem, seed=0):
     return m, 0.3 * torch.randn(problem.source_shape, generator=g, dtype=torch.float64)
 
 
-def test_terms_at_zero_are_lddmm_terms():
-    problem, _ = make_problem()
+@pytest.mark.parametrize("ndim", (2, 3))
+def test_terms_at_zero_are_lddmm_terms(ndim):
+    problem, _ = make_problem(ndim=ndim)
     terms = problem.evaluate(problem.zero_momentum(), problem.zero_source())
     lddmm = problem.lddmm.evaluate(problem.zero_momentum())
     assert terms["source_regulariser"] == 0 and terms["regulariser"] == 0
     assert terms["objective"] == pytest.approx(lddmm["objective"], rel=1e-14)
     m, z = random_point(problem)
     terms = problem.evaluate(m, z)
-    expected = 0.5 * problem.tau * sum(float(problem.domain.norm(z[i]) ** 2) / problem.num_steps for i in range(5))
+    # zeta = 0: the data fit is LDDMM's (the geometric action W(K m, I))
+    assert problem.evaluate(m, 0 * z)["data_fit"] == pytest.approx(problem.lddmm.evaluate(m)["data_fit"], rel=1e-12)
+    n = problem.num_steps
+    expected = 0.5 * problem.tau * sum(float(problem.domain.norm(z[i]) ** 2) / n for i in range(n + 1))
     assert terms["source_regulariser"] == pytest.approx(expected, rel=1e-12)
 
 
-@pytest.mark.parametrize("interpolation,source_sigma,mask", (("reinterpolate", None, False), ("compose", None, False),
-                                                             ("reinterpolate", 2.0, False),
-                                                             ("reinterpolate", None, True), ("compose", 2.0, True)))
-def test_l2_gradients_match_finite_differences(interpolation, source_sigma, mask):
+@pytest.mark.parametrize("interpolation,source_sigma,mask,ndim", (
+    ("reinterpolate", None, False, 2), ("compose", None, False, 2), ("reinterpolate", 2.0, False, 2),
+    ("reinterpolate", None, True, 2), ("compose", 2.0, True, 2),
+    ("reinterpolate", None, False, 3), ("compose", None, False, 3), ("compose", 2.0, True, 3)))
+def test_l2_gradients_match_finite_differences(interpolation, source_sigma, mask, ndim):
     """dE(m + e dm, s + e ds)/de = time_weight (<K h_nu, dm> + <K_s h_s, ds>) (E in m and s; nu = K m, zeta = K_s s;
     K_s = identity for the L2 source)."""
-    problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1, mask=mask)
+    problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1, mask=mask,
+                              ndim=ndim)
     m, z = random_point(problem)
     _, h_nu, h_zeta, _ = problem.l2_gradient(m, z)
     dm, dz = random_point(problem, seed=1)
     w = problem.time_weight
     for direction in ((dm, 0 * dz), (0 * dm, dz)):
-        eps = 1e-5
+        eps = 1e-6  # a velocity component near 0 puts a point near a node: an interpolation kink ~1e-4 away
         numeric = (problem.evaluate(m + eps * direction[0], z + eps * direction[1])["objective"]
                    - problem.evaluate(m - eps * direction[0], z - eps * direction[1])["objective"]) / (2 * eps)
         analytic = w * float((problem.kernel.apply(h_nu) * direction[0]).sum()
@@ -182,3 +212,31 @@ def test_bad_input():
         problem.evaluate(problem.zero_momentum(), problem.zero_source()[:2])
     with pytest.raises(ValueError, match="L-BFGS takes one parameter group"):
         MetamorphosisTorchOptim(problem, "lbfgs", source_lr=0.1)
+
+
+@pytest.mark.parametrize("ndim", (2, 3))
+def test_template_support_is_the_dilated_support(ndim):
+    """One bright voxel and a margin of one cell side along x, two along the others: a box of 3 x 5 (x 5) ones."""
+    dom = ImageDomain((9, 11, 10)[:ndim], (-4.5, -2.75, -5.0)[:ndim], (4.5, 2.75, 5.0)[:ndim])  # cells 1, 0.5, 1
+    template = torch.zeros(dom.shape, dtype=torch.float64)
+    template[(4, 5, 5)[:ndim]] = 2.0
+    template[(0, 0, 0)[:ndim]] = 0.01  # below the threshold (1% of the maximum)
+    mask = template_support(template, dom, margin=1.0)
+    expected = torch.zeros_like(template)
+    expected[(slice(3, 6), slice(3, 8), slice(4, 7))[:ndim]] = 1.0
+    assert mask.shape == dom.shape and torch.equal(mask, expected)
+
+
+def test_descent_3d_decreases_the_objective_and_changes_intensities():
+    """3D (tilt series, 8^3): Algorithm 1 on (m, s) decreases E, moves and creates intensity (measured: E 507 -> 6.1
+    in 6 iterations; the 2D step 0.02 overshoots on these data)."""
+    problem, target = make_problem_3d(tau=1e-3)
+    state = MetamorphosisState.zeros(problem)
+    infos = []
+    MetamorphosisDescent(problem, step_size=0.005, max_iter=6).run(state, callback=lambda s, i: infos.append(i))
+    start = problem.evaluate(problem.zero_momentum(), problem.zero_source())["objective"]
+    objectives = [start] + [i["objective"] for i in infos]
+    assert all(b < a for a, b in zip(objectives, objectives[1:])) and objectives[-1] < 0.05 * start
+    assert infos[-1]["source_regulariser"] > 0 and infos[-1]["regulariser"] > 0 and infos[-1]["min_jacobian"] > 0
+    image = problem.image(state.momentum, state.source)
+    assert image.shape == (8, 8, 8) and float((image - target).norm()) < float((problem.template - target).norm())

@@ -7,7 +7,9 @@ without a graph to record they run in place (reused buffers, ``out=``), and ``gr
 ``exact_record`` / ``exact_gradient`` those of the exact derivative of the discrete map (its discrete adjoint,
 hand-written). Modules: ``sampling`` (grids, interpolation and its transposes), ``differences`` (finite
 differences, divergence, their transposes, determinants), ``flows`` (the time-stepping recursions),
-``backward`` (the paper's gradient and the exact one); every name is re-exported here.
+``backward`` (the paper's gradient and the exact one), ``coarse`` (a velocity on a coarser grid than the image:
+the flow there, ``phi_{1,0}`` interpolated to the image's grid, and its exact derivative); every name is
+re-exported here.
 
 Convention:
     - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
@@ -21,6 +23,7 @@ Convention:
     - Interpolation and padding: ``sampling``; finite-difference schemes: ``differences``.
 """
 from .backward import ExactRecord, exact_gradient, exact_record, gradient_record, paper_gradient
+from .coarse import coarse_gradient, coarse_record, coarse_trajectory, upsample, upsample_adjoint
 from .differences import (SCHEMES, _growth_into, determinant, displacement_determinant, divergence,
                           divergence_adjoint, gradient, jacobian_determinant)
 from .flows import (ACTIONS, INTERPOLATIONS, _check_interpolation, _Steps, deformation, deformed_trajectory,
@@ -28,8 +31,9 @@ from .flows import (ACTIONS, INTERPOLATIONS, _check_interpolation, _Steps, defor
 from .sampling import (_bands, _grid_units, _sample_displaced, displaced_grid, identity_grid, sample,
                        to_grid_units, warp)
 
-__all__ = ["ACTIONS", "INTERPOLATIONS", "SCHEMES", "ExactRecord", "deformation", "deformed_trajectory",
+__all__ = ["ACTIONS", "INTERPOLATIONS", "SCHEMES", "ExactRecord", "coarse_gradient", "coarse_record",
+           "coarse_trajectory", "deformation", "deformed_trajectory",
            "determinant", "displaced_grid", "displacement_10", "displacement_determinant", "displacements_t0",
            "divergence", "divergence_adjoint", "exact_gradient", "exact_record", "gradient", "gradient_record",
            "identity_grid", "jacobian_determinant", "jacobian_trajectory", "paper_gradient", "sample",
-           "step_flags", "template_trajectory", "to_grid_units", "warp"]
+           "step_flags", "template_trajectory", "to_grid_units", "upsample", "upsample_adjoint", "warp"]

@@ -291,31 +291,51 @@ def _reinterpolate_adjoint(grad_out, velocity, record, domain, action, scheme, s
 def _compose_adjoint(grad_out, template, velocity, record, domain, action, scheme, steps, need_velocity,
                      need_template):
     """The reverse sweep of ``exact_gradient`` for ``"compose"``; returns ``dL/dI`` (or None)."""
-    d = domain.ndim
-    c = -d - 1
+    c = -domain.ndim - 1
     slots, n = record.slots.unbind(c - 1), velocity.shape[c - 1] - 1
     mass = action == "mass_preserving"
     lam = grad_out * record.jacobians.select(c, n) if mass else grad_out
-    skipped = not bool(slots[n].ne(0).any()) and not bool(record.slots.ne(0).any())  # exact_record's identity
-    grad_i, slope = _sample_adjoint(lam.unsqueeze(c), template.unsqueeze(c), displaced_grid(slots[n], domain),
-                                    "zeros", need_template and not skipped, need_velocity)
-    if need_template and skipped:
-        grad_i = lam.unsqueeze(c)
+    moved = bool(slots[n].ne(0).any()) or bool(record.slots.ne(0).any())  # exact_record's identity test
+    grad_i, kappa = _warp_adjoint(lam, template, slots[n], domain, moved, need_template, need_velocity)
     if need_velocity:
-        kappa = torch.stack([slope[..., d - 1 - k] for k in range(d)], dim=c)  # dL/du_N, planar (x, y[, z])
-        mu = grad_out * record.image if mass else None
-        for i in range(n, 0, -1):
-            # u_i = S_i u_{i-1} + w_i; u_0 = 0 has no slope
-            back, slope = _step_adjoint(kappa, slots[i - 1], steps, i, "border", i > 1, i > 1)
-            if mass:
-                mu, slope_j, dc = _jacobian_step_adjoint(mu, record.jacobians.select(c, i - 1), velocity, steps, i,
-                                                         domain, scheme)
-                slope = slope_j if slope is None else slope.add_(slope_j)
-            _write_velocity_gradient(slots[i], slope, steps.scale, kappa)
-            if mass:
-                _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / n)
-            kappa = back
-    return grad_i.squeeze(c) if need_template else None
+        _displacement_sweep(kappa, grad_out * record.image if mass else None, record, velocity, domain, scheme,
+                            steps)
+    return grad_i
+
+
+def _warp_adjoint(lam, template, u, domain, moved, need_template, need_velocity) -> tuple:
+    """The transposes of ``f = I o (Id + u)`` (``u (..., d, *shape)`` in grid units; the identity unless ``moved``)
+    applied to ``lam = dL/df``: ``(dL/dI, dL/du)``, ``dL/du`` planar (x, y[, z]) ``(..., d, *shape)``, each None
+    unless needed."""
+    d = domain.ndim
+    c = -d - 1
+    grad_i, slope = _sample_adjoint(lam.unsqueeze(c), template.unsqueeze(c), displaced_grid(u, domain), "zeros",
+                                    need_template and moved, need_velocity)
+    if need_template and not moved:
+        grad_i = lam.unsqueeze(c)
+    kappa = torch.stack([slope[..., d - 1 - k] for k in range(d)], dim=c) if need_velocity else None
+    return (grad_i.squeeze(c) if need_template else None), kappa
+
+
+def _displacement_sweep(kappa, mu, record, velocity, domain, scheme, steps) -> None:
+    """The reverse sweep over the steps ``u_i = S_i u_{i-1} + w_i`` (``record.slots`` holds the ``u_i``) and, when
+    ``mu = dL/dJ_N`` is given, over the determinants ``J_i = c_i S_i J_{i-1}`` (``record.jacobians``), from
+    ``kappa = dL/du_N`` (planar, grid units): writes ``dL/dnu(t_i)`` into ``record.slots[..., i, :, ...]`` for
+    ``i = N..1`` (slot ``i`` after reading slot ``i - 1``)."""
+    c = -domain.ndim - 1
+    slots, n = record.slots.unbind(c - 1), velocity.shape[c - 1] - 1
+    mass = mu is not None
+    for i in range(n, 0, -1):
+        # u_i = S_i u_{i-1} + w_i; u_0 = 0 has no slope
+        back, slope = _step_adjoint(kappa, slots[i - 1], steps, i, "border", i > 1, i > 1)
+        if mass:
+            mu, slope_j, dc = _jacobian_step_adjoint(mu, record.jacobians.select(c, i - 1), velocity, steps, i,
+                                                     domain, scheme)
+            slope = slope_j if slope is None else slope.add_(slope_j)
+        _write_velocity_gradient(slots[i], slope, steps.scale, kappa)
+        if mass:
+            _add_divergence_adjoint(slots[i], dc, domain, scheme, -1.0 / n)
+        kappa = back
 
 
 def _jacobian_step_adjoint(mu, jacobian, velocity, steps, i, domain, scheme) -> tuple:

@@ -1,0 +1,110 @@
+"""The app on measured data as they come: ``data.template_scale`` / ``data.background``, diverged runs (exit 1),
+halvings in metrics.json, the paper's PSNR convention only for the paper's phantoms, files checked before the run
+directory exists, the TV baseline's weight at the data's scale."""
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from indreg import metrics
+from indreg.experiments.config import DATA_DIR, ConfigError
+from indreg.forward import intensity_scale
+from indreg.io import read_image
+
+from experiment_helpers import FAST, TINY, compose, run_app, run_cli
+
+OWN = ["experiment=own_data_example", "deformation.num_steps=10", "baseline.enabled=false", "logging.figure=false",
+       "logging.tensorboard=false", "logging.progress=false", "device=cpu"]
+
+
+def unit_files(d):
+    """The own-data example's template as a PNG (grey levels 0..255) and its sinogram in 0..1 units."""
+    import imageio.v3 as iio
+
+    grey = read_image(DATA_DIR / "own_data_template.png")
+    iio.imwrite(d / "template.png", np.rot90(np.round(grey).astype(np.uint8)))
+    np.save(d / "sino01.npy", np.load(DATA_DIR / "own_data_sinogram.npy") / 255)
+    return [f"data.template={d / 'template.png'}", f"data.sinogram={d / 'sino01.npy'}"]
+
+
+def test_png_template_with_data_in_other_units(tmp_path, caplog):
+    """Template 0..255, data 0..1: a warning naming both numbers; ``data.template_scale=auto`` gives the
+    registration of the example with template and data in 0..1 units (the results' SSIM >= 0.995) and records c."""
+    files = unit_files(tmp_path)
+    run_app(OWN + files + ["solver.max_iter=0"], tmp_path / "plain")
+    warned = [r.getMessage() for r in caplog.records if "different units" in r.getMessage()]
+    assert len(warned) == 1 and "data.template_scale='auto'" in warned[0] and "0.00388" in warned[0]
+    np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png") / 255)
+    ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=30"],
+                  tmp_path / "x1")
+    auto = run_app(OWN + files + ["solver.max_iter=30", "data.template_scale=auto"], tmp_path / "auto")
+    assert auto["template_scale"] == pytest.approx(auto["scale_fit"]) == pytest.approx(0.9903 / 255, rel=1e-3)
+    assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["template_scale"] == auto["template_scale"]
+    final, final_x1 = np.load(tmp_path / "auto" / "final.npy"), np.load(tmp_path / "x1" / "final.npy")
+    assert metrics.ssim(final, final_x1) >= 0.995
+    assert abs(auto["ssim"] - ref["ssim"]) < 0.005
+    assert "psnr_paper" not in auto and "ssim_paper" not in auto and "psnr" in auto   # user data: no paper PSNR
+
+
+def test_diverged_run_exits_1_with_one_line(tmp_path):
+    files = unit_files(tmp_path)
+    proc = run_cli(OWN + files + ["solver.max_iter=0", f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert proc.returncode == 1
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("indreg-register: error:")]
+    assert len(errors) == 1 and "diverged" in errors[0] and "data.template_scale=auto" in errors[0]
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["status"] == "diverged"
+
+
+def test_missing_file_is_refused_before_the_run_directory_exists(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = run_cli(["data=files", f"data.template={tmp_path / 'none.png'}", f"data.sinogram={tmp_path / 's.npy'}",
+                    "geometry=parallel", "geometry.angles=[0,10]", f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    assert proc.returncode == 1 and not run_dir.exists()
+    assert proc.stderr.strip().splitlines() == [f"indreg-register: error: data.template file {tmp_path / 'none.png'}: "
+                                                "no such file"]
+    proc = run_cli(["experiment=own_data_example", f"data.sinogram={tmp_path / 's.npy'}", f"hydra.run.dir={run_dir}"],
+                   cwd=tmp_path)
+    assert proc.returncode == 1 and not run_dir.exists()
+    assert proc.stderr.strip().splitlines() == [f"indreg-register: error: data.sinogram file {tmp_path / 's.npy'}: "
+                                                "no such file"]
+
+
+def test_halvings_in_metrics_agree_with_the_log(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="indreg")
+    m = run_app(OWN + ["solver.max_iter=10"], tmp_path)
+    counts = [int(r.getMessage().split("halved ")[1].split(" time")[0]) for r in caplog.records
+              if "step size halved" in r.getMessage()]
+    assert m["halvings"] == sum(counts) > 0 and m["rejected_steps"] == 0
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert m["halvings"] == sum(h["halvings"] for h in history)
+
+
+def test_offset_data_with_auto_background(tmp_path):
+    sino = np.load(DATA_DIR / "own_data_sinogram.npy")
+    np.save(tmp_path / "offset.npy", sino + 100.0)
+    ref = run_app(OWN + ["solver.max_iter=5"], tmp_path / "ref")
+    m = run_app(OWN + ["solver.max_iter=5", f"data.sinogram={tmp_path / 'offset.npy'}", "data.background=auto"],
+                tmp_path / "fixed")
+    assert m["background"] == pytest.approx(100.0, abs=2.0)
+    assert abs(m["ssim"] - ref["ssim"]) < 0.005
+    assert np.load(tmp_path / "fixed" / "data.npy") == pytest.approx(sino + 100.0 - m["background"])
+
+
+@pytest.mark.parametrize("override,key", [("data.template_scale=0", "data.template_scale"),
+                                          ("data.background=nan", "data.background"),
+                                          ("data.template_scale=fit", "data.template_scale")])
+def test_bad_unit_values_name_the_key(tmp_path, override, key):
+    with pytest.raises(ConfigError, match=f"invalid config value {key}="):
+        run_app(FAST + [override], tmp_path)
+
+
+def test_tv_weight_scales_with_the_data_and_paper_scores_stay(tmp_path):
+    m = run_app(TINY + ["logging.figure=false", "logging.tensorboard=false"], tmp_path)
+    cfg = compose(TINY)
+    data = np.load(tmp_path / "data.npy")
+    from indreg.experiments import sources
+    T = sources.load(cfg).operator
+    import torch
+    assert m["tv_mu_absolute"] == pytest.approx(cfg.baseline.tv_mu * intensity_scale(T, torch.from_numpy(data)))
+    assert {"ssim_paper", "psnr_paper", "tv_ssim"} <= set(m) and m["template_scale"] == 1.0 and m["background"] == 0

@@ -1,0 +1,240 @@
+"""Measured data as they come: the template's units (``template_scale``), the data's offset (``background``), and
+what a run reports (diverged / stalled runs, halvings, rounding-level objective increases, radian-looking angles,
+the TV baseline's weight at the data's scale)."""
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import indreg
+from indreg import io, metrics, phantoms, run
+from indreg.forward import intensity_scale, tv_reconstruction
+from indreg.solvers.state import StepControl, problems, rounding_tolerance
+
+
+def tiny(n=32, noise=False):
+    """J -> V on n^2 cells, 10 x 46 parallel beam (the paper's partition), float64; noise-free unless ``noise``."""
+    domain = indreg.ImageDomain.paper(n)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(10, 46))
+    template = phantoms.get("j", domain).double()
+    target = phantoms.get("v", domain).double()
+    data = T(target)
+    if noise:
+        data, _ = indreg.noise.add_white_noise(data, snr_db=15.0, seed=0)
+    return template, data, T, target
+
+
+QUICK = dict(max_iter=8, num_steps=5, sigma=6.0)
+
+
+def warnings_of(caplog):
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+# ---------------------------------------------------------------------------------------------------- units
+def test_unit_mismatch_warns_before_the_run_naming_both_numbers(caplog):
+    template, data, T, _ = tiny()
+    caplog.set_level(logging.INFO, logger="indreg")
+    r = indreg.register(255 * template, data, T, max_iter=0)
+    message = [m for m in warnings_of(caplog) if "different units" in m]
+    assert len(message) == 1
+    ratio = math.sqrt(float(T.inner_data(T(255 * template), T(255 * template)).sum())
+                      / float(T.inner_data(data, data).sum()))
+    assert f"{ratio:.4g}" in message[0] and f"{r.scale_fit:.4g}" in message[0] and "template_scale='auto'" in message[0]
+    assert r.projection_ratio == pytest.approx(ratio) and r.template_scale == 1.0
+    first = next(i for i, rec in enumerate(caplog.records) if "different units" in rec.getMessage())
+    assert all("iteration" not in rec.getMessage() for rec in caplog.records[:first])   # before the run
+
+
+def test_matching_units_do_not_warn(caplog):
+    template, data, T, _ = tiny(noise=True)
+    r = indreg.register(template, data, T, **QUICK)
+    assert not [m for m in warnings_of(caplog) if "units" in m or "offset" in m]
+    assert 1 / 3 <= r.scale_fit <= 3 and 1 / 3 <= r.projection_ratio <= 3
+
+
+def test_auto_scale_is_the_least_squares_fit_and_removes_the_units():
+    """``template_scale="auto"`` multiplies by c = <T I, g> / <T I, T I>: the run of 255 I equals the run of I."""
+    template, data, T, target = tiny(noise=True)
+    a = indreg.register(template, data, T, template_scale="auto", **QUICK)
+    b = indreg.register(255 * template, data, T, template_scale="auto", **QUICK)
+    TI = T(template)
+    c = float(T.inner_data(TI, data).sum() / T.inner_data(TI, TI).sum())
+    assert a.template_scale == pytest.approx(c, rel=1e-12) and b.template_scale == pytest.approx(c / 255, rel=1e-12)
+    assert torch.allclose(a.deformed, b.deformed, rtol=1e-9, atol=1e-9 * float(a.deformed.abs().max()))
+    assert a.status == b.status == "completed"
+
+
+def test_a_number_scales_the_template():
+    template, data, T, _ = tiny()
+    a = indreg.register(template, data, T, **QUICK)
+    b = indreg.register(255 * template, data, T, template_scale=1 / 255, **QUICK)
+    assert b.template_scale == pytest.approx(1 / 255)
+    assert torch.allclose(a.deformed, b.deformed, atol=1e-9)
+
+
+def test_suite1_at_255_with_auto_matches_the_x1_run(caplog):
+    """The README example (suite 1, 64^2) with the template at 0..255: a warning naming the scale before the run;
+    with ``template_scale="auto"`` the registration is that of the x1 run (the results' SSIM >= 0.995; c = 0.9735
+    / 255, so the intensities are 2.6% lower: the SSIM against the target moves by about 0.01)."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from golden_helpers import suite1_problem
+
+    template, data, T, target = suite1_problem()
+    x1 = indreg.register(template, data, T, target=target, max_iter=40)
+    caplog.clear()
+    auto = indreg.register(255 * template, data, T, target=target, max_iter=40, template_scale="auto")
+    assert not [m for m in warnings_of(caplog) if "different units" in m]
+    assert auto.template_scale == pytest.approx(0.9735 / 255, rel=1e-3)
+    assert metrics.ssim(auto.deformed.double(), x1.deformed.double()) >= 0.995
+    assert abs(auto.ssim - x1.ssim) < 0.02
+    indreg.register(255 * template, data, T, max_iter=0)
+    assert any("c = <T I, g> / <T I, T I> = 0.003818" in m for m in warnings_of(caplog))
+
+
+@pytest.mark.parametrize("value,kind,match", [
+    (0, ValueError, "template_scale must be None, 'auto' or a finite number > 0, got 0"),
+    (-2.0, ValueError, "template_scale must be"),
+    (float("nan"), ValueError, "template_scale must be"),
+    ("fit", ValueError, "template_scale must be None, 'auto' or a finite number > 0, got 'fit'"),
+    (True, TypeError, "template_scale must be"),
+])
+def test_bad_template_scale_is_one_line(value, kind, match):
+    template, data, T, _ = tiny()
+    with pytest.raises(kind, match=match):
+        indreg.register(template, data, T, template_scale=value)
+
+
+def test_auto_scale_of_an_unrelated_template_is_refused():
+    template, data, T, _ = tiny()
+    with pytest.raises(ValueError, match="template_scale='auto' found no positive scale"):
+        indreg.register(-template, data, T, template_scale="auto")
+
+
+# ---------------------------------------------------------------------------------------------------- offsets
+def test_border_level_is_the_median_of_the_outermost_columns():
+    g = torch.zeros(5, 32)
+    g[:, 2:30] = 7.0
+    assert run.border_level(g + 3.0) == 3.0            # k = 2 columns each side, object inside
+    stack = torch.full((3, 4, 16), 1.5)               # a tilt series: the last axis is the columns
+    assert run.border_level(stack) == 1.5
+
+
+def test_offset_data_warn_and_auto_background_gives_the_clean_result(caplog):
+    template, data, T, _ = tiny()
+    clean = indreg.register(template, data, T, **QUICK)
+    offset = data + 0.2 * float(data.max())
+    indreg.register(template, offset, T, max_iter=0)
+    assert any("data look offset" in m and "background='auto'" in m for m in warnings_of(caplog))
+    caplog.clear()
+    fixed = indreg.register(template, offset, T, background="auto", **QUICK)
+    assert not [m for m in warnings_of(caplog) if "offset" in m]
+    assert fixed.background == pytest.approx(0.2 * float(data.max()), rel=1e-12)
+    assert torch.allclose(fixed.deformed, clean.deformed, atol=1e-9)
+    assert fixed.residual == pytest.approx(clean.residual, rel=1e-9)
+
+
+def test_noisy_offset_data_with_auto_background_match_the_clean_run():
+    template, data, T, target = tiny(noise=True)
+    clean = indreg.register(template, data, T, target=target, **QUICK)
+    fixed = indreg.register(template, data - 3.0, T, target=target, background="auto", **QUICK)
+    given = indreg.register(template, data - 3.0, T, target=target, background=-3.0, **QUICK)
+    assert fixed.background == pytest.approx(-3.0, abs=0.05 * float(data.std()))
+    assert abs(fixed.ssim - clean.ssim) < 0.005
+    assert torch.allclose(given.deformed, clean.deformed, atol=1e-9)
+
+
+@pytest.mark.parametrize("value,match", [(float("nan"), "background must be None, 'auto' or a finite number, "
+                                                         "got nan"),
+                                         ("border", "background must be"), (math.inf, "background must be")])
+def test_bad_background_is_one_line(value, match):
+    template, data, T, _ = tiny()
+    with pytest.raises(ValueError, match=match):
+        indreg.register(template, data, T, background=value)
+
+
+# ---------------------------------------------------------------------------------------------------- reports
+def test_a_run_worse_than_a_zero_image_has_diverged(caplog):
+    template, data, T, _ = tiny()
+    r = indreg.register(255 * template, data, T, max_iter=0)
+    assert r.residual >= 1 and r.status == "diverged"
+    assert any("diverged" in m and f"{r.residual:.4g}" in m for m in warnings_of(caplog))
+    assert run.final_status("completed", 0.5) == "completed" and run.final_status("stopped", 2.0) == "stopped"
+    assert run.final_status("converged", math.nan) == "diverged"
+
+
+def test_objective_increases_within_rounding_are_not_warnings():
+    tol = rounding_tolerance(torch.float32)
+    assert 1e-5 < tol < 2e-5 and rounding_tolerance(torch.float64) < 1e-13
+    assert problems(183.6369, 1.0, 183.6354, tol) == []            # the paper's fixed step in float32: 8e-6
+    assert problems(183.7, 1.0, 183.6354, tol) == ["objective increased from 183.6354 to 183.7"]
+    assert problems(183.6369, 1.0, 183.6354) != []                 # no tolerance: every increase
+    # step halving still rejects every increase; without it only larger ones are reported
+    trial = lambda steps: (steps, 100.0 * (1 + 5e-6), 1.0)   # noqa: E731
+    assert StepControl(False, 5).search([1.0], 100.0, trial, tol)[3] == []
+    out = StepControl(True, 2).search([1.0], 100.0, trial, tol)
+    assert out[4] is True and out[5] == 2
+
+
+class _FlatSolver:
+    """Algorithm 1's interface with a step that halves once and never changes the objective."""
+    step_halving, step_sizes, max_iter = True, [1.0], 50
+
+    def step(self, state):
+        state.iteration += 1
+        self.step_sizes[0] /= 2
+        return {"iteration": state.iteration, "objective": 10.0, "data_fit": 10.0, "grad_norm": 1.0,
+                "min_jacobian": 1.0, "step_size": self.step_sizes[0], "halvings": 1, "rejected": False,
+                "warning": ""}
+
+    def status(self, info):
+        return "completed" if info["iteration"] >= self.max_iter else None
+
+
+def test_a_collapsed_step_is_a_stall(caplog):
+    caplog.set_level(logging.INFO, logger="indreg")
+    state = indreg.SolverState(torch.zeros(2, 2, 4, 4))
+    loop = run.RegistrationLoop(None, _FlatSolver(), state, max_iter=50)
+    assert loop.run() == "stalled" and state.iteration == run.STALL_WINDOW + 1
+    halved = [r.getMessage() for r in caplog.records if "step size halved" in r.getMessage()]
+    assert len(halved) == state.iteration and all("1 time(s)" in m for m in halved)
+    assert run.count_halvings(loop.history) == len(halved)
+    assert any("stalled" in m for m in warnings_of(caplog))
+
+
+def test_halvings_are_counted_and_agree_with_the_log(caplog):
+    """255 times the intensities with the paper's step: step halving halves in the first iterations."""
+    template, data, T, _ = tiny()
+    caplog.set_level(logging.INFO, logger="indreg")
+    r = indreg.register(255 * template, 255 * data, T, **QUICK)
+    counts = [int(m.split("halved ")[1].split(" time")[0]) for m in
+              (rec.getMessage() for rec in caplog.records) if "step size halved" in m]
+    assert sum(counts) == run.count_halvings(r.history) > 0
+    assert all("halvings" in h for h in r.history)
+
+
+def test_angles_in_degrees_that_look_like_radians_warn(caplog, tmp_path):
+    io.read_angles(list(np.linspace(0, 3.1, 10)), "deg")
+    assert any("may be radians" in m for m in warnings_of(caplog))
+    caplog.clear()
+    io.read_angles(list(np.arange(-60.0, 61.0, 2.0)), "deg")
+    io.read_angles(list(np.linspace(0, 3.1, 10)), "rad")
+    assert not warnings_of(caplog)
+    template, _, T, target = tiny()
+    (tmp_path / "a.tlt").write_text("".join(f"{a}\n" for a in np.linspace(-1.0, 1.0, 10)))
+    indreg.load(template, np.zeros((10, 46)), angles=tmp_path / "a.tlt", det_min=-24, det_max=24)
+    assert any("may be radians" in m and "-1 .. 1" in m for m in warnings_of(caplog))
+
+
+def test_tv_weight_at_the_data_scale():
+    """``intensity_scale`` scales with the data, and TV with ``mu`` times it is scale-equivariant."""
+    _, data, T, _ = tiny(noise=True)
+    u = intensity_scale(T, data)
+    assert intensity_scale(T, 255 * data) == pytest.approx(255 * u, rel=1e-12)
+    a = tv_reconstruction(T, data, mu=3.0 * u, num_iter=30)[0]
+    b = tv_reconstruction(T, 255 * data, mu=3.0 * intensity_scale(T, 255 * data), num_iter=30)[0]
+    assert torch.allclose(b, 255 * a, rtol=1e-8, atol=1e-8 * float(b.abs().max()))
