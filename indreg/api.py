@@ -80,6 +80,11 @@ def register(template, data, operator, **options) -> RegistrationResult:
         progress: True shows a tqdm bar on a terminal, else progress lines on the "indreg" logger
             (a stderr handler is added for the call if logging is not configured). log_every: 10.
         target: optional ground truth: adds ``ssim`` and ``psnr`` to the result.
+        holdout: validation without a ground truth (``indreg.validation``): every k-th angle (an integer k >= 2,
+            indices k // 2, k // 2 + k, ...) or a list of indices is left out of the fit; its relative residual
+            is evaluated every ``log_every`` iterations (``history``'s ``holdout_residual``) and reported in
+            ``result.holdout``. patience: with holdout, stop (``early_stopped``) after this many evaluations
+            without a new minimum.
 
     Raises:
         TypeError: an unknown option (the message lists the valid ones), a wrong type, an option of another
@@ -106,9 +111,9 @@ def register(template, data, operator, **options) -> RegistrationResult:
     try:
         log.info("%s | %s", problem, s.solver)
         loop = RegistrationLoop(problem, s.solver, state, o["max_iter"], every=o["log_every"],
-                                progress=o["progress"], callback=o["callback"])
+                                progress=o["progress"], callback=o["callback"], validation=s.validation)
         status = loop.run()
     finally:
         if handler is not None:
             log.removeHandler(handler)
-    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units)
+    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation)

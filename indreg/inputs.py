@@ -11,7 +11,9 @@ Geometries (``geometry=``)::
 
     parallel     2D parallel beam (ParallelBeamGeometry)
     fan_flat     2D fan beam, flat detector (FanBeamGeometry: src_radius, det_radius)
-    tilt_series  3D single-axis tilt series of electron tomography (TiltSeriesGeometry: tilt_axis)
+    tilt_series  3D single-axis tilt series of electron tomography (TiltSeriesGeometry: tilt_axis); the stack is
+                 rotated so that its tilt axis runs along the detector rows (``tilt_axis_angle``, or the
+                 ``.mdoc`` next to it) and checked for consistency (``indreg.tilt_axis``)
 
 Convention:
     - 2D: template ``(n, n)`` on ``[-half_width, half_width]^2`` (square, so that the cells are square), data
@@ -32,7 +34,9 @@ Convention:
 """
 from __future__ import annotations
 
+import logging
 import math
+import numbers
 import os
 from dataclasses import dataclass
 from typing import Optional
@@ -45,11 +49,14 @@ from ._checks import check_positive
 from .domain import AXES, ImageDomain
 from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry
 from .io import DataFileError
+from .tilt_axis import TiltAxisCheck, align_tilt_axis, check_tilt_axis
+
+log = logging.getLogger("indreg")
 
 GEOMETRIES = ("parallel", "fan_flat", "tilt_series")
 #: How error messages call :func:`load`'s arguments; the app passes its config keys instead.
 NAMES = {key: key for key in ("template", "data", "target", "geometry", "angles", "angle_unit", "half_width",
-                              "num_angles", "det_count", "tilt_axis")}
+                              "num_angles", "det_count", "tilt_axis", "tilt_axis_angle")}
 
 
 @dataclass
@@ -58,7 +65,9 @@ class RegistrationInputs:
 
     ``template`` / ``target`` ``operator.domain.shape``, ``data`` ``operator.range_shape``: float64 on the CPU;
     ``geometry`` is the operator's (detector extent resolved); ``target`` is ``None`` without a ground truth;
-    ``label`` names the template (its file name, ``"array"`` for an array)."""
+    ``label`` names the template (its file name, ``"array"`` for an array). A tilt series also has
+    ``tilt_axis_angle`` (the rotation applied, degrees; None: none) and ``tilt_axis`` (the consistency check of the
+    data as returned, ``indreg.tilt_axis.TiltAxisCheck``)."""
     template: torch.Tensor
     data: torch.Tensor
     operator: object
@@ -66,18 +75,33 @@ class RegistrationInputs:
     geometry: object
     target: Optional[torch.Tensor] = None
     label: str = "array"
+    tilt_axis_angle: Optional[float] = None
+    tilt_axis: Optional[TiltAxisCheck] = None
+
+    def report(self) -> dict:
+        """The tilt series' numbers for a run's metrics: the angle applied and the check's (empty in 2D)."""
+        if self.tilt_axis is None:
+            return {}
+        return {"tilt_axis_angle": self.tilt_axis_angle, **self.tilt_axis.metrics()}
 
 
 def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit: str = "deg", target=None,
          half_width: float = 16.0, det_min: Optional[float] = None, det_max: Optional[float] = None,
          det_count: Optional[int] = None, num_angles: Optional[int] = None, tilt_axis: str = "y",
-         src_radius: Optional[float] = None, det_radius: float = 0.0,
+         tilt_axis_angle: Optional[float] = None, src_radius: Optional[float] = None, det_radius: float = 0.0,
          names: Optional[dict] = None) -> RegistrationInputs:
     """Template, data, operator (and optionally the ground truth ``target``) of a registration from files or
     arrays (see the module's Convention).
 
     ``geometry``: ``parallel``, ``fan_flat`` (needs ``src_radius``; ``det_radius`` origin to detector) or
-    ``tilt_series`` (rotation about ``tilt_axis``, ``"x"``, ``"y"`` or ``"z"``). ``det_min`` / ``det_max``: the
+    ``tilt_series`` (rotation about ``tilt_axis``, ``"x"``, ``"y"`` or ``"z"``, the volume's axis).
+    ``tilt_axis_angle`` (tilt series): the angle of the tilt axis in the detector image, degrees from the image's
+    Y towards -X (counterclockwise; IMOD / SerialEM's), the stack is rotated by its opposite before anything else
+    (``indreg.tilt_axis.align_tilt_axis``: exact for multiples of 90, interpolated otherwise); None: the
+    ``.mdoc`` next to a stack file (``name.mrc.mdoc`` or ``name.mdoc``, its ``TiltAxisAngle`` / ``Tilt axis
+    angle``), else no rotation. The rotated stack is then checked (``indreg.tilt_axis.check_tilt_axis``): a
+    stack whose axis still runs along X is an error when an angle was given (by the argument or the ``.mdoc``)
+    and a warning otherwise. ``det_min`` / ``det_max``: the
     detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
     (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``).
 
@@ -86,7 +110,7 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
         ValueError, TypeError: a bad argument value.
     """
     key = {**NAMES, **(names or {})}
-    _check_arguments(geometry, angle_unit, half_width, tilt_axis, key)
+    _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angle, key)
     ndim = 3 if geometry == "tilt_series" else 2
     f = _image(template, key["template"], ndim)
     if ndim == 2 and f.shape[0] != f.shape[1]:
@@ -94,6 +118,9 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             f"the domain [-{half_width:g}, {half_width:g}]^2 needs n x n pixels (square cells): pad "
                             "or resample the image")
     g = _measurements(data, key["data"], ndim)
+    axis = None
+    if ndim == 3:
+        g, tilt_axis_angle, axis = _align(g, data, tilt_axis_angle, key)
     radians = _angles(angles, angle_unit, data, g.shape[0], ndim, key)
     _check_counts(g.shape, data, num_angles, det_count, ndim, key)
     truth = _target(target, f, ndim, key)
@@ -113,7 +140,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             "axis, columns)")
     label = io.split_path(template)[0].name if _is_path(template) else "array"
     return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=T, domain=domain,
-                              geometry=T.geometry, target=truth, label=label)
+                              geometry=T.geometry, target=truth, label=label, tilt_axis_angle=tilt_axis_angle,
+                              tilt_axis=axis)
 
 
 def square_domain(n: int, half_width: float, ndim: int = 2) -> ImageDomain:
@@ -178,7 +206,7 @@ def _where(name: str, value) -> str:
     return f"{name} {value}" if _is_path(value) else name
 
 
-def _check_arguments(geometry, angle_unit, half_width, tilt_axis, key: dict) -> None:
+def _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angle, key: dict) -> None:
     if geometry not in GEOMETRIES:
         raise ValueError(f"{key['geometry']} must be one of {', '.join(GEOMETRIES)}, got {geometry!r}")
     if angle_unit not in io.ANGLE_UNITS:
@@ -186,6 +214,42 @@ def _check_arguments(geometry, angle_unit, half_width, tilt_axis, key: dict) -> 
     check_positive(half_width, key["half_width"])
     if tilt_axis not in tuple(AXES):
         raise ValueError(f"{key['tilt_axis']} must be 'x', 'y' or 'z', got {tilt_axis!r}")
+    if tilt_axis_angle is not None:
+        if isinstance(tilt_axis_angle, bool) or not isinstance(tilt_axis_angle, numbers.Real) \
+                or not math.isfinite(tilt_axis_angle):
+            raise ValueError(f"{key['tilt_axis_angle']} must be a finite number of degrees or None, got "
+                             f"{tilt_axis_angle!r}")
+        if geometry != "tilt_series":
+            raise ValueError(f"{key['tilt_axis_angle']} applies to a tilt series ({key['geometry']}=tilt_series), "
+                             f"got {key['geometry']}={geometry}")
+
+
+def _align(g: np.ndarray, data, angle, key: dict) -> tuple:
+    """The stack with its tilt axis along the rows (``tilt_axis_angle`` or the ``.mdoc``'s), the angle applied
+    and the consistency check; an error if a given angle leaves the axis along X (module docstring)."""
+    mdoc = io.mdoc_for(data) if _is_path(data) else None
+    recorded = None if mdoc is None else io.read_tilt_axis_angle(mdoc, name=f"{key['data']} metadata")
+    origin = f"{key['tilt_axis_angle']}={angle:g}" if angle is not None else None
+    if angle is None and recorded is not None:
+        angle, origin = recorded, f"the tilt axis angle {recorded:g} of {mdoc}"
+        log.info("%s: rotating the stack by %g degrees (tilt axis angle of %s)", _where(key["data"], data), -angle,
+                 mdoc.name)
+    elif recorded is not None and abs(recorded - angle) > 0.5:
+        log.warning("%s=%g overrides the tilt axis angle %g of %s", key["tilt_axis_angle"], angle, recorded, mdoc)
+    if angle is not None:
+        g = align_tilt_axis(g, angle)
+    check = check_tilt_axis(g)
+    where = _where(key["data"], data)
+    if check.direction == "columns" and angle is not None:
+        turned = "as stored" if angle % 360 == 0 else f"turned by {-angle:g} degrees"
+        raise DataFileError(f"{where}: {origin} contradicts the data: {turned}, {check.describe()}; the angle is off "
+                            f"by about 90 degrees (e.g. {angle + 90:g} or {angle - 90:g})")
+    if check.direction == "columns":
+        log.warning("%s: %s; give %s (90 or -90, IMOD's rotation angle) to rotate the stack", where,
+                    check.describe(), key["tilt_axis_angle"])
+    else:
+        log.info("%s: %s", where, check.describe())
+    return g, angle, check
 
 
 def _array(value, name: str, ndim: int) -> np.ndarray:

@@ -454,6 +454,41 @@ def tilt_angles_for(sinogram_path) -> Path | None:
     return None
 
 
+_TILT_AXIS = re.compile(r"tilt\s*axis\s*angle\s*=\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)", re.IGNORECASE)
+
+
+def mdoc_for(stack_path) -> Path | None:
+    """The SerialEM / IMOD metadata file of a stack: ``name.mrc.mdoc`` (SerialEM: the file name plus ``.mdoc``),
+    else ``name.mdoc``, else ``None``. A ``:key`` suffix is ignored."""
+    path, _ = split_path(stack_path, "tilt series")
+    for candidate in (path.with_name(path.name + ".mdoc"), path.with_suffix(".mdoc")):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def read_tilt_axis_angle(mdoc, *, name: str = "mdoc") -> float | None:
+    """The tilt axis angle (degrees) of an ``.mdoc`` file: the first ``TiltAxisAngle = a`` or ``Tilt axis angle =
+    a`` (also inside a ``[T = ...]`` title line), ``None`` when the file has none. The angle is IMOD's and
+    SerialEM's: from the image's Y axis to the tilt axis, counterclockwise positive (``indreg.tilt_axis``).
+
+    Raises:
+        DataFileError: the file cannot be read.
+    """
+    path = Path(mdoc)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as err:
+        raise _fail(name, path, f"not a readable text file ({type(err).__name__}: {err})") from None
+    match = _TILT_AXIS.search(text)
+    if match is None:
+        return None
+    value = float(match.group(1))
+    if not math.isfinite(value):
+        raise _fail(name, path, f"tilt axis angle is not finite: {match.group(0)!r}")
+    return value
+
+
 # --- writing ------------------------------------------------------------------------------------------
 
 def write_image(path, array) -> Path:

@@ -170,6 +170,28 @@ def _model(v, label):
     return v
 
 
+def holdout(v, label):
+    """None, an integer k >= 2 (every k-th angle) or a non-empty list of distinct indices >= 0 (their range is
+    checked against the data by ``indreg.validation.holdout_rows``)."""
+    if v is None:
+        return None
+    if hasattr(v, "tolist") and not isinstance(v, (bool, str)):   # numpy / torch indices
+        v = v.tolist()
+    if isinstance(v, numbers.Integral) and not isinstance(v, bool):
+        if v < 2:
+            raise OptionError(label, v, "an integer k >= 2 (every k-th angle; 1 leaves no angle to fit) or a list "
+                                        "of indices")
+        return int(v)
+    if not isinstance(v, (list, tuple)) or not v or not all(
+            isinstance(i, numbers.Integral) and not isinstance(i, bool) for i in v):
+        raise OptionError(label, v, "None, an integer k >= 2 (every k-th angle) or a non-empty list of indices",
+                          TypeError if not isinstance(v, (list, tuple)) or v else ValueError)
+    out = [int(i) for i in v]
+    if min(out) < 0 or len(set(out)) != len(out):
+        raise OptionError(label, v, "a list of distinct indices >= 0")
+    return out
+
+
 _positive = number(0.0, strict=True)
 _nonneg = number(0.0)
 
@@ -206,6 +228,12 @@ CORE = (
     Option("optimizer_kwargs", "solver", "optimizer_kwargs", None, mapping,
            "keyword arguments of the torch.optim optimizer, or solver='fast''s options", Dict[str, Any],
            solvers=(FAST, "torch"), app_default={}),
+    Option("holdout", "validation", "holdout", None, holdout,
+           "angles left out of the fit and used for validation: every k-th (an integer k >= 2) or a list of "
+           "indices; None: all are fitted", Any),
+    Option("patience", "validation", "patience", None, optional(number(1, integer=True)),
+           "with holdout: stop after this many evaluations without a new minimum of the held-out residual "
+           "(None: never)", Optional[int]),
 )
 
 #: How the inputs are brought to one unit before the run (``indreg.run.prepare``): the app's ``data.*`` keys.
@@ -276,6 +304,9 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
         else:
             out[name] = o.default
     _check_optimizer_kwargs(out, label(options["optimizer_kwargs"]))
+    if out["patience"] is not None and out["holdout"] is None:
+        raise OptionError(label(options["patience"]), out["patience"],
+                          f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
     from .models import get
 
     model = get(out["model"])

@@ -213,22 +213,28 @@ def make_solver(problem, o: dict, solver_options: dict):
 
 @dataclass
 class Setup:
-    """The problem and the solver built by :func:`setup`, with the run's (resolved) options and what
-    :func:`prepare` did to the inputs."""
+    """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
+    did to the inputs, and ``validation``: the held-out angles (``indreg.validation.Validation``) when ``holdout``
+    is set, else None."""
     problem: object
     solver: object
     options: dict
     units: Units = field(default_factory=Units)
+    validation: object = None
 
 
 def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
     """Validate inputs and options (``indreg.options.resolve``) and build kernel, problem and solver.
 
+    The inputs are first brought to one unit (:func:`prepare`: ``template_scale``, ``background``); with
+    ``holdout`` the problem is then built on the operator and the prepared data restricted to the kept angles
+    (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
+    from .validation import split
 
     o = opts.resolve(options, label, strict)
     check_operator(operator, "operator")
@@ -247,9 +253,12 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
+    validation = None
+    if o["holdout"] is not None:   # the split is of the prepared data (background removed)
+        operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = models.get(o["model"]).build(operator, template, data, kernel, o)
-    return Setup(problem, make_solver(problem, o, solver_options), o, units)
+    return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
 
 
 def initial_state(problem):
@@ -305,6 +314,10 @@ def _regularisers(info: dict) -> str:
     return ", regularisers " + " / ".join(f"{k} {info[k]:.4g}" for k in ("regulariser", *extra))
 
 
+def _held_out(info: dict) -> str:
+    return f", held-out residual {info['holdout_residual']:.4g}" if "holdout_residual" in info else ""
+
+
 class RegistrationLoop:
     """``info = solver.step(state)`` until done; history, warnings, progress log lines and a tqdm bar.
 
@@ -312,11 +325,16 @@ class RegistrationLoop:
     :meth:`after_step` (every iteration; may return a stop status) and :meth:`describe` (extra text for the
     log line printed every ``every`` iterations). ``run()`` returns the status: ``completed``,
     ``converged``, ``stalled`` (:data:`STALL_WINDOW`), ``failed`` (a non-finite objective or gradient; the state
-    keeps the last iterate the solver accepted), or what a hook returned. ``callback(state, info)`` returning True stops it (``stopped``).
+    keeps the last iterate the solver accepted), ``early_stopped`` (``validation`` ran out of patience), or what a
+    hook returned. ``callback(state, info)`` returning True stops it (``stopped``).
+
+    ``validation`` (``indreg.validation.Validation``, from ``holdout``): every ``every`` iterations the held-out
+    residual of the current reconstruction goes into ``info`` and the history as ``holdout_residual`` (before
+    the hooks see ``info``) and into the log line.
     """
 
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
-                 desc: str = "indreg", history=None, seconds: float = 0.0, callback=None):
+                 desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None):
         self.problem, self.solver, self.state = problem, solver, state
         self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc
         self.history = [] if history is None else history
@@ -324,6 +342,9 @@ class RegistrationLoop:
         self.callback = callback
         self.warnings = count_warnings(self.history)
         self.rtol = rounding_tolerance(state.iterate[0].dtype)
+        self.validation = validation
+        if validation is not None:
+            validation.restore(self.history)
 
     def before_step(self) -> Optional[str]:
         return None
@@ -341,6 +362,21 @@ class RegistrationLoop:
         self.warnings += 1
         if self.warnings == 1 or it % self.every == 0:
             log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+
+    def _validate(self, it: int, info: dict) -> Optional[str]:
+        """Every ``every`` iterations: the held-out residual into ``info`` and the history; ``early_stopped`` when
+        the validation's patience has run out."""
+        v = self.validation
+        if v is None or it % self.every:
+            return None
+        info["holdout_residual"] = self.history[-1]["holdout_residual"] = \
+            v.record(it, self.problem.reconstruction(self.state.iterate))
+        if not v.exhausted():
+            return None
+        best, value = v.best
+        log.info("iteration %d: the held-out residual has not decreased in %d evaluations (least %.4g at "
+                 "iteration %d); stopping", it, v.patience, value, best)
+        return "early_stopped"
 
     def _stalled(self) -> bool:
         """Step halving has collapsed the step (:data:`STALL_WINDOW`)."""
@@ -386,11 +422,12 @@ class RegistrationLoop:
                               info.get("warning") or "grad_norm is not finite")
                     break
                 done = reason is not None
-                stop = self.after_step(info, done)
+                early = self._validate(it, info)
+                stop = self.after_step(info, done) or early
                 if it % self.every == 0 and not done:
-                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s", meter.line(it),
+                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s%s", meter.line(it),
                              info["objective"], info["data_fit"], info["min_jacobian"], _regularisers(info),
-                             self.describe(info))
+                             _held_out(info), self.describe(info))
                 bar.update(1)
                 bar.set_postfix(objective=f"{info['objective']:.4g}")
                 if stop:
@@ -416,13 +453,17 @@ class RegistrationResult:
     Convention: ``deformed`` ``(nx, ny)`` = the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1));
     ``trajectory`` ``(N+1, nx, ny)`` = the image path at ``t_i``; ``momentum`` and ``velocity`` ``(N+1, d, *shape)``
     (``nu = K m``, component 0 = x); ``deformation`` ``(d, *shape)`` = phi_{1,0} (points, physical units);
-    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (``g`` after
-    the background); ``history``: one dict per iteration (the solver's report plus ``seconds``); ``status``:
-    ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the step,
-    ``indreg.run.STALL_WINDOW``), ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse
-    than a zero image), ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``) or
-    ``stopped`` (the callback returned True). ``template_scale``, ``background``, ``projection_ratio``,
-    ``scale_fit``: what was done to the inputs before the run (:class:`Units`). ``ssim`` / ``psnr`` only with a target. ``outputs``: the model's
+    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (on the fitted
+    data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
+    ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
+    step, ``indreg.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
+    ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
+    non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
+    ``template_scale``, ``background``, ``projection_ratio``, ``scale_fit``: what was done to the inputs before the
+    run (:class:`Units`). ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
+    ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
+    ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
+    iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``outputs``: the model's
     own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I), ``intensity_part`` =
     f(1) - W(nu, I)), also readable as attributes (``result.source``).
     """
@@ -448,6 +489,7 @@ class RegistrationResult:
     background: float = 0.0
     projection_ratio: float = math.nan
     scale_fit: float = math.nan
+    holdout: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -464,9 +506,9 @@ def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> floa
 
 
 def final_status(status: str, residual: float) -> str:
-    """A finished run (``completed``, ``converged``, ``stalled``) whose relative residual is ``>= 1`` (or not
+    """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1`` (or not
     finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so)."""
-    if status in ("completed", "converged", "stalled") and not residual < 1:
+    if status in ("completed", "converged", "stalled", "early_stopped") and not residual < 1:
         log.warning("the run diverged: relative data residual ||T f - g|| / ||g|| = %.4g >= 1, worse than a zero "
                     "image; check the units of template and data (template_scale, background) and the step",
                     residual)
@@ -475,11 +517,11 @@ def final_status(status: str, residual: float) -> str:
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
-                 units: Optional[Units] = None) -> RegistrationResult:
-    """The result at ``state``: reconstruction, trajectory, velocity, phi_{1,0}, terms, min Jacobian, residual,
-    the model's outputs, and SSIM / PSNR of the reconstruction against ``target`` (float64, CPU) if given;
-    ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`); ``units``: what
-    :func:`prepare` did to the inputs."""
+                 units: Optional[Units] = None, validation=None) -> RegistrationResult:
+    """The result at ``state``: reconstruction, trajectory, velocity, phi_{1,0}, terms, min Jacobian, residual
+    (on the fitted data), the model's outputs, SSIM / PSNR of the reconstruction against ``target`` (float64, CPU)
+    if given, and the held-out residuals of ``validation`` if given; ``status`` becomes ``diverged`` if the
+    residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
     from . import metrics
 
     x = state.iterate
@@ -496,4 +538,6 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         problem=problem, outputs=problem.outputs(x), **(units or Units()).as_dict())
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
+    if validation is not None:
+        result.holdout = validation.summary(image)
     return result

@@ -29,7 +29,9 @@ class Experiment:
     (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
     ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth.
     ``template_64`` / ``noisy_data_64`` are the inputs as the run uses them (``units``: the template's scale and
-    the data's background, ``indreg.run.prepare``); ``paper``: the paper's simulated suites (``psnr_paper``)."""
+    the data's background, ``indreg.run.prepare``); ``paper``: the paper's simulated suites (``psnr_paper``);
+    ``validation`` the held-out angles (``validation.holdout``) or None; ``report``: the data's numbers for
+    metrics.json (``sources.Data.report``)."""
     domain: ImageDomain
     geometry: object
     ray_transform: object
@@ -45,6 +47,8 @@ class Experiment:
     snr_db: Optional[float] = None
     units: run.Units = field(default_factory=run.Units)
     paper: bool = False
+    validation: object = None
+    report: dict = field(default_factory=dict)
 
 
 def seed_everything(seed: int) -> None:
@@ -72,4 +76,4 @@ def build(cfg: DictConfig) -> Experiment:
                       template=template * u.template_scale, template_64=data.template_64 * u.template_scale,
                       noisy_data_64=data.data_64 - u.background, problem=s.problem, solver=s.solver,
                       label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db, units=u, paper=data.paper)
+                      snr_db=data.snr_db, units=u, paper=data.paper, validation=s.validation, report=data.report)

@@ -17,6 +17,7 @@ Config groups (one sub-config each) and top-level keys::
     solver       gamma, step size, iterations; Algorithm 1 or a torch.optim parametrisation
     baseline     FBP (filter, frequency scaling) and TV (mu, iterations) reconstructions from the same data
     logging      evaluation / image / checkpoint period k, TensorBoard, progress bar, figure
+    validation   held-out angles (``holdout``) and early stopping (``patience``)
     experiment   presets of the paper's test suites (package _global_), ``suite1_jv`` by default
     sweep        multirun presets (``sweep=suite3_table``: the paper's sensitivity table)
     name, seed, dtype, device, resume, stop_after
@@ -127,7 +128,9 @@ class GeometryConfig:
     ``det_count`` (and ``num_angles``) from the sinogram. Fan beam: ``src_radius`` (source to origin),
     ``det_radius`` (origin to detector). Tilt series (3D): rotation about ``tilt_axis``; angles ``angles`` or else
     ``tilt_min``, ``tilt_min + tilt_step``, ..., ``tilt_max`` (in ``angle_unit``); ``det_count`` columns per
-    detector row, one row per slice along the tilt axis (docs/tilt_series.md)."""
+    detector row, one row per slice along the tilt axis (docs/tilt_series.md); ``tilt_axis_angle``: the angle of
+    the tilt axis in a measured stack's images (degrees from Y, counterclockwise; null: the ``.mdoc``'s, else 0),
+    the stack is rotated by its opposite (``indreg.tilt_axis``)."""
     kind: GeometryKind = GeometryKind.parallel
     num_angles: Optional[int] = 10
     det_count: Optional[int] = 92
@@ -142,6 +145,7 @@ class GeometryConfig:
     tilt_min: float = -60.0
     tilt_max: float = 60.0
     tilt_step: float = 2.0
+    tilt_axis_angle: Optional[float] = None
 
 
 @dataclass
@@ -169,6 +173,10 @@ SolverConfig = _group("SolverConfig", "Solver: ``name`` algorithm1, fast, torch_
                       "``step_size`` is Algorithm 1's, ``lr`` torch.optim's: each is used only by its solver, so an "
                       "``experiment=`` preset never changes an optimizer's learning rate.",
                       extra=[("optimizer", str, field(default="lbfgs"))])
+ValidationConfig = _group("ValidationConfig", "Validation without a ground truth (``indreg.validation``): "
+                          "``holdout`` angles (every k-th, or a list of indices) are left out of the fit and their "
+                          "relative residual is evaluated every ``logging.every`` iterations; ``patience``: early "
+                          "stopping after that many evaluations without a new minimum.")
 
 
 @dataclass
@@ -214,6 +222,7 @@ class RegisterConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
 
 
 SCHEMA_NAME = "indreg_schema"
@@ -346,6 +355,11 @@ def _validate_data(c: DictConfig) -> None:
         _require(_finite(g.tilt_step) and g.tilt_step > 0, "geometry.tilt_step", "a number > 0", g.tilt_step)
         _require(_finite(g.tilt_min) and _finite(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
                  "finite tilt_min <= tilt_max", (g.tilt_min, g.tilt_max))
+    _require(g.tilt_axis_angle is None or _finite(g.tilt_axis_angle), "geometry.tilt_axis_angle",
+             "a finite number of degrees or null", g.tilt_axis_angle)
+    _require(g.tilt_axis_angle is None or (g.kind.value == "tilt_series" and d.source != "phantom"),
+             "geometry.tilt_axis_angle", "null except for a measured tilt series (data=files geometry=tilt_series): "
+             "simulated data are in indreg's layout", g.tilt_axis_angle)
     if d.source == "phantom":
         ndim = 3 if g.kind.value == "tilt_series" else 2
         _require(c.phantom.ndim == ndim, "phantom.ndim", f"{ndim} for geometry.kind={g.kind.value}", c.phantom.ndim)

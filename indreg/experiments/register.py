@@ -188,7 +188,8 @@ class AppLoop(RegistrationLoop):
 
     def __init__(self, cfg, exp, state, writer, path: Path, problem_cfg: dict, history, seconds):
         super().__init__(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
-                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds)
+                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
+                         validation=exp.validation)
         self.cfg, self.exp, self.writer, self.path, self.problem_cfg = cfg, exp, writer, path, problem_cfg
         self.stop = StopRequest()
         self._fom = ""
@@ -205,6 +206,8 @@ class AppLoop(RegistrationLoop):
     def after_step(self, info: dict, done: bool):
         it, lg, exp = self.state.iteration, self.cfg.logging, self.exp
         self.writer.scalars(info, it)
+        if "holdout_residual" in info:
+            self.writer.validation(info["holdout_residual"], it)
         self._fom = ""
         if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
             deformed = self.problem.reconstruction(self.state.iterate)
@@ -235,9 +238,10 @@ def run(cfg: DictConfig, output_dir) -> dict:
     ``stalled`` (step halving collapsed the step: ``indreg.run.STALL_WINDOW``), ``diverged`` (finished with a
     relative data residual >= 1), ``failed`` (a non-finite objective or gradient: ``metrics.json`` and
     ``history.json`` hold the status, the iteration and the warning; the checkpoint keeps the last finite iterate),
-    ``stopped`` (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed``,
-    ``converged``, ``stalled`` and ``diverged`` runs write the final outputs. A bad config value, a bad data file, a bad run directory or a damaged / foreign / mismatched
-    checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
+    ``early_stopped`` (``validation.patience`` held-out evaluations without a new minimum), ``stopped``
+    (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed``, ``converged``,
+    ``stalled``, ``early_stopped`` and ``diverged`` runs write the final outputs. A bad config value, a bad data file,
+    a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
     """
     from .tblog import RunWriter
 
@@ -346,7 +350,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
-    r = build_result(problem, state, history, seconds, status, units=exp.units)
+    r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation)
     target = exp.target_64
     result = {}
     if target is not None:
@@ -368,6 +372,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "warnings": r.warnings, "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
+    result.update(r.holdout)
+    result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
     arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
@@ -388,7 +394,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
     _figures(cfg, exp, r, rec, result, out, writer, it)
     writer.metrics(result, it)
-    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual") if k in result})
+    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
+                                                        if k in result})
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
@@ -398,6 +405,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     else:
         log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
                  result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+    if r.holdout:
+        log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)", r.holdout["holdout_indices"],
+                 r.holdout["holdout_residual"], r.holdout["holdout_best_residual"], r.holdout["holdout_best_iteration"])
     return result
 
 
@@ -502,8 +512,9 @@ def _prefix_job_logs(cfg_hydra) -> None:
 
 
 def _task(cfg: DictConfig):
-    """The Hydra task. Exit status: 0 done (completed, converged, stalled, stopped); 1 a user error
-    (``ConfigError``, ``DataFileError``, ``CheckpointError``) or a failed or diverged run, with one line ``indreg-register: error: ...`` on stderr;
+    """The Hydra task. Exit status: 0 done (completed, converged, stalled, early_stopped, stopped); 1 a user
+    error (``ConfigError``, ``DataFileError``, ``CheckpointError``) or a failed or diverged run, with one line
+    ``indreg-register: error: ...`` on stderr;
     128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
 

@@ -29,8 +29,9 @@ Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, 
 from __future__ import annotations
 
 import importlib
+import logging
+from dataclasses import dataclass, field
 from pathlib import Path
-from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
@@ -41,7 +42,10 @@ from ..domain import ImageDomain
 from ..inputs import RegistrationInputs, make_geometry, make_operator, square_domain
 from ..inputs import load as load_inputs
 from ..io import DataFileError, check_file, read_angles
+from ..tilt_axis import check_tilt_axis
 from .errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 #: The entry-point group of installed sources (``data.source=<entry point name>``).
 ENTRY_POINTS = "indreg.sources"
@@ -51,14 +55,17 @@ SOURCES: dict = {}
 CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "data.target",
                "half_width": "data.half_width", "geometry": "geometry.kind", "angles": "geometry.angles",
                "angle_unit": "geometry.angle_unit", "num_angles": "geometry.num_angles",
-               "det_count": "geometry.det_count", "tilt_axis": "geometry.tilt_axis"}
+               "det_count": "geometry.det_count", "tilt_axis": "geometry.tilt_axis",
+               "tilt_axis_angle": "geometry.tilt_axis_angle"}
 
 
 @dataclass
 class Data:
     """What a source provides (float64, CPU). ``target_64`` / ``clean_64`` / ``snr_db`` are ``None`` when
-    unknown (measured data). ``label``: a short name of the template for hparams and titles. ``paper``: the
-    paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``, ``psnr_paper``)."""
+    unknown (measured data). ``label``: a short name of the template for hparams and titles. ``report``: numbers
+    of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.tilt_axis``).
+    ``paper``: the paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``,
+    ``psnr_paper``)."""
     domain: ImageDomain
     geometry: object
     operator: object
@@ -68,13 +75,14 @@ class Data:
     target_64: Optional[torch.Tensor] = None
     clean_64: Optional[torch.Tensor] = None
     snr_db: Optional[float] = None
+    report: dict = field(default_factory=dict)
     paper: bool = False
 
     @classmethod
     def from_inputs(cls, d: RegistrationInputs) -> "Data":
         """The record of measured data loaded by ``indreg.load``."""
         return cls(domain=d.domain, geometry=d.geometry, operator=d.operator, template_64=d.template,
-                   data_64=d.data, label=d.label, target_64=d.target)
+                   data_64=d.data, label=d.label, target_64=d.target, report=d.report())
 
 
 def source(name: str) -> Callable:
@@ -195,8 +203,14 @@ def phantom_data(cfg: DictConfig) -> Data:
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)
     clean, noisy, snr = make_data(cfg, T, target)
+    report = {}
+    if g.kind.value == "tilt_series":   # simulated in indreg's layout: the check's numbers, for comparison
+        check = check_tilt_axis(noisy.numpy())
+        log.info("simulated tilt series: %s", check.describe())
+        report = {"tilt_axis_angle": None, **check.metrics()}
     return Data(domain=domain, geometry=T.geometry, operator=T, template_64=template, data_64=noisy,
-                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, paper=True)
+                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, report=report,
+                paper=True)
 
 
 def check_files(cfg: DictConfig) -> None:
@@ -224,8 +238,8 @@ def file_data(cfg: DictConfig) -> Data:
         inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
                              angle_unit=g.angle_unit.value, target=d.target or None, half_width=d.half_width,
                              det_min=g.det_min, det_max=g.det_max, det_count=g.det_count, num_angles=g.num_angles,
-                             tilt_axis=g.tilt_axis.value, src_radius=g.src_radius, det_radius=g.det_radius,
-                             names=CONFIG_KEYS)
+                             tilt_axis=g.tilt_axis.value, tilt_axis_angle=g.tilt_axis_angle,
+                             src_radius=g.src_radius, det_radius=g.det_radius, names=CONFIG_KEYS)
     except DataFileError:
         raise
     except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key

@@ -5,7 +5,8 @@ Tags::
     scalars  loss/objective, loss/data_fit, loss/regulariser, optim/grad_norm, optim/step_size,
              deformation/min_jacobian (every iteration; a model with more terms or iterate entries adds
              them, e.g. loss/source_regulariser, optim/source_grad_norm, optim/source_step_size); metrics/ssim, metrics/psnr, metrics/ssim_paper,
-             metrics/psnr_paper (every k iterations and at the end)
+             metrics/psnr_paper (every k iterations and at the end); validation/residual (with
+             validation.holdout: the held-out angles' relative residual, every k iterations)
     images   images/deformed_template (every k), images/trajectory (t_i strip), images/template,
              images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}); a model whose
              reconstruction f(1) has parts adds images/deformation_part (W(nu, I)),
@@ -72,6 +73,11 @@ class RunWriter:
             for key in METRICS:
                 if key in values:
                     self.writer.add_scalar(f"metrics/{key}", values[key], step)
+
+    def validation(self, residual: float, step: int) -> None:
+        """The held-out angles' relative residual (``validation.holdout``)."""
+        if self.enabled:
+            self.writer.add_scalar("validation/residual", residual, step)
 
     def image(self, tag: str, image, step: int) -> None:
         if self.enabled:
