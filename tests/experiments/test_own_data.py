@@ -195,7 +195,11 @@ def test_cli_bad_input_one_line_exit_1(tmp_path, case):
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("indreg-register: error:") and needle in lines[0], proc.stderr
-    assert sorted(p.name for p in out.iterdir()) == [".hydra", "register.log"]
+    if case == "missing file":   # refused before Hydra makes the run dir: nothing written
+        assert not out.exists()
+    else:                        # found while reading the data: the run dir holds the error in its log
+        assert sorted(p.name for p in out.iterdir()) == [".hydra", "register.log"]
+        assert needle in (out / "register.log").read_text()
 
 
 @pytest.mark.slow
