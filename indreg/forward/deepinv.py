@@ -142,9 +142,11 @@ def as_physics(operator, **kwargs):
           autograd all use unweighted sums. For ``RayTransform``, ``A_adjoint == T.transpose``.
 
     Example:
+        >>> import torch
+        >>> from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
         >>> phys = as_physics(RayTransform(ImageDomain.paper(64), ParallelBeamGeometry.paper(10, 92)))
-        >>> phys.adjointness_test(img_size=(1, 64, 64), dtype=torch.float64) < 1e-12
-        tensor(True)
+        >>> bool(phys.adjointness_test(img_size=(1, 64, 64), dtype=torch.float64) < 1e-12)
+        True
     """
     cls = _physics_class()
     missing = [name for name in _PROTOCOL if not hasattr(operator, name)]
@@ -275,6 +277,9 @@ def as_operator(physics, domain: ImageDomain, range_shape=None, data_weight: flo
         is the Euclidean transpose, so this scaling makes ``T^*`` the adjoint for indreg's inner products).
 
     Example:
+        >>> import math
+        >>> import deepinv
+        >>> from indreg import ImageDomain
         >>> phys = deepinv.physics.Tomography(angles=10, img_width=64, normalize=False)
         >>> T = as_operator(phys, ImageDomain.paper(64), data_weight=math.pi / 10 * 0.5)
         >>> T.range_shape      # deepinv's sinogram axes: (detector, angle)
