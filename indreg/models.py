@@ -19,53 +19,13 @@ from typing import Callable, Optional
 
 import torch
 
-from .options import ALGORITHM1, Option, OptionError, anything, is_torch_optim, number, optional
-
-MODELS: dict = {}
-
-
-@dataclass(frozen=True)
-class Model:
-    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``;
-    ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
-    ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
-    name: str
-    build: Callable
-    options: tuple = ()
-    doc: str = ""
-    check: Optional[Callable] = None   # check(options, label): cross-option checks, errors via label(name)
-
-
-def register_model(model: Model) -> Model:
-    """Add ``model`` to the registry (a name already there is replaced)."""
-    if not isinstance(model, Model):
-        raise TypeError(f"register_model takes an indreg.models.Model, got {type(model).__name__}")
-    MODELS[model.name] = model
-    return model
-
+from ._checks import as_tensor
+from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, is_torch_optim, model, number,  # noqa: F401
+                      optional, register_model)
 
 def get(name: str) -> Model:
-    """The registered model ``name``; ``"package.module:attribute"`` imports a ``Model`` (or a module that
-    registers it) and registers it under that name, so the app takes ``deformation.model=my.module:MODEL``."""
-    if name not in MODELS and isinstance(name, str) and ":" in name:
-        _import(name)
-    if name not in MODELS:
-        raise ValueError(f"model must be one of {', '.join(map(repr, MODELS))} or 'package.module:attribute', "
-                         f"got {name!r}")
-    return MODELS[name]
-
-
-def _import(path: str) -> None:
-    import importlib
-
-    module, _, attr = path.partition(":")
-    try:
-        model = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as e:
-        raise ValueError(f"model {path!r} cannot be imported: {e}") from None
-    if not isinstance(model, Model):
-        raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
-    MODELS[path] = model
+    """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
+    return model(name)
 
 
 def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
@@ -104,8 +64,6 @@ def _source_mask(mask, template: torch.Tensor, domain, label: str):
         if mask != "template":
             raise OptionError(label, mask, f"None, 'template' or an array {tuple(domain.shape)}")
         return template_support(template, domain)
-    from .run import as_tensor
-
     return as_tensor(mask, label, domain.shape, template.dtype, template.device)
 
 

@@ -158,15 +158,66 @@ class Option:
         return " with ".join(parts)
 
 
-def _model(v, label):
-    from .models import get
+# ---------------------------------------------------------------------------------------------------- models
+# The registry of deformation models lives here, below ``indreg.models`` (which fills it), so that checking an
+# option never imports the models' code.
+MODELS: dict = {}
 
+
+@dataclass(frozen=True)
+class Model:
+    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``;
+    ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
+    ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
+    name: str
+    build: Callable
+    options: tuple = ()
+    doc: str = ""
+    check: Optional[Callable] = None   # check(options, label): cross-option checks, errors via label(name)
+
+
+def register_model(model: Model) -> Model:
+    """Add ``model`` to the registry (a name already there is replaced)."""
+    if not isinstance(model, Model):
+        raise TypeError(f"register_model takes an indreg.models.Model, got {type(model).__name__}")
+    MODELS[model.name] = model
+    return model
+
+
+def model(name: str) -> Model:
+    """The registered model ``name``; ``"package.module:attribute"`` imports a ``Model`` (or a module that
+    registers it) and registers it under that name, so the app takes ``deformation.model=my.module:MODEL``."""
+    if name not in MODELS and isinstance(name, str) and ":" in name:
+        _import(name)
+    if name not in MODELS:
+        raise ValueError(f"model must be one of {', '.join(map(repr, MODELS))} or 'package.module:attribute', "
+                         f"got {name!r}")
+    return MODELS[name]
+
+
+def _import(path: str) -> None:
+    import importlib
+
+    module, _, attr = path.partition(":")
+    try:
+        model = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"model {path!r} cannot be imported: {e}") from None
+    if not isinstance(model, Model):
+        raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
+    MODELS[path] = model
+
+
+def _model(v, label):
     if not isinstance(v, str):
         raise OptionError(label, v, "a model name (str)", TypeError)
     try:
-        get(v)
+        model(v)
     except ValueError as e:
-        raise OptionError(label, v, str(e).split(", got ")[0].replace("model must be ", "")) from None
+        msg = str(e)
+        expected = msg.split(", got ")[0].replace("model must be ", "") if msg.startswith("model must be ") else \
+            f"an importable model ({msg})"
+        raise OptionError(label, v, expected) from None
     return v
 
 
@@ -259,8 +310,6 @@ RUN = (
 
 def all_options() -> tuple:
     """The core options, then every registered model's own, then the run options."""
-    from .models import MODELS
-
     seen, out = set(), []
     for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *INPUTS, *RUN):
         if o.name not in seen:
@@ -307,11 +356,9 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     if out["patience"] is not None and out["holdout"] is None:
         raise OptionError(label(options["patience"]), out["patience"],
                           f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
-    from .models import get
-
-    model = get(out["model"])
-    if model.check is not None:
-        model.check(out, lambda name: label(options[name]))
+    chosen = model(out["model"])
+    if chosen.check is not None:
+        chosen.check(out, lambda name: label(options[name]))
     return out
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from . import models, options as opts
+from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .solvers.state import rounding_tolerance
 
 log = logging.getLogger("indreg")
@@ -56,26 +57,6 @@ def resolve_device(device, template=None) -> torch.device:
     if d.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device={device!r} was requested but CUDA is not available")
     return d
-
-
-def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``x`` (tensor or array-like) as a real, finite tensor of ``shape`` in ``dtype`` / ``device``;
-    errors name the argument."""
-    if isinstance(x, torch.Tensor):
-        t = x.detach()
-    else:
-        a = np.asarray(x)
-        if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
-            raise TypeError(f"{name} must be a numeric array or torch tensor, got {type(x).__name__} of {a.dtype}")
-        t = torch.from_numpy(np.ascontiguousarray(a))
-    if t.is_complex():
-        raise TypeError(f"{name} must be real, got the complex dtype {t.dtype}")
-    if tuple(t.shape) != tuple(shape):
-        raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {tuple(shape)}")
-    t = t.to(device=device, dtype=dtype)
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} contains non-finite values (nan or inf)")
-    return t
 
 
 # ---------------------------------------------------------------------------------------------------- units

@@ -7,7 +7,7 @@ import math
 import torch
 
 from .._checks import check_bool, check_int, check_positive
-from .objective import check_nonnegative
+from .._checks import check_nonnegative
 from .problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
                     rounding_tolerance)

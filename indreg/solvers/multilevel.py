@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from .._checks import check_bool, check_int, check_positive
 from ..deform.lddmm import BACKWARDS
 from .algorithm1 import Algorithm1, check_problem
-from .objective import check_nonnegative
+from .._checks import check_nonnegative
 from .state import IterativeSolver, SolverState
 from .torch_optim import TorchOptimSolver
 

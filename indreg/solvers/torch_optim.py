@@ -8,7 +8,7 @@ import torch
 
 from .._checks import check_int, check_positive
 from .algorithm1 import check_problem
-from .objective import check_nonnegative
+from .._checks import check_nonnegative
 from .problem import RegistrationProblem
 from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems, rounding_tolerance
 
