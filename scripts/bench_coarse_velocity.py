@@ -5,7 +5,10 @@ tilt series about y of 61 tilts (-60..60 degrees, step 2) on an ``n x n`` detect
 noise at 10 dB (seed 0), sigma 3, N = 10, gamma 1e-6, ``interpolation="compose"``, Algorithm 1 with step 0.1 and
 step halving (the preset's solver), float32, run by ``indreg.register``.
 
-Time table: for every size and factor a fresh subprocess builds the data, runs ``--warmup`` iterations, then
+Variants: a factor ``f`` (``velocity_factor=f`` with the preset's ``compose``; 1 is the full grid), or ``1r``: the
+full grid with re-interpolation and the paper's gradient (``scripts/bench_register.py --volumes``' setting).
+
+Time table: for every size and variant a fresh subprocess builds the data, runs ``--warmup`` iterations, then
 ``--iters`` more; it reports the median wall and CPU seconds (process time, all threads) per iteration between
 the callbacks, evaluations per iteration, the peak RSS of the process (``ru_maxrss``: Python, torch and the data
 included) and its growth over the RSS before ``register``. The factors run interleaved (1, 2, 4, 1, 2, 4, ... per
@@ -54,7 +57,14 @@ def _problem(size: int):
 OPTIONS = dict(sigma=3.0, num_steps=10, gamma=1e-6, interpolation="compose", step_size=0.1, step_halving=True)
 
 
-def worker_time(size: int, factor: int, iters: int, warmup: int, threads: int) -> dict:
+def _variant(v: str) -> dict:
+    """``register()`` options of a variant: ``"f"`` -> ``velocity_factor=f``; ``"1r"`` -> re-interpolation."""
+    if v == "1r":
+        return {**OPTIONS, "interpolation": "reinterpolate", "velocity_factor": 1}
+    return {**OPTIONS, "velocity_factor": int(v)}
+
+
+def worker_time(size: int, variant: str, iters: int, warmup: int, threads: int) -> dict:
     import torch
 
     import indreg
@@ -67,18 +77,17 @@ def worker_time(size: int, factor: int, iters: int, warmup: int, threads: int) -
     def mark(state, info):
         marks.append((time.perf_counter(), time.process_time(), info["evaluations"]))
 
-    result = indreg.register(template, data, T, velocity_factor=factor, max_iter=warmup + iters, callback=mark,
-                             **OPTIONS)
+    result = indreg.register(template, data, T, max_iter=warmup + iters, callback=mark, **_variant(variant))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
     timed = marks[warmup - 1:] if warmup > 0 else marks
     wall = [b[0] - a[0] for a, b in zip(timed, timed[1:])]
     cpu = [b[1] - a[1] for a, b in zip(timed, timed[1:])]
-    return {"size": size, "factor": factor, "s_per_it": statistics.median(wall), "cpu_per_it": statistics.median(cpu),
+    return {"size": size, "variant": variant, "s_per_it": statistics.median(wall), "cpu_per_it": statistics.median(cpu),
             "evals_per_it": (timed[-1][2] - timed[0][2]) / max(len(wall), 1), "peak_gib": peak,
             "growth_gib": peak - rss_before, "objective": result.objective}
 
 
-def worker_quality(size: int, factor: int, iters: int, threads: int, at: list) -> dict:
+def worker_quality(size: int, variant: str, iters: int, threads: int, at: list) -> dict:
     import torch
 
     import indreg
@@ -94,13 +103,20 @@ def worker_quality(size: int, factor: int, iters: int, threads: int, at: list) -
         return False
 
     t0, c0 = time.perf_counter(), time.process_time()
-    r = indreg.register(template, data, T, velocity_factor=factor, max_iter=iters, callback=keep, target=target,
-                        **OPTIONS)
+    r = indreg.register(template, data, T, max_iter=iters, callback=keep, target=target, **_variant(variant))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     ssim = {it: metrics.ssim(r.problem.reconstruction((m,)), target) for it, m in sorted(kept.items())}
-    return {"size": size, "factor": factor, "iters": iters, "ssim_at": ssim, "ssim": r.ssim, "psnr": r.psnr,
+    return {"size": size, "variant": variant, "iters": iters, "ssim_at": ssim, "ssim": r.ssim, "psnr": r.psnr,
             "min_jacobian": r.min_jacobian, "residual": r.residual, "wall": wall, "cpu": cpu,
             "evaluations": r.history[-1]["evaluations"]}
+
+
+def _name(v: str) -> str:
+    return "f = 1, reinterpolate, paper" if v == "1r" else f"f = {v}"
+
+
+def _grid(size: int, v: str) -> str:
+    return f"{size}^3" if v == "1r" else f"{size // int(v)}^3"
 
 
 def _spawn(args: list) -> dict:
@@ -120,22 +136,23 @@ def time_table(args) -> None:
                 rows.setdefault((size, f), []).append(row)
                 print(f"# round {r + 1}: {size}^3 f={f}: {row}", file=sys.stderr)
     print(f"\n`indreg.register`, suite_et_3d settings (sigma 3, N = 10, compose, Algorithm 1, step 0.1 with step "
-          f"halving), float32, {args.threads} threads; median over {args.iters} iterations after {args.warmup} "
-          f"warm-up, {args.rounds} interleaved round(s) (one value per round); ratio = the factor's CPU s / it over "
-          f"f = 1's in the same round\n")
-    print("| grid | velocity_factor | velocity grid | s / iteration | CPU s / it | CPU ratio to f = 1 | "
+          f"halving), float32, {args.threads} thread(s); median over {args.iters} iterations after {args.warmup} "
+          f"warm-up, {args.rounds} interleaved round(s) (one value per round); ratio = the variant's CPU s / it over "
+          f"the first variant's in the same round\n")
+    print(f"| grid | variant | velocity grid | s / iteration | CPU s / it | CPU ratio to {args.factors[0]} | "
           "evaluations / it | peak RSS GiB | growth GiB |")
     print("|---|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
         for f in args.factors:
             runs = rows[(size, f)]
             if any("error" in x for x in runs):
-                print(f"| {size}^3 | {f} | {size // f}^3 | {runs[0].get('error', runs[-1].get('error'))} | | | | | |")
+                print(f"| {size}^3 | {_name(f)} | {_grid(size, f)} | {runs[0].get('error', runs[-1].get('error'))} "
+                      f"| | | | | |")
                 continue
             base = rows.get((size, args.factors[0]), [])
             ratios = [x["cpu_per_it"] / b["cpu_per_it"] for x, b in zip(runs, base) if "error" not in b]
             join = lambda key, fmt: " / ".join(format(x[key], fmt) for x in runs)  # noqa: E731
-            print(f"| {size}^3 | {f} | {size // f}^3 | {join('s_per_it', '.2f')} | {join('cpu_per_it', '.2f')} | "
+            print(f"| {size}^3 | {_name(f)} | {_grid(size, f)} | {join('s_per_it', '.2f')} | {join('cpu_per_it', '.2f')} | "
                   f"{' / '.join(f'{q:.2f}' for q in ratios)} | {join('evals_per_it', '.1f')} | "
                   f"{join('peak_gib', '.2f')} | {join('growth_gib', '.2f')} |")
 
@@ -145,23 +162,23 @@ def quality_table(args) -> None:
     rows = [_spawn(["--worker-quality", args.quality, f, "--quality-iters", args.quality_iters, "--threads",
                     args.threads, "--quality-at", *at]) for f in args.factors]
     print(f"\nQuality at {args.quality}^3 (suite_et_3d settings, {args.quality_iters} iterations, float32, "
-          f"{args.threads} threads): honest SSIM against the swirled phantom after k iterations\n")
-    print("| velocity_factor | " + " | ".join(f"SSIM @ {k}" for k in at) + " | PSNR | min Jacobian | residual | "
+          f"{args.threads} thread(s)): honest SSIM against the swirled phantom after k iterations\n")
+    print("| variant | " + " | ".join(f"SSIM @ {k}" for k in at) + " | PSNR | min Jacobian | residual | "
           "evaluations | wall s | CPU s |")
     print("|---|" + "---|" * (len(at) + 6))
     for f, r in zip(args.factors, rows):
         if "error" in r:
-            print(f"| {f} | {r['error']} |")
+            print(f"| {_name(f)} | {r['error']} |")
             continue
         ssim = " | ".join(f"{r['ssim_at'].get(str(k), float('nan')):.4f}" for k in at)
-        print(f"| {f} | {ssim} | {r['psnr']:.2f} | {r['min_jacobian']:.3f} | {r['residual']:.4f} | "
+        print(f"| {_name(f)} | {ssim} | {r['psnr']:.2f} | {r['min_jacobian']:.3f} | {r['residual']:.4f} | "
               f"{r['evaluations']} | {r['wall']:.0f} | {r['cpu']:.0f} |")
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="*", default=[64, 128])
-    p.add_argument("--factors", type=int, nargs="+", default=[1, 2, 4])
+    p.add_argument("--factors", nargs="+", default=["1", "2", "4"], help="velocity factors; 1r: re-interpolation")
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--iters", type=int, default=3)
     p.add_argument("--warmup", type=int, default=1)
@@ -169,13 +186,15 @@ def main() -> None:
     p.add_argument("--quality", type=int, default=None, help="grid size of the quality table (e.g. 64)")
     p.add_argument("--quality-iters", type=int, default=100)
     p.add_argument("--quality-at", type=int, nargs="*", default=[25, 50])
-    p.add_argument("--worker-time", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
-    p.add_argument("--worker-quality", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--worker-time", nargs=2, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--worker-quality", nargs=2, default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.worker_time:
-        print(json.dumps(worker_time(*args.worker_time, args.iters, args.warmup, args.threads)))
+        print(json.dumps(worker_time(int(args.worker_time[0]), args.worker_time[1], args.iters, args.warmup,
+                                     args.threads)))
     elif args.worker_quality:
-        print(json.dumps(worker_quality(*args.worker_quality, args.quality_iters, args.threads, args.quality_at)))
+        print(json.dumps(worker_quality(int(args.worker_quality[0]), args.worker_quality[1], args.quality_iters,
+                                        args.threads, args.quality_at)))
     else:
         if args.sizes:
             time_table(args)

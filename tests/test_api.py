@@ -235,16 +235,15 @@ def test_velocity_factor_backward_paper_runs_the_exact_gradient(tiny):
 
 @pytest.mark.slow
 def test_velocity_factor_2_on_suite1_reaches_the_quality_of_the_full_grid():
-    """The README's suite 1 (64^2, sigma 6, 200 iterations): velocity_factor=2 (32^2 velocity, compose) reaches about
-    the SSIM of the full grid (measured 0.885 vs compose on the full grid ...; docs/3d.md)."""
+    """The README's suite 1 (64^2, sigma 6, 200 iterations, fixed step) with compose: velocity_factor=2 (32^2
+    velocity) reaches the SSIM of the full grid (measured 0.968 vs 0.962; the README's re-interpolation 0.885)."""
     from indreg import noise as _noise
 
     domain = indreg.ImageDomain.paper(64)
     T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(10, 92))
     template, target = phantoms.get("j", domain), phantoms.get("v", domain)
     data, _ = _noise.add_white_noise(T(target), snr_db=4.87, seed=0)
-    options = dict(sigma=6.0, gamma=1e-6, step_size=0.02, step_halving=False, target=target)
+    options = dict(sigma=6.0, gamma=1e-6, step_size=0.02, step_halving=False, interpolation="compose", target=target)
     full = indreg.register(template, data, T, **options)
     coarse = indreg.register(template, data, T, velocity_factor=2, **options)
-    print(f"suite 1 SSIM: full {full.ssim:.4f}, velocity_factor=2 {coarse.ssim:.4f}")
-    assert coarse.ssim > full.ssim - 0.02 and coarse.min_jacobian > 0
+    assert coarse.ssim > full.ssim - 0.01 and coarse.min_jacobian > 0

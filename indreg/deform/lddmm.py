@@ -187,6 +187,9 @@ class LDDMMDeformation(torch.nn.Module):
     - ``nu = 0`` returns the template bit for bit (steps with an all-zero velocity are skipped when no
       autograd graph of the velocity is recorded; see ``functional._Steps``).
     - ``scheme``: finite differences, ``"central"`` (default) or ``"forward"`` (the authors' code).
+    - ``velocity_domain``: the grid of the velocity, ``domain`` here; ``CoarseVelocityDeformation`` (the subclass
+      behind ``register(velocity_factor=f)``) puts the velocity and the flow on a coarser grid of the same box.
+      ``replace(**changes)`` is the same kind of operator with some constructor arguments changed.
 
     Gradient scale (``backward="paper"``; torch's convention, derivatives w.r.t. tensor entries; the exact
     modes have the same scale):

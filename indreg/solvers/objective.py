@@ -104,7 +104,9 @@ class IndirectRegistration(RegistrationProblem):
         self.num_steps = int(deformation.num_steps)
 
     def __repr__(self):
-        return (f"IndirectRegistration(domain={self.domain}, N={self.num_steps}, gamma={self.gamma}, "
+        grids = f"domain={self.domain}" if self.image_domain == self.domain else \
+            f"image_domain={self.image_domain}, velocity on domain={self.domain}"
+        return (f"IndirectRegistration({grids}, N={self.num_steps}, gamma={self.gamma}, "
                 f"tv_weight={self.tv_weight}, action={getattr(self.deformation, 'action', '?')!r})")
 
     def with_deformation(self, deformation) -> "IndirectRegistration":
