@@ -394,7 +394,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
     _figures(cfg, exp, r, rec, result, out, writer, it)
     writer.metrics(result, it)
-    writer.hparams(hyperparameters(cfg, exp), {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
+    writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     if target is not None:
