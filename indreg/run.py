@@ -66,6 +66,14 @@ UNIT_RANGE = 3.0
 #: Data look offset when the median of the detector's outermost columns (``border_level``) is away from zero, or
 #: the median of all the data is below zero, by more than this fraction of the data's range.
 OFFSET_FRACTION = 0.05
+#: The factors by which file formats and instruments change units: powers of ten and the full scales of 8- to
+#: 16-bit integers (``2^b - 1``: images are normalised by their type's maximum), and their reciprocals.
+#: ``template_scale="auto"`` takes the nearest one when the fitted ``c`` lies within ``UNIT_SNAP`` of it
+#: (relative), since the fit is biased low by the shapes' mismatch (the paper's suite 1: ``c = 0.9735`` for a
+#: template in the data's units).
+UNIT_FACTORS = tuple(sorted({f ** e for f in [10.0 ** k for k in range(1, 7)]
+                             + [float(2 ** b - 1) for b in (8, 10, 12, 14, 16)] for e in (1, -1)} | {1.0}))
+UNIT_SNAP = 0.1
 
 
 @dataclass
@@ -122,6 +130,12 @@ def compare_units(template: torch.Tensor, data: torch.Tensor, operator) -> tuple
     return math.sqrt(_ratio(tt, gg)), _ratio(tg, tt)
 
 
+def unit_factor(c: float) -> float:
+    """The entry of ``UNIT_FACTORS`` nearest to ``c`` (in ratio) when within ``UNIT_SNAP`` of it, else ``c``."""
+    nearest = min(UNIT_FACTORS, key=lambda f: abs(math.log(c / f)))
+    return nearest if abs(c / nearest - 1) <= UNIT_SNAP else c
+
+
 def _template_factor(template_scale, units: Units, key: str) -> float:
     """The template's factor for ``template_scale`` (None: 1 and a warning if the units look different)."""
     if template_scale == "auto":
@@ -129,9 +143,11 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
             raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
                              f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
                              f"both, or give {key}=<number>")
-        log.info("template scaled by c = %.6g (%s='auto'; ||T I|| / ||g|| was %.4g)", units.scale_fit, key,
+        c = unit_factor(units.scale_fit)
+        log.info("template scaled by %.6g (%s='auto': the fitted c = %.6g%s; ||T I|| / ||g|| was %.4g)", c, key,
+                 units.scale_fit, "" if c == units.scale_fit else ", taken as the nearest unit factor",
                  units.projection_ratio)
-        return units.scale_fit
+        return c
     if template_scale is not None:
         return float(template_scale)
     if not all(1 / UNIT_RANGE <= v <= UNIT_RANGE for v in (units.projection_ratio, units.scale_fit)):
