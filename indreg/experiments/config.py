@@ -91,12 +91,15 @@ class FBPFilter(str, Enum):
 @dataclass
 class PhantomConfig:
     """Template I and target f_true (``indreg.phantoms``), digitised on ``size`` cells per axis of
-    ``[-half_width, half_width]^ndim`` (``ndim`` 2: images, 3: volumes)."""
+    ``[-half_width, half_width]^ndim`` (``ndim`` 2: images, 3: volumes). ``thickness`` (3D only; null: ``size``):
+    a slab of ``size x size x thickness`` cubic cells, ``[-h, h]^2 x [-h t / n, h t / n]``; the 3D phantoms are
+    defined on the box's normalised coordinates, so they flatten with it (electron tomography's thin specimen)."""
     template: Phantom = Phantom["j"]
     target: Phantom = Phantom["v"]
     size: int = 64
     half_width: float = 16.0
     ndim: int = 2
+    thickness: Optional[int] = None
 
 
 @dataclass
@@ -291,6 +294,9 @@ def validate(cfg: DictConfig) -> None:
     _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)
     _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
     _require(c.phantom.ndim in (2, 3), "phantom.ndim", "2 (images) or 3 (volumes)", c.phantom.ndim)
+    _require(c.phantom.thickness is None or (c.phantom.ndim == 3 and 7 <= c.phantom.thickness <= c.phantom.size),
+             "phantom.thickness", "null or, for volumes (phantom.ndim=3), an integer in [7, phantom.size] (7: the "
+             "SSIM window)", c.phantom.thickness)
     _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
              c.phantom.half_width)
     _validate_data(c)

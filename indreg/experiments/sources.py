@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import phantoms
 from ..domain import ImageDomain
-from ..inputs import RegistrationInputs, make_geometry, make_operator, square_domain
+from ..inputs import RegistrationInputs, box_domain, make_geometry, make_operator, square_domain
 from ..inputs import load as load_inputs
 from ..io import DataFileError, check_file, read_angles
 from ..tilt_axis import check_tilt_axis
@@ -198,7 +198,8 @@ def phantom_data(cfg: DictConfig) -> Data:
     """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
     (noise drawn with the run's seed), so the same config gives the same data on every device."""
     p, g = cfg.phantom, cfg.geometry
-    domain = square_domain(p.size, p.half_width, p.ndim)
+    domain = (square_domain(p.size, p.half_width, p.ndim) if p.thickness is None
+              else box_domain((p.size, p.size, p.thickness), p.half_width))
     T = make_operator(domain, make_geometry(g.kind.value, g.det_count, angles=_angles(g), **geometry_options(g)))
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)

@@ -118,12 +118,36 @@ def test_tilt_series_files_resume_like_uninterrupted(tmp_path):
     (["experiment=suite_et_3d", "geometry.tilt_step=0"], r"geometry\.tilt_step"),
     (["experiment=suite_et_3d", "geometry.tilt_min=70"], r"geometry\.tilt_min"),
     (["experiment=suite_et_3d", "phantom.ndim=4"], r"phantom\.ndim"),
+    (["experiment=suite_et_3d_slab", "phantom.thickness=300"], r"phantom\.thickness.*\[7, phantom\.size\]"),
+    (["experiment=suite_et_3d_slab", "phantom.thickness=6"], r"phantom\.thickness"),
+    (["phantom.thickness=8"], r"phantom\.thickness.*for volumes"),
 ])
 def test_3d_config_errors(overrides, match):
     from indreg.experiments.config import ConfigError, validate
 
     with pytest.raises(ConfigError, match=match):
         validate(compose(overrides))
+
+
+def test_slab_preset_through_the_app(tmp_path):
+    """suite_et_3d_slab at 16 x 16 x 8: cubic cells on [-8, 8]^2 x [-4, 4] (1-unit voxels), the phantom flattened
+    into the slab (its mean over the box as in the cube), a completed run."""
+    from indreg.experiments.build import build
+
+    args = ["experiment=suite_et_3d_slab", "phantom.size=16", "phantom.thickness=8", "phantom.half_width=8",
+            "geometry.det_count=16", "geometry.det_min=-8", "geometry.det_max=8", "solver.max_iter=2",
+            "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false", "logging.progress=false"]
+    exp = build(compose(args))
+    assert exp.domain.shape == (16, 16, 8) and exp.domain.cell_sides == (1.0, 1.0, 1.0)
+    assert exp.domain.min_pt == (-8.0, -8.0, -4.0) and exp.ray_transform.range_shape == (61, 16, 16)
+    cube = build(compose(args[:1] + ["phantom.size=16", "phantom.half_width=8", "phantom.thickness=16",
+                                     "geometry.det_count=16", "geometry.det_min=-8", "geometry.det_max=8"]))
+    # the phantom lives on the box's normalised coordinates: flattened, its mean over the box is the cube's
+    assert float(exp.template.mean()) == pytest.approx(float(cube.template.mean()), rel=0.03)
+    assert float(exp.template.mean()) > 0.05
+    m = run_app(args, tmp_path)
+    assert m["status"] == "completed" and m["iterations"] == 2 and np.isfinite(m["ssim"])
+    assert np.load(tmp_path / "final.npy").shape == (16, 16, 8)
 
 
 def test_velocity_factor_through_the_app(tmp_path):
