@@ -46,7 +46,9 @@ class CoarseVelocityDeformation(LDDMMDeformation):
       grid; the record is the coarse displacements). ``"autograd"``: plain autograd through the same forward.
       The paper's gradient formula has no coarse-grid form (it needs ``I o phi_{t_i,0}`` on the image's grid).
     - ``interpolation``: ``"compose"`` only (the template is sampled once at the interpolated map).
-    - ``jacobian_determinant`` / ``min_jacobian`` / ``deformation``: of ``Id + P u_N`` on the image's grid.
+    - ``jacobian_determinant`` / ``deformation``: of ``Id + P u_N`` on the image's grid; ``min_jacobian`` (the
+      folding check of every step): of the coarse map ``Id + u_N`` on the velocity grid, whose interpolation is
+      applied (``f^d`` times cheaper: at 256^3 with ``f = 4`` the fine determinant cost more than half a gradient).
 
     Convention:
         ``velocity (..., N+1, d, *velocity_domain.shape)`` (component 0 = x; physical units per unit time),
@@ -110,6 +112,19 @@ class CoarseVelocityDeformation(LDDMMDeformation):
         moving, c = self._check_velocity(velocity), -self.domain.ndim - 1
         jac = Fd.jacobian_trajectory(velocity, self.velocity_domain, self.scheme, moving).select(c, -1)
         return Fd.upsample(jac.unsqueeze(c), self.domain.shape).squeeze(c)
+
+    def min_jacobian(self, velocity: torch.Tensor) -> torch.Tensor:
+        """Minimum of ``det D phi_{1,0}`` on the velocity grid, ``(...)``: the coarse map ``Id + u_N`` (finite
+        differences as ``LDDMMDeformation.jacobian_determinant``), which ``P`` interpolates to the image's grid.
+        Inside, the fine map's derivatives are blends of the coarse differences and the two agree to the
+        interpolation's error of a field smooth on the scale sigma (``tests/deform/test_coarse.py``: minima within
+        0.035 on swirls of scale 4 at coarse cells of 1, down to 0.3; both <= 0 where it folds); within a coarse cell of the
+        border, where ``P`` continues constantly and the differences are one-sided, the fine map reads lower
+        (0.78 vs 0.88 for the swirl of amplitude 2)."""
+        moving = self._check_velocity(velocity)
+        with torch.no_grad():
+            u = Fd.displacement_10(velocity, self.velocity_domain, moving)
+            return Fd.displacement_determinant(u, self.velocity_domain).amin(dim=self.velocity_domain.dims)
 
     def _displacement_10(self, velocity: torch.Tensor, moving: list) -> torch.Tensor:
         """``P u_N``: the coarse ``phi_{1,0} - Id`` (physical units) interpolated to the image's grid."""
