@@ -7,7 +7,8 @@ are the app's), then ``solver.step`` runs until the solver stops (``solver.max_i
 solver's own convergence test). Only the steps are timed; after every step, outside the timed region, the
 deformed template ``W(K m, I)`` (the problem's deformation, its grid) is compared with the ground truth:
 SSIM in the paper's convention (``metrics.ssim_paper``) decides when the paper's value is reached (suite 3:
-0.9039, suite 1: 0.911, the authors' code), and the honest SSIM / PSNR (``metrics.ssim`` / ``psnr``, data
+0.9039, suite 1: 0.911, the authors' code; the 3D electron-tomography presets ``et128`` / ``et256``: the honest
+SSIM 0.93, issue #20's target, the column "SSIM*" then means it), and the honest SSIM / PSNR (``metrics.ssim`` / ``psnr``, data
 range of the ground truth) are reported then and at the end; "stays from" is the time from which SSIM* does not
 drop below the paper's value again until the end; "SSIM >= 0.92 at" the first time the honest SSIM reaches
 0.92 (the fast mode's target at the end of suite 3). The ground truth is only measured, never given
@@ -27,6 +28,7 @@ Modes (``--modes``; each a list of config overrides on top of the suite's preset
 
     python scripts/bench_time_to_quality.py                             # suites 1 and 3, algorithm1 and fast
     python scripts/bench_time_to_quality.py --suites 3 --modes algorithm1 fast algorithm1_compose --repeat 2
+    python scripts/bench_time_to_quality.py --suites et128 --modes fast fast_f2 --threads 1
 
 Prints one Markdown table, a row per run with what its mode changes; its last two columns compare the seconds
 to SSIM* with those of ``algorithm1`` (the speed-up) and of ``fast`` (for an ablation, what the part of fast it
@@ -41,7 +43,10 @@ import json
 import math
 import time
 
-SUITES = {"1": ("suite1_jv", 0.911), "3": ("suite3_shepp_logan", 0.9039)}
+SUITES = {  # suite: (preset, SSIM* threshold, the metric it is read on)
+    "1": ("suite1_jv", 0.911, "ssim_paper"), "3": ("suite3_shepp_logan", 0.9039, "ssim_paper"),
+    # electron tomography in 3D (issue #20's targets): no paper value, the honest SSIM 0.93 is SSIM*
+    "et128": ("suite_et_3d_128", 0.93, "ssim"), "et256": ("suite_et_3d_256", 0.93, "ssim")}
 HONEST = 0.92   # the honest SSIM the fast mode must end above on suite 3 (time to it: a column of the table)
 MODES = {   # mode: (config overrides, what it changes)
     "algorithm1": ([], "the paper's preset: one grid, reinterpolate, step 0.02"),
@@ -56,6 +61,9 @@ MODES = {   # mode: (config overrides, what it changes)
     "fast_lbfgs": (["solver=fast", "solver.optimizer_kwargs.inner=lbfgs",
                     "solver.optimizer_kwargs.level_iter=[30,40]"], "fast, L-BFGS on every level"),
     "lbfgs_compose": (["solver=lbfgs", "deformation.interpolation=compose"], "one grid, L-BFGS + compose"),
+    "fast_f2": (["solver=fast", "deformation.velocity_factor=2"], "fast, velocity on a 2x coarser grid"),
+    "fast_f4": (["solver=fast", "deformation.velocity_factor=4"], "fast, velocity on a 4x coarser grid"),
+    "algorithm1_f4": (["deformation.velocity_factor=4"], "preset, velocity on a 4x coarser grid"),
 }
 
 
@@ -106,7 +114,7 @@ def measure(suite: str, mode: str, extra: list, max_seconds: float) -> dict:
     from indreg.solvers import SolverState
 
     exp = build(suite, mode, extra)
-    threshold = SUITES[suite][1]
+    _, threshold, metric = SUITES[suite]
     solver, state = exp.solver, SolverState(exp.problem.zero_momentum())
     seconds, hit, stays, honest, info, status = 0.0, None, None, None, None, None
     while status is None and seconds < max_seconds:
@@ -118,7 +126,7 @@ def measure(suite: str, mode: str, extra: list, max_seconds: float) -> dict:
         point = dict(q, seconds=seconds, iteration=state.iteration, evaluations=info["evaluations"])
         if q["ssim"] >= HONEST:
             honest = honest or point
-        if q["ssim_paper"] >= threshold:
+        if q[metric] >= threshold:
             hit = hit or point
             stays = stays or point
         else:
