@@ -10,8 +10,9 @@ optionally ``HAADF_Aligned.hspy``) it runs offline.
 Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs,
 how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin to
 ``--size`` detector pixels; a template "from an earlier scan" (a smoothed, segmented SIRT reconstruction from the
-even tilts, reconstructed in voxel units as other programs do, so not in the data's units); the data: a sparse
-subset of the odd tilts (``--fit``), more odd tilts held out for validation; registration with
+even tilts, reconstructed in voxel units as other programs do, so not in the data's units, and turned by
+``--misalign`` degrees); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th),
+the odd tilts between them held out for validation; registration with
 ``template_scale="auto"``, ``background="auto"`` and ``holdout``; FBP / SIRT / TV from the same sparse tilts; all
 scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
@@ -180,25 +181,26 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 # ------------------------------------------------------------------------------------------------ template
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 1.0) -> tuple:
+                  smooth: float = 0.5, classes: int = 5) -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
-    its intensities are per voxel length, not per nm), smoothed, segmented into three phases (multi-Otsu: vacuum,
-    the dim and the bright part of the rod) with each phase's mean, smoothed again; turned by ``misalign``
-    degrees about the beam (a specimen mounted differently). Returns ``(template, sirt volume)``."""
+    its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
+    phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
+    turned by ``misalign`` degrees about the beam (a specimen mounted differently). Returns
+    ``(template, sirt volume)``."""
     from scipy import ndimage
     from skimage.filters import threshold_multiotsu
 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
     x, _ = sirt(operator(unit, angles), torch.from_numpy(data), num_iter=iters, nonneg=True)
     v = ndimage.gaussian_filter(x.numpy(), smooth)
-    thresholds = threshold_multiotsu(v, classes=3)
+    thresholds = threshold_multiotsu(v, classes=classes)
     labels = np.digitize(v, thresholds)
-    means = [0.0] + [float(v[labels == k].mean()) for k in (1, 2)]
+    means = [0.0] + [float(v[labels == k].mean()) for k in range(1, classes)]
     template = ndimage.gaussian_filter(np.take(means, labels), smooth)
     if misalign:
         template = ndimage.rotate(template, misalign, axes=(0, 1), reshape=False, order=1)
     say(f"  SIRT of {len(angles)} even tilts on unit voxels ({iters} iterations), phases at {thresholds.round(1)}: "
-        f"{[(labels == k).sum() for k in range(3)]} voxels, means {np.round(means, 1)}; turned by {misalign:g} deg")
+        f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; turned by {misalign:g} deg")
     return template, x.numpy()
 
 
@@ -264,7 +266,7 @@ def save(volumes: dict, domain: ImageDomain, out: Path) -> None:
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0, step_size: float = 0.02,
-        max_halvings: int = 40, quick: bool = False) -> dict:
+        max_halvings: int = 40, classes: int = 5, smooth: float = 0.5, quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``."""
     t0 = time.process_time()
     out.mkdir(parents=True, exist_ok=True)
@@ -310,7 +312,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     for k, v in tilts.items():
         say(f"  {k:10s} {len(v):2d} tilts: {np.degrees(angles[v]).round(0).astype(int).tolist()}")
     template, sirt_even = make_template(turned[tilts["template"]] - level, angles[tilts["template"]],
-                                        domain.shape, misalign, iters=20 if quick else 50)
+                                        domain.shape, misalign, iters=20 if quick else 50, smooth=smooth,
+                                        classes=classes)
 
     say("6. the data and the units")
     rows = np.sort(np.concatenate([tilts["fit"], tilts["validation"]]))
@@ -346,7 +349,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     tb = time.process_time()
     base = baselines(T["fit"], Y["fit"], T["validation"], Y["validation"],
                      sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
-                     tv_mus=(0.1,) if quick else (0.03, 0.1, 0.3, 1.0), tv_iters=20 if quick else 200)
+                     tv_mus=(0.1,) if quick else (0.3, 1.0, 3.0, 10.0), tv_iters=20 if quick else 200)
     metrics["baselines_cpu_seconds"] = time.process_time() - tb
 
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
