@@ -128,3 +128,26 @@ def test_real_haadf_files(example):
     turned = example.align_tilt_axis(example.bin_stack(aligned, 32), example.TILT_AXIS_ANGLE)
     out = example.handedness(turned - np.median(turned), angles, example.volume_domain(32, 32, 26.88), iters=3)
     assert out["mirror_difference"] < 1e-10
+
+
+def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
+    """Without --data: ``pip download`` (faked here: no network in CI) into a temporary folder, then the
+    ``etspy/tests/test_data/HAADF*`` members and the licence are unpacked into the cache; a second call reuses it."""
+    import zipfile
+    calls = []
+
+    def fake_pip(command, check):
+        calls.append(command)
+        wheel = Path(command[command.index("-d") + 1]) / "etspy-1.3.0-py3-none-any.whl"
+        with zipfile.ZipFile(wheel, "w") as z:
+            for f in ("HAADF.mrc", "HAADF.rawtlt"):
+                z.write(stand_in / f, f"etspy/tests/test_data/{f}")
+            z.writestr("etspy/__init__.py", "")
+            z.writestr("etspy-1.3.0.dist-info/LICENSE", "NIST")
+
+    monkeypatch.setattr(example.subprocess, "run", fake_pip)
+    cache = tmp_path / "cache"
+    assert example.fetch(cache) == cache and example.fetch(cache) == cache
+    assert len(calls) == 1 and example.WHEEL in calls[0] and "--no-deps" in calls[0]
+    assert sorted(p.name for p in cache.iterdir()) == ["HAADF.mrc", "HAADF.rawtlt", "LICENSE"]
+    assert example.read_raw(cache)[0].shape == (31, 32, 32)
