@@ -200,7 +200,8 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     if misalign:
         template = ndimage.rotate(template, misalign, axes=(0, 1), reshape=False, order=1)
     say(f"  SIRT of {len(angles)} even tilts on unit voxels ({iters} iterations), phases at {thresholds.round(1)}: "
-        f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; turned by {misalign:g} deg")
+        f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; "
+        f"turned by {misalign:g} deg")
     return template, x.numpy()
 
 
@@ -265,9 +266,11 @@ def save(volumes: dict, domain: ImageDomain, out: Path) -> None:
 
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
-        num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0, step_size: float = 0.02,
-        max_halvings: int = 40, classes: int = 5, smooth: float = 0.5, quick: bool = False) -> dict:
-    """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``."""
+        num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
+        step_size: float = 0.02, max_halvings: int = 40, classes: int = 5, smooth: float = 0.5,
+        quick: bool = False) -> dict:
+    """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
+    ``quick``: fewer SIRT / TV iterations and candidates (the tests)."""
     t0 = time.process_time()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder)}
@@ -281,9 +284,6 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
 
     say("2. the tilt axis (as stored; indreg wants it along the rows' index)")
     metrics["tilt_axis_as_stored"] = axis_checks(raw, aligned)
-    if aligned is not None:
-        moved = np.abs(raw - border_level(torch.from_numpy(raw)) - (aligned - border_level(torch.from_numpy(aligned))))
-        say(f"  raw vs aligned: mean |difference| {moved.mean():.1f} counts (the aligned stack's shifts)")
     stack = aligned if aligned is not None else raw
 
     say("3. the background")
