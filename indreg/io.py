@@ -15,8 +15,9 @@ Convention:
     - Grey levels are kept as numbers (uint8 / uint16 values become floats, no rescaling). RGB(A) pictures
       become grey by luminance ``0.2125 R + 0.7154 G + 0.0721 B`` (ITU-R BT.709, as ``skimage.color.rgb2gray``);
       an alpha channel is ignored.
-    - Path syntax: ``file.npz`` (one array) or ``file.npz:key``; ``file.h5:/group/dataset`` (also ``.hdf5``),
-      the dataset may be omitted when the file holds exactly one.
+    - Path syntax: ``file.npz`` (one array) or ``file.npz:key``; ``file.h5:/group/dataset`` (also ``.hdf5``, and
+      HyperSpy's ``.hspy``, HDF5 with the signal at ``file.hspy:/Experiments/__unnamed__/data``), the dataset may
+      be omitted when the file holds exactly one.
     - Every problem with a file raises :class:`DataFileError`, one line naming the file and the problem.
       Problems with inline values (angle lists, ``angle_unit``) raise ``ValueError``.
 
@@ -38,7 +39,7 @@ from .domain import ImageDomain
 
 PICTURE = (".png", ".tif", ".tiff")
 MRC = (".mrc", ".st", ".ali")
-CONTAINER = (".npz", ".h5", ".hdf5")
+CONTAINER = (".npz", ".h5", ".hdf5", ".hspy")
 FORMATS = (".npy",) + CONTAINER + MRC + PICTURE
 WRITE_FORMATS = (".npy", ".mrc")
 ANGLE_UNITS = ("deg", "rad")
@@ -48,7 +49,7 @@ RADIAN_SPAN = 3.2
 log = logging.getLogger("indreg")
 #: ITU-R BT.709 luminance weights of R, G, B (``skimage.color.rgb2gray``).
 LUMINANCE = (0.2125, 0.7154, 0.0721)
-_KEYED = re.compile(r"^(.*\.(?:npy|npz|h5|hdf5|mrc|st|ali|png|tif|tiff)):(.*)$", re.IGNORECASE)
+_KEYED = re.compile(r"^(.*\.(?:npy|npz|h5|hdf5|hspy|mrc|st|ali|png|tif|tiff)):(.*)$", re.IGNORECASE)
 #: Leading bytes of the formats whose readers give confusing messages on other files.
 _SIGNATURE = {".npy": b"\x93NUMPY", ".npz": b"PK", ".png": b"\x89PNG\r\n\x1a\n"}
 
@@ -175,7 +176,7 @@ def _check_signature(path: Path, suffix: str) -> None:
             raise _Problem(f"unreadable as {suffix} (not a {suffix} file: wrong leading bytes)")
 
 
-_READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _read_h5,
+_READERS = {".npy": _read_npy, ".npz": _read_npz, ".h5": _read_h5, ".hdf5": _read_h5, ".hspy": _read_h5,
             ".png": _read_png, ".tif": _read_tif, ".tiff": _read_tif,
             **{ext: _read_mrc for ext in MRC}}
 

@@ -13,8 +13,8 @@ import torch
 
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
-from indreg.io import (DataFileError, read_angles, read_image, read_sinogram, read_tilt_series, read_volume,
-                       read_voxel_size, tilt_angles_for, write_image, write_tilt_series, write_volume)
+from indreg.io import (DataFileError, read_angles, read_image, read_sinogram, read_stack, read_tilt_series,
+                       read_volume, read_voxel_size, tilt_angles_for, write_image, write_tilt_series, write_volume)
 
 
 def picture(rows=5, cols=7, dtype=np.uint8):
@@ -74,6 +74,19 @@ def test_h5_dataset_syntax_and_single_dataset(tmp_path):
         f.create_dataset("/sino", data=b)
     np.testing.assert_array_equal(read_image(f"{tmp_path / 'two.hdf5'}:/group/img"), a)
     np.testing.assert_array_equal(read_sinogram(f"{tmp_path / 'two.hdf5'}:sino"), b)
+
+
+def test_hspy_is_hdf5_with_the_signal_named(tmp_path):
+    """HyperSpy's .hspy (etspy's aligned stacks): the signal array at /Experiments/__unnamed__/data, read as
+    stored; without the key the metadata arrays make the dataset ambiguous (one-line error)."""
+    stack = np.arange(3 * 4 * 5, dtype=np.float32).reshape(3, 4, 5)
+    path = tmp_path / "stack.hspy"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("/Experiments/__unnamed__/data", data=stack)
+        f.create_dataset("/Experiments/__unnamed__/metadata/tilts", data=np.zeros(3))
+    np.testing.assert_array_equal(read_stack(f"{path}:/Experiments/__unnamed__/data"), stack)
+    with pytest.raises(DataFileError, match="holds 2 datasets"):
+        read_stack(path)
 
 
 def test_mrc_round_trip_and_image_section(tmp_path):

@@ -51,6 +51,19 @@ def test_equals_2d_projector_slice_by_slice(axis):
     assert T.adjoint_scale == pytest.approx(T2.adjoint_scale, rel=1e-14)   # the cell side along t cancels
 
 
+@pytest.mark.parametrize("axis", ["x", "y", "z"])
+def test_negated_angles_are_the_mirrored_specimen(axis):
+    """Negating every tilt angle gives the data of the specimen mirrored along v (the beam at tilt 0) exactly:
+    the data of a single-axis series cannot tell the angles' sign, only the volume's handedness changes
+    (docs/tilt_series.md): ``p(-theta, t, s)[f] = p(theta, t, s)[f(u, -v)]`` on a domain centred in v."""
+    dom = ImageDomain((9, 6, 7), (-4.5, -2.4, -3.5), (4.5, 2.4, 3.5))       # centred, unequal cells
+    v = max(b for b in range(3) if b != "xyz".index(axis))
+    f = torch.rand(dom.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    plus = TiltSeriesTransform(dom, TiltSeriesGeometry(TILTS, 11, tilt_axis=axis, angle_unit="deg"))
+    minus = TiltSeriesTransform(dom, TiltSeriesGeometry([-a for a in TILTS], 11, tilt_axis=axis, angle_unit="deg"))
+    torch.testing.assert_close(minus(f), plus(torch.flip(f, dims=(v,))), rtol=1e-12, atol=1e-12)
+
+
 def test_ball_chords_are_exact():
     """The analytic reference itself: a ball of radius 8 gives 2 sqrt(64 - s^2 - t^2) at every tilt."""
     dom = ImageDomain.paper(16, 3)

@@ -1,0 +1,153 @@
+"""examples/real_data_haadf.py (docs/real_data.md) on a synthetic stand-in of the HAADF series, and on the real
+files when ``INDREG_HAADF_DIR`` names a folder holding them (``HAADF.mrc``, ``HAADF.rawtlt``,
+``HAADF_Aligned.hspy``; see the example's docstring for where to get them)."""
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import h5py
+import mrcfile
+import numpy as np
+import pytest
+import torch
+
+from indreg import phantoms
+from indreg.domain import ImageDomain
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "real_data_haadf.py"
+OFFSET = -31886          # the raw stack's int16 level outside the specimen
+SCALE = 400.0            # counts per unit line integral
+
+
+@pytest.fixture(scope="module")
+def example():
+    spec = importlib.util.spec_from_file_location("real_data_haadf", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def rod_series(example, angles_deg: np.ndarray, pixels: int = 32) -> np.ndarray:
+    """Projections ``(tilts, rows, cols)`` of a 3D rod along y with a bright segment, on a ``pixels^3`` grid of
+    unit cells, in indreg's layout (tilt axis along the rows' index)."""
+    domain = ImageDomain((pixels,) * 3, (-pixels / 2,) * 3, (pixels / 2,) * 3)
+    rod = [(1.0, 0.3, 0.8, 0.3, 0.05, -0.1, 0.0, 0, 0, 0), (2.0, 0.25, 0.2, 0.25, 0.05, 0.3, 0.05, 0, 0, 0),
+           (1.0, 0.1, 0.1, 0.1, 0.4, -0.5, 0.3, 0, 0, 0)]                   # off-centre: the axis is decided
+    volume = phantoms.ellipsoid_phantom(domain, rod)
+    return example.operator(domain, np.radians(angles_deg))(volume).numpy()
+
+
+@pytest.fixture(scope="module")
+def stand_in(tmp_path_factory, example):
+    """A folder like the etspy one: an int16 raw stack with the tilt axis along X and an offset, its .rawtlt,
+    and an "aligned" .hspy (float32, minimum moved to 0, as etspy's)."""
+    folder = tmp_path_factory.mktemp("haadf")
+    angles = np.arange(-60.0, 61.0, 4.0)                                    # 31 tilts
+    series = rod_series(example, angles)
+    raw = np.rot90(series, k=-1, axes=(1, 2))                               # axis along X, as the raw stack
+    counts = np.round(SCALE * raw + OFFSET).astype(np.int16)
+    with mrcfile.new(folder / "HAADF.mrc") as m:
+        m.set_data(counts)
+    (folder / "HAADF.rawtlt").write_text("".join(f"{a:8.2f}\n" for a in angles))
+    with h5py.File(folder / "HAADF_Aligned.hspy", "w") as f:
+        f.create_dataset(example.ALIGNED_KEY, data=(counts - counts.min()).astype(np.float32))
+        f.create_dataset("/Experiments/__unnamed__/metadata/Tomography/tilts", data=angles)
+    return folder
+
+
+def test_split_tilts_disjoint_and_in_range(example):
+    angles = np.radians(np.arange(-76.0, 77.0, 2.0))
+    t = example.split_tilts(angles, fit_every=2, max_angle=40.0)
+    assert t["template"].tolist() == list(range(0, 77, 2))
+    used = np.concatenate([t["fit"], t["validation"], t["test"]])
+    assert sorted(used.tolist()) == list(range(1, 77, 2))                   # every odd tilt once
+    assert np.abs(np.degrees(angles[np.concatenate([t["fit"], t["validation"]])])).max() <= 40.0 + 1e-9
+    assert len(t["fit"]) == len(t["validation"]) == 10 and len(t["test"]) == 18
+
+
+def test_bin_stack_keeps_counts_per_pixel(example):
+    stack = np.arange(2 * 8 * 8, dtype=float).reshape(2, 8, 8)
+    binned = example.bin_stack(stack, 4)
+    assert binned.shape == (2, 4, 4)
+    assert binned[1, 2, 3] == stack[1, 4:6, 6:8].mean()
+    with pytest.raises(ValueError, match="--size"):
+        example.bin_stack(stack, 3)
+
+
+def test_handedness_negated_angles_mirror_the_volume(example):
+    """Negating every angle fits the data equally and mirrors the reconstruction along the beam (z)."""
+    angles = np.arange(-60.0, 61.0, 10.0)
+    data = rod_series(example, angles, pixels=16)
+    domain = example.volume_domain(16, 16, 1.0)
+    out = example.handedness(data, np.radians(angles), domain, iters=5)
+    assert out["residual_as_given"] == pytest.approx(out["residual_negated"], rel=1e-10)
+    assert out["mirror_difference"] < 1e-10
+
+
+def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
+    out = tmp_path / "out"
+    m = example.run(stand_in, out, size=16, depth=16, iters=4, sigma_cells=2.0, num_steps=4, misalign=3.0,
+                    max_angle=30.0, quick=True)
+    assert json.loads((out / "metrics.json").read_text())["num_tilts"] == 31
+    assert (out / "figure.png").stat().st_size > 0
+    for name in ("registered", "template", "fbp", "sirt", "tv"):
+        assert np.load(out / f"{name}.npy").shape == (16, 16, 16)
+        assert (out / f"{name}.mrc").exists()
+    # the raw stack: its offset found, its tilt axis along X (with the offset removed)
+    assert m["background_raw"]["border_level"] == pytest.approx(OFFSET, abs=1)
+    assert m["tilt_axis_as_stored"]["raw - background"]["tilt_axis_direction"] == "columns"
+    assert m["tilt_axis_turned"]["tilt_axis_direction"] == "rows"
+    assert m["load"]["tilt_axis_angle"] == 90.0
+    # the template is per voxel length (pixel 3.36 * 32 / 16 nm), the data per nm: template_scale ~ 1 / cell
+    cell = example.PIXEL_NM * 32 / 16
+    reg = m["registration"]
+    assert 0.5 / cell < reg["template_scale"] < 2.0 / cell
+    assert reg["background"] == pytest.approx(0.0, abs=1.0)                # the aligned stack starts at ~0
+    assert reg["residual"] <= m["scores"]["template"]["fit_residual"] + 1e-9
+    assert set(m["scores"]) == {"template", "registered", "FBP", "SIRT", "TV"}
+    assert all(np.isfinite(s["test_residual"]) for s in m["scores"].values())
+
+
+REAL = os.environ.get("INDREG_HAADF_DIR")
+
+
+@pytest.mark.skipif(not REAL, reason="INDREG_HAADF_DIR not set (the etspy HAADF files; docs/real_data.md)")
+def test_real_haadf_files(example):
+    """The numbers docs/real_data.md quotes for the reading and the checks of the real series."""
+    folder = Path(REAL)
+    with pytest.warns(UserWarning, match="invalid MRC header"):
+        raw, angles = example.read_raw(folder)
+    assert raw.shape == (77, 256, 256) and np.degrees(angles[[0, -1]]).tolist() == pytest.approx([-76, 76])
+    aligned = example.read_aligned(folder)
+    assert aligned.shape == raw.shape
+    checks = example.axis_checks(raw, aligned)
+    assert checks["raw - background"]["tilt_axis_direction"] == "columns"
+    level = example.background_report(raw, "raw")["border_level"]
+    assert -31890 < level < -31875
+    turned = example.align_tilt_axis(example.bin_stack(aligned, 32), example.TILT_AXIS_ANGLE)
+    out = example.handedness(turned - np.median(turned), angles, example.volume_domain(32, 32, 26.88), iters=3)
+    assert out["mirror_difference"] < 1e-10
+
+
+def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
+    """Without --data: ``pip download`` (faked here: no network in CI) into a temporary folder, then the
+    ``etspy/tests/test_data/HAADF*`` members and the licence are unpacked into the cache; a second call reuses it."""
+    import zipfile
+    calls = []
+
+    def fake_pip(command, check):
+        calls.append(command)
+        wheel = Path(command[command.index("-d") + 1]) / "etspy-1.3.0-py3-none-any.whl"
+        with zipfile.ZipFile(wheel, "w") as z:
+            for f in ("HAADF.mrc", "HAADF.rawtlt"):
+                z.write(stand_in / f, f"etspy/tests/test_data/{f}")
+            z.writestr("etspy/__init__.py", "")
+            z.writestr("etspy-1.3.0.dist-info/LICENSE", "NIST")
+
+    monkeypatch.setattr(example.subprocess, "run", fake_pip)
+    cache = tmp_path / "cache"
+    assert example.fetch(cache) == cache and example.fetch(cache) == cache
+    assert len(calls) == 1 and example.WHEEL in calls[0] and "--no-deps" in calls[0]
+    assert sorted(p.name for p in cache.iterdir()) == ["HAADF.mrc", "HAADF.rawtlt", "LICENSE"]
+    assert example.read_raw(cache)[0].shape == (31, 32, 32)
