@@ -70,8 +70,8 @@ def test_auto_scale_is_the_least_squares_fit_and_removes_the_units():
     assert a.status == b.status == "completed"
 
 
-@pytest.mark.parametrize("c, expected", [(0.9735 / 255, 1 / 255), (1.08, 1.0), (0.0093, 0.01), (1 / 66000, 1 / 65535),
-                                         (4000.0, 4095.0), (1.2, 1.2), (0.5, 0.5), (37.0, 37.0)])
+@pytest.mark.parametrize("c, expected", [(0.9735 / 255, 1 / 255), (1.04, 1.0), (1.01e-3, 1e-3), (1 / 66000, 1 / 65535),
+                                         (4000.0, 4095.0), (1.08, 1.08), (0.5, 0.5), (37.0, 37.0), (0.095, 0.095)])
 def test_unit_factor_takes_a_format_factor_only_when_near(c, expected):
     assert run.unit_factor(c) == pytest.approx(expected, rel=1e-12)
 
