@@ -101,11 +101,10 @@ def bin_stack(stack: np.ndarray, size: int) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------ checks
 def axis_checks(raw: np.ndarray, aligned) -> dict:
-    """The tilt-axis check (``indreg.tilt_axis.check_tilt_axis``) of the stacks as stored, with and without the
-    background level (a constant offset adds the same to every profile and hides their differences)."""
-    stacks = {"raw": raw, "raw - background": raw - border_level(torch.from_numpy(raw))}
-    if aligned is not None:
-        stacks.update({"aligned": aligned, "aligned - background": aligned - border_level(torch.from_numpy(aligned))})
+    """The tilt-axis check (``indreg.tilt_axis.check_tilt_axis``) of the stacks as stored (the check subtracts
+    the level of the images' outer frame: an offset would add the same to every profile and hide their
+    differences)."""
+    stacks = {"raw": raw} if aligned is None else {"raw": raw, "aligned": aligned}
     out = {}
     for name, s in stacks.items():
         check = check_tilt_axis(s)
@@ -295,8 +294,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     binned = bin_stack(stack, size)
     cell = PIXEL_NM * stack.shape[1] / size
     turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
-    check = check_tilt_axis(turned - border_level(torch.from_numpy(turned)))
-    say(f"  turned, background removed: {check.describe()}; voxel {cell:g} nm")
+    check = check_tilt_axis(turned)
+    say(f"  turned: {check.describe()}; voxel {cell:g} nm")
     metrics["tilt_axis_turned"] = check.metrics()
     level = border_level(torch.from_numpy(turned))
     domain = volume_domain(size, depth, cell)

@@ -116,11 +116,21 @@ def _spread(profiles: np.ndarray) -> float:
     return math.sqrt(float((residual ** 2).sum()) / len(q))
 
 
+def frame_level(a: np.ndarray) -> float:
+    """The median of the images' outer frame (the ``max(1, n // 16)`` outermost rows and columns of every tilt):
+    the detector's level outside the object, whichever way the tilt axis runs."""
+    k0, k1 = max(1, a.shape[1] // 16), max(1, a.shape[2] // 16)
+    frame = [a[:, :k0], a[:, -k0:], a[:, :, :k1], a[:, :, -k1:]]
+    return float(np.median(np.concatenate([f.reshape(-1) for f in frame])))
+
+
 def check_tilt_axis(stack) -> TiltAxisCheck:
     """Which way the tilt axis of ``stack`` ``(num_tilts, rows, cols)`` runs, and how consistent the stack is
     (module Convention): the per-row sums (over the columns) and the per-column sums (over the rows) of each tilt,
-    compared across the tilts up to one scale per tilt."""
+    compared across the tilts up to one scale per tilt, after the level of the images' outer frame is subtracted
+    (``frame_level``: an offset adds the same to every profile and hides their differences)."""
     a = np.asarray(stack, dtype=np.float64)
     if a.ndim != 3:
         raise ValueError(f"stack must be (num_tilts, rows, cols), got shape {a.shape}")
+    a = a - frame_level(a)
     return TiltAxisCheck(_spread(a.sum(axis=2)), _spread(a.sum(axis=1)))

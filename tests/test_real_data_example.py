@@ -96,7 +96,7 @@ def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
         assert (out / f"{name}.mrc").exists()
     # the raw stack: its offset found, its tilt axis along X (with the offset removed)
     assert m["background_raw"]["border_level"] == pytest.approx(OFFSET, abs=1)
-    assert m["tilt_axis_as_stored"]["raw - background"]["tilt_axis_direction"] == "columns"
+    assert m["tilt_axis_as_stored"]["raw"]["tilt_axis_direction"] == "columns"
     assert m["tilt_axis_turned"]["tilt_axis_direction"] == "rows"
     assert m["load"]["tilt_axis_angle"] == 90.0
     # the template is per voxel length (pixel 3.36 * 32 / 16 nm), the data per nm: template_scale ~ 1 / cell
@@ -122,7 +122,7 @@ def test_real_haadf_files(example):
     aligned = example.read_aligned(folder)
     assert aligned.shape == raw.shape
     checks = example.axis_checks(raw, aligned)
-    assert checks["raw - background"]["tilt_axis_direction"] == "columns"
+    assert checks["raw"]["tilt_axis_direction"] == "columns"
     level = example.background_report(raw, "raw")["border_level"]
     assert -31890 < level < -31875
     turned = example.align_tilt_axis(example.bin_stack(aligned, 32), example.TILT_AXIS_ANGLE)
