@@ -204,13 +204,15 @@ def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
 def supersampled(domain: ImageDomain, fn, supersample: int = 2) -> torch.Tensor:
     """Cell means of ``fn(u)`` over ``supersample^3`` points per cell of a 3D ``domain``; ``fn`` takes
     normalised points ``u`` ``(3, ...)`` in ``[-1, 1]^3`` (mapped affinely onto the domain's box) and returns
-    values ``u.shape[1:]``. Evaluated in slabs along x (bounded memory). Returns float64 ``(nx, ny, nz)``."""
+    values ``u.shape[1:]``. Evaluated in slabs along x of at most about 2^18 points, so that every temporary stays
+    below glibc's mmap threshold (32 MiB): larger ones are mapped afresh and page-faulted at every operation, which
+    made 64^3 take 5.8 s instead of 2.0 s. Returns float64 ``(nx, ny, nz)``."""
     s = check_int(supersample, "supersample", 1)
     if domain.ndim != 3:
         raise ValueError(f"a 3D phantom needs a 3D domain, got shape {domain.shape}")
     fine = [(torch.arange(s * n, dtype=torch.float64) + 0.5) * (2.0 / (s * n)) - 1.0 for n in domain.shape]
     nx, ny, nz = domain.shape
-    step = max(1, 2**21 // (s ** 3 * ny * nz))   # cells along x per slab
+    step = max(1, 2**18 // (s ** 3 * ny * nz))   # cells along x per slab
     slabs = []
     for i in range(0, nx, step):
         k = min(step, nx - i)
