@@ -14,6 +14,8 @@ Stores, per case, the overrides (options) and the scalars of the metrics (result
 
     python scripts/make_presets_golden.py            # writes tests/data/presets_golden.json
     python scripts/make_presets_golden.py --out /tmp/golden.json
+    python scripts/make_presets_golden.py --only app:suite1_jv-metamorphosis api:metamorphosis
+                                                     # only these cases, the others kept as stored
 """
 from __future__ import annotations
 
@@ -85,22 +87,32 @@ def _commit() -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=GOLDEN)
+    ap.add_argument("--only", nargs="+", metavar="KIND:NAME", default=None,
+                    help="regenerate only these cases (app:NAME / api:NAME) and keep the others as stored in --out")
     args = ap.parse_args()
-    golden = {"about": {"indreg_commit": _commit(), "torch": torch.__version__, "python": platform.python_version(),
-                        "threads": torch.get_num_threads()},
-              "app": {}, "api": {}}
+    cases = {"app": app_cases(), "api": API_CASES}
+    if args.only is None:
+        golden = {"about": {"indreg_commit": _commit(), "torch": torch.__version__,
+                            "python": platform.python_version(), "threads": torch.get_num_threads()},
+                  "app": {}, "api": {}}
+        chosen = [(kind, name) for kind in cases for name in cases[kind]]
+    else:
+        golden = json.loads(args.out.read_text())
+        chosen = [tuple(spec.split(":", 1)) for spec in args.only]
+        unknown = [f"{k}:{n}" for k, n in chosen if n not in cases.get(k, {})]
+        if unknown:
+            ap.error(f"unknown case(s) {', '.join(unknown)}")
     rows = []
-    for name, overrides in app_cases().items():
+    for kind, name in chosen:
         t0 = time.perf_counter()
-        with tempfile.TemporaryDirectory() as out_dir:
-            numbers = app_numbers(overrides, out_dir)
-        golden["app"][name] = {"overrides": overrides, "metrics": numbers}
-        rows.append(("app", name, time.perf_counter() - t0, numbers))
-    for name, options in API_CASES.items():
-        t0 = time.perf_counter()
-        numbers = api_numbers(options)
-        golden["api"][name] = {"options": options, "result": numbers}
-        rows.append(("api", name, time.perf_counter() - t0, numbers))
+        if kind == "app":
+            with tempfile.TemporaryDirectory() as out_dir:
+                numbers = app_numbers(cases[kind][name], out_dir)
+            golden["app"][name] = {"overrides": cases[kind][name], "metrics": numbers}
+        else:
+            numbers = api_numbers(cases[kind][name])
+            golden["api"][name] = {"options": cases[kind][name], "result": numbers}
+        rows.append((kind, name, time.perf_counter() - t0, numbers))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(golden, indent=2, sort_keys=True) + "\n")
     print("| kind | case | seconds | status | iterations | objective | SSIM |\n|---|---|---|---|---|---|---|")
