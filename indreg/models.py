@@ -117,7 +117,7 @@ def _check_metamorphosis(o: dict, label) -> None:
     for absolute, relative in (("tau", "tau_rel"), ("source_start", "source_start_fraction")):
         if o[absolute] is not None and o[relative] != RELATIVE_DEFAULTS[relative]:
             raise OptionError(label(relative), o[relative], f"left at its default {RELATIVE_DEFAULTS[relative]} when "
-                              f"{label(absolute)} is given ({label(relative)} applies only with {label(absolute)} None)")
+                              f"{label(absolute)} is given (it applies only with {label(absolute)} None)")
 
 
 _META = ("metamorphosis",)
