@@ -129,7 +129,7 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
 )))
 #: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults": measured on the suite-4,
 #: suite-3 contrast and limited-angle cases).
-RELATIVE_DEFAULTS = {"tau_rel": 0.03, "source_start_fraction": 0.6}
+RELATIVE_DEFAULTS = {"tau_rel": 0.01, "source_start_fraction": 0.6}
 
 
 def _fraction(v, label):
