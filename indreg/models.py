@@ -127,8 +127,8 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
            "every axis), phi_{1,0} interpolated to the image's grid (CoarseVelocityDeformation: interpolation "
            "compose, the exact gradient); 1: the image's grid", int, models=("lddmm",)),
 )))
-#: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults": measured on the suite-4,
-#: suite-3 contrast and limited-angle cases).
+#: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults relative to the data term":
+#: measured on the suite-4 missing / extra, suite-3 contrast and limited-angle cases).
 RELATIVE_DEFAULTS = {"tau_rel": 0.01, "source_start_fraction": 0.6}
 
 
