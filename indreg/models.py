@@ -15,7 +15,7 @@ Built in:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import torch
 
@@ -74,13 +74,22 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
     domain = kernel.domain
     M = MetamorphosisDeformation(domain, num_steps=o["num_steps"], backward=o["backward"] or "adjoint",
                                  interpolation=o["interpolation"])
-    source_kernel = None if o["source_sigma"] is None else GaussianKernel(domain, o["source_sigma"])
+    source_sigma = kernel.sigma if o["source_sigma"] == "kernel" else o["source_sigma"]
+    source_kernel = None if source_sigma is None else GaussianKernel(domain, source_sigma)
     problem = MetamorphosisRegistration(operator, M, kernel, template, data, o["gamma"], o["tau"],
                                         tv_weight=o["tv_weight"], source_kernel=source_kernel,
-                                        source_mask=_source_mask(o["source_mask"], template, domain, "source_mask"))
-    solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": o["source_start"]}},
+                                        source_mask=_source_mask(o["source_mask"], template, domain, "source_mask"),
+                                        tau_rel=o["tau_rel"] if o["tau"] is None else None)
+    solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": _source_start(o)}},
                       "torch": {"lrs": {"source": o["source_lr"]}}}
     return problem, solver_options
+
+
+def _source_start(o: dict) -> int:
+    """Iterations with the source frozen: ``source_start``, or ``round(source_start_fraction * max_iter)``."""
+    if o["source_start"] is not None:
+        return o["source_start"]
+    return int(round(o["source_start_fraction"] * o["max_iter"]))
 
 
 def _backward_in(allowed: tuple) -> Callable:
@@ -105,6 +114,10 @@ def _check_metamorphosis(o: dict, label) -> None:
     mask = o["source_mask"]
     if isinstance(mask, str) and mask != "template":
         raise OptionError(label("source_mask"), mask, "None, 'template' or an array")
+    for absolute, relative in (("tau", "tau_rel"), ("source_start", "source_start_fraction")):
+        if o[absolute] is not None and o[relative] != RELATIVE_DEFAULTS[relative]:
+            raise OptionError(label(relative), o[relative], f"left at its default {RELATIVE_DEFAULTS[relative]} when "
+                              f"{label(absolute)} is given (it applies only with {label(absolute)} None)")
 
 
 _META = ("metamorphosis",)
@@ -114,21 +127,51 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
            "every axis), phi_{1,0} interpolated to the image's grid (CoarseVelocityDeformation: interpolation "
            "compose, the exact gradient); 1: the image's grid", int, models=("lddmm",)),
 )))
+#: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults relative to the data term":
+#: measured on the suite-4 missing / extra, suite-3 contrast and limited-angle cases).
+RELATIVE_DEFAULTS = {"tau_rel": 0.01, "source_start_fraction": 0.6}
+
+
+def _fraction(v, label):
+    v = number(0.0)(v, label)
+    if v > 1:
+        raise OptionError(label, v, "a number in [0, 1]")
+    return v
+
+
+def _source_sigma(v, label):
+    if v is None or v == "kernel":
+        return v
+    if isinstance(v, str):
+        raise OptionError(label, v, "None, 'kernel' or a finite number > 0")
+    return number(0.0, strict=True)(v, label)
+
+
 register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Metam:ODE): intensities change too",
                      check=_check_metamorphosis, options=(
-    Option("tau", "deformation", "tau", 1.0, number(0.0), "weight of the source's penalty", float, models=_META),
-    Option("source_sigma", "deformation", "source_sigma", None, optional(number(0.0, strict=True)),
-           "None (the paper's L2 source) or the width of a Gaussian RKHS for the source", Optional[float],
+    Option("tau", "deformation", "tau", None, optional(number(0.0)),
+           "weight of the source's penalty (absolute); None: tau_rel times the data term's scale", Optional[float],
            models=_META),
-    Option("source_mask", "deformation", "source_mask", None, anything,
-           "None, 'template' (the template's support) or an array in [0, 1]", Optional[str], models=_META),
+    Option("tau_rel", "deformation", "tau_rel", RELATIVE_DEFAULTS["tau_rel"], number(0.0),
+           "with tau None: tau = tau_rel ||T||^2 ||K_s|| (the source penalty relative to the data term's curvature "
+           "on the smoothest source; docs/metamorphosis.md)", float, models=_META),
+    Option("source_sigma", "deformation", "source_sigma", "kernel", _source_sigma,
+           "'kernel' (a Gaussian RKHS source of the velocity kernel's width), a width, or None (the paper's L2 "
+           "source)", Optional[Any], models=_META),
+    Option("source_mask", "deformation", "source_mask", "template", anything,
+           "'template' (the template's support dilated by 1 unit), None or an array in [0, 1]", Optional[str],
+           models=_META),
     Option("source_step_size", "solver", "source_step_size", None, optional(number(0.0, strict=True)),
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),
     Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
            "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
-    Option("source_start", "solver", "source_start", 0, number(0, integer=True),
-           "Algorithm 1: iterations with the source frozen", int, solvers=(ALGORITHM1,), models=_META),
+    Option("source_start", "solver", "source_start", None, optional(number(0, integer=True)),
+           "Algorithm 1: iterations with the source frozen; None: source_start_fraction of max_iter",
+           Optional[int], solvers=(ALGORITHM1,), models=_META),
+    Option("source_start_fraction", "solver", "source_start_fraction", RELATIVE_DEFAULTS["source_start_fraction"],
+           _fraction, "Algorithm 1, with source_start None: the fraction of max_iter with the source frozen", float,
+           solvers=(ALGORITHM1,), models=_META),
 )))
 
 

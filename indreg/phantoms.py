@@ -126,6 +126,13 @@ def shepp_logan_template_missing(domain: ImageDomain) -> torch.Tensor:
     return ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_MISSING_ELLIPSES)
 
 
+def missing_ventricle_mask(domain: ImageDomain) -> torch.Tensor:
+    """Where the suite-4 "missing" template must gain an object: the pixels at least half covered by the target's
+    ventricle that it lacks (row 3 of ``SHEPP_LOGAN_ELLIPSES``, centre (-0.22, 0)), ``(nx, ny)`` bool. The RMS error
+    of a result inside it is the ventricle error of docs/metamorphosis.md."""
+    return ellipse_phantom(domain, ((1.0, *SHEPP_LOGAN_ELLIPSES[3][1:]),)) >= 0.5
+
+
 def shepp_logan_template_extra(domain: ImageDomain) -> torch.Tensor:
     """Suite-4 template with an object the target lacks: the suite-3 template plus a bright disc of
     value +0.3 (0.5 on the 0.2 brain), radius 0.08, centre (-0.25, -0.15), lower left of the brain, touching

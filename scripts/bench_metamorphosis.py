@@ -37,14 +37,8 @@ CASES = {  # template, SNR (dB, code convention) of the suite
     "contrast": ("shepp_logan_template_contrast", 7.06),
     "extra": ("shepp_logan_template_extra", 6.46),
 }
-# the target's ventricle that the suite-4 template lacks (the larger dark ellipse of phantoms.SHEPP_LOGAN_ELLIPSES,
-# row 3, centre (-0.22, 0)): where the ventricle must appear
-VENTRICLE = phantoms.SHEPP_LOGAN_ELLIPSES[3]
-
-
-def ventricle_mask(domain: ImageDomain) -> torch.Tensor:
-    """The pixels at least half covered by the target's ventricle ellipse, ``(nx, ny)`` bool."""
-    return phantoms.ellipse_phantom(domain, ((1.0, *VENTRICLE[1:]),)) >= 0.5
+# the target's ventricle that the suite-4 template lacks: where the ventricle must appear
+ventricle_mask = phantoms.missing_ventricle_mask
 
 
 def problem_data(case: str, size: int, dtype=torch.float64):

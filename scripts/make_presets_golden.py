@@ -14,7 +14,8 @@ Stores, per case, the overrides (options) and the scalars of the metrics (result
 
     python scripts/make_presets_golden.py            # writes tests/data/presets_golden.json
     python scripts/make_presets_golden.py --out /tmp/golden.json
-    python scripts/make_presets_golden.py --only suite_et_3d_slab   # one new / intentionally changed case
+    python scripts/make_presets_golden.py --only app:suite1_jv-metamorphosis api:metamorphosis
+                                                     # only these cases, the others kept as stored
 """
 from __future__ import annotations
 
@@ -38,12 +39,10 @@ PRESETS = ROOT / "indreg" / "conf" / "experiment"
 COMMON = ["baseline.enabled=false", "logging.tensorboard=false", "logging.figure=false", "logging.progress=false",
           "device=cpu"]
 DEFAULT_MAX_ITER = 3                       # 256^2 and 438^2 presets: 0.3-1 s per iteration
-MAX_ITER = {"suite1_jv": 10, "own_data_example": 10, "suite_et_3d": 2, "suite_et_3d_128": 2, "suite_et_3d_256": 2,
-            "suite_et_3d_slab": 2}
+MAX_ITER = {"suite1_jv": 10, "own_data_example": 10, "suite_et_3d": 2, "suite_et_3d_128": 2, "suite_et_3d_256": 2}
 # same [-16, 16]^3, 1-unit voxels / columns (the 128^3 / 256^3 variants: their config path at a testable size)
 SHRINK = {name: ["phantom.size=32", "geometry.det_count=32"] for name in ("suite_et_3d", "suite_et_3d_128",
                                                                           "suite_et_3d_256")}
-SHRINK["suite_et_3d_slab"] = ["phantom.size=32", "phantom.thickness=12", "geometry.det_count=32"]
 VARIANTS = {
     # float64: L-BFGS's line search in float32 amplifies rounding (1 vs 2 threads: 1e-3 apart after 3 iterations)
     "suite1_jv-lbfgs": ["experiment=suite1_jv", "solver=lbfgs", "solver.max_iter=10", "dtype=float64"],
@@ -88,35 +87,32 @@ def _commit() -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=GOLDEN)
-    ap.add_argument("--only", nargs="+", metavar="CASE",
-                    help="re-record only these app / api cases into the existing file (a new preset, an intended "
-                         "change of one); the others keep their numbers")
+    ap.add_argument("--only", nargs="+", metavar="KIND:NAME", default=None,
+                    help="regenerate only these cases (app:NAME / api:NAME) and keep the others as stored in --out")
     args = ap.parse_args()
-    about = {"indreg_commit": _commit(), "torch": torch.__version__, "python": platform.python_version(),
-             "threads": torch.get_num_threads()}
-    golden = {"about": about, "app": {}, "api": {}}
-    if args.only:
+    cases = {"app": app_cases(), "api": API_CASES}
+    if args.only is None:
+        golden = {"about": {"indreg_commit": _commit(), "torch": torch.__version__,
+                            "python": platform.python_version(), "threads": torch.get_num_threads()},
+                  "app": {}, "api": {}}
+        chosen = [(kind, name) for kind in cases for name in cases[kind]]
+    else:
         golden = json.loads(args.out.read_text())
-        unknown = set(args.only) - set(app_cases()) - set(API_CASES)
+        chosen = [tuple(spec.split(":", 1)) for spec in args.only]
+        unknown = [f"{k}:{n}" for k, n in chosen if n not in cases.get(k, {})]
         if unknown:
-            ap.error(f"unknown case(s) {', '.join(sorted(unknown))}")
-        golden.setdefault("updated", {}).update({name: about for name in args.only})
+            ap.error(f"unknown case(s) {', '.join(unknown)}")
     rows = []
-    for name, overrides in app_cases().items():
-        if args.only and name not in args.only:
-            continue
+    for kind, name in chosen:
         t0 = time.perf_counter()
-        with tempfile.TemporaryDirectory() as out_dir:
-            numbers = app_numbers(overrides, out_dir)
-        golden["app"][name] = {"overrides": overrides, "metrics": numbers}
-        rows.append(("app", name, time.perf_counter() - t0, numbers))
-    for name, options in API_CASES.items():
-        if args.only and name not in args.only:
-            continue
-        t0 = time.perf_counter()
-        numbers = api_numbers(options)
-        golden["api"][name] = {"options": options, "result": numbers}
-        rows.append(("api", name, time.perf_counter() - t0, numbers))
+        if kind == "app":
+            with tempfile.TemporaryDirectory() as out_dir:
+                numbers = app_numbers(cases[kind][name], out_dir)
+            golden["app"][name] = {"overrides": cases[kind][name], "metrics": numbers}
+        else:
+            numbers = api_numbers(cases[kind][name])
+            golden["api"][name] = {"options": cases[kind][name], "result": numbers}
+        rows.append((kind, name, time.perf_counter() - t0, numbers))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(golden, indent=2, sort_keys=True) + "\n")
     print("| kind | case | seconds | status | iterations | objective | SSIM |\n|---|---|---|---|---|---|---|")

@@ -180,3 +180,11 @@ def test_swirl_bend_is_volume_preserving_diffeomorphism():
     template, target = phantoms.get("shepp_logan_3d", dom), phantoms.get("shepp_logan_3d_swirl", dom)
     assert float((template - target).abs().sum() / template.abs().sum()) > 0.3          # a large deformation
     assert float(target.sum()) == pytest.approx(float(template.sum()), rel=0.01)      # det = 1: mass kept
+
+
+def test_missing_ventricle_mask_is_the_targets_ventricle_the_template_lacks():
+    dom = ImageDomain.paper(128)
+    mask = phantoms.missing_ventricle_mask(dom)
+    target, template = phantoms.get("shepp_logan", dom), phantoms.get("shepp_logan_template_missing", dom)
+    assert 800 < int(mask.sum()) < 900    # the ellipse's area, 0.11 x 0.31 x pi of [-1, 1]^2 in 128^2 pixels
+    assert float((target[mask] < 0.1).double().mean()) > 0.9 and float(template[mask].min()) > 0.19

@@ -19,6 +19,13 @@ A ``source_mask`` ``chi`` (values in [0, 1]) confines the intensity changes: ``z
 the penalty unchanged, ``h_s = tau s + chi (N / cell_volume) dL/dzeta`` (e.g. ``template_support``: no intensity
 is created where the template and its surroundings are empty).
 
+``tau`` relative to the data term (``tau_rel``, docs/metamorphosis.md "Relative tau"): ``tau = tau_rel * ||T||^2
+||K_s||`` (``tau_scale``; ``||K_s|| = 1`` for the L2 source). At ``nu = 0`` the source update is ``zeta <- zeta -
+beta (tau + K_s T^* T) zeta + ...``; on the smoothest source (the top eigenvector of ``T^* T``, eigenvalue
+``||T||^2``, where ``K_s`` acts as ``||K_s||``) the source penalty is ``tau_rel`` times the data term's curvature,
+so the source alone explains the fraction ``1 / (1 + tau_rel)`` of that component of the residual, whatever the
+number of angles, detector sampling, domain size or source width.
+
 L2 gradients (``L`` = data fit + TV of ``f(1)``, ``dL/d.`` the deformation's backward, torch entries):
 ``h_nu = gamma m + (N / cell_volume) dL/dnu`` (the V-gradient is ``K h_nu``, as Algorithm 1) and
 ``h_zeta = tau zeta + (N / cell_volume) dL/dzeta``, i.e. ``h_zeta(t_i) = tau zeta_i + lambda_i / cell_volume``
@@ -26,6 +33,8 @@ with ``lambda_i ~ |D phi_{t_i,1}| (T^*(T f(1) - g) o phi_{t_i,1})`` (the data gr
 ``t_i``).
 """
 from __future__ import annotations
+
+import functools
 
 import torch
 
@@ -45,11 +54,14 @@ class MetamorphosisRegistration(RegistrationProblem):
     Args:
         ray_transform, kernel, template, data, gamma, tv_weight, tv_smoothing: as ``IndirectRegistration``.
         deformation: a ``MetamorphosisDeformation``.
-        tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``).
+        tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``), or None with
+            ``tau_rel``.
         source_kernel: None (the paper's L2 norm) or a ``GaussianKernel`` ``K_s`` on the domain: RKHS source
             ``zeta = K_s s`` (module docstring).
         source_mask: None or a ``domain.shape`` tensor with values in [0, 1] (the template's dtype / device): the
             source is multiplied by it (module docstring; ``template_support`` builds one).
+        tau_rel: None (``tau`` given), or ``tau`` relative to the data term: ``tau = tau_rel * tau_scale`` (module
+            docstring); exactly one of ``tau`` and ``tau_rel`` is given.
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
@@ -62,13 +74,12 @@ class MetamorphosisRegistration(RegistrationProblem):
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,
-                 tv_smoothing=1e-3, source_kernel=None, source_mask=None):
+                 tv_smoothing=1e-3, source_kernel=None, source_mask=None, tau_rel=None):
         if not isinstance(deformation, MetamorphosisDeformation):
             raise TypeError(f"deformation must be a MetamorphosisDeformation, got {type(deformation).__name__}")
         self.lddmm = IndirectRegistration(ray_transform, deformation.lddmm, kernel, template, data, gamma,
                                           tv_weight, tv_smoothing)
         self.deformation = deformation
-        self.tau = check_nonnegative(tau, "tau")
         for name in ("ray_transform", "kernel", "domain", "template", "data", "gamma", "tv_weight",
                      "tv_smoothing", "num_steps", "momentum_shape"):
             setattr(self, name, getattr(self.lddmm, name))
@@ -76,6 +87,10 @@ class MetamorphosisRegistration(RegistrationProblem):
             raise ValueError(f"source_kernel must be a GaussianKernel on the kernel's domain {kernel.domain}, got "
                              f"{source_kernel!r}")
         self.source_kernel = source_kernel
+        if (tau is None) == (tau_rel is None):
+            raise ValueError(f"give exactly one of tau and tau_rel, got tau={tau!r}, tau_rel={tau_rel!r}")
+        self.tau = check_nonnegative(tau, "tau") if tau_rel is None else \
+            check_nonnegative(tau_rel, "tau_rel") * self.tau_scale
         if source_mask is not None:
             check_tensor(source_mask, "source_mask", tuple(self.domain.shape))
             check_same(source_mask, template, "source_mask", "template")
@@ -184,13 +199,23 @@ class MetamorphosisRegistration(RegistrationProblem):
         terms["objective"] = sum(terms.values())
         return terms, h_nu, h_zeta, nu
 
-    def source_lipschitz(self, num_iter: int = 30) -> float:
+    def source_lipschitz(self) -> float:
         """``(tau + ||T||^2) ||K_s||``: the Lipschitz constant of the source update at ``nu = 0`` (``f(1)`` depends
         on ``zeta`` through the average ``(1/N) sum zeta_i``, of norm 1 in ``L2([0,1], L2)``; ``||K_s|| = 1``
         for the L2 source, else the kernel's largest eigenvalue, at most ``K_s`` applied to ones); the step
         ``1 / source_lipschitz()`` is the ``"auto"`` source step size."""
-        norm_t = operator_norm(self.ray_transform, num_iter, self.template.dtype, self.template.device)
-        return (self.tau + norm_t ** 2) * self.source_kernel_norm()
+        return (self.tau + self.operator_norm ** 2) * self.source_kernel_norm()
+
+    @functools.cached_property
+    def operator_norm(self) -> float:
+        """``||T||`` by 30 power iterations on ``T^* T`` (``indreg.forward.operator_norm``, seed 0; computed once)."""
+        return operator_norm(self.ray_transform, 30, self.template.dtype, self.template.device)
+
+    @property
+    def tau_scale(self) -> float:
+        """``||T||^2 ||K_s||``: the data term's curvature on the smoothest source (module docstring); ``tau =
+        tau_rel * tau_scale``."""
+        return self.operator_norm ** 2 * self.source_kernel_norm()
 
     def source_kernel_norm(self) -> float:
         """``||K_s||`` bounded by its largest row sum (1 for the L2 source)."""
@@ -253,7 +278,10 @@ class MetamorphosisRegistration(RegistrationProblem):
         return self.with_deformation(MetamorphosisDeformation(M.domain, M.num_steps, backward, M.interpolation))
 
     def hparams(self) -> dict:
-        return {"tau": self.tau}
+        """``tau`` and ``tau_rel = tau / tau_scale`` (either way it was given), the source kernel's width (0: the
+        L2 source)."""
+        return {"tau": self.tau, "tau_rel": self.tau / self.tau_scale,
+                "source_sigma": 0.0 if self.source_kernel is None else float(self.source_kernel.sigma)}
 
 
 def template_support(template: torch.Tensor, domain, margin: float = 1.0, threshold: float = 0.01) -> torch.Tensor:

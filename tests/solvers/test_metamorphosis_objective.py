@@ -212,6 +212,34 @@ def test_bad_input():
         problem.evaluate(problem.zero_momentum(), problem.zero_source()[:2])
     with pytest.raises(ValueError, match="L-BFGS takes one parameter group"):
         MetamorphosisTorchOptim(problem, "lbfgs", source_lr=0.1)
+    for tau, tau_rel in ((None, None), (1.0, 0.1)):
+        with pytest.raises(ValueError, match="give exactly one of tau and tau_rel"):
+            MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                      problem.data, 1e-5, tau, tau_rel=tau_rel)
+
+
+def test_tau_rel_is_the_share_of_the_smoothest_residual_the_source_leaves():
+    """tau = tau_rel ||T||^2 (L2 source): at nu = 0 the source z v / (1 + tau_rel), constant in time, is stationary
+    for the residual T v along the top singular vector v of T (T^* T v = ||T||^2 v), i.e. the source alone explains
+    1 / (1 + tau_rel) of it (docs/metamorphosis.md); with an RKHS source tau_scale is ||T||^2 ||K_s||."""
+    base, _ = make_problem(n=16)
+    T, dom = base.ray_transform, base.domain
+    v = torch.ones(dom.shape, dtype=torch.float64)
+    for _ in range(3000):   # power iteration to the top eigenvector of T^* T
+        v = T.adjoint(T(v))
+        v = v / dom.norm(v)
+    sigma2 = float(dom.inner(v, T.adjoint(T(v))))
+    assert float(dom.norm(T.adjoint(T(v)) - sigma2 * v)) < 1e-6 * sigma2
+    problem = MetamorphosisRegistration(T, base.deformation, base.kernel, base.template,
+                                        T(base.template) + T(v), 1e-5, None, tau_rel=0.5)
+    assert problem.tau == pytest.approx(0.5 * sigma2, rel=1e-6)
+    s = torch.stack([torch.zeros_like(v)] + [v / 1.5] * base.num_steps)
+    _, _, h_s, _ = problem.l2_gradient(problem.zero_momentum(), s)
+    assert float(h_s[1:].norm()) < 1e-5 * float((problem.tau * s[1:]).norm())
+    rkhs = MetamorphosisRegistration(T, base.deformation, base.kernel, base.template, base.data, 1e-5, None,
+                                     source_kernel=GaussianKernel(dom, 2.0), tau_rel=0.5)
+    assert rkhs.tau == pytest.approx(0.5 * problem.operator_norm ** 2 * rkhs.source_kernel_norm())
+    assert rkhs.hparams() == {"tau": rkhs.tau, "tau_rel": pytest.approx(0.5), "source_sigma": 2.0}
 
 
 @pytest.mark.parametrize("ndim", (2, 3))
