@@ -11,17 +11,19 @@ Built in:
 
     lddmm          ``IndirectRegistration`` with ``LDDMMDeformation`` (the paper's method)
     metamorphosis  ``MetamorphosisRegistration`` with ``MetamorphosisDeformation`` (intensities change too)
+    spatiotemporal ``SpatiotemporalRegistration``: data at several time points, one flow, template known or
+                   unknown (``template=None``; docs/spatiotemporal.md)
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import torch
 
 from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, is_torch_optim, model, number,  # noqa: F401
-                      optional, register_model)
+from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, choice, is_torch_optim, model,  # noqa: F401,E501
+                      number, optional, register_model)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -135,3 +137,55 @@ register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Met
 def solver_kind(solver: str) -> str:
     """``"algorithm1"``, ``"fast"`` or ``"torch"`` (the key of a model's ``solver_options``)."""
     return "torch" if is_torch_optim(solver) else solver
+
+
+def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
+    from .deform import LDDMMDeformation
+    from .solvers.spatiotemporal import SpatiotemporalRegistration
+
+    W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
+                         backward=o["backward"] or "autograd", interpolation=o["interpolation"])
+    problem = SpatiotemporalRegistration(operator, W, kernel, template, data, o["times"], o["gamma"],
+                                         tv_weight=o["tv_weight"], template_tv_weight=o["template_tv_weight"])
+    if problem.known:
+        return problem, {}
+    algorithm1 = {"steps": {"template": o["template_step_size"]}}
+    if o["template_update"] == "intertwined":
+        if solver_kind(o["solver"]) != ALGORITHM1:
+            raise OptionError("template_update", "intertwined", f"'joint' with solver={o['solver']!r} (the "
+                              "intertwined scheme alternates Algorithm 1's steps)")
+        algorithm1["cycle"] = ((("template",), o["template_steps"]), (("momentum",), o["registration_steps"]))
+    return problem, {ALGORITHM1: algorithm1}
+
+
+def _check_spatiotemporal(o: dict, label) -> None:
+    _backward_in(("autograd", "exact"))(o, label)
+    if o["solver"] == "fast":
+        raise OptionError(label("solver"), o["solver"], "'algorithm1' or a torch.optim name for "
+                          "model='spatiotemporal' (no coarse-to-fine form)")
+    if o["holdout"] is not None:
+        raise OptionError(label("holdout"), o["holdout"], "None for model='spatiotemporal'")
+
+
+_ST = ("spatiotemporal",)
+register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotemporal, template_optional=True,
+                     doc="data at several time points, one flow (eq:SpatioTemporal); the template known or not",
+                     options=(
+    Option("times", "deformation", "times", None, anything,
+           "the data's time points t_1 < ... < t_K in [0, 1], each on the grid j / num_steps (None: k / K)",
+           Optional[Any], models=_ST),
+    Option("template_update", "solver", "template_update", "intertwined", choice(("intertwined", "joint")),
+           "template unknown: 'intertwined' (alternate reconstruction steps on I and registration steps on the "
+           "momentum, Algorithm 1) or 'joint' (both every iteration)", str, models=_ST),
+    Option("template_steps", "solver", "template_steps", 5, number(1, integer=True),
+           "intertwined: reconstruction steps on the template per outer iteration", int, solvers=(ALGORITHM1,),
+           models=_ST),
+    Option("registration_steps", "solver", "registration_steps", 5, number(1, integer=True),
+           "intertwined: registration steps on the momentum per outer iteration", int, solvers=(ALGORITHM1,),
+           models=_ST),
+    Option("template_step_size", "solver", "template_step_size", None, optional(number(0.0, strict=True)),
+           "Algorithm 1's template step (None: 1 / ||T||^2, T all frames' operators)", Optional[float],
+           solvers=(ALGORITHM1,), models=_ST),
+    Option("template_tv_weight", "solver", "template_tv_weight", 0.0, number(0.0),
+           "template unknown: weight of TV(I)", float, models=_ST),
+)))
