@@ -141,7 +141,7 @@ def solver_kind(solver: str) -> str:
 
 def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
     from .deform import LDDMMDeformation
-    from .solvers.spatiotemporal import SpatiotemporalRegistration
+    from .solvers.spatiotemporal import IntertwinedSolver, SpatiotemporalRegistration
 
     W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                          backward=o["backward"] or "autograd", interpolation=o["interpolation"])
@@ -149,13 +149,14 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
                                          tv_weight=o["tv_weight"], template_tv_weight=o["template_tv_weight"])
     if problem.known:
         return problem, {}
-    algorithm1 = {"steps": {"template": o["template_step_size"]}}
+    options = {ALGORITHM1: {"steps": {"template": o["template_step_size"]}}}
     if o["template_update"] == "intertwined":
         if solver_kind(o["solver"]) != ALGORITHM1:
             raise OptionError("template_update", "intertwined", f"'joint' with solver={o['solver']!r} (the "
-                              "intertwined scheme alternates Algorithm 1's steps)")
-        algorithm1["cycle"] = ((("template",), o["template_steps"]), (("momentum",), o["registration_steps"]))
-    return problem, {ALGORITHM1: algorithm1}
+                              "intertwined scheme alternates with Algorithm 1's steps)")
+        options["wrap"] = lambda solver: IntertwinedSolver(solver, o["template_steps"], o["registration_steps"],
+                                                           o["template_tv_weight"])
+    return problem, options
 
 
 def _check_spatiotemporal(o: dict, label) -> None:
@@ -175,17 +176,19 @@ register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotempo
            "the data's time points t_1 < ... < t_K in [0, 1], each on the grid j / num_steps (None: k / K)",
            Optional[Any], models=_ST),
     Option("template_update", "solver", "template_update", "intertwined", choice(("intertwined", "joint")),
-           "template unknown: 'intertwined' (alternate reconstruction steps on I and registration steps on the "
-           "momentum, Algorithm 1) or 'joint' (both every iteration)", str, models=_ST),
-    Option("template_steps", "solver", "template_steps", 5, number(1, integer=True),
-           "intertwined: reconstruction steps on the template per outer iteration", int, solvers=(ALGORITHM1,),
-           models=_ST),
-    Option("registration_steps", "solver", "registration_steps", 5, number(1, integer=True),
-           "intertwined: registration steps on the momentum per outer iteration", int, solvers=(ALGORITHM1,),
+           "template unknown: 'intertwined' (every outer iteration a TV reconstruction of I from all frames pulled "
+           "back through the current motion, then registration steps; IntertwinedSolver) or 'joint' (Algorithm 1 "
+           "or torch.optim on (m, I) together)", str, models=_ST),
+    Option("template_steps", "solver", "template_steps", 50, number(1, integer=True),
+           "intertwined: Chambolle-Pock iterations of the template's reconstruction per outer iteration", int,
+           solvers=(ALGORITHM1,), models=_ST),
+    Option("registration_steps", "solver", "registration_steps", 10, number(1, integer=True),
+           "intertwined: Algorithm 1 steps on the momentum per outer iteration", int, solvers=(ALGORITHM1,),
            models=_ST),
     Option("template_step_size", "solver", "template_step_size", None, optional(number(0.0, strict=True)),
-           "Algorithm 1's template step (None: 1 / ||T||^2, T all frames' operators)", Optional[float],
+           "joint, Algorithm 1: the template's step (None: 1 / ||T||^2, T all frames' operators)", Optional[float],
            solvers=(ALGORITHM1,), models=_ST),
     Option("template_tv_weight", "solver", "template_tv_weight", 0.0, number(0.0),
-           "template unknown: weight of TV(I)", float, models=_ST),
+           "template unknown: weight of TV(I) (its objective's; the intertwined TV step's mu is twice it)", float,
+           models=_ST),
 )))

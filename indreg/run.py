@@ -173,7 +173,14 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
     """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
-    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind."""
+    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind; a model's
+    ``solver_options["wrap"]`` (a function of the solver) then wraps it."""
+    wrap = solver_options.get("wrap")   # a model's solver around the one built here (e.g. an alternation)
+    solver = _make_solver(problem, o, solver_options)
+    return solver if wrap is None else wrap(solver)
+
+
+def _make_solver(problem, o: dict, solver_options: dict):
     from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
     from .solvers.multilevel import options as fast_options
 
