@@ -8,15 +8,17 @@ frame, the 60 angles of all frames uniform on [0, pi), 92 bins, white noise at -
     fbp_static    one FBP of all 60 angles (motion ignored), compared with every frame
     tv_static     one TV of all data (motion ignored), mu the best of --mus
     known         model="spatiotemporal", the template f_0 given
-    intertwined   template unknown, 5 reconstruction + 5 registration steps per outer iteration
-    joint         template unknown, template and momentum every iteration
+    intertwined   template unknown: per outer iteration a TV reconstruction of I through the current motion (50
+                  Chambolle-Pock iterations) and 10 registration steps; sigma 4, twice the step
+    joint         template unknown: Algorithm 1 on (m, I) together (TV(I) smoothed), the same settings
 
 Scores: mean SSIM / PSNR over the frames (against the true f_{t_k}, data range of each true frame); for the
 registrations the mean displacement error ``|phi_{t_k,0}(x) - phi^true_{t_k,0}(x)|`` in pixels over the
 phantom's support (and over the whole grid), and for the unknown template the SSIM of the recovered template
 and the outer iteration at which the frames' mean SSIM first comes within 0.01 of its final value. Time: CPU
-seconds per iteration (this process, 1 thread) of the spatiotemporal run against an LDDMM registration of the
-same grid and N (the last frame's template to its data); memory: peak RSS growth of each in a subprocess.
+seconds per iteration and peak RSS growth (``cost``: fresh subprocesses, 1 thread, at 64^2 and 256^2) of the
+spatiotemporal run (template known; unknown, joint) against one LDDMM registration of the same grid and N (f_0 to
+the last frame's data).
 
     OMP_NUM_THREADS=1 python scripts/bench_spatiotemporal.py              # ~3 min on one core
     python scripts/bench_spatiotemporal.py --snr 10 --iters 200
@@ -85,6 +87,7 @@ def fbp_static(d):
 
 
 def run_registration(d, template, iters, **options) -> dict:
+    """One spatiotemporal run through the shared loop (``indreg.run``), scored every 5 iterations."""
     t0 = time.process_time()
     curve = []
     holder = {}
@@ -94,7 +97,7 @@ def run_registration(d, template, iters, **options) -> dict:
             curve.append((info["iteration"], scores(holder["problem"].all_frames(state.iterate), d)["ssim"]))
 
     setup = indreg.run.setup(template, list(d.data), d.operators, model="spatiotemporal", times=d.times,
-                             max_iter=iters, **COMMON, **options)
+                             max_iter=iters, **{**COMMON, **options})
     holder["problem"] = setup.problem
     state = indreg.run.initial_state(setup.problem)
     loop = indreg.run.RegistrationLoop(setup.problem, setup.solver, state, iters, callback=callback)
@@ -111,33 +114,35 @@ def run_registration(d, template, iters, **options) -> dict:
     return out
 
 
-def lddmm_cpu(d, iters: int) -> float:
-    """CPU seconds per iteration of one LDDMM registration of the same grid / N: f_0 to the last frame's data."""
-    t0 = time.process_time()
-    indreg.register(d.template, d.data[-1], d.operators[-1], max_iter=iters, **COMMON)
-    return (time.process_time() - t0) / iters
-
-
-def memory(kind: str, snr: float) -> float:
-    """Peak RSS growth (MiB) of 10 iterations of ``kind`` (``lddmm`` / ``known`` / ``unknown``) in a subprocess."""
+def cost(kind: str, size: int, iters: int = 8) -> dict:
+    """Peak RSS growth (MiB) and the median CPU seconds per iteration (iterations 2..``iters``: the first, at
+    ``m = 0``, runs the per-frame path) of ``kind`` in a fresh subprocess (1 thread) on ``size^2``, K = 12:
+    ``lddmm`` (one registration: f_0 to the last frame's data, the same grid and N), ``known`` / ``unknown``
+    (spatiotemporal, template given / joint). The RSS baseline is taken after a 2-iteration warm-up run."""
     code = f"""
-import resource, torch, indreg
+import resource, statistics, time, torch, indreg
 from indreg import dynamic
 torch.set_num_threads(1)
-d = dynamic.acquisition(64, 12, 5, snr_db={snr})
-c = dict(num_steps=12, sigma=3.0, gamma=1e-5, max_iter=1)
-indreg.register(d.template, d.data[-1], d.operators[-1], **c)   # warm up: allocator, kernels
+d = dynamic.acquisition({size}, 12, 5, det_count={int(1.45 * size)}, snr_db=15.0)
+c = dict(num_steps=12, sigma=3.0, gamma=1e-5, step_size=0.05)
+stamps = []
+def go(n):
+    stamps.clear()
+    cb = lambda state, info: stamps.append(time.process_time())
+    if "{kind}" == "lddmm":
+        return indreg.register(d.template, d.data[-1], d.operators[-1], max_iter=n, callback=cb, **c)
+    return indreg.register(None if "{kind}" == "unknown" else d.template, list(d.data), d.operators,
+                           model="spatiotemporal", times=d.times, template_update="joint", max_iter=n, callback=cb,
+                           **c)
+go(2)
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-c["max_iter"] = 10
-if "{kind}" == "lddmm":
-    indreg.register(d.template, d.data[-1], d.operators[-1], **c)
-else:
-    indreg.register(None if "{kind}" == "unknown" else d.template, list(d.data), d.operators,
-                    model="spatiotemporal", times=d.times, template_update="joint", **c)
-print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024)
+go({iters})
+steps = [b - a for a, b in zip(stamps, stamps[1:])]
+print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024, statistics.median(steps))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    return float(out.stdout.strip().splitlines()[-1])
+    mib, cpu = out.stdout.strip().splitlines()[-1].split()
+    return {"peak_rss_growth_mib": float(mib), "cpu_per_iteration": float(cpu)}
 
 
 def main(argv=None) -> None:
@@ -146,21 +151,31 @@ def main(argv=None) -> None:
     parser.add_argument("--iters", type=int, default=150)
     parser.add_argument("--step", type=float, default=0.05)
     parser.add_argument("--mus", type=float, nargs="+", default=[0.3, 1.0, 3.0, 9.1])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256], help="grids of the cost rows")
+    parser.add_argument("--cost-only", action="store_true", help="only the cost rows")
     parser.add_argument("--json", default=None)
     a = parser.parse_args(argv)
     torch.set_num_threads(1)
-    d = dynamic.acquisition(64, 12, 5, snr_db=a.snr)
-    rows = baselines(d, a.mus)
-    rows["template_static"] = scores(d.template.expand_as(d.frames), d)
-    rows["known"] = run_registration(d, d.template, a.iters, step_size=a.step)
-    for update in ("intertwined", "joint"):
-        rows[update] = run_registration(d, None, a.iters, step_size=a.step, template_update=update)
-    rows["lddmm_cpu_per_iteration"] = lddmm_cpu(d, 20)
-    rows["memory_mib"] = {k: memory(k, a.snr) for k in ("lddmm", "known", "unknown")}
+    rows = {"cost": {f"{k}_{n}": cost(k, n) for n in a.sizes for k in ("lddmm", "known", "unknown")}}
+    if not a.cost_only:
+        rows.update(quality(a))
     print(json.dumps(rows, indent=1))
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
+
+
+def quality(a) -> dict:
+    """The scores of every row on the same data (module docstring)."""
+    d = dynamic.acquisition(64, 12, 5, snr_db=a.snr)
+    rows = baselines(d, a.mus)
+    rows["template_static"] = scores(d.template.expand_as(d.frames), d)
+    rows["known"] = run_registration(d, d.template, a.iters, step_size=a.step)
+    tv = intensity_scale(TimeSeriesOperator(d.operators), d.data) / 2   # TV(I) weight: 1 x the data's unit / 2
+    unknown = dict(sigma=4.0, step_size=2 * a.step, template_tv_weight=tv)
+    rows["intertwined"] = run_registration(d, None, a.iters, template_update="intertwined", **unknown)
+    rows["joint"] = run_registration(d, None, a.iters, template_update="joint", **unknown)
+    return rows
 
 
 if __name__ == "__main__":
