@@ -154,6 +154,7 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
         if solver_kind(o["solver"]) != ALGORITHM1:
             raise OptionError("template_update", "intertwined", f"'joint' with solver={o['solver']!r} (the "
                               "intertwined scheme alternates with Algorithm 1's steps)")
+        options[ALGORITHM1]["cycle"] = ((("momentum",), 1),)   # Algorithm 1 moves the momentum only
         options["wrap"] = lambda solver: IntertwinedSolver(solver, o["template_steps"], o["registration_steps"],
                                                            o["template_tv_weight"])
     return problem, options

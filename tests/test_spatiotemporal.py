@@ -8,7 +8,8 @@ import indreg
 from indreg import dynamic, phantoms
 from indreg.forward import TimeSeriesOperator
 from indreg.solvers import Algorithm1, SpatiotemporalRegistration
-from indreg.solvers.spatiotemporal import time_indices
+from indreg.forward.operator import adjointness
+from indreg.solvers.spatiotemporal import FramesOfTemplate, IntertwinedSolver, time_indices
 
 
 def _ops(domain, frames, per_frame=3, det=24):
@@ -148,6 +149,20 @@ def test_masked_frames_match_the_trajectory(small):
     assert torch.allclose(a.all_frames((m,)), b.all_frames((m,)), atol=1e-12)
     ga, gb = a.gradient((m,))[1][0], b.gradient((m,))[1][0]
     assert torch.allclose(ga, gb, atol=1e-9 * float(ga.abs().max()))
+
+
+def test_template_step_is_a_tv_reconstruction_through_the_motion(small):
+    """The intertwined scheme's template step: TV (Chambolle-Pock) on I -> (T_k W(phi_{0,t_k}, I))_k, whose
+    adjoint (by autograd) is the L2 adjoint; at m = 0 it is the static TV reconstruction from all data."""
+    p = _problem(small, "autograd", known=False)
+    m = 0.3 * torch.randn(p.momentum_shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    assert adjointness(FramesOfTemplate(p, p.velocity(m))) < 1e-12
+    solver = IntertwinedSolver(Algorithm1(p, cycle=((("momentum",), 1),)), template_steps=20, template_tv_weight=0.05)
+    zero = torch.zeros_like(m)
+    static = indreg.forward.tv_reconstruction(p.ray_transform, p.data, 0.1, 20, x0=p.template, opnorm_iter=20)[0]
+    assert torch.allclose(solver.reconstruct_template((zero, p.template)), static, atol=1e-6)
+    with pytest.raises(ValueError, match="moves only the momentum"):
+        IntertwinedSolver(Algorithm1(p))
 
 
 # ---------------------------------------------------------------------------------------------------- errors

@@ -314,7 +314,7 @@ class IntertwinedSolver:
     (``tv_reconstruction`` on :class:`FramesOfTemplate`; ``mu = 2 template_tv_weight``: its objective is twice
     ours), then ``registration_steps`` Algorithm 1 steps move the momentum with ``I`` fixed.
 
-    Wraps ``inner``, an ``Algorithm1`` on the same problem (its ``cycle`` keeps the template fixed), whose report,
+    Wraps ``inner``, an ``Algorithm1`` on the same problem whose ``cycle`` keeps the template fixed, whose report,
     stopping rule and state (step sizes, evaluations) are this solver's: a checkpoint of it resumes the same
     sequence (the template steps are deterministic and fall on ``iteration % registration_steps == 0``).
     """
@@ -322,8 +322,9 @@ class IntertwinedSolver:
     def __init__(self, inner, template_steps: int = 50, registration_steps: int = 10, template_tv_weight=0.0):
         from .._checks import check_int
 
+        if inner.moving(0) != {0}:
+            raise ValueError("inner must be an Algorithm1 that moves only the momentum (cycle=((('momentum',), 1),))")
         self.inner = inner
-        inner.cycle = inner._check_cycle(((("momentum",), 1),))
         self.problem, self.max_iter, self.grad_tol = inner.problem, inner.max_iter, inner.grad_tol
         self.template_steps = check_int(template_steps, "template_steps", 1)
         self.registration_steps = check_int(registration_steps, "registration_steps", 1)
