@@ -118,29 +118,31 @@ def cost(kind: str, size: int, iters: int = 8) -> dict:
     """Peak RSS growth (MiB) and the median CPU seconds per iteration (iterations 2..``iters``: the first, at
     ``m = 0``, runs the per-frame path) of ``kind`` in a fresh subprocess (1 thread) on ``size^2``, K = 12:
     ``lddmm`` (one registration: f_0 to the last frame's data, the same grid and N), ``known`` / ``unknown``
-    (spatiotemporal, template given / joint). The RSS baseline is taken after a 2-iteration warm-up run."""
-    code = f"""
+    (spatiotemporal, template given / joint). The data are simulated here and loaded there, so that the
+    subprocess's peak before the run is torch's and the data's, and the growth is the run's."""
+    import tempfile
+
+    d = dynamic.acquisition(size, 12, 5, det_count=int(1.45 * size), snr_db=15.0)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = f"{tmp}/data.pt"
+        torch.save(d, path)
+        code = f"""
 import resource, statistics, time, torch, indreg
-from indreg import dynamic
 torch.set_num_threads(1)
-d = dynamic.acquisition({size}, 12, 5, det_count={int(1.45 * size)}, snr_db=15.0)
-c = dict(num_steps=12, sigma=3.0, gamma=1e-5, step_size=0.05)
+d = torch.load("{path}", weights_only=False)
+c = dict(num_steps=12, sigma=3.0, gamma=1e-5, step_size=0.05, max_iter={iters})
 stamps = []
-def go(n):
-    stamps.clear()
-    cb = lambda state, info: stamps.append(time.process_time())
-    if "{kind}" == "lddmm":
-        return indreg.register(d.template, d.data[-1], d.operators[-1], max_iter=n, callback=cb, **c)
-    return indreg.register(None if "{kind}" == "unknown" else d.template, list(d.data), d.operators,
-                           model="spatiotemporal", times=d.times, template_update="joint", max_iter=n, callback=cb,
-                           **c)
-go(2)
+cb = lambda state, info: stamps.append(time.process_time())
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-go({iters})
+if "{kind}" == "lddmm":
+    indreg.register(d.template, d.data[-1], d.operators[-1], callback=cb, **c)
+else:
+    indreg.register(None if "{kind}" == "unknown" else d.template, list(d.data), d.operators,
+                    model="spatiotemporal", times=d.times, template_update="joint", callback=cb, **c)
 steps = [b - a for a, b in zip(stamps, stamps[1:])]
 print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024, statistics.median(steps))
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     mib, cpu = out.stdout.strip().splitlines()[-1].split()
     return {"peak_rss_growth_mib": float(mib), "cpu_per_iteration": float(cpu)}
 
