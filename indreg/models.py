@@ -22,8 +22,8 @@ from typing import Any, Callable, Optional
 import torch
 
 from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, choice, is_torch_optim, model,  # noqa: F401,E501
-                      number, optional, register_model)
+from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, choice,  # noqa: F401
+                      is_torch_optim, model, number, optional, register_model)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""

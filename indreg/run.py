@@ -151,8 +151,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
     the template; without a scale a warning names both numbers when either is outside
     ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
-    option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the
-    data)."""
+    option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
+    template whose projection does not resemble the data)."""
     units = Units()
     if background is None:
         check_offset(data, label("background"))
@@ -233,8 +233,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     model = models.get(o["model"])
     if template is None and not model.template_optional:
         allowed = [m.name for m in models.MODELS.values() if m.template_optional]
+        which = " or ".join(map(repr, allowed)) or "a model that reconstructs it"
         raise TypeError(f"template must be an image of shape {tuple(operator.domain.shape)}; None (an unknown "
-                        f"template) only with model={' or '.join(map(repr, allowed)) or 'a model that reconstructs it'}")
+                        f"template) only with model={which}")
     first = template if template is not None else data   # the run's dtype / device default to it
     dtype = resolve_dtype(o["dtype"], first)
     device = resolve_device(o["device"], first)

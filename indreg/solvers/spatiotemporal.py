@@ -111,7 +111,8 @@ class SpatiotemporalRegistration(RegistrationProblem):
         if self.known:
             check_tensor(template, "template")
             if tuple(template.shape) != tuple(operator.domain.shape):
-                raise ValueError(f"template must have shape {tuple(operator.domain.shape)}, got {tuple(template.shape)}")
+                raise ValueError(f"template must have shape {tuple(operator.domain.shape)}, got "
+                                 f"{tuple(template.shape)}")
             check_same(template, data, "template", "data")
         else:
             template = torch.zeros(operator.domain.shape, dtype=data.dtype, device=data.device) \
@@ -317,6 +318,9 @@ class IntertwinedSolver:
     Wraps ``inner``, an ``Algorithm1`` on the same problem whose ``cycle`` keeps the template fixed, whose report,
     stopping rule and state (step sizes, evaluations) are this solver's: a checkpoint of it resumes the same
     sequence (the template steps are deterministic and fall on ``iteration % registration_steps == 0``).
+
+    Convention: the iterate ``(m, I)`` as ``SpatiotemporalRegistration``'s (template unknown); one iteration of
+    this solver is one Algorithm 1 step, an outer iteration ``registration_steps`` of them.
     """
 
     def __init__(self, inner, template_steps: int = 50, registration_steps: int = 10, template_tv_weight=0.0):
