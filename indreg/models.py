@@ -176,10 +176,11 @@ register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotempo
     Option("times", "deformation", "times", None, anything,
            "the data's time points t_1 < ... < t_K in [0, 1], each on the grid j / num_steps (None: k / K)",
            Optional[Any], models=_ST),
-    Option("template_update", "solver", "template_update", "intertwined", choice(("intertwined", "joint")),
-           "template unknown: 'intertwined' (every outer iteration a TV reconstruction of I from all frames pulled "
-           "back through the current motion, then registration steps; IntertwinedSolver) or 'joint' (Algorithm 1 "
-           "or torch.optim on (m, I) together)", str, models=_ST),
+    Option("template_update", "solver", "template_update", "joint", choice(("joint", "intertwined")),
+           "template unknown: 'joint' (Algorithm 1 or torch.optim on (m, I) together) or 'intertwined' (every outer "
+           "iteration a TV reconstruction of I from all frames pulled back through the current motion, then "
+           "registration steps; IntertwinedSolver): as good per iteration, 7x the cost (docs/spatiotemporal.md)",
+           str, models=_ST),
     Option("template_steps", "solver", "template_steps", 50, number(1, integer=True),
            "intertwined: Chambolle-Pock iterations of the template's reconstruction per outer iteration", int,
            solvers=(ALGORITHM1,), models=_ST),

@@ -8,9 +8,10 @@ frame, the 60 angles of all frames uniform on [0, pi), 92 bins, white noise at -
     fbp_static    one FBP of all 60 angles (motion ignored), compared with every frame
     tv_static     one TV of all data (motion ignored), mu the best of --mus
     known         model="spatiotemporal", the template f_0 given
+    joint         template unknown: Algorithm 1 on (m, I) together (TV(I) smoothed); sigma 6, 4x the step,
+                  --unknown-iters iterations
     intertwined   template unknown: per outer iteration a TV reconstruction of I through the current motion (50
-                  Chambolle-Pock iterations) and 10 registration steps; sigma 4, twice the step
-    joint         template unknown: Algorithm 1 on (m, I) together (TV(I) smoothed), the same settings
+                  Chambolle-Pock iterations) and 10 registration steps; the same settings
 
 Scores: mean SSIM / PSNR over the frames (against the true f_{t_k}, data range of each true frame); for the
 registrations the mean displacement error ``|phi_{t_k,0}(x) - phi^true_{t_k,0}(x)|`` in pixels over the
@@ -152,6 +153,7 @@ def main(argv=None) -> None:
     parser.add_argument("--snr", type=float, default=15.0)
     parser.add_argument("--iters", type=int, default=150)
     parser.add_argument("--step", type=float, default=0.05)
+    parser.add_argument("--unknown-iters", type=int, default=600, help="iterations with the template unknown")
     parser.add_argument("--mus", type=float, nargs="+", default=[0.3, 1.0, 3.0, 9.1])
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256], help="grids of the cost rows")
     parser.add_argument("--cost-only", action="store_true", help="only the cost rows")
@@ -174,9 +176,9 @@ def quality(a) -> dict:
     rows["template_static"] = scores(d.template.expand_as(d.frames), d)
     rows["known"] = run_registration(d, d.template, a.iters, step_size=a.step)
     tv = intensity_scale(TimeSeriesOperator(d.operators), d.data) / 2   # TV(I) weight: 1 x the data's unit / 2
-    unknown = dict(sigma=4.0, step_size=2 * a.step, template_tv_weight=tv)
-    rows["intertwined"] = run_registration(d, None, a.iters, template_update="intertwined", **unknown)
-    rows["joint"] = run_registration(d, None, a.iters, template_update="joint", **unknown)
+    unknown = dict(sigma=6.0, step_size=4 * a.step, template_tv_weight=tv)
+    for update in ("joint", "intertwined"):
+        rows[update] = run_registration(d, None, a.unknown_iters, template_update=update, **unknown)
     return rows
 
 

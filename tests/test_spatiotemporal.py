@@ -191,7 +191,8 @@ def test_bad_inputs_one_line(small):
         (lambda: indreg.register(template[:8], list(data), ops, **run), ValueError, "template has shape"),
         (lambda: indreg.register(template, data[0], ops[0], **run), TypeError, "TimeSeriesOperator"),
         (lambda: indreg.register(None, data[0], ops[0]), TypeError, "None .*only with model='spatiotemporal'"),
-        (lambda: indreg.register(None, list(data), ops, solver="adam", lr=0.1, **run), ValueError, "template_update"),
+        (lambda: indreg.register(None, list(data), ops, solver="adam", lr=0.1, template_update="intertwined", **run),
+         ValueError, "template_update"),
         (lambda: indreg.register(template, list(data), ops, holdout=2, **run), ValueError, "holdout"),
     ]
     for call, kind, match in cases:

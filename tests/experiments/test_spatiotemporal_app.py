@@ -23,8 +23,10 @@ def test_dynamic_run_outputs_and_resume(tmp_path):
     np.testing.assert_allclose(np.load(out / "frames.npy"), np.load(tmp_path / "ref" / "frames.npy"), atol=1e-12)
 
 
-def test_unknown_template_resume(tmp_path):
-    over = DYN + ["data.template_known=false", "solver.registration_steps=2", "solver.template_steps=5",
+@pytest.mark.parametrize("update", ["joint", "intertwined"])
+def test_unknown_template_resume(tmp_path, update):
+    over = DYN + ["data.template_known=false", f"solver.template_update={update}", "solver.registration_steps=2",
+                  "solver.template_steps=5",
                   "solver.template_tv_weight=0.05", "logging.figure=false", "logging.tensorboard=false"]
     ref = run_app(over, tmp_path / "ref")
     assert np.load(tmp_path / "ref" / "template.npy").shape == (24, 24) and "template_ssim" in ref
