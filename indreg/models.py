@@ -179,7 +179,8 @@ register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotempo
     Option("template_update", "solver", "template_update", "joint", choice(("joint", "intertwined")),
            "template unknown: 'joint' (Algorithm 1 or torch.optim on (m, I) together) or 'intertwined' (every outer "
            "iteration a TV reconstruction of I from all frames pulled back through the current motion, then "
-           "registration steps; IntertwinedSolver): as good per iteration, 7x the cost (docs/spatiotemporal.md)",
+           "registration steps; IntertwinedSolver): a little better per iteration, 7x the cost per iteration "
+           "(docs/spatiotemporal.md)",
            str, models=_ST),
     Option("template_steps", "solver", "template_steps", 50, number(1, integer=True),
            "intertwined: Chambolle-Pock iterations of the template's reconstruction per outer iteration", int,

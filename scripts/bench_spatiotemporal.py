@@ -19,7 +19,7 @@ phantom's support (and over the whole grid), and for the unknown template the SS
 and the outer iteration at which the frames' mean SSIM first comes within 0.01 of its final value. Time: CPU
 seconds per iteration and peak RSS growth (``cost``: fresh subprocesses, 1 thread, at 64^2 and 256^2) of the
 spatiotemporal run (template known; unknown, joint) against one LDDMM registration of the same grid and N (f_0 to
-the last frame's data).
+the last frame's data); ``saved_mib``: the autograd graph of one gradient, per backward.
 
     OMP_NUM_THREADS=1 python scripts/bench_spatiotemporal.py              # ~3 min on one core
     python scripts/bench_spatiotemporal.py --snr 10 --iters 200
@@ -148,6 +148,31 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024, stat
     return {"peak_rss_growth_mib": float(mib), "cpu_per_iteration": float(cpu)}
 
 
+def saved_mib(size: int) -> dict:
+    """MiB of tensors autograd saves for one gradient of the known-template model at a random momentum (unique
+    storages, ``saved_tensors_hooks``), per ``backward``; the records the custom Functions keep on ``ctx`` are not
+    seen (the exact mode's: about one velocity field per frame)."""
+    from indreg.solvers import SpatiotemporalRegistration
+
+    d = dynamic.acquisition(size, 12, 5, det_count=int(1.45 * size), snr_db=15.0)
+    T, K = TimeSeriesOperator(d.operators), indreg.GaussianKernel(d.domain, 3.0)
+    out = {}
+    for backward in ("autograd", "exact"):
+        W = indreg.LDDMMDeformation(d.domain, 12, backward=backward)
+        p = SpatiotemporalRegistration(T, W, K, d.template, d.data, d.times, 1e-5)
+        m = 0.1 * torch.randn(p.momentum_shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        seen = {}
+
+        def pack(t):
+            seen[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+            return t
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            p.gradient((m,))
+        out[backward] = sum(seen.values()) / 2 ** 20
+    out["velocity_field"] = 13 * 2 * size * size * 8 / 2 ** 20
+    return out
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--snr", type=float, default=15.0)
@@ -160,7 +185,8 @@ def main(argv=None) -> None:
     parser.add_argument("--json", default=None)
     a = parser.parse_args(argv)
     torch.set_num_threads(1)
-    rows = {"cost": {f"{k}_{n}": cost(k, n) for n in a.sizes for k in ("lddmm", "known", "unknown")}}
+    rows = {"cost": {f"{k}_{n}": cost(k, n) for n in a.sizes for k in ("lddmm", "known", "unknown")},
+            "saved_mib": {n: saved_mib(n) for n in a.sizes}}
     if not a.cost_only:
         rows.update(quality(a))
     print(json.dumps(rows, indent=1))
