@@ -49,6 +49,10 @@ def register(template, data, operator, **options) -> RegistrationResult:
         operator: the forward operator T: ``indreg.RayTransform(domain, geometry)`` (parallel or fan beam),
             ``indreg.TiltSeriesTransform`` or any linear operator with ``domain``, ``range_shape``, ``__call__``,
             ``adjoint`` and ``inner_data`` (``indreg.forward.check_operator``; ``docs/extending.md``).
+            Data at several time points (``model="spatiotemporal"``, ``docs/spatiotemporal.md``): a list of
+            operators, one per time point, with a list of data sets (or an ``indreg.forward.TimeSeriesOperator``
+            and the data stacked ``(K, *range_shape)``), ``times=[t_1, ..., t_K]``, and ``template=None`` when the
+            template is unknown (reconstructed: ``result.template``; the frames: ``result.frames``).
         sigma: width of the Gaussian kernel of V (physical units), 6.0.
         gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
         action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose" (default

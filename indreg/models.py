@@ -11,6 +11,8 @@ Built in:
 
     lddmm          ``IndirectRegistration`` with ``LDDMMDeformation`` (the paper's method)
     metamorphosis  ``MetamorphosisRegistration`` with ``MetamorphosisDeformation`` (intensities change too)
+    spatiotemporal ``SpatiotemporalRegistration``: data at several time points, one flow, template known or
+                   unknown (``template=None``; docs/spatiotemporal.md)
 """
 from __future__ import annotations
 
@@ -20,8 +22,8 @@ from typing import Any, Callable, Optional
 import torch
 
 from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, is_torch_optim, model, number,  # noqa: F401
-                      optional, register_model)
+from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, choice,  # noqa: F401
+                      is_torch_optim, model, number, optional, register_model)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -178,3 +180,61 @@ register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Met
 def solver_kind(solver: str) -> str:
     """``"algorithm1"``, ``"fast"`` or ``"torch"`` (the key of a model's ``solver_options``)."""
     return "torch" if is_torch_optim(solver) else solver
+
+
+def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
+    from .deform import LDDMMDeformation
+    from .solvers.spatiotemporal import IntertwinedSolver, SpatiotemporalRegistration
+
+    W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
+                         backward=o["backward"] or "autograd", interpolation=o["interpolation"])
+    problem = SpatiotemporalRegistration(operator, W, kernel, template, data, o["times"], o["gamma"],
+                                         tv_weight=o["tv_weight"], template_tv_weight=o["template_tv_weight"])
+    if problem.known:
+        return problem, {}
+    options = {ALGORITHM1: {"steps": {"template": o["template_step_size"]}}}
+    if o["template_update"] == "intertwined":
+        if solver_kind(o["solver"]) != ALGORITHM1:
+            raise OptionError("template_update", "intertwined", f"'joint' with solver={o['solver']!r} (the "
+                              "intertwined scheme alternates with Algorithm 1's steps)")
+        options[ALGORITHM1]["cycle"] = ((("momentum",), 1),)   # Algorithm 1 moves the momentum only
+        options["wrap"] = lambda solver: IntertwinedSolver(solver, o["template_steps"], o["registration_steps"],
+                                                           o["template_tv_weight"])
+    return problem, options
+
+
+def _check_spatiotemporal(o: dict, label) -> None:
+    _backward_in(("autograd", "exact"))(o, label)
+    if o["solver"] == "fast":
+        raise OptionError(label("solver"), o["solver"], "'algorithm1' or a torch.optim name for "
+                          "model='spatiotemporal' (no coarse-to-fine form)")
+    if o["holdout"] is not None:
+        raise OptionError(label("holdout"), o["holdout"], "None for model='spatiotemporal'")
+
+
+_ST = ("spatiotemporal",)
+register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotemporal, template_optional=True,
+                     doc="data at several time points, one flow (eq:SpatioTemporal); the template known or not",
+                     options=(
+    Option("times", "deformation", "times", None, anything,
+           "the data's time points t_1 < ... < t_K in [0, 1], each on the grid j / num_steps (None: k / K)",
+           Optional[Any], models=_ST),
+    Option("template_update", "solver", "template_update", "joint", choice(("joint", "intertwined")),
+           "template unknown: 'joint' (Algorithm 1 or torch.optim on (m, I) together) or 'intertwined' (every outer "
+           "iteration a TV reconstruction of I from all frames pulled back through the current motion, then "
+           "registration steps; IntertwinedSolver): a little better per iteration, 7x the cost per iteration "
+           "(docs/spatiotemporal.md)",
+           str, models=_ST),
+    Option("template_steps", "solver", "template_steps", 50, number(1, integer=True),
+           "intertwined: Chambolle-Pock iterations of the template's reconstruction per outer iteration", int,
+           solvers=(ALGORITHM1,), models=_ST),
+    Option("registration_steps", "solver", "registration_steps", 10, number(1, integer=True),
+           "intertwined: Algorithm 1 steps on the momentum per outer iteration", int, solvers=(ALGORITHM1,),
+           models=_ST),
+    Option("template_step_size", "solver", "template_step_size", None, optional(number(0.0, strict=True)),
+           "joint, Algorithm 1: the template's step (None: 1 / ||T||^2, T all frames' operators)", Optional[float],
+           solvers=(ALGORITHM1,), models=_ST),
+    Option("template_tv_weight", "solver", "template_tv_weight", 0.0, number(0.0),
+           "template unknown: weight of TV(I) (its objective's; the intertwined TV step's mu is twice it)", float,
+           models=_ST),
+)))

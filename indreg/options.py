@@ -166,7 +166,8 @@ MODELS: dict = {}
 
 @dataclass(frozen=True)
 class Model:
-    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``;
+    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``
+    (``template`` None, unknown, only for a model with ``template_optional``);
     ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
     ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
     name: str
@@ -174,6 +175,7 @@ class Model:
     options: tuple = ()
     doc: str = ""
     check: Optional[Callable] = None   # check(options, label): cross-option checks, errors via label(name)
+    template_optional: bool = False    # template=None (unknown) is allowed: the model reconstructs it
 
 
 def register_model(model: Model) -> Model:

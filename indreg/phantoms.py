@@ -91,6 +91,11 @@ def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torc
     u = (torch.arange(s * nx, dtype=torch.float64) + 0.5) * (2.0 / (s * nx)) - 1.0
     v = (torch.arange(s * ny, dtype=torch.float64) + 0.5) * (2.0 / (s * ny)) - 1.0
     X, Y = torch.meshgrid(u, v, indexing="ij")
+    return ellipse_values(ellipses, X, Y).reshape(nx, s, ny, s).mean(dim=(1, 3))
+
+
+def ellipse_values(ellipses, X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+    """The sum of the ellipses' values at the normalised points ``(X, Y)`` (``ellipse_phantom``'s rows)."""
     fine = torch.zeros_like(X)
     for row in ellipses:
         if len(row) != 6:
@@ -102,7 +107,7 @@ def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torc
         dx, dy = X - cx, Y - cy
         inside = ((c * dx + sn * dy) / a) ** 2 + ((-sn * dx + c * dy) / b) ** 2 <= 1.0
         fine = fine + value * inside.to(fine.dtype)
-    return fine.reshape(nx, s, ny, s).mean(dim=(1, 3))
+    return fine
 
 
 def shepp_logan(domain: ImageDomain) -> torch.Tensor:

@@ -167,9 +167,9 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
     template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
     the template; without a scale a warning names both numbers when either is outside
-    ``[1/UNIT_RANGE, UNIT_RANGE]``. ``label(name)`` names the option in messages (the app: its config key).
-    Raises ValueError when ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the
-    data)."""
+    ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
+    option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
+    template whose projection does not resemble the data)."""
     units = Units()
     if background is None:
         check_offset(data, label("background"))
@@ -178,6 +178,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
         data = data - units.background
         log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
                  background)
+    if template is None:   # unknown (reconstructed by the model): no units to compare
+        return template, data, units
     units.projection_ratio, units.scale_fit = compare_units(template, data, operator)
     units.template_scale = _template_factor(template_scale, units, label("template_scale"))
     if units.template_scale != 1.0:
@@ -188,7 +190,14 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
     """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
-    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind."""
+    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind; a model's
+    ``solver_options["wrap"]`` (a function of the solver) then wraps it."""
+    wrap = solver_options.get("wrap")   # a model's solver around the one built here (e.g. an alternation)
+    solver = _make_solver(problem, o, solver_options)
+    return solver if wrap is None else wrap(solver)
+
+
+def _make_solver(problem, o: dict, solver_options: dict):
     from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
     from .solvers.multilevel import options as fast_options
 
@@ -232,14 +241,24 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
+    from .forward.time_series import as_time_series
     from .validation import split
 
     o = opts.resolve(options, label, strict)
+    operator, data = as_time_series(operator, data)   # sequences: one operator / data set per time point
     check_operator(operator, "operator")
-    dtype = resolve_dtype(o["dtype"], template)
-    device = resolve_device(o["device"], template)
+    model = models.get(o["model"])
+    if template is None and not model.template_optional:
+        allowed = [m.name for m in models.MODELS.values() if m.template_optional]
+        which = " or ".join(map(repr, allowed)) or "a model that reconstructs it"
+        raise TypeError(f"template must be an image of shape {tuple(operator.domain.shape)}; None (an unknown "
+                        f"template) only with model={which}")
+    first = template if template is not None else data   # the run's dtype / device default to it
+    dtype = resolve_dtype(o["dtype"], first)
+    device = resolve_device(o["device"], first)
     domain = operator.domain
-    template = as_tensor(template, "template", domain.shape, dtype, device)
+    if template is not None:
+        template = as_tensor(template, "template", domain.shape, dtype, device)
     data = as_tensor(data, "data", operator.range_shape, dtype, device)
     if o["target"] is not None:
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
@@ -255,7 +274,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     kernel = GaussianKernel(domain, o["sigma"])
-    problem, solver_options = models.get(o["model"]).build(operator, template, data, kernel, o)
+    problem, solver_options = model.build(operator, template, data, kernel, o)
     return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
 
 
@@ -527,7 +546,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     with torch.no_grad():
         velocity = problem.velocity(x[0])
     terms = problem.evaluate_iterate(x)
-    residual = relative_residual(problem.ray_transform, image, problem.data)
+    residual = problem.relative_residual(x)
     result = RegistrationResult(
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,

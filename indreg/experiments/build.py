@@ -31,7 +31,7 @@ class Experiment:
     ``template_64`` / ``noisy_data_64`` are the inputs as the run uses them (``units``: the template's scale and
     the data's background, ``indreg.run.prepare``); ``paper``: the paper's simulated suites (``psnr_paper``);
     ``validation`` the held-out angles (``validation.holdout``) or None; ``report``: the data's numbers for
-    metrics.json (``sources.Data.report``)."""
+    metrics.json (``sources.Data.report``); ``targets``: ground truths of the model's outputs (``sources.Data``)."""
     domain: ImageDomain
     geometry: object
     ray_transform: object
@@ -49,6 +49,7 @@ class Experiment:
     paper: bool = False
     validation: object = None
     report: dict = field(default_factory=dict)
+    targets: dict = field(default_factory=dict)
 
 
 def seed_everything(seed: int) -> None:
@@ -67,7 +68,7 @@ def build(cfg: DictConfig) -> Experiment:
     template = data.template_64.to(dtype=dtype, device=device)
     g = data.data_64.to(dtype=dtype, device=device)
     try:
-        s = run.setup(template, g, data.operator, label=lambda o: o.config_key, strict=False, dtype=dtype,
+        s = run.setup(template if data.template_known else None, g, data.operator, label=lambda o: o.config_key, strict=False, dtype=dtype,
                       device=device, **registration_values(cfg))
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
@@ -76,4 +77,5 @@ def build(cfg: DictConfig) -> Experiment:
                       template=template * u.template_scale, template_64=data.template_64 * u.template_scale,
                       noisy_data_64=data.data_64 - u.background, problem=s.problem, solver=s.solver,
                       label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db, units=u, paper=data.paper, validation=s.validation, report=data.report)
+                      snr_db=data.snr_db, units=u, paper=data.paper, validation=s.validation, report=data.report,
+                      targets=data.targets)

@@ -109,6 +109,9 @@ class _DataFiles:
     sinogram: Optional[str] = None
     target: Optional[str] = None
     half_width: float = 16.0
+    frames: int = 12                # source=dynamic: time points K (t_k = k / K)
+    amplitude: float = 0.4          # source=dynamic: the breathing amplitude A (indreg.dynamic)
+    template_known: bool = True     # source=dynamic: false: the template is unknown (reconstructed with the motion)
 
 
 DataConfig = make_dataclass("DataConfig", _options.schema_fields("data"), bases=(_DataFiles,))
@@ -118,6 +121,8 @@ DataConfig.__doc__ = """Where template and data come from: ``source`` is a built
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
     (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
+    ``dynamic``: the breathing phantom of ``indreg.dynamic`` measured at ``frames`` time points (``amplitude``;
+    ``template_known: false`` hands the run no template: ``deformation=spatiotemporal`` reconstructs it).
     ``template_scale`` / ``background`` (``indreg.options``, the same as ``indreg.register``'s): the template's
     intensity factor and the data's offset, applied before the run (``indreg.run.prepare``).
     """
@@ -346,6 +351,12 @@ def _validate_data(c: DictConfig) -> None:
         for key in ("template", "sinogram"):
             _require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
         _require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
+    elif d.source == "dynamic":
+        _require(d.frames >= 1, "data.frames", "an integer >= 1", d.frames)
+        _require(_finite(d.amplitude) and 0 <= d.amplitude < 1, "data.amplitude", "a number in [0, 1)", d.amplitude)
+        _require(g.num_angles is not None and g.num_angles >= 1, "geometry.num_angles",
+                 "an integer >= 1 (angles per time point)", g.num_angles)
+        _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)
     elif d.source == "phantom":
         _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None
                  or g.kind.value == "tilt_series", "geometry.num_angles", "an integer >= 1 (or geometry.angles)",

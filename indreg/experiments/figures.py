@@ -155,3 +155,29 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = ""):
 
 def save(fig, path, dpi: int = 100) -> None:
     fig.savefig(path, dpi=dpi)
+
+
+def frames_figure(frames: np.ndarray, truth: np.ndarray | None = None, title: str = "") -> Figure:
+    """The frames ``(K, nx, ny)`` of a time series in a row (and the true frames in a second row), upright, on
+    the grey scale of the truth (else of the frames)."""
+    rows = [frames] if truth is None else [frames, truth]
+    ref = rows[-1]
+    vmin, vmax = float(np.min(ref)), float(np.max(ref))
+    k = len(frames)
+    fig = Figure(figsize=(1.6 * k, 1.8 * len(rows) + 0.4))
+    for r, row in enumerate(rows):
+        for i, image in enumerate(row):
+            ax = fig.add_subplot(len(rows), k, r * k + i + 1)
+            show_image(ax, image, f"k={i + 1}" if r == 0 else "", vmin, vmax)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def save_gif(frames: np.ndarray, path, vmin: float, vmax: float, seconds_per_frame: float = 0.25) -> None:
+    """An animated GIF of the frames ``(K, nx, ny)`` (upright, grey levels ``[vmin, vmax]`` -> 0..255, looping)."""
+    import imageio.v2 as imageio
+
+    scale = 255.0 / max(vmax - vmin, 1e-12)
+    images = [np.clip((np.rot90(f) - vmin) * scale, 0, 255).astype(np.uint8) for f in np.asarray(frames)]
+    imageio.mimsave(path, images, duration=seconds_per_frame, loop=0)

@@ -29,7 +29,8 @@ the process exits with 128 + signal number). ``resume=true`` continues from ``<r
 with the same numbers as an uninterrupted run. In a multirun every log line starts with ``[job <n>]``. Outputs in
 the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy``, ``velocity.npy``,
 ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``, ``data.npy``,
-``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt`` (volumes also
+``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt`` (a model with
+frames, ``spatiotemporal``: ``frames.npy``, ``frames.png`` and the movie ``frames.gif``; volumes also
 ``final.mrc``, with the voxel size in its header, and ``sirt.npy``; ``figure.png`` shows orthogonal slices); measured data
 without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the relative data
 misfit, is always in metrics.json).
@@ -107,6 +108,15 @@ def figures_of_merit(image, target_64, paper: bool = True) -> dict:
     if paper:
         out.update(ssim_paper=metrics.ssim_paper(x, target_64), psnr_paper=metrics.psnr_paper(x, target_64))
     return out
+
+
+def output_fom(image, truth, ndim: int) -> dict:
+    """SSIM / PSNR of a model's output against its ground truth; a stack (one more axis than the domain's, e.g.
+    frames) gets the means over its first axis."""
+    if truth.dim() == ndim:
+        return figures_of_merit(image, truth, paper=False)
+    each = [figures_of_merit(a, b, paper=False) for a, b in zip(image, truth)]
+    return {k: sum(e[k] for e in each) / len(each) for k in each[0]}
 
 
 def tv_mu(cfg: DictConfig, exp) -> float:
@@ -363,6 +373,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         result.update({f"template_{k}": v for k, v in fom(exp.template_64).items()})
         for name in problem.scored:
             result.update({f"{name}_{k}": v for k, v in fom(r.outputs[name]).items()})
+    for name, truth in exp.targets.items():   # a model's outputs against their own ground truths
+        if name in r.outputs:
+            result.update({f"{name}_{k}": v for k, v in output_fom(r.outputs[name], truth, exp.domain.ndim).items()})
     result.update(r.terms)
     result.update({
         "status": r.status, "residual": r.residual, "iterations": it,
@@ -434,6 +447,17 @@ def _figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -
     if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
         grid = grid[:2, :, :, grid.shape[-1] // 2]
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
+    if "frames" in r.outputs:   # several time points: the frames in a row, one image each, and a movie
+        frames = _numpy(r.outputs["frames"])
+        truth = exp.targets.get("frames")
+        writer.strip("images/frames", list(frames), it)
+        for k, f in enumerate(frames):
+            writer.image(f"images/frames/{k:02d}", f, it)
+        if cfg.logging.figure:
+            shown = exp.target_64 if exp.target_64 is not None else frames[-1]
+            figures.save(figures.frames_figure(frames, None if truth is None else _numpy(truth),
+                                               title=f"{cfg.name}: frames (top), truth (bottom)"), out / "frames.png")
+            figures.save_gif(frames, out / "frames.gif", float(shown.min()), float(shown.max()))
     if parts is not None:
         writer.image("images/deformation_part", parts[0], it)
         bound = max(float(parts[1].abs().max()), 1e-12)

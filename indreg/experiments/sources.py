@@ -3,6 +3,8 @@
 ``data.source`` picks a function ``fn(cfg) -> Data`` (:func:`resolve`):
 
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
+    dynamic   a breathing Shepp-Logan phantom measured a few angles at a time (``indreg.dynamic``): data of
+              ``data.frames`` time points for ``deformation=spatiotemporal`` (docs/spatiotemporal.md)
     files     your own data: ``indreg.load`` (:mod:`indreg.inputs`) with the config's ``data`` and ``geometry``
               values: template, sinogram (and optionally a target) read by ``indreg.io``; with
               ``geometry=tilt_series`` a template volume and an MRC tilt series with its .tlt angles
@@ -65,7 +67,9 @@ class Data:
     unknown (measured data). ``label``: a short name of the template for hparams and titles. ``report``: numbers
     of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.tilt_axis``).
     ``paper``: the paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``,
-    ``psnr_paper``)."""
+    ``psnr_paper``). ``template_known`` False: the run gets no template (a model that reconstructs it, e.g.
+    ``spatiotemporal``; ``template_64`` is then only shown). ``targets``: ground truths of the model's outputs by
+    name (``frames`` ``(K, *shape)``, ``template``), scored as ``<name>_ssim`` (mean over a leading frame axis)."""
     domain: ImageDomain
     geometry: object
     operator: object
@@ -77,6 +81,8 @@ class Data:
     snr_db: Optional[float] = None
     report: dict = field(default_factory=dict)
     paper: bool = False
+    template_known: bool = True
+    targets: dict = field(default_factory=dict)
 
     @classmethod
     def from_inputs(cls, d: RegistrationInputs) -> "Data":
@@ -246,3 +252,25 @@ def file_data(cfg: DictConfig) -> Data:
     except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key
         raise ConfigError(str(e)) from None
     return Data.from_inputs(inputs)
+
+
+@source("dynamic")
+def dynamic_data(cfg: DictConfig) -> Data:
+    """``indreg.dynamic.acquisition``: ``data.frames`` frames of the breathing phantom (``data.amplitude``) on
+    ``phantom.size^2`` cells of [-16, 16]^2, ``geometry.num_angles`` angles per frame (all frames together uniform
+    on [0, pi)), ``geometry.det_count`` bins, noise at ``noise.snr_db`` per frame (seeded). The operator is a
+    ``TimeSeriesOperator``; the target is the last frame, ``targets`` the true frames and template."""
+    from ..dynamic import acquisition
+    from ..forward import TimeSeriesOperator
+
+    d, g, n = cfg.data, cfg.geometry, cfg.noise
+    if n.std is not None:
+        raise ConfigError("data.source=dynamic takes noise.snr_db (per frame), not noise.std")
+    seed = cfg.seed if n.seed is None else n.seed
+    a = acquisition(cfg.phantom.size, d.frames, g.num_angles, g.det_count, d.amplitude,
+                    300.0 if n.snr_db is None else n.snr_db, seed)
+    template = a.template if d.template_known else torch.zeros_like(a.template)
+    targets = {"frames": a.frames} if d.template_known else {"frames": a.frames, "template": a.template}
+    return Data(domain=a.domain, geometry=a.operators[0].geometry, operator=TimeSeriesOperator(a.operators),
+                template_64=template, data_64=a.data, label="breathing_shepp_logan", target_64=a.frames[-1],
+                clean_64=a.clean, snr_db=a.snr_db, template_known=d.template_known, targets=targets)

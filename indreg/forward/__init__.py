@@ -2,12 +2,14 @@
 
 The data model is ``g = T(W(nu, I)) + noise`` (``eq:OptimV``); ``T`` is any ``LinearOperator`` (protocol in
 ``operator``), by default the 2D ray transform for a parallel-beam or fan-beam geometry, or in 3D the
-single-axis tilt series of electron tomography (``tilt_series``). Baselines: FBP, SIRT and TV (2D and 3D).
+single-axis tilt series of electron tomography (``tilt_series``); data at several time points: one operator per
+frame (``time_series``). Baselines: FBP, SIRT and TV (2D and 3D).
 """
 from .geometry import FanBeamGeometry, ParallelBeamGeometry
 from .operator import LinearOperator, adjointness, check_operator
 from .ray_transform import RayTransform, register_projector
 from .tilt_series import TiltSeriesGeometry, TiltSeriesTransform
+from .time_series import TimeSeriesOperator
 from .fbp import fbp
 from .sirt import sirt
 from .tv import intensity_scale, tv_reconstruction
@@ -28,4 +30,4 @@ def operator_for(domain, geometry):
 
 __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_projector", "LinearOperator",
            "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "intensity_scale", "TiltSeriesGeometry",
-           "TiltSeriesTransform", "OPERATORS", "operator_for"]
+           "TiltSeriesTransform", "TimeSeriesOperator", "OPERATORS", "operator_for"]

@@ -48,6 +48,10 @@ class Algorithm1(IterativeSolver):
         steps: step sizes of the entries after the momentum by name (``None`` or absent:
             ``problem.default_step(name)``).
         frozen: iterations during which an entry is kept fixed, by name (e.g. ``{"source": 300}``).
+        cycle: block-alternating descent: ``((names, iterations), ...)``, e.g. ``((("template",), 5),
+            (("momentum",), 5))``: the first 5 iterations move only the template, the next 5 only the momentum,
+            and so on (iteration ``i`` at position ``i mod 10`` of the cycle); step halving halves the block's
+            steps only. None (default): every entry moves.
 
     ``step(state)`` performs one iteration and returns the report at the new iterate (``make_info``):
     objective and its terms, grad_norm, min_jacobian (of ``phi_{1,0}``), step_size, evaluations (cumulative
@@ -60,7 +64,8 @@ class Algorithm1(IterativeSolver):
 
     def __init__(self, problem: RegistrationProblem, step_size: float = 0.02, max_iter: int = 200,
                  grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
-                 jacobian_every: int = 1, steps: dict | None = None, frozen: dict | None = None):
+                 jacobian_every: int = 1, steps: dict | None = None, frozen: dict | None = None,
+                 cycle: tuple | None = None):
         check_problem(problem)
         self.problem = problem
         self.names = tuple(problem.iterate_names)
@@ -76,6 +81,7 @@ class Algorithm1(IterativeSolver):
             self.step_sizes.append(check_positive(problem.default_step(name) if s is None else s,
                                                   f"{name}_step_size", dtype))
         self.frozen = {self.names.index(k): check_int(v, f"{k}_start", 0) for k, v in frozen.items()}
+        self.cycle = self._check_cycle(cycle)
         self.max_iter = check_int(max_iter, "max_iter", 0)
         self.grad_tol = check_nonnegative(grad_tol, "grad_tol")
         self.control = StepControl(check_bool(step_halving, "step_halving"), check_int(max_halvings, "max_halvings", 0))
@@ -136,9 +142,36 @@ class Algorithm1(IterativeSolver):
         return self._info(state.iteration, terms, h, min_jac, self.step_sizes, False,
                           problems(terms["objective"], min_jac))
 
+    def _check_cycle(self, cycle) -> tuple | None:
+        """``cycle`` as ``((entry indices, iterations), ...)``; one-line ValueError for unknown names."""
+        if cycle is None:
+            return None
+        out = []
+        for names, count in cycle:
+            unknown = [n for n in names if n not in self.names]
+            if unknown or not names:
+                raise ValueError(f"cycle must name entries of the iterate {self.names}, got {tuple(names)!r}")
+            out.append((frozenset(self.names.index(n) for n in names), check_int(count, "cycle iterations", 1)))
+        return tuple(out)
+
+    def _block(self, iteration: int) -> set:
+        """The entries (indices) of the ``cycle``'s block at ``iteration`` (all without a cycle)."""
+        if self.cycle is None:
+            return set(range(len(self.names)))
+        position = iteration % sum(count for _, count in self.cycle)
+        for block, count in self.cycle:
+            if position < count:
+                return set(block)
+            position -= count
+
+    def moving(self, iteration: int) -> set:
+        """The entries (indices) that move at ``iteration``: not ``frozen``, and in the ``cycle``'s block."""
+        return {k for k in self._block(iteration) if iteration >= self.frozen.get(k, 0)}
+
     def _moved(self, x: tuple, h: tuple, steps: tuple, iteration: int) -> tuple:
-        """``x_k - alpha_k h_k`` for every entry not frozen at ``iteration``."""
-        return tuple(xk if iteration < self.frozen.get(k, 0) else torch.add(xk, hk, alpha=-a)
+        """``x_k - alpha_k h_k`` for every entry that moves at ``iteration`` (:meth:`moving`)."""
+        moving = self.moving(iteration)
+        return tuple(torch.add(xk, hk, alpha=-a) if k in moving else xk
                      for k, (xk, hk, a) in enumerate(zip(x, h, steps)))
 
     def step(self, state: SolverState) -> dict:
@@ -146,14 +179,22 @@ class Algorithm1(IterativeSolver):
         terms, h, nu = self._at(state)
         it = state.iteration
 
-        def trial(steps):
+        block = sorted(self._block(it))   # step control halves only the steps of the cycle's block
+
+        def trial(sizes):
+            steps = list(self.step_sizes)
+            for k, a in zip(block, sizes):
+                steps[k] = a
             x_new = self._moved(state.iterate, h, steps, it)
             new = self._evaluate(x_new)
-            return (x_new, new), new[0]["objective"], self._min_jacobian(new[2], it + 1)
+            return (x_new, new, tuple(steps)), new[0]["objective"], self._min_jacobian(new[2], it + 1)
 
         rtol = rounding_tolerance(state.iterate[0].dtype)
-        (x_new, new), min_jac, steps, warnings, rejected, halvings = self.control.search(
-            self.step_sizes, terms["objective"], trial, rtol)
+        sizes = [self.step_sizes[k] for k in block]
+        (x_new, new, steps), min_jac, _, warnings, rejected, halvings = self.control.search(
+            sizes, terms["objective"], trial, rtol)
+        for k, a in zip(block, sizes):
+            self.step_sizes[k] = a
         if rejected:
             new = (terms, h, nu)
             min_jac = self._min_jacobian(nu, it + 1)

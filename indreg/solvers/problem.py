@@ -21,7 +21,8 @@ Members a subclass implements:
   ``differentiable``; LDDMM and metamorphosis hand-write it (one forward / backward, in place);
 - ``reconstruction(x)`` (the image the iterate implies, ``f(1)``), ``image_trajectory(x)`` (``f(t_i)``),
   ``evaluate_iterate(x)`` (the terms, python floats), ``outputs(x)`` (model-specific results by name),
-  ``scored`` (which of those are images to score against a target), ``hparams()``;
+  ``scored`` (which of those are images to score against a target), ``hparams()``, ``relative_residual(x)``
+  (``||T f - g|| / ||g||``; by default of ``reconstruction(x)``);
 - ``with_backward(backward)`` / ``for_line_search()``: the problem with another deformation backward (a line
   search needs the exact gradient of the discrete map);
 - optionally ``default_step(name)`` for entries after the momentum, and ``coarsened(shape, num_steps,
@@ -105,3 +106,10 @@ class RegistrationProblem:
     def outputs(self, x: tuple) -> dict:
         """Model-specific results at ``x`` by name (tensors), besides the reconstruction and the deformation."""
         return {}
+
+    def relative_residual(self, x: tuple) -> float:
+        """``||T f - g|| / ||g||`` of ``f = reconstruction(x)`` in the data norm (a model whose data are not
+        ``T f`` of its reconstruction, e.g. several frames, overrides it)."""
+        from ..run import relative_residual
+
+        return relative_residual(self.ray_transform, self.reconstruction(x), self.data)

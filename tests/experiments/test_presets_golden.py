@@ -15,7 +15,8 @@ import pytest
 from golden_helpers import GOLDEN, api_numbers, app_numbers, mismatches
 
 GOLD = json.loads(GOLDEN.read_text())
-QUICK = ("suite1_jv", "own_data_example")  # 64^2 presets (and their variants "<preset>-<variant>")
+# 64^2 presets (and their variants "<preset>-<variant>")
+QUICK = ("suite1_jv", "own_data_example", "suite_dynamic_2d", "suite_dynamic_2d_unknown")
 
 
 def _case(kind: str, name: str):

@@ -129,12 +129,12 @@ def test_entry_point_source(tmp_path, user_source):
     cfg = compose(["data.source=bundle", *args])
     validate(cfg)
     assert torch.equal(sources.load(cfg).data_64, data.double())
-    with pytest.raises(ConfigError, match=r"data\.source='nope': expected one of files, phantom, bundle or"):
+    with pytest.raises(ConfigError, match=r"data\.source='nope': expected one of dynamic, files, phantom, bundle or"):
         validate(compose(["data.source=nope"]))
 
 
 @pytest.mark.parametrize("name,match", [
-    ("nope", r"^invalid config value data\.source='nope': expected one of files, phantom or an importable "
+    ("nope", r"^invalid config value data\.source='nope': expected one of dynamic, files, phantom or an importable "
              r"module:function"),
     ("no_such_module_x:fn", r"data\.source='no_such_module_x:fn': cannot import it \(ModuleNotFoundError: No "
                             r"module named 'no_such_module_x'\)"),
