@@ -26,3 +26,22 @@ def test_torch_imported_first_is_left_alone():
     """Too late to change the policy: indreg does not pretend it did."""
     script = "import torch, os, indreg; print(os.environ.get('OMP_WAIT_POLICY'))"
     assert _policy(None, script) == "None"
+
+
+def test_heap_allocator_policy_in_a_fresh_process():
+    """glibc takes the heap-only policy (Linux); INDREG_MALLOC=system leaves the allocator alone; either way numbers
+    are unchanged (only where memory comes from)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch, indreg._malloc as m; ok = m.use_heap_allocator(); x = torch.arange(2.0 ** 24);"
+            "print(ok, float((x * x).sum()))")
+    runs = {}
+    for value in ("", "system"):
+        env = dict(os.environ, INDREG_MALLOC=value)
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        runs[value] = out.stdout.split()
+    assert runs["system"][0] == "False" and runs[""][1] == runs["system"][1]
+    if sys.platform.startswith("linux") and os.path.exists("/lib/x86_64-linux-gnu/libc.so.6"):
+        assert runs[""][0] == "True"

@@ -592,9 +592,13 @@ def preflight(argv) -> None:
 
 
 def main() -> None:
-    """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``)."""
+    """Console entry point ``indreg-register`` (Hydra parses ``sys.argv``); large freed arrays stay in the heap
+    (``indreg._malloc``: 256^3 volumes are not page-faulted in afresh at every operation)."""
     import hydra
 
+    from .._malloc import use_heap_allocator
+
+    use_heap_allocator()
     preflight(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=_CONFIG_NAME)(_task)()
 

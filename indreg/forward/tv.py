@@ -106,6 +106,12 @@ def intensity_scale(T, y: torch.Tensor) -> float:
         return float(T.adjoint(y).abs().max()) / peak
 
 
+def _magnitude(v: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
+    """``|v|`` over the components' axis ``dim``: the square root of the sum of squares (torch's ``norm`` over an
+    outer axis runs 7x slower on the CPU: 1.9 s vs 0.27 s for a 3 x 256^3 field)."""
+    return v.square().sum(dim=dim, keepdim=keepdim).sqrt()
+
+
 def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: torch.Tensor | None = None,
                       callback=None, nonneg: bool = False, opnorm_iter: int = 100) -> tuple:
     """Minimise ``||T x - y||^2 + mu TV(x)`` (module docstring) by Chambolle-Pock with ``K = [T; grad]``.
@@ -146,7 +152,7 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
 
     def energy(tx, gx):
         r = tx - y
-        return T.inner_data(r, r) + mu * dom.cell_volume * gx.norm(dim=vec).sum(dim=dom.dims)
+        return T.inner_data(r, r) + mu * dom.cell_volume * _magnitude(gx, vec).sum(dim=dom.dims)
 
     tx, gx = T(x), gradient(x, dom)
     p, q = torch.zeros_like(tx), torch.zeros_like(gx)
@@ -155,7 +161,7 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     for i in range(num_iter):
         p = (p + sigma * (tx_bar - y)) / (1.0 + sigma / 2.0)
         q = q + sigma * gx_bar
-        q = q / torch.clamp(q.norm(dim=vec, keepdim=True) / mu, min=1.0)
+        q = q / torch.clamp(_magnitude(q, vec, keepdim=True) / mu, min=1.0)
         x_new = x - tau * (T.adjoint(p) - divergence(q, dom))
         if nonneg:
             x_new = x_new.clamp(min=0.0)
