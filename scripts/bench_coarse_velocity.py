@@ -15,6 +15,9 @@ included) and its growth over the RSS before ``register``. The factors run inter
 size, ``--rounds`` times): on the shared 2-core machine compare the ratios within one invocation, and the CPU
 seconds, steadier than the wall time under load.
 
+Every worker keeps large freed arrays in the heap, as the app does (``indreg._malloc.use_heap_allocator``); run
+with ``INDREG_MALLOC=system`` for glibc's default (every 64 MiB volume page-faulted in afresh).
+
 Quality table (``--quality SIZE``): the same problem for ``--quality-iters`` iterations per factor (the preset's
 100); the honest SSIM / PSNR (``indreg.metrics``) against the swirled phantom at a few iteration counts, the
 min Jacobian and the relative data residual at the end, wall / CPU seconds of the whole run.
@@ -92,6 +95,9 @@ def worker_time(size: int, variant: str, iters: int, warmup: int, threads: int) 
     import torch
 
     import indreg
+    from indreg._malloc import use_heap_allocator
+
+    use_heap_allocator()   # the app's allocator policy (INDREG_MALLOC=system: glibc's default)
 
     torch.set_num_threads(threads)
     T, template, data, _ = _problem(size)
