@@ -24,6 +24,7 @@ import torch
 
 from . import models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
+from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
 
 log = logging.getLogger("indreg")
@@ -513,13 +514,6 @@ class RegistrationResult:
         if name in outputs:
             return outputs[name]
         raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
-
-
-def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> float:
-    """``||T f - g|| / ||g||`` in the data norm (``operator.inner_data``)."""
-    with torch.no_grad():
-        r = operator(image) - data
-        return math.sqrt(float(operator.inner_data(r, r).sum()) / float(operator.inner_data(data, data).sum()))
 
 
 def final_status(status: str, residual: float) -> str:

@@ -15,6 +15,7 @@ weighted L2 adjoint, not the matrix transpose, unless both weights are equal.
 """
 from __future__ import annotations
 
+import math
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -213,3 +214,10 @@ class RestrictedOperator:
 
     def __repr__(self) -> str:
         return f"RestrictedOperator({self.operator!r}, {len(self.rows)} of {self.operator.range_shape[0]} rows)"
+
+
+def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> float:
+    """``||T f - g|| / ||g||`` in the data norm (``operator.inner_data``)."""
+    with torch.no_grad():
+        r = operator(image) - data
+        return math.sqrt(float(operator.inner_data(r, r).sum()) / float(operator.inner_data(data, data).sum()))

@@ -42,6 +42,8 @@ import math
 
 import torch
 
+from ..forward.operator import relative_residual
+
 
 class RegistrationProblem:
     """Base class of the registration objectives (module docstring: the protocol). Subclasses set ``kernel``,
@@ -110,6 +112,4 @@ class RegistrationProblem:
     def relative_residual(self, x: tuple) -> float:
         """``||T f - g|| / ||g||`` of ``f = reconstruction(x)`` in the data norm (a model whose data are not
         ``T f`` of its reconstruction, e.g. several frames, overrides it)."""
-        from ..run import relative_residual
-
         return relative_residual(self.ray_transform, self.reconstruction(x), self.data)
