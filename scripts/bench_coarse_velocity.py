@@ -8,7 +8,8 @@ step halving (the preset's solver), float32, run by ``indreg.register``.
 Variants: a factor ``f`` (``velocity_factor=f`` with the preset's ``compose``; 1 is the full grid), or ``1r``: the
 full grid with re-interpolation and the paper's gradient (``scripts/bench_register.py --volumes``' setting).
 
-Time table: for every size and variant a fresh subprocess builds the data, runs ``--warmup`` iterations, then
+Time table: for every size, variant and device (the CPU; CUDA too where a GPU is present, its peak memory the
+device's peak allocation) a fresh subprocess builds the data, runs ``--warmup`` iterations, then
 ``--iters`` more; it reports the median wall and CPU seconds (process time, all threads) per iteration between
 the callbacks, evaluations per iteration, the peak RSS of the process (``ru_maxrss``: Python, torch and the data
 included) and its growth over the RSS before ``register``. The factors run interleaved (1, 2, 4, 1, 2, 4, ... per
@@ -91,7 +92,7 @@ def _variant(v: str) -> dict:
     return {**OPTIONS, "velocity_factor": int(v)}
 
 
-def worker_time(size: int, variant: str, iters: int, warmup: int, threads: int) -> dict:
+def worker_time(size: int, variant: str, iters: int, warmup: int, threads: int, device: str = "cpu") -> dict:
     import torch
 
     import indreg
@@ -104,15 +105,25 @@ def worker_time(size: int, variant: str, iters: int, warmup: int, threads: int) 
     rss_before = _rss_gib()
     marks = []
 
+    cuda = device.startswith("cuda")
+
     def mark(state, info):
+        if cuda:
+            torch.cuda.synchronize()
         marks.append((time.perf_counter(), time.process_time(), info["evaluations"]))
 
-    result = indreg.register(template, data, T, max_iter=warmup + iters, callback=mark, **_variant(variant))
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    result = indreg.register(template, data, T, max_iter=warmup + iters, callback=mark, device=device,
+                             **_variant(variant))
+    # CUDA: the device's peak allocation (the process's RSS is the host's)
+    peak = torch.cuda.max_memory_allocated() / 2 ** 30 if cuda else \
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
+    if cuda:
+        rss_before = 0.0
     timed = marks[warmup - 1:] if warmup > 0 else marks
     wall = [b[0] - a[0] for a, b in zip(timed, timed[1:])]
     cpu = [b[1] - a[1] for a, b in zip(timed, timed[1:])]
-    return {"size": size, "variant": variant, "s_per_it": statistics.median(wall), "cpu_per_it": statistics.median(cpu),
+    return {"size": size, "variant": variant, "device": device, "s_per_it": statistics.median(wall),
+            "cpu_per_it": statistics.median(cpu),
             "evals_per_it": (timed[-1][2] - timed[0][2]) / max(len(wall), 1), "peak_gib": peak,
             "growth_gib": peak - rss_before, "objective": result.objective}
 
@@ -159,35 +170,44 @@ def _spawn(args: list) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _devices() -> list:
+    """The CPU, and CUDA where a GPU is present (its rows: the device's peak allocation as peak memory)."""
+    import torch
+
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
 def time_table(args) -> None:
-    rows = {}
+    rows, devices = {}, _devices()
     for r in range(args.rounds):
         for size in args.sizes:
             for f in args.factors:
-                row = _spawn(["--worker-time", size, f, "--iters", args.iters, "--warmup", args.warmup,
-                              "--threads", args.threads])
-                rows.setdefault((size, f), []).append(row)
-                print(f"# round {r + 1}: {size}^3 f={f}: {row}", file=sys.stderr)
+                for device in devices:
+                    row = _spawn(["--worker-time", size, f, "--iters", args.iters, "--warmup", args.warmup,
+                                  "--threads", args.threads, "--device", device])
+                    rows.setdefault((size, f, device), []).append(row)
+                    print(f"# round {r + 1}: {size} f={f} {device}: {row}", file=sys.stderr)
     print(f"\n`indreg.register`, suite_et_3d settings (sigma 3, N = 10, compose, Algorithm 1, step 0.1 with step "
           f"halving), float32, {args.threads} thread(s); median over {args.iters} iterations after {args.warmup} "
           f"warm-up, {args.rounds} interleaved round(s) (one value per round); ratio = the variant's CPU s / it over "
           f"the first variant's in the same round\n")
-    print(f"| grid | variant | velocity grid | s / iteration | CPU s / it | CPU ratio to {args.factors[0]} | "
-          "evaluations / it | peak RSS GiB | growth GiB |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(f"| grid | variant | velocity grid | device | s / iteration | CPU s / it | CPU ratio to {args.factors[0]} | "
+          "evaluations / it | peak GiB (RSS; CUDA: device) | growth GiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
         for f in args.factors:
-            runs = rows[(size, f)]
-            if any("error" in x for x in runs):
-                print(f"| {_grid(size, '1r')} | {_name(f)} | {_grid(size, f)} | {runs[0].get('error', runs[-1].get('error'))} "
-                      f"| | | | | |")
-                continue
-            base = rows.get((size, args.factors[0]), [])
-            ratios = [x["cpu_per_it"] / b["cpu_per_it"] for x, b in zip(runs, base) if "error" not in b]
-            join = lambda key, fmt: " / ".join(format(x[key], fmt) for x in runs)  # noqa: E731
-            print(f"| {_grid(size, '1r')} | {_name(f)} | {_grid(size, f)} | {join('s_per_it', '.2f')} | {join('cpu_per_it', '.2f')} | "
-                  f"{' / '.join(f'{q:.2f}' for q in ratios)} | {join('evals_per_it', '.1f')} | "
-                  f"{join('peak_gib', '.2f')} | {join('growth_gib', '.2f')} |")
+            for device in devices:
+                runs = rows[(size, f, device)]
+                head = f"| {_grid(size, '1r')} | {_name(f)} | {_grid(size, f)} | {device} |"
+                if any("error" in x for x in runs):
+                    print(f"{head} {next(x['error'] for x in runs if 'error' in x)} | | | | | |")
+                    continue
+                base = rows.get((size, args.factors[0], device), [])
+                ratios = [x["cpu_per_it"] / b["cpu_per_it"] for x, b in zip(runs, base) if "error" not in b]
+                join = lambda key, fmt: " / ".join(format(x[key], fmt) for x in runs)  # noqa: E731
+                print(f"{head} {join('s_per_it', '.2f')} | {join('cpu_per_it', '.2f')} | "
+                      f"{' / '.join(f'{q:.2f}' for q in ratios)} | {join('evals_per_it', '.1f')} | "
+                      f"{join('peak_gib', '.2f')} | {join('growth_gib', '.2f')} |")
 
 
 def quality_table(args) -> None:
@@ -220,11 +240,12 @@ def main() -> None:
     p.add_argument("--quality-iters", type=int, default=100)
     p.add_argument("--quality-at", type=int, nargs="*", default=[25, 50])
     p.add_argument("--worker-time", nargs=2, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
     p.add_argument("--worker-quality", nargs=2, default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.worker_time:
         print(json.dumps(worker_time(args.worker_time[0], args.worker_time[1], args.iters, args.warmup,
-                                     args.threads)))
+                                     args.threads, args.device)))
     elif args.worker_quality:
         print(json.dumps(worker_quality(args.worker_quality[0], args.worker_quality[1], args.quality_iters,
                                         args.threads, args.quality_at)))
