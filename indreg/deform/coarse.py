@@ -118,9 +118,9 @@ class CoarseVelocityDeformation(LDDMMDeformation):
         differences as ``LDDMMDeformation.jacobian_determinant``), which ``P`` interpolates to the image's grid.
         Inside, the fine map's derivatives are blends of the coarse differences and the two agree to the
         interpolation's error of a field smooth on the scale sigma (``tests/deform/test_coarse.py``: minima within
-        0.035 on swirls of scale 4 at coarse cells of 1, down to 0.3; both <= 0 where it folds); within a coarse cell of the
-        border, where ``P`` continues constantly and the differences are one-sided, the fine map reads lower
-        (0.78 vs 0.88 for the swirl of amplitude 2)."""
+        0.035 on swirls of scale 4 at coarse cells of 1, down to 0.3; both <= 0 where it folds); within a coarse
+        cell of the border, where ``P`` continues constantly and the differences are one-sided, the fine map reads
+        lower (0.78 vs 0.88 for the swirl of amplitude 2)."""
         moving = self._check_velocity(velocity)
         with torch.no_grad():
             u = Fd.displacement_10(velocity, self.velocity_domain, moving)

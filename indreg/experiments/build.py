@@ -68,8 +68,8 @@ def build(cfg: DictConfig) -> Experiment:
     template = data.template_64.to(dtype=dtype, device=device)
     g = data.data_64.to(dtype=dtype, device=device)
     try:
-        s = run.setup(template if data.template_known else None, g, data.operator, label=lambda o: o.config_key, strict=False, dtype=dtype,
-                      device=device, **registration_values(cfg))
+        s = run.setup(template if data.template_known else None, g, data.operator, label=lambda o: o.config_key,
+                      strict=False, dtype=dtype, device=device, **registration_values(cfg))
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
     u = s.units   # the template's scale and the data's background, as the run uses them
