@@ -46,7 +46,7 @@ from indreg import io
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
 from indreg.forward.tv import intensity_scale
-from indreg.run import border_level, check_offset, prepare
+from indreg.units import border_level, check_offset, prepare
 from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
 log = logging.getLogger("indreg")
@@ -331,18 +331,18 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
                              step_size=step_size, max_halvings=max_halvings, progress=True)
     reg_seconds = result.seconds
     say(f"  {result.status} after {result.iterations} iterations ({reg_seconds:.0f} s): template_scale "
-        f"{result.template_scale:.4g}, background {result.background:.4g}, residual {result.residual:.4f}, "
+        f"{result.units.template_scale:.4g}, background {result.units.background:.4g}, residual {result.residual:.4f}, "
         f"held-out {result.holdout.get('holdout_residual', float('nan')):.4f} (best "
         f"{result.holdout.get('holdout_best_residual', float('nan')):.4f} at iteration "
         f"{result.holdout.get('holdout_best_iteration')}), min Jacobian {result.min_jacobian:.3f}")
     metrics["registration"] = {"status": result.status, "iterations": result.iterations, "seconds": reg_seconds,
-                               "sigma_nm": sigma, "num_steps": num_steps, "template_scale": result.template_scale,
-                               "background": result.background, "scale_fit": result.scale_fit,
-                               "projection_ratio": result.projection_ratio, "residual": result.residual,
+                               "sigma_nm": sigma, "num_steps": num_steps, "template_scale": result.units.template_scale,
+                               "background": result.units.background, "scale_fit": result.units.scale_fit,
+                               "projection_ratio": result.units.projection_ratio, "residual": result.residual,
                                "min_jacobian": result.min_jacobian, "warnings": result.warnings, **result.holdout}
 
     say("8. baselines from the same fit tilts")
-    y = torch.from_numpy(turned - result.background)
+    y = torch.from_numpy(turned - result.units.background)
     T = {k: operator(domain, angles[v]) for k, v in tilts.items()}
     Y = {k: y[v] for k, v in tilts.items()}
     tb = time.process_time()
@@ -352,7 +352,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     metrics["baselines_cpu_seconds"] = time.process_time() - tb
 
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
-    volumes = {"template": (d.template * result.template_scale).numpy(),
+    volumes = {"template": (d.template * result.units.template_scale).numpy(),
                "registered": result.deformed.double().numpy(),
                **{k: v[0].numpy() for k, v in base.items()}}
     scores = {}

@@ -30,6 +30,14 @@ def get(name: str) -> Model:
     return model(name)
 
 
+def _interpolation(o: dict) -> None:
+    """``interpolation`` None: ``"compose"`` with ``solver="fast"`` or ``velocity_factor > 1``, else the paper's
+    ``"reinterpolate"``."""
+    if o["interpolation"] is None:
+        fast = o["solver"] == "fast" or o["velocity_factor"] > 1
+        o["interpolation"] = "compose" if fast else "reinterpolate"
+
+
 def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
     from .deform import LDDMMDeformation
     from .solvers import IndirectRegistration
@@ -123,7 +131,8 @@ def _check_metamorphosis(o: dict, label) -> None:
 
 
 _META = ("metamorphosis",)
-register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", check=_check_lddmm, options=(
+register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", check=_check_lddmm,
+                     defaults=_interpolation, options=(
     Option("velocity_factor", "deformation", "velocity_factor", 1, number(1, integer=True),
            "the momentum, velocity, kernel and flow on the grid coarsened this many times per axis (it must divide "
            "every axis), phi_{1,0} interpolated to the image's grid (CoarseVelocityDeformation: interpolation "
@@ -149,7 +158,8 @@ def _source_sigma(v, label):
     return number(0.0, strict=True)(v, label)
 
 
-register_model(Model("metamorphosis", _metamorphosis, doc="metamorphosis (eq:Metam:ODE): intensities change too",
+register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
+                     doc="metamorphosis (eq:Metam:ODE): intensities change too",
                      check=_check_metamorphosis, options=(
     Option("tau", "deformation", "tau", None, optional(number(0.0)),
            "weight of the source's penalty (absolute); None: tau_rel times the data term's scale", Optional[float],
@@ -214,6 +224,7 @@ def _check_spatiotemporal(o: dict, label) -> None:
 
 _ST = ("spatiotemporal",)
 register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotemporal, template_optional=True,
+                     defaults=_interpolation,
                      doc="data at several time points, one flow (eq:SpatioTemporal); the template known or not",
                      options=(
     Option("times", "deformation", "times", None, anything,

@@ -24,6 +24,9 @@ import torch
 #: ``register()``'s torch.optim solvers are named by their class name (``"lbfgs"``, ``"adam"``, ...).
 ALGORITHM1, FAST = "algorithm1", "fast"
 _NONE = object()
+#: The relative defaults (``indreg.units``): the paper's suite-1 ``gamma = 1e-6`` and step 0.02 at its data-term
+#: scale ``S = ||g||^2 / L^2 = 5.95`` (10 angles x 92 bins, 4.87 dB, the box [-16, 16]^2).
+GAMMA_REL, STEP_REL = 1.7e-7, 0.12
 
 
 class OptionError(ValueError):
@@ -176,6 +179,7 @@ class Model:
     doc: str = ""
     check: Optional[Callable] = None   # check(options, label): cross-option checks, errors via label(name)
     template_optional: bool = False    # template=None (unknown) is allowed: the model reconstructs it
+    defaults: Optional[Callable] = None  # defaults(options): fills options left None by the model's own rules
 
 
 def register_model(model: Model) -> Model:
@@ -262,13 +266,21 @@ CORE = (
            Optional[str], app_default="paper"),
     Option("model", "deformation", "model", "lddmm", lambda v, label: _model(v, label),
            "the deformation model: a name in indreg.models or 'package.module:attribute'", str),
-    Option("gamma", "solver", "gamma", 1e-6, _nonneg, "regularisation weight", float),
+    Option("gamma", "solver", "gamma", None, optional(_nonneg),
+           "regularisation weight (absolute, the paper's); None: gamma_rel S (S = ||g||^2 / L^2, indreg.units)",
+           Optional[float]),
+    Option("gamma_rel", "solver", "gamma_rel", GAMMA_REL, _nonneg,
+           "with gamma None: the regularisation weight relative to the data term, gamma = gamma_rel S", float),
     Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg, "weight of a TV term on the reconstruction", float),
     Option("solver", "solver", "name", ALGORITHM1, solver_name,
            "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
     Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
-    Option("step_size", "solver", "step_size", None, optional(_positive), "Algorithm 1's step (None: 0.02)",
-           Optional[float], solvers=(ALGORITHM1,), app_default=0.02),
+    Option("step_size", "solver", "step_size", None, optional(_positive),
+           "Algorithm 1's step (absolute, the paper's); None: step_rel / S (S = ||g||^2 / L^2, indreg.units)",
+           Optional[float], solvers=(ALGORITHM1,)),
+    Option("step_rel", "solver", "step_rel", STEP_REL, _positive,
+           "with step_size None: Algorithm 1's step relative to the data term, step_size = step_rel / S", float,
+           solvers=(ALGORITHM1,)),
     Option("lr", "solver", "lr", None, optional(_positive),
            "the torch.optim learning rate (None: 1.0 for L-BFGS, required for the others)", Optional[float],
            solvers=("torch",), app_default=1.0),
@@ -322,6 +334,16 @@ def all_options() -> tuple:
 
 def defaults() -> dict:
     return {o.name: o.default for o in all_options()}
+
+
+def relative(o: dict, scale: float) -> dict:
+    """``gamma`` and ``step_size`` left None take their relative form at the data-term scale ``S`` (``scale``,
+    ``indreg.units.data_term_scale``): ``gamma = gamma_rel S``, ``step_size = step_rel / S``. Returns ``o``."""
+    if o["gamma"] is None:
+        o["gamma"] = o["gamma_rel"] * scale
+    if o["step_size"] is None and o["solver"] == ALGORITHM1:
+        o["step_size"] = o["step_rel"] / scale
+    return o
 
 
 def _given(o: Option, value) -> bool:

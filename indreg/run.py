@@ -26,12 +26,9 @@ from . import models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
+from .units import Units, data_term_scale, prepare
 
 log = logging.getLogger("indreg")
-
-#: Algorithm 1's step when none is given (the paper's suite-1 value).
-ALGORITHM1_STEP = 0.02
-
 
 # ---------------------------------------------------------------------------------------------------- inputs
 def resolve_dtype(dtype, template) -> torch.dtype:
@@ -60,134 +57,6 @@ def resolve_device(device, template=None) -> torch.device:
     return d
 
 
-# ---------------------------------------------------------------------------------------------------- units
-#: Template and data agree in units when ``||T I|| / ||g||`` and ``c = <T I, g> / <T I, T I>`` lie in
-#: ``[1 / UNIT_RANGE, UNIT_RANGE]`` (the paper's suites: 0.68-1.3); outside, a warning names both.
-UNIT_RANGE = 3.0
-#: Data look offset when the median of the detector's outermost columns (``border_level``) is away from zero, or
-#: the median of all the data is below zero, by more than this fraction of the data's range.
-OFFSET_FRACTION = 0.05
-#: The factors by which file formats change units: the full scales of 8- to 16-bit integers (``2^b - 1``: images
-#: are normalised by their type's maximum), the metric prefixes' 1e3 and 1e6, their reciprocals, and 1.
-#: ``template_scale="auto"`` takes the nearest one when the fitted ``c`` lies within ``UNIT_SNAP`` of it
-#: (relative), since the fit is biased low by the shapes' mismatch (the paper's suite 1: ``c = 0.9735`` for a
-#: template in the data's units; the own-data example: 0.990). Factors of 10 are left out: a physical factor (one
-#: over a voxel side of 10.5 nm: 0.095) lies near them as often as a unit change does.
-UNIT_FACTORS = tuple(sorted({f ** e for f in [1e3, 1e6] + [float(2 ** b - 1) for b in (8, 10, 12, 14, 16)]
-                             for e in (1, -1)} | {1.0}))
-UNIT_SNAP = 0.05
-
-
-@dataclass
-class Units:
-    """What :func:`prepare` did to the inputs, for the result and metrics.json.
-
-    ``template_scale``: the factor applied to the template (1.0: none); ``background``: the offset subtracted
-    from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
-    ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
-    ``T.inner_data``)."""
-    template_scale: float = 1.0
-    background: float = 0.0
-    projection_ratio: float = math.nan
-    scale_fit: float = math.nan
-
-    def as_dict(self) -> dict:
-        return {"template_scale": self.template_scale, "background": self.background,
-                "projection_ratio": self.projection_ratio, "scale_fit": self.scale_fit}
-
-
-def border_level(data: torch.Tensor) -> float:
-    """The median of the outermost ``max(1, n // 16)`` detector columns on each side (the last axis: bins of a
-    sinogram, columns of a tilt series) over all angles (and rows): the level of the detector outside the
-    object's shadow, 0 for projections of an object inside the field of view."""
-    n = data.shape[-1]
-    k = max(1, n // 16)
-    border = torch.cat([data[..., :k].reshape(-1), data[..., n - k:].reshape(-1)]) if n > 1 else data.reshape(-1)
-    return float(border.double().median())
-
-
-def _ratio(a: float, b: float) -> float:
-    return a / b if b != 0 else (math.nan if a == 0 else math.inf)
-
-
-def check_offset(data: torch.Tensor, label: str) -> None:
-    """Warn when the data look offset: their border level or their median is far from zero (a fraction
-    ``OFFSET_FRACTION`` of their range) where projections of an object would be about zero outside it and
-    mostly positive."""
-    spread = float(data.max() - data.min())
-    border, median = border_level(data), float(data.double().median())
-    if spread > 0 and (abs(border) > OFFSET_FRACTION * spread or median < -OFFSET_FRACTION * spread):
-        log.warning("the data look offset: the median of the outermost detector columns is %.4g and of all values "
-                    "%.4g, with a range of %.4g (projections are about 0 outside the object); pass %s='auto' to "
-                    "subtract the border level, or %s=<number>", border, median, spread, label, label)
-
-
-def compare_units(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
-    """``(||T I|| / ||g||, c = <T I, g> / <T I, T I>)`` in the data inner product ``operator.inner_data``."""
-    with torch.no_grad():
-        TI = operator(template)
-        tt = float(operator.inner_data(TI, TI).sum())
-        tg = float(operator.inner_data(TI, data).sum())
-        gg = float(operator.inner_data(data, data).sum())
-    return math.sqrt(_ratio(tt, gg)), _ratio(tg, tt)
-
-
-def unit_factor(c: float) -> float:
-    """The entry of ``UNIT_FACTORS`` nearest to ``c`` (in ratio) when within ``UNIT_SNAP`` of it, else ``c``."""
-    nearest = min(UNIT_FACTORS, key=lambda f: abs(math.log(c / f)))
-    return nearest if abs(c / nearest - 1) <= UNIT_SNAP else c
-
-
-def _template_factor(template_scale, units: Units, key: str) -> float:
-    """The template's factor for ``template_scale`` (None: 1 and a warning if the units look different)."""
-    if template_scale == "auto":
-        if not (math.isfinite(units.scale_fit) and units.scale_fit > 0):
-            raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
-                             f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
-                             f"both, or give {key}=<number>")
-        c = unit_factor(units.scale_fit)
-        log.info("template scaled by %.6g (%s='auto': the fitted c = %.6g%s; ||T I|| / ||g|| was %.4g)", c, key,
-                 units.scale_fit, "" if c == units.scale_fit else ", taken as the nearest unit factor",
-                 units.projection_ratio)
-        return c
-    if template_scale is not None:
-        return float(template_scale)
-    if not all(1 / UNIT_RANGE <= v <= UNIT_RANGE for v in (units.projection_ratio, units.scale_fit)):
-        log.warning("template and data look like different units: ||T I|| / ||g|| = %.4g and the least-squares "
-                    "scale c = <T I, g> / <T I, T I> = %.4g (expected in [1/%g, %g]); pass %s='auto' to scale the "
-                    "template by c, %s=<number>, or bring the template to the data's units", units.projection_ratio,
-                    units.scale_fit, UNIT_RANGE, UNIT_RANGE, key, key)
-    return 1.0
-
-
-def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
-            label=lambda name: name) -> tuple:
-    """Bring template and data to one unit before the run: ``(template, data, Units)``.
-
-    ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is subtracted from the data; without it
-    a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
-    template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
-    the template; without a scale a warning names both numbers when either is outside
-    ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
-    option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
-    template whose projection does not resemble the data)."""
-    units = Units()
-    if background is None:
-        check_offset(data, label("background"))
-    else:
-        units.background = border_level(data) if background == "auto" else float(background)
-        data = data - units.background
-        log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
-                 background)
-    if template is None:   # unknown (reconstructed by the model): no units to compare
-        return template, data, units
-    units.projection_ratio, units.scale_fit = compare_units(template, data, operator)
-    units.template_scale = _template_factor(template_scale, units, label("template_scale"))
-    if units.template_scale != 1.0:
-        template = template * units.template_scale
-    return template, data, units
-
-
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
     """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
@@ -200,20 +69,14 @@ def make_solver(problem, o: dict, solver_options: dict):
 
 def _make_solver(problem, o: dict, solver_options: dict):
     from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
-    from .solvers.multilevel import options as fast_options
 
     kind = models.solver_kind(o["solver"])
     extra = solver_options.get(kind, {})
-    if kind == opts.FAST:
-        unknown = sorted(set(o["optimizer_kwargs"]) - set(fast_options()))
-        if unknown:
-            raise TypeError(f"unknown optimizer_kwargs for solver='fast': {', '.join(unknown)}; valid: "
-                            f"{', '.join(fast_options())}")
+    if kind == opts.FAST:   # optimizer_kwargs were checked by indreg.options.resolve
         return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
                                 **extra)
     if kind == opts.ALGORITHM1:
-        return Algorithm1(problem, step_size=ALGORITHM1_STEP if o["step_size"] is None else o["step_size"],
-                          max_iter=o["max_iter"], grad_tol=o["grad_tol"], step_halving=o["step_halving"],
+        return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"], step_halving=o["step_halving"],
                           max_halvings=o["max_halvings"], **extra)
     return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
                             grad_tol=o["grad_tol"], **extra, **o["optimizer_kwargs"])
@@ -263,17 +126,19 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     data = as_tensor(data, "data", operator.range_shape, dtype, device)
     if o["target"] is not None:
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
-    if o["interpolation"] is None:
-        o["interpolation"] = "compose" if o["solver"] == opts.FAST or o["velocity_factor"] > 1 else "reinterpolate"
-    for option in opts.all_options():   # a step must stay finite (and nonzero) in the run's dtype
-        if option.name in ("step_size", "lr") and o[option.name] is not None:
-            check_finite_in(o[option.name], label(option), dtype)
+    if model.defaults is not None:   # the model's own rules for options left None
+        model.defaults(o)
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
     validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
+    units.data_scale = data_term_scale(operator, data)
+    opts.relative(o, units.data_scale)   # gamma / step_size None: relative to the data term
+    for name in ("step_size", "lr"):     # a step must stay finite (and nonzero) in the run's dtype
+        if o[name] is not None:
+            check_finite_in(o[name], label(names[name]), dtype)
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = model.build(operator, template, data, kernel, o)
     return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
@@ -477,8 +342,9 @@ class RegistrationResult:
     step, ``indreg.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
     ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
     non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
-    ``template_scale``, ``background``, ``projection_ratio``, ``scale_fit``: what was done to the inputs before the
-    run (:class:`Units`). ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
+    ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
+    ``background``), what was measured (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale``
+    of the relative options. ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
     ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``outputs``: the model's
@@ -503,10 +369,7 @@ class RegistrationResult:
     outputs: dict = field(default_factory=dict, repr=False)
     ssim: Optional[float] = None
     psnr: Optional[float] = None
-    template_scale: float = 1.0
-    background: float = 0.0
-    projection_ratio: float = math.nan
-    scale_fit: float = math.nan
+    units: Units = field(default_factory=Units)
     holdout: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
@@ -546,7 +409,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
-        problem=problem, outputs=problem.outputs(x), **(units or Units()).as_dict())
+        problem=problem, outputs=problem.outputs(x), units=units or Units())
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import indreg
-from indreg import api, noise, phantoms
+from indreg import api, noise, phantoms, run
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +52,9 @@ def test_numpy_input_and_target(tiny):
 
 
 def test_same_iterates_as_algorithm1(tiny):
-    """register() with step_halving=False is Algorithm 1 with the paper's fixed step."""
+    """register() with step_halving=False and the paper's absolute values is Algorithm 1 with its fixed step."""
     T, template, target, data = tiny
-    r = indreg.register(template, data, T, step_halving=False, **FAST)
+    r = indreg.register(template, data, T, step_halving=False, gamma=1e-6, step_size=0.02, **FAST)
     K = indreg.GaussianKernel(T.domain, 6.0)
     W = indreg.LDDMMDeformation(T.domain, num_steps=4)
     problem = indreg.IndirectRegistration(T, W, K, template, data, 1e-6)
@@ -124,7 +124,7 @@ def test_callback_sees_every_iteration_and_can_stop(tiny):
 def test_step_halving_at_ten_times_the_intensity(tiny):
     """x10 intensities: the paper's fixed step folds; the default step halving does not and matches x1."""
     T, template, target, data = tiny
-    options = dict(num_steps=4, max_iter=15, target=10 * target)
+    options = dict(num_steps=4, max_iter=15, target=10 * target, step_size=0.02)   # the paper's absolute step
     fixed = indreg.register(10 * template, 10 * data, T, step_halving=False, **options)
     halving = indreg.register(10 * template, 10 * data, T, **options)
     assert fixed.warnings > 0 and fixed.min_jacobian <= 0
@@ -136,7 +136,7 @@ def test_warnings_and_progress_go_through_logging(tiny, caplog):
     T, template, _, data = tiny
     with caplog.at_level(logging.INFO, logger="indreg"):
         r = indreg.register(10 * template, 10 * data, T, num_steps=4, max_iter=10, step_halving=False,
-                            log_every=5)
+                            step_size=0.02, log_every=5)
     warnings = [rec for rec in caplog.records if rec.levelno == logging.WARNING and rec.name == "indreg"]
     assert r.warnings > 0 and warnings
     assert f"{r.warnings} of 10 iterations reported a warning" in warnings[-1].getMessage()
@@ -153,13 +153,51 @@ def test_progress_line():
 
 
 def test_max_halvings_covers_large_intensity_scales(tiny):
-    """Grey levels 0..255: the default 20 halvings find an acceptable first step; 5 halvings do not (the step is
-    rejected, counted as a warning, and the iterate kept)."""
+    """Grey levels 0..255 with the paper's absolute step: the default 20 halvings find an acceptable first step; 5
+    halvings do not (the step is rejected, counted as a warning, and the iterate kept)."""
     T, template, _, data = tiny
-    default = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1)
-    few = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, max_halvings=5)
+    default = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, step_size=0.02)
+    few = indreg.register(255 * template, 255 * data, T, num_steps=4, max_iter=1, max_halvings=5, step_size=0.02)
     assert not default.history[0]["rejected"] and default.objective < few.objective
     assert few.history[0]["rejected"] and few.warnings == 1 and torch.count_nonzero(few.momentum) == 0
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3, 1e6])
+def test_default_run_is_invariant_to_the_intensity_unit(tiny, scale):
+    """Relative gamma and step (indreg.units): template and data in other units give the same iterates (the
+    momentum scales with the velocity's units only), the same halvings and the same residual."""
+    T, template, target, data = tiny
+    options = dict(num_steps=4, max_iter=10, target=target)
+    ref = indreg.register(template, data, T, **options)
+    r = indreg.register(scale * template, scale * data, T, **dict(options, target=scale * target))
+    assert r.problem.gamma == pytest.approx(scale ** 2 * ref.problem.gamma, rel=1e-12)
+    torch.testing.assert_close(r.velocity, ref.velocity, rtol=1e-7, atol=1e-9)
+    assert r.ssim == pytest.approx(ref.ssim, abs=1e-6) and r.residual == pytest.approx(ref.residual, rel=1e-6)
+    assert run.count_halvings(r.history) == run.count_halvings(ref.history)
+
+
+def test_default_run_is_invariant_to_the_length_unit():
+    """The same object in a box 13.44 times larger (nanometres for the paper's units), sigma in the same units:
+    the relative defaults give the same reconstruction."""
+    results = []
+    for lam in (1.0, 13.44):
+        domain = indreg.ImageDomain(shape=(24, 24), min_pt=(-16 * lam, -16 * lam), max_pt=(16 * lam, 16 * lam))
+        geometry = indreg.ParallelBeamGeometry(angles=torch.linspace(0, 3, 6, dtype=torch.float64), det_count=36,
+                                               det_min=-24 * lam, det_max=24 * lam)
+        T = indreg.RayTransform(domain, geometry)
+        template = phantoms.get("j", indreg.ImageDomain.paper(24)).double()   # the same pixels in either box
+        target = phantoms.get("v", indreg.ImageDomain.paper(24)).double()
+        results.append(indreg.register(template, T(target), T, sigma=6.0 * lam, num_steps=4, max_iter=10,
+                                       target=target))
+    ref, r = results
+    assert r.problem.gamma != pytest.approx(ref.problem.gamma)
+    torch.testing.assert_close(r.deformed, ref.deformed, rtol=1e-6, atol=1e-8)
+
+
+def test_all_zero_data_is_refused_in_one_line(tiny):
+    T, template, _, data = tiny
+    with pytest.raises(ValueError, match="data must not be all zero"):
+        indreg.register(template, 0 * data, T, max_iter=1)
 
 
 def test_a_step_that_overflows_the_working_dtype_is_refused_in_one_line(tiny):

@@ -78,7 +78,7 @@ def test_holdout_after_units(tiny):
     ref = indreg.register(2.0 * template, data, T, holdout=3, **FAST)
     torch.testing.assert_close(r.momentum, ref.momentum, rtol=1e-9, atol=1e-12)
     assert r.holdout["holdout_residual"] == pytest.approx(ref.holdout["holdout_residual"], rel=1e-9)
-    assert (r.template_scale, r.background) == (2.0, 5.0)
+    assert (r.units.template_scale, r.units.background) == (2.0, 5.0)
     assert r.status == ref.status == "completed"
 
 def test_early_stopping(tiny):

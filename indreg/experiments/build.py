@@ -9,15 +9,13 @@ same code as ``indreg.register`` (``indreg.run.setup``).
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass, field
-from typing import Optional
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from .. import run
-from ..domain import ImageDomain
 from ..options import OptionError
 from . import sources
 from .config import ConfigError, registration_values
@@ -25,31 +23,32 @@ from .config import ConfigError, registration_values
 
 @dataclass
 class Experiment:
-    """Everything a run needs. Images ``(nx, ny)``, data ``(num_angles, det_count)``: float64 on the CPU
-    (``*_64``, for metrics and figures); ``template`` and the problem's data in the run's dtype / device.
-    ``target_64``, ``clean_data_64`` and ``snr_db`` are ``None`` for measured data without a ground truth.
-    ``template_64`` / ``noisy_data_64`` are the inputs as the run uses them (``units``: the template's scale and
-    the data's background, ``indreg.run.prepare``); ``paper``: the paper's simulated suites (``psnr_paper``);
-    ``validation`` the held-out angles (``validation.holdout``) or None; ``report``: the data's numbers for
-    metrics.json (``sources.Data.report``); ``targets``: ground truths of the model's outputs (``sources.Data``)."""
-    domain: ImageDomain
-    geometry: object
-    ray_transform: object
+    """Everything a run needs: the source's ``data`` (:class:`sources.Data`, float64 on the CPU), the ``setup``
+    (``indreg.run.Setup``: problem, solver, resolved options, units, validation) and the inputs as the run uses
+    them: ``template`` in the run's dtype / device, ``template_64`` / ``noisy_data_64`` in float64 on the CPU for
+    metrics, baselines and figures (both through ``setup.units.apply``, the one transformation of the inputs).
+    The source's and the setup's fields read through (``exp.domain``, ``exp.problem``, ...)."""
+    data: sources.Data
+    setup: run.Setup
     template: torch.Tensor
     template_64: torch.Tensor
     noisy_data_64: torch.Tensor
-    problem: object
-    solver: object
-    label: str
-    options: dict
-    target_64: Optional[torch.Tensor] = None
-    clean_data_64: Optional[torch.Tensor] = None
-    snr_db: Optional[float] = None
-    units: run.Units = field(default_factory=run.Units)
-    paper: bool = False
-    validation: object = None
-    report: dict = field(default_factory=dict)
-    targets: dict = field(default_factory=dict)
+
+    domain = property(lambda self: self.data.domain)
+    geometry = property(lambda self: self.data.geometry)
+    ray_transform = property(lambda self: self.data.operator)
+    label = property(lambda self: self.data.label)
+    target_64 = property(lambda self: self.data.target_64)
+    clean_data_64 = property(lambda self: self.data.clean_64)
+    snr_db = property(lambda self: self.data.snr_db)
+    paper = property(lambda self: self.data.paper)
+    report = property(lambda self: self.data.report)
+    targets = property(lambda self: self.data.targets)
+    problem = property(lambda self: self.setup.problem)
+    solver = property(lambda self: self.setup.solver)
+    options = property(lambda self: self.setup.options)
+    units = property(lambda self: self.setup.units)
+    validation = property(lambda self: self.setup.validation)
 
 
 def seed_everything(seed: int) -> None:
@@ -72,10 +71,6 @@ def build(cfg: DictConfig) -> Experiment:
                       strict=False, dtype=dtype, device=device, **registration_values(cfg))
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
-    u = s.units   # the template's scale and the data's background, as the run uses them
-    return Experiment(domain=data.domain, geometry=data.geometry, ray_transform=data.operator,
-                      template=template * u.template_scale, template_64=data.template_64 * u.template_scale,
-                      noisy_data_64=data.data_64 - u.background, problem=s.problem, solver=s.solver,
-                      label=data.label, options=s.options, target_64=data.target_64, clean_data_64=data.clean_64,
-                      snr_db=data.snr_db, units=u, paper=data.paper, validation=s.validation, report=data.report,
-                      targets=data.targets)
+    template_64, data_64 = s.units.apply(data.template_64, data.data_64)
+    return Experiment(data=data, setup=s, template=s.units.apply(template, g)[0], template_64=template_64,
+                      noisy_data_64=data_64)

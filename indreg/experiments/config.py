@@ -409,6 +409,13 @@ def path_component(name) -> str:
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("indreg_path", path_component, replace=True)
     OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
+    OmegaConf.register_new_resolver("indreg_simulated", simulated_only, replace=True)
+
+
+def simulated_only(source: str, value):
+    """``value`` for a simulated data source (a preset's absolute weight on its own data), None for measured
+    data (``data=files``: the relative form applies, ``indreg.units``)."""
+    return None if source == "files" else value
 
 
 def to_plain(cfg: DictConfig) -> dict:

@@ -8,6 +8,8 @@ import torch
 
 from .._checks import check_bool, check_int, check_positive
 from .._checks import check_nonnegative
+from ..options import STEP_REL
+from ..units import data_term_scale
 from .problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
                     rounding_tolerance)
@@ -32,7 +34,8 @@ class Algorithm1(IterativeSolver):
 
     Args:
         problem: a ``RegistrationProblem``.
-        step_size: ``alpha > 0`` for the momentum (the paper's 0.02 / 0.04 work unchanged).
+        step_size: ``alpha > 0`` for the momentum (the paper's values work unchanged); None: relative to the data
+            term, ``step_rel / S`` (``indreg.units``; ``step_rel`` ``indreg.options.STEP_REL``).
         max_iter: maximum number of iterations ``K``.
         grad_tol: stop when the gradient norm (``hypot`` of the entries' ``L2([0,1], L2)`` norms) is
             ``<= grad_tol``; 0 disables the test.
@@ -62,7 +65,7 @@ class Algorithm1(IterativeSolver):
     an uninterrupted run.
     """
 
-    def __init__(self, problem: RegistrationProblem, step_size: float = 0.02, max_iter: int = 200,
+    def __init__(self, problem: RegistrationProblem, step_size: float | None = None, max_iter: int = 200,
                  grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
                  jacobian_every: int = 1, steps: dict | None = None, frozen: dict | None = None,
                  cycle: tuple | None = None):
@@ -75,6 +78,8 @@ class Algorithm1(IterativeSolver):
                 raise ValueError(f"steps / frozen name entries of the iterate after the momentum "
                                  f"{self.names[1:]}, got {key!r}")
         dtype = problem.template.dtype   # steps must stay finite and nonzero in the run's dtype
+        if step_size is None:   # relative to the data term (indreg.units): step_rel / S
+            step_size = STEP_REL / data_term_scale(problem.ray_transform, problem.data)
         self.step_sizes = [check_positive(step_size, "step_size", dtype)]
         for name in self.names[1:]:
             s = steps.get(name)

@@ -331,7 +331,7 @@ class MetamorphosisDescent(Algorithm1):
         jacobian_every: compute ``min_jacobian`` every this many iterations (always with ``step_halving``).
     """
 
-    def __init__(self, problem: MetamorphosisRegistration, step_size: float = 0.02, source_step_size="auto",
+    def __init__(self, problem: MetamorphosisRegistration, step_size: float | None = None, source_step_size="auto",
                  max_iter: int = 200, grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
                  jacobian_every: int = 1, source_start: int = 0):
         _check_problem(problem)
