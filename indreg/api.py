@@ -9,10 +9,11 @@ Convention:
     - ``template`` ``operator.domain.shape`` (``(nx, ny)`` or ``(nx, ny, nz)``, axis 0 = x), ``data``
       ``operator.range_shape`` (``(num_angles, det_count)`` for a ray transform); torch tensors or numpy arrays,
       real and finite. Results' fields follow the domain's dimension (``momentum (N+1, d, *shape)``, ...).
-    - Defaults are the paper's suite-1 values (``sigma`` 6, ``gamma`` 1e-6, N = 20, step 0.02, 200
-      iterations) except ``step_halving=True``: a step that increases the objective or folds the
-      deformation is halved until it does not, so data of any intensity scale are safe (the paper's fixed
-      step is ``step_halving=False``).
+    - Defaults are the paper's suite-1 values (``sigma`` 6, N = 20, 200 iterations), with ``gamma`` and the
+      step relative to the data term (``gamma_rel``, ``step_rel``: suite 1's 1e-6 and 0.02 at its scale; the same
+      run for data in any intensity or length unit, ``indreg.units``) and ``step_halving=True``: a step that
+      increases the objective or folds the deformation is halved until it does not (the paper's fixed absolute
+      step: ``gamma=1e-6, step_size=0.02, step_halving=False``).
     - Warnings (folding, objective increase, rejected steps) and progress go through ``logging`` (logger
       ``"indreg"``); ``result.warnings`` counts the iterations that reported one.
 """
@@ -20,8 +21,9 @@ from __future__ import annotations
 
 import logging
 import sys
+import textwrap
 
-from .options import OptionError
+from .options import OptionError, all_options
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup)
 
@@ -40,7 +42,7 @@ def _console_handler(progress: bool):
     return None
 
 
-def register(template, data, operator, **options) -> RegistrationResult:
+def register(template, data, operator, **options) -> RegistrationResult:  # noqa: D417 (options: the table)
     """Deform ``template`` until ``operator(deformed)`` matches ``data`` (indirect LDDMM registration).
 
     Args:
@@ -53,43 +55,10 @@ def register(template, data, operator, **options) -> RegistrationResult:
             operators, one per time point, with a list of data sets (or an ``indreg.forward.TimeSeriesOperator``
             and the data stacked ``(K, *range_shape)``), ``times=[t_1, ..., t_K]``, and ``template=None`` when the
             template is unknown (reconstructed: ``result.template``; the frames: ``result.frames``).
-        sigma: width of the Gaussian kernel of V (physical units), 6.0.
-        gamma: regularisation weight, 1e-6. num_steps: time steps N, 20.
-        action: "geometric" or "mass_preserving". interpolation: "reinterpolate" or "compose" (default
-            "compose" with ``solver="fast"``, else "reinterpolate", the paper's).
-        backward: None: the model's default (LDDMM: "paper", Algorithm 1's gradient); LDDMM also "exact" (the
-            exact gradient of the discrete map by its hand-written adjoint, about the paper's cost; torch.optim
-            solvers use it in place of "paper") or "autograd" (the same exact gradient, about 2x the cost).
-        model: "lddmm" (default), another name in ``indreg.models.MODELS`` or a model added with
-            ``indreg.models.register_model``; a model's own options (``indreg.models``, e.g. ``tau``) are
-            keywords too, and an option of another model or solver given a value is an error.
-        solver: "algorithm1" (default), "fast" (coarse-to-fine, ``indreg.solvers.MultilevelSolver``; its
-            options in ``optimizer_kwargs``), "lbfgs", or any ``torch.optim`` optimizer name (case-insensitive).
-        max_iter: 200. grad_tol: stop when the gradient norm is below it (0: never).
-        step_size: Algorithm 1's step, 0.02. lr: the torch.optim learning rate (1.0 for L-BFGS; required
-            for the others). optimizer_kwargs: passed to the torch.optim optimizer.
-        step_halving: True (default): reject and halve steps that increase the objective or fold.
-        max_halvings: 20: halvings tried within one iteration (2^-20: intensities up to ~1000x the paper's
-            0..1 are handled in the first iteration); the halved step is kept for later iterations.
-        tv_weight: weight of a TV term on the deformed template, 0.
-        template_scale: None (default: the template is used as given; a warning before the run when
-            ``||T I|| / ||g||`` or the least-squares scale ``c = <T I, g> / <T I, T I>`` is outside [1/3, 3]),
-            "auto" (the template is multiplied by ``c``) or a number > 0 (the template is multiplied by it).
-        background: None (default; a warning when the data look offset), "auto" (the median of the detector's
-            outermost columns over all angles) or a number: subtracted from the data before the run. What was
-            applied is in ``result.template_scale`` / ``result.background`` (with ``projection_ratio``,
-            ``scale_fit``).
-        device, dtype: default the template's (numpy input: CPU; float64 arrays stay float64, others float32).
-        callback: ``callback(state, info)`` after every iteration; returning True stops the run.
-        progress: True shows a tqdm bar on a terminal, else progress lines on the "indreg" logger
-            (a stderr handler is added for the call if logging is not configured). log_every: 10.
-        target: optional ground truth: adds ``ssim`` and ``psnr`` to the result.
-        holdout: validation without a ground truth (``indreg.validation``): every k-th angle (an integer k >= 2,
-            indices k // 2, k // 2 + k, ...) or a list of indices is left out of the fit; its relative residual
-            is evaluated every ``log_every`` iterations (``history``'s ``holdout_residual``) and reported in
-            ``result.holdout``. patience: with holdout, stop (``early_stopped``) after this many evaluations
-            without a new minimum.
+        **options: keywords from the option table ``indreg.options`` (the app's config keys in brackets; an
+            option of another solver or model given a value is an error), generated from it:
 
+{options}
     Raises:
         TypeError: an unknown option (the message lists the valid ones), a wrong type, an option of another
             solver or model given a value.
@@ -121,3 +90,18 @@ def register(template, data, operator, **options) -> RegistrationResult:
         if handler is not None:
             log.removeHandler(handler)
     return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation)
+
+
+def option_docs(indent: int = 12) -> str:
+    """The option table as ``register()``'s docstring lists it: ``name [config key]: doc; default value``."""
+    pad = " " * indent
+    lines = []
+    for o in all_options():
+        key = "" if o.group == "run" else f" [{o.config_key}]"
+        where = f" Only with {o.where()}." if o.where() else ""
+        lines.append(textwrap.fill(f"{o.name}{key}: {o.doc}; default {o.default!r}.{where}", 116,
+                                   initial_indent=pad, subsequent_indent=pad + "    "))
+    return "\n".join(lines)
+
+
+register.__doc__ = register.__doc__.replace("{options}", option_docs())

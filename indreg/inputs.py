@@ -216,8 +216,8 @@ def _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angl
         raise ValueError(f"{key['tilt_axis']} must be 'x', 'y' or 'z', got {tilt_axis!r}")
     if tilt_axis_angle is not None:
         if isinstance(tilt_axis_angle, bool) or not isinstance(tilt_axis_angle, numbers.Real) \
-                or not math.isfinite(tilt_axis_angle):
-            raise ValueError(f"{key['tilt_axis_angle']} must be a finite number of degrees or None, got "
+                or not abs(tilt_axis_angle) <= 180:
+            raise ValueError(f"{key['tilt_axis_angle']} must be a number of degrees in [-180, 180] or None, got "
                              f"{tilt_axis_angle!r}")
         if geometry != "tilt_series":
             raise ValueError(f"{key['tilt_axis_angle']} applies to a tilt series ({key['geometry']}=tilt_series), "

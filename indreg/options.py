@@ -205,10 +205,13 @@ def _import(path: str) -> None:
     import importlib
 
     module, _, attr = path.partition(":")
+    before = dict(MODELS)
     try:
         model = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as e:
-        raise ValueError(f"model {path!r} cannot be imported: {e}") from None
+    except Exception as e:   # a syntax error or an exception at import: one line, and nothing left registered
+        MODELS.clear()
+        MODELS.update(before)
+        raise ValueError(f"model {path!r} cannot be imported: {type(e).__name__}: {e}") from None
     if not isinstance(model, Model):
         raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
     MODELS[path] = model

@@ -26,7 +26,7 @@ from . import models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
-from .units import Units, data_term_scale, prepare
+from .units import Units, data_term_scale, noise_residual, prepare
 
 log = logging.getLogger("indreg")
 
@@ -135,12 +135,17 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     units.data_scale = data_term_scale(operator, data)
+    units.noise_residual = noise_residual(data)
     opts.relative(o, units.data_scale)   # gamma / step_size None: relative to the data term
     for name in ("step_size", "lr"):     # a step must stay finite (and nonzero) in the run's dtype
         if o[name] is not None:
             check_finite_in(o[name], label(names[name]), dtype)
     kernel = GaussianKernel(domain, o["sigma"])
-    problem, solver_options = model.build(operator, template, data, kernel, o)
+    built = model.build(operator, template, data, kernel, o)
+    if not (isinstance(built, tuple) and len(built) == 2 and isinstance(built[1], dict)):
+        raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
+                        f"{type(built).__name__}")
+    problem, solver_options = built
     return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
 
 
@@ -379,14 +384,26 @@ class RegistrationResult:
         raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
 
 
-def final_status(status: str, residual: float) -> str:
-    """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1`` (or not
-    finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so)."""
-    if status in ("completed", "converged", "stalled", "early_stopped") and not residual < 1:
+#: A finished run whose relative residual exceeds ``POOR_FIT[0] * noise + POOR_FIT[1]`` (``noise``: what the data's
+#: noise explains, ``indreg.units.noise_residual``) is reported as a poor fit: the model does not explain the data.
+POOR_FIT = (2.0, 0.1)
+
+
+def final_status(status: str, residual: float, noise: float = math.nan) -> str:
+    """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1``
+    (or not finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so).
+    One whose residual is far above what the noise explains (``noise``, :data:`POOR_FIT`) keeps its status with a
+    warning: a layout mistake (angles and bins swapped, a transposed template), an offset or a wrong scale."""
+    finished = status in ("completed", "converged", "stalled", "early_stopped")
+    if finished and not residual < 1:
         log.warning("the run diverged: relative data residual ||T f - g|| / ||g|| = %.4g >= 1, worse than a zero "
                     "image; check the units of template and data (template_scale, background) and the step",
                     residual)
         return "diverged"
+    if finished and residual > POOR_FIT[0] * noise + POOR_FIT[1]:
+        log.warning("poor fit: the relative data residual %.4g is far above the %.4g that the data's noise explains; "
+                    "check the layout (angles and detector bins swapped? the template transposed or flipped?), an "
+                    "offset (background) and the template's scale (template_scale)", residual, noise)
     return status
 
 
@@ -398,6 +415,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
     from . import metrics
 
+    units = units or Units()
     x = state.iterate
     image = problem.reconstruction(x)
     with torch.no_grad():
@@ -408,8 +426,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
-        residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
-        problem=problem, outputs=problem.outputs(x), units=units or Units())
+        residual=residual, status=final_status(status, residual, units.noise_residual),
+        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x), units=units)
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:

@@ -297,7 +297,7 @@ def validate(cfg: DictConfig) -> None:
     _require(bool(_DEVICE.match(c.device)), "device", "'auto', 'cpu', 'cuda' or 'cuda:<index>'", c.device)
     _check_cuda(c.device)
     _require(c.stop_after is None or c.stop_after >= 0, "stop_after", "null or an integer >= 0", c.stop_after)
-    _require(c.phantom.size >= 4, "phantom.size", "an integer >= 4", c.phantom.size)
+    _require(c.phantom.size >= 7, "phantom.size", "an integer >= 7 (the SSIM window)", c.phantom.size)
     _require(c.phantom.ndim in (2, 3), "phantom.ndim", "2 (images) or 3 (volumes)", c.phantom.ndim)
     _require(c.phantom.thickness is None or (c.phantom.ndim == 3 and 7 <= c.phantom.thickness <= c.phantom.size),
              "phantom.thickness", "null or, for volumes (phantom.ndim=3), an integer in [7, phantom.size] (7: the "
@@ -328,7 +328,7 @@ def registration_values(cfg: DictConfig) -> dict:
     """The ``indreg.register`` options of the config's ``kernel``, ``deformation`` and ``solver`` groups
     (``solver.name=torch_optim`` names its optimizer in ``solver.optimizer``)."""
     plain = to_plain(cfg)
-    values = {o.name: plain[o.group][o.key] for o in _options.all_options() if o.group in plain}
+    values = {o.name: plain[o.group][o.key] for o in _options.all_options() if o.key in plain.get(o.group, {})}
     if values["solver"] == "torch_optim":
         values["solver"] = plain["solver"]["optimizer"]
     return values
@@ -357,6 +357,8 @@ def _validate_data(c: DictConfig) -> None:
         _require(g.num_angles is not None and g.num_angles >= 1, "geometry.num_angles",
                  "an integer >= 1 (angles per time point)", g.num_angles)
         _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)
+        _require(g.kind.value == "parallel", "geometry", "parallel (the dynamic source simulates 2D parallel-beam "
+                 "frames)", g.kind.value)
     elif d.source == "phantom":
         _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None
                  or g.kind.value == "tilt_series", "geometry.num_angles", "an integer >= 1 (or geometry.angles)",
@@ -372,8 +374,8 @@ def _validate_data(c: DictConfig) -> None:
         _require(_finite(g.tilt_step) and g.tilt_step > 0, "geometry.tilt_step", "a number > 0", g.tilt_step)
         _require(_finite(g.tilt_min) and _finite(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
                  "finite tilt_min <= tilt_max", (g.tilt_min, g.tilt_max))
-    _require(g.tilt_axis_angle is None or _finite(g.tilt_axis_angle), "geometry.tilt_axis_angle",
-             "a finite number of degrees or null", g.tilt_axis_angle)
+    _require(g.tilt_axis_angle is None or (_finite(g.tilt_axis_angle) and abs(g.tilt_axis_angle) <= 180),
+             "geometry.tilt_axis_angle", "a number of degrees in [-180, 180] or null", g.tilt_axis_angle)
     _require(g.tilt_axis_angle is None or (g.kind.value == "tilt_series" and d.source != "phantom"),
              "geometry.tilt_axis_angle", "null except for a measured tilt series (data=files geometry=tilt_series): "
              "simulated data are in indreg's layout", g.tilt_axis_angle)

@@ -108,3 +108,22 @@ def test_tv_weight_scales_with_the_data_and_paper_scores_stay(tmp_path):
     import torch
     assert m["tv_mu_absolute"] == pytest.approx(cfg.baseline.tv_mu * intensity_scale(T, torch.from_numpy(data)))
     assert {"ssim_paper", "psnr_paper", "tv_ssim"} <= set(m) and m["template_scale"] == 1.0 and m["background"] == 0
+
+
+def test_measured_data_take_the_relative_weights_and_presets_keep_the_paper_s():
+    """``data=files`` with the default experiment: ``gamma`` / ``step_size`` unset (relative to the data term,
+    indreg.units); the paper's presets, the own-data example included, keep their absolute values."""
+    files = compose(["data=files", "data.template=T.npy", "data.sinogram=S.npy"])
+    assert files.solver.gamma is None and files.solver.step_size is None and files.solver.gamma_rel > 0
+    for preset, gamma in (("suite1_jv", 1e-6), ("suite3_shepp_logan", 1e-7), ("own_data_example", 1e-6)):
+        cfg = compose([f"experiment={preset}"])
+        assert cfg.solver.gamma == gamma and cfg.solver.step_size == 0.02
+
+
+def test_relative_weights_are_in_metrics(tmp_path):
+    """metrics.json reports the data-term scale S and the absolute gamma and step the run used."""
+    m = run_app(OWN + ["solver.max_iter=2", "solver.gamma=null", "solver.step_size=null"], tmp_path)
+    S = m["data_scale"]
+    assert S > 0 and m["noise_residual"] > 0
+    assert m["hparams"]["gamma"] == pytest.approx(1.7e-7 * S, rel=1e-6)
+    assert json.loads((tmp_path / "metrics.json").read_text())["data_scale"] == S
