@@ -146,18 +146,17 @@ class ComposedOperator(OperatorAlgebra):
     ``A.domain``."""
 
     def __init__(self, outer, inner):
-        self.outer, self.inner = check_operator(outer, "the outer operator"), check_operator(inner, "the inner operator")
+        self.outer, self.inner = check_operator(outer, "A (of A * B)"), check_operator(inner, "B (of A * B)")
+        what = f"cannot compose A * B (A: {_name(outer)}, B: {_name(inner)})"
         where = getattr(inner, "range_domain", None)
         if where is not None and where != outer.domain:
-            raise ValueError(f"cannot compose {_name(outer)} * {_name(inner)}: the {_name(inner)} maps to {where}, "
-                             f"the {_name(outer)} acts on {outer.domain}")
+            raise ValueError(f"{what}: B maps to {where}, A acts on {outer.domain}")
         if where is None:
             if tuple(inner.range_shape) != tuple(outer.domain.shape):
-                raise ValueError(f"cannot compose {_name(outer)} * {_name(inner)}: the {_name(inner)}'s range_shape "
-                                 f"{tuple(inner.range_shape)} is not the {_name(outer)}'s domain shape "
+                raise ValueError(f"{what}: B's range_shape {tuple(inner.range_shape)} is not A's domain shape "
                                  f"{outer.domain.shape}")
             _check_same_inner(inner.inner_data, outer.domain.inner, outer.domain.shape,
-                              f"the {_name(inner)}'s data and the {_name(outer)}'s images")
+                              f"{what}: B's data and A's images")
         self.domain, self.range_shape = inner.domain, tuple(outer.range_shape)
         self.range_domain = getattr(outer, "range_domain", None)
 
