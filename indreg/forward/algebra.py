@@ -110,7 +110,7 @@ class ImageOperator(OperatorAlgebra):
         return self.domain.shape
 
     def _apply(self, fn: Callable, f: torch.Tensor, name: str) -> torch.Tensor:
-        f = self.domain.check_image(f, name)
+        f = check_tensor(f, name, self.domain.shape, finite=False)   # values: checked by the projector it feeds
         out = fn(f)
         if not isinstance(out, torch.Tensor) or out.shape != f.shape:
             got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__

@@ -9,6 +9,9 @@ Fourier transform or a wrapped deepinv/ODL/ASTRA operator can be another):
     adjoint(y)    the L2 adjoint for ``domain.inner`` and ``inner_data``: ``<T f, y>_data = <f, T^* y>``
     inner_data(y1, y2)  weighted data inner product over the last ``len(range_shape)`` axes, batch dims kept
 
+Operators combine into operators (``indreg.forward.algebra``): ``R * B``, ``c * A``, ``A + B`` for those that inherit
+``OperatorAlgebra`` (indreg's own), ``compose`` / ``add`` / ``scale`` / ``stack`` / ``restrict`` for any.
+
 Convention: inner products are weighted (``domain.inner`` uses the cell volume; ``inner_data`` whatever
 weight the data space has, e.g. ``angle_cell * det_cell`` for ray transforms), so ``adjoint`` is the
 weighted L2 adjoint, not the matrix transpose, unless both weights are equal.

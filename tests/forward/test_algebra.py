@@ -185,7 +185,8 @@ def test_errors_one_line():
         (lambda: A + ray(domain=ImageDomain.paper(8)), ValueError, r"^terms\[1\].domain ImageDomain\(shape=\(8, 8\)"),
         (lambda: A + 2 * (A * C) + RayTransform(DOM2, ParallelBeamGeometry(
             angles=torch.arange(6) * math.pi / 6, det_count=24, det_min=-12.0, det_max=12.0, angle_unit="rad")),
-         ValueError, r"^the data spaces of terms\[0\] .* and terms\[1\] \(RayTransform\) have different inner products"),
+         ValueError, r"^the data spaces of terms\[0\] .* and terms\[1\] \(RayTransform\) have different inner "
+                     r"products"),
         (lambda: stack(A, ray(domain=ImageDomain.paper(8))), ValueError, r"^operators\[1\].domain"),
         (lambda: stack(), ValueError, "non-empty list"),
         (lambda: compose(A), ValueError, "at least 2 operators, got 1"),
