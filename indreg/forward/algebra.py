@@ -219,13 +219,18 @@ class SumOperator(OperatorAlgebra):
         return "(" + " + ".join(map(repr, self.terms)) + ")"
 
 
+def _factor(value) -> float:
+    c = check_number(value, "factor", "a finite real number")
+    if not math.isfinite(c):
+        raise ValueError(f"factor must be a finite real number, got {value!r}")
+    return c
+
+
 class ScaledOperator(OperatorAlgebra):
     """``c A`` for a finite real ``c``: ``adjoint = c A^*``, ``inner_data`` = ``A``'s."""
 
     def __init__(self, factor, operator):
-        self.factor = check_number(factor, "factor", "a finite real number")
-        if not math.isfinite(self.factor):
-            raise ValueError(f"factor must be a finite real number, got {factor!r}")
+        self.factor = _factor(factor)
         self.operator = check_operator(operator, "operator")
         self.domain, self.range_shape = operator.domain, tuple(operator.range_shape)
         self.range_domain = getattr(operator, "range_domain", None)
@@ -408,7 +413,9 @@ def add(*operators) -> SumOperator:
 
 
 def scale(factor, operator) -> ScaledOperator:
-    """``c A`` (``ScaledOperator``; ``c * A`` for indreg's operators)."""
+    """``c A`` (``ScaledOperator``; ``c * A`` for indreg's operators); ``c (d A)`` is ``(c d) A``."""
+    if isinstance(operator, ScaledOperator):
+        return ScaledOperator(_factor(factor) * operator.factor, operator.operator)
     return ScaledOperator(factor, operator)
 
 

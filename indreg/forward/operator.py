@@ -127,36 +127,29 @@ class OperatorAlgebra:
     operator is applied by calling it, ``A(f)``."""
 
     def __mul__(self, other):
-        from . import algebra                      # algebra builds on this module
         if _is_number(other):
-            return algebra.scale(other, self)
-        return algebra.compose(self, other) if _is_operator(other) else NotImplemented
+            return _algebra().scale(other, self)
+        return _algebra().compose(self, other) if _is_operator(other) else NotImplemented
 
     def __rmul__(self, other):
-        from . import algebra
         if _is_number(other):
-            return algebra.scale(other, self)
-        return algebra.compose(other, self) if _is_operator(other) else NotImplemented
+            return _algebra().scale(other, self)
+        return _algebra().compose(other, self) if _is_operator(other) else NotImplemented
 
     def __add__(self, other):
-        from . import algebra
-        return algebra.add(self, other) if _is_operator(other) else NotImplemented
+        return _algebra().add(self, other) if _is_operator(other) else NotImplemented
 
     def __radd__(self, other):
-        from . import algebra
-        return algebra.add(other, self) if _is_operator(other) else NotImplemented
+        return _algebra().add(other, self) if _is_operator(other) else NotImplemented
 
     def __neg__(self):
-        from . import algebra
-        return algebra.scale(-1.0, self)
+        return _algebra().scale(-1.0, self)
 
     def __sub__(self, other):
-        from . import algebra
-        return algebra.add(self, algebra.scale(-1.0, other)) if _is_operator(other) else NotImplemented
+        return _algebra().add(self, _algebra().scale(-1.0, other)) if _is_operator(other) else NotImplemented
 
     def __rsub__(self, other):
-        from . import algebra
-        return algebra.add(other, algebra.scale(-1.0, self)) if _is_operator(other) else NotImplemented
+        return _algebra().add(other, -self) if _is_operator(other) else NotImplemented
 
     def norm_data(self, y: torch.Tensor) -> torch.Tensor:
         """Weighted data norm over the data axes (:func:`norm_data`)."""
@@ -170,6 +163,11 @@ class OperatorAlgebra:
                       seed: int = 0) -> float:
         """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
         return operator_norm(self, num_iter, dtype, device, seed)
+
+
+def _algebra():
+    from . import algebra          # algebra builds on this module: imported when first used
+    return algebra
 
 
 def _is_number(x) -> bool:

@@ -101,6 +101,7 @@ def test_norms_of_sums_multiples_and_stacks():
     A = ray()
     n = operator_norm(A, num_iter=200)
     assert operator_norm(-3 * A, num_iter=200) == pytest.approx(3 * n, rel=1e-10)
+    assert (-(3 * A)).factor == -3.0 and (-(3 * A)).operator is A     # c (d A) = (c d) A
     assert operator_norm(A + A, num_iter=200) == pytest.approx(2 * n, rel=1e-10)
     assert stack(A, A).operator_norm(num_iter=200) == pytest.approx(math.sqrt(2) * n, rel=1e-10)
     assert operator_norm(A * ImageOperator(DOM2, lambda f: 2.0 * f), num_iter=200) == pytest.approx(2 * n, rel=1e-10)
@@ -148,7 +149,7 @@ def test_on_domain_rebuilds_every_part():
             return A.inner_data(y1, y2)
 
     F = Foreign()
-    for T in (F * C, A + F, F - 2 * A, stack(A, F), scale(2, F)):
+    for T in (F * C, A + F, F + A, F - 2 * A, stack(A, F), scale(2, F), -scale(2, F)):
         assert T.on_domain is None and identity_error(T) < 1e-12
 
 
