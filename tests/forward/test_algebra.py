@@ -153,6 +153,17 @@ def test_on_domain_rebuilds_every_part():
         assert T.on_domain is None and identity_error(T) < 1e-12
 
 
+def test_a_composition_registers_coarse_to_fine_and_with_held_out_angles():
+    """``solver="fast"`` rebuilds ``R * B`` on its coarse grids (``on_domain``); ``holdout`` restricts it."""
+    A, B = ray(), ImageOperator(DOM2, blur)
+    template, target = indreg.phantoms.get("j", DOM2), indreg.phantoms.get("v", DOM2)
+    for options in ({"solver": "fast", "optimizer_kwargs": {"min_size": 4, "level_iter": (3, 3)}}, {"holdout": 3}):
+        r = indreg.register(template, (A * B)(target), A * B, num_steps=4, max_iter=6, **options)
+        assert r.status == "completed" and r.history[-1]["objective"] < r.history[0]["objective"], options
+        if "solver" in options:
+            assert sorted({h["level"] for h in r.history}) == [0, 1, 2]     # two coarse grids, then 16^2
+
+
 def test_foreign_operators_through_the_functions_and_operators():
     """Arithmetic with a protocol operator that is not indreg's: ``foreign * B`` and ``foreign + A`` work through
     the indreg operand's reflected methods, ``compose`` / ``add`` / ``scale`` always."""
