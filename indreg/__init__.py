@@ -4,8 +4,8 @@ from . import _openmp
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 from .domain import ImageDomain
-from .forward import (FanBeamGeometry, LinearOperator, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry,
-                      TiltSeriesTransform)
+from .forward import (FanBeamGeometry, ImageOperator, LinearOperator, ParallelBeamGeometry, RayTransform,
+                      TiltSeriesGeometry, TiltSeriesTransform, compose, restrict, stack)
 from .deform import CoarseVelocityDeformation, GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from . import metrics, noise, phantoms
 from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver, RegistrationProblem
@@ -18,7 +18,7 @@ from .api import RegistrationResult, register
 from .inputs import RegistrationInputs, load
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
-           "TiltSeriesGeometry", "TiltSeriesTransform",
+           "TiltSeriesGeometry", "TiltSeriesTransform", "ImageOperator", "compose", "stack", "restrict",
            "GaussianKernel", "LDDMMDeformation", "CoarseVelocityDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
            "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",

@@ -4,8 +4,8 @@ well the reconstruction predicts data it was not fitted to, without a ground tru
 ``holdout`` (``indreg.register(holdout=...)``, the app's ``validation.holdout``) is an integer ``k``: every
 ``k``-th angle, indices ``k // 2, k // 2 + k, ...`` (``k = 5`` on 30 angles: 2, 7, 12, 17, 22, 27), or an explicit
 list of indices. The fit uses the operator restricted to the other angles
-(``indreg.forward.operator.RestrictedOperator``, which works for any operator of the protocol: the angles are
-the first axis of its range), the held-out angles are compared with the same reconstruction every ``every``
+(``indreg.forward.restrict``, which works for any operator of the protocol: the angles are the first axis of its
+range), the held-out angles are compared with the same reconstruction every ``every``
 iterations (the loop's log period): ``||T_H f - g_H|| / ||g_H||``. With ``patience`` the run stops
 (``early_stopped``) after ``patience`` such evaluations without a new minimum.
 
@@ -20,7 +20,7 @@ from typing import Optional
 
 import torch
 
-from .forward.operator import RestrictedOperator
+from .forward.algebra import restrict
 from .options import OptionError
 
 
@@ -102,8 +102,7 @@ def split(operator, data: torch.Tensor, spec, patience: Optional[int] = None, na
     k = len(operator.range_shape)
     axis = data.dim() - k
     rows = lambda idx: torch.as_tensor(idx, dtype=torch.long, device=data.device)   # noqa: E731
-    fit = RestrictedOperator(operator, kept)
-    check = RestrictedOperator(operator, held)
+    fit, check = restrict(operator, kept), restrict(operator, held)
     return (fit, data.index_select(axis, rows(kept)),
             Validation(check, data.index_select(axis, rows(held)), held, patience))
 

@@ -30,7 +30,7 @@ from torch import nn
 
 from .._checks import check_positive, check_tensor
 from ..domain import ImageDomain
-from .operator import check_data_pair
+from .operator import OperatorAlgebra, check_data_pair
 
 _INSTALL_HINT = 'deepinv is not installed; install the optional extra with: pip install "indreg[deepinv]"'
 _PROTOCOL = ("domain", "range_shape", "adjoint", "inner_data")
@@ -186,7 +186,7 @@ def _probe(physics, domain: ImageDomain):
     return shape[1:], tuple(shapes)
 
 
-class PhysicsOperator(nn.Module):
+class PhysicsOperator(OperatorAlgebra, nn.Module):
     """A deepinv ``LinearPhysics`` ``A`` as an indreg linear operator ``T`` on ``domain``.
 
     Convention:
@@ -198,6 +198,7 @@ class PhysicsOperator(nn.Module):
         - ``transpose`` is deepinv's ``A_adjoint`` (Euclidean); the L2 adjoint for the weighted inner products
           is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``).
         - Gradients are deepinv's (autograd through ``physics.A``).
+        - Arithmetic and checks from ``OperatorAlgebra`` (``T * B``, ``c * T``, ``adjointness_test``, ...).
     """
 
     def __init__(self, physics, domain: ImageDomain, range_shape: tuple, dtypes: tuple, data_weight: float):
@@ -250,10 +251,6 @@ class PhysicsOperator(nn.Module):
         """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept."""
         dims = check_data_pair(y1, y2, self.range_shape)
         return self.data_weight * (y1 * y2).sum(dim=dims)
-
-    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
-        """Weighted data norm over the data axes."""
-        return self.inner_data(y, y).sqrt()
 
     def extra_repr(self) -> str:
         return f"domain={self.domain}, range_shape={self.range_shape}, data_weight={self.data_weight}"

@@ -9,6 +9,9 @@ Fourier transform or a wrapped deepinv/ODL/ASTRA operator can be another):
     adjoint(y)    the L2 adjoint for ``domain.inner`` and ``inner_data``: ``<T f, y>_data = <f, T^* y>``
     inner_data(y1, y2)  weighted data inner product over the last ``len(range_shape)`` axes, batch dims kept
 
+Operators combine into operators (``indreg.forward.algebra``): ``R * B``, ``c * A``, ``A + B`` for those that inherit
+``OperatorAlgebra`` (indreg's own), ``compose`` / ``add`` / ``scale`` / ``stack`` / ``restrict`` for any.
+
 Convention: inner products are weighted (``domain.inner`` uses the cell volume; ``inner_data`` whatever
 weight the data space has, e.g. ``angle_cell * det_cell`` for ray transforms), so ``adjoint`` is the
 weighted L2 adjoint, not the matrix transpose, unless both weights are equal.
@@ -16,8 +19,10 @@ weighted L2 adjoint, not the matrix transpose, unless both weights are equal.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
 from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
@@ -112,10 +117,73 @@ def operator_norm(op, num_iter: int = 100, dtype: torch.dtype = torch.float64, d
     return float(norm_data(op, op(x)))
 
 
-class WeightedDataMixin:
+class OperatorAlgebra:
+    """Operator arithmetic and the protocol's checks on the operator itself, for indreg's operators (the ray
+    transform, the tilt series, the deepinv wrapper, the generic operators of ``indreg.forward.algebra``).
+
+    ``A * B`` is the composition ``f -> A(B f)`` (``B`` an image-space operator, e.g. a blur, or any operator whose
+    range is ``A``'s domain), ``c * A`` / ``A * c`` a multiple, ``A + B`` / ``A - B`` / ``-A`` sums; ``B`` may be a
+    foreign operator of the protocol. Anything else (``A * tensor``) is refused by Python's ``TypeError``: an
+    operator is applied by calling it, ``A(f)``."""
+
+    def __mul__(self, other):
+        if _is_number(other):
+            return _algebra().scale(other, self)
+        return _algebra().compose(self, other) if _is_operator(other) else NotImplemented
+
+    def __rmul__(self, other):
+        if _is_number(other):
+            return _algebra().scale(other, self)
+        return _algebra().compose(other, self) if _is_operator(other) else NotImplemented
+
+    def __add__(self, other):
+        return _algebra().add(self, other) if _is_operator(other) else NotImplemented
+
+    def __radd__(self, other):
+        return _algebra().add(other, self) if _is_operator(other) else NotImplemented
+
+    def __neg__(self):
+        return _algebra().scale(-1.0, self)
+
+    def __sub__(self, other):
+        return _algebra().add(self, _algebra().scale(-1.0, other)) if _is_operator(other) else NotImplemented
+
+    def __rsub__(self, other):
+        return _algebra().add(other, -self) if _is_operator(other) else NotImplemented
+
+    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted data norm over the data axes (:func:`norm_data`)."""
+        return norm_data(self, y)
+
+    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
+        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (:func:`adjointness`)."""
+        return adjointness(self, dtype, device, seed)
+
+    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
+                      seed: int = 0) -> float:
+        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
+        return operator_norm(self, num_iter, dtype, device, seed)
+
+
+def _algebra():
+    from . import algebra          # algebra builds on this module: imported when first used
+    return algebra
+
+
+def _is_number(x) -> bool:
+    return (isinstance(x, numbers.Real) or (isinstance(x, torch.Tensor) and x.dim() == 0)) \
+        and not isinstance(x, (bool, np.bool_))
+
+
+def _is_operator(x) -> bool:
+    return all(hasattr(x, m) for m in MEMBERS)
+
+
+class WeightedDataMixin(OperatorAlgebra):
     """The data-space members of a projector whose data inner product is ``geometry.data_weight * sum`` over
-    ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``inner_data``, ``norm_data``, and the checks
-    ``adjointness_test`` and ``operator_norm`` on the operator itself (as deepinv's ``adjointness_test``)."""
+    ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``range_shape``, ``adjoint_scale`` and
+    ``inner_data``; the arithmetic and the checks (``adjointness_test``, ``operator_norm``) from
+    ``OperatorAlgebra``."""
 
     @property
     def range_shape(self) -> tuple:
@@ -134,86 +202,6 @@ class WeightedDataMixin:
         are not checked for finiteness (a residual may hold nan / inf, which the sum then reports)."""
         dims = check_data_pair(y1, y2, self.range_shape)
         return self.geometry.data_weight * (y1 * y2).sum(dim=dims)
-
-    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
-        """Weighted data norm over the data axes."""
-        return self.inner_data(y, y).sqrt()
-
-    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
-        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (:func:`adjointness`)."""
-        return adjointness(self, dtype, device, seed)
-
-    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
-                      seed: int = 0) -> float:
-        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
-        return operator_norm(self, num_iter, dtype, device, seed)
-
-
-class RestrictedOperator:
-    """``T`` restricted to some rows of its range: ``T_S f = (T f)[rows]`` along the first data axis (the angles of
-    a ray transform, the tilts of a tilt series), for any operator of the protocol (a thin wrapper: it computes
-    ``T f`` and selects).
-
-    Convention:
-        - ``range_shape`` ``(len(rows), *T.range_shape[1:])``; ``rows`` strictly increasing indices in
-          ``[0, T.range_shape[0])``.
-        - ``inner_data(y1, y2) = c * T.inner_data(E y1, E y2)`` with ``E`` the zero fill into ``T``'s range and
-          ``c = T.range_shape[0] / len(rows)``: the weight per datum is that of ``T`` with only these rows (a ray
-          transform's ``angle_cell = pi / num_angles`` becomes ``pi / len(rows)``), so a data term keeps its scale
-          per datum whatever is left out. ``adjoint(y) = c * T.adjoint(E y)`` is then the L2 adjoint, for any ``T``
-          whose data inner product is a weighted sum over data entries (every indreg operator).
-        - ``on_domain`` (coarse-to-fine solvers) where ``T`` has it: the same rows of ``T.on_domain(domain)``.
-    """
-
-    def __init__(self, operator, rows):
-        check_operator(operator, "operator")
-        count = int(operator.range_shape[0])
-        self.rows = torch.as_tensor(rows, dtype=torch.long).flatten()
-        if self.rows.numel() == 0 or bool((self.rows < 0).any()) or bool((self.rows >= count).any()) \
-                or bool((self.rows[1:] <= self.rows[:-1]).any()):
-            raise ValueError(f"rows must be strictly increasing indices in [0, {count}), got {self.rows.tolist()}")
-        self.operator = operator
-        self.domain = operator.domain
-        self.range_shape = (self.rows.numel(), *tuple(operator.range_shape)[1:])
-        self.scale = count / self.rows.numel()
-
-    @property
-    def _axis(self) -> int:
-        return -len(self.range_shape)
-
-    def _rows(self, y: torch.Tensor) -> torch.Tensor:
-        return self.rows.to(y.device)
-
-    def __call__(self, f: torch.Tensor) -> torch.Tensor:
-        """``(T f)[..., rows, ...]``: images ``(..., *domain.shape)`` -> data ``(..., *range_shape)``."""
-        y = self.operator(f)
-        return y.index_select(y.dim() + self._axis, self._rows(y))
-
-    def embed(self, y: torch.Tensor) -> torch.Tensor:
-        """``E y``: data of this operator zero-filled into ``T``'s range (differentiable)."""
-        y = check_tensor(y, "data", self.range_shape, finite=False)
-        full = y.new_zeros((*y.shape[:y.dim() + self._axis], *self.operator.range_shape))
-        return full.index_copy(y.dim() + self._axis, self._rows(y), y)
-
-    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        """L2 adjoint ``c T^*(E y)``."""
-        return self.scale * self.operator.adjoint(self.embed(y))
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """``c <E y1, E y2>`` in ``T``'s data inner product, batch dims kept."""
-        check_data_pair(y1, y2, self.range_shape)
-        return self.scale * self.operator.inner_data(self.embed(y1), self.embed(y2))
-
-    @property
-    def on_domain(self):
-        """``domain -> RestrictedOperator(T.on_domain(domain), rows)``, or None when ``T`` has no ``on_domain``."""
-        rebuild = getattr(self.operator, "on_domain", None)
-        if not callable(rebuild):
-            return None
-        return lambda domain: RestrictedOperator(rebuild(domain), self.rows)
-
-    def __repr__(self) -> str:
-        return f"RestrictedOperator({self.operator!r}, {len(self.rows)} of {self.operator.range_shape[0]} rows)"
 
 
 def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> float:

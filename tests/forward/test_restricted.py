@@ -4,7 +4,8 @@ import torch
 
 from indreg import ImageDomain, phantoms
 from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform, adjointness
-from indreg.forward.operator import RestrictedOperator, check_operator
+from indreg.forward.algebra import RestrictedOperator
+from indreg.forward.operator import check_operator
 
 DOM = ImageDomain.paper(16)
 ANGLES = torch.linspace(0.0, 3.0, 12, dtype=torch.float64)
