@@ -213,8 +213,11 @@ def _import(path: str) -> None:
         MODELS.update(before)
         raise ValueError(f"model {path!r} cannot be imported: {type(e).__name__}: {e}") from None
     if not isinstance(model, Model):
+        MODELS.clear()
+        MODELS.update(before)
         raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
     MODELS[path] = model
+    MODELS.setdefault(model.name, model)   # its options name it (Option.models) by its own name
 
 
 def _model(v, label):
@@ -227,7 +230,8 @@ def _model(v, label):
         expected = msg.split(", got ")[0].replace("model must be ", "") if msg.startswith("model must be ") else \
             f"an importable model ({msg})"
         raise OptionError(label, v, expected) from None
-    return v
+    m = model(v)
+    return m.name if MODELS.get(m.name) is m else v   # a plug-in by its own name, so that its options apply
 
 
 def holdout(v, label):
@@ -364,6 +368,11 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     to a solver or model it does not apply to is a TypeError; otherwise (the app) such values are reset to the
     default. Raises ``OptionError`` (``kind`` TypeError or ValueError) naming the option.
     """
+    if isinstance(values.get("model"), str) and values["model"] not in MODELS:
+        try:   # a plug-in's options join the table before unknown names are looked for
+            model(values["model"])
+        except ValueError:
+            pass   # reported with the model's label below
     options = {o.name: o for o in all_options()}
     unknown = sorted(set(values) - set(options))
     if unknown:

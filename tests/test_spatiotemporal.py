@@ -203,6 +203,17 @@ def test_bad_inputs_one_line(small):
         Algorithm1(_problem(small), cycle=((("source",), 2),))
 
 
+def test_data_sets_of_mixed_dtypes_are_not_truncated(small):
+    """An integer first frame (read from an integer file) does not truncate the others: the common dtype."""
+    from indreg.forward.time_series import as_time_series
+
+    domain, ops, template, data = small
+    frames = [torch.round(data[0] * 10).to(torch.int32), data[1] * 10 + 0.4]
+    _, stacked = as_time_series(ops, frames)
+    assert stacked.dtype == torch.float64
+    torch.testing.assert_close(stacked[1], frames[1])
+
+
 # ---------------------------------------------------------------------------------------------------- runs
 def test_known_template_recovers_motion():
     """The breathing phantom at 32^2 (6 frames, 4 angles each, noise-free): the frames get closer to the truth

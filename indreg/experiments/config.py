@@ -114,8 +114,7 @@ class _DataFiles:
     template_known: bool = True     # source=dynamic: false: the template is unknown (reconstructed with the motion)
 
 
-DataConfig = make_dataclass("DataConfig", _options.schema_fields("data"), bases=(_DataFiles,))
-DataConfig.__doc__ = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
+_DATA_DOC = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
     ``module:function`` (``indreg.experiments.sources``).
 
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
@@ -173,20 +172,6 @@ def _group(name: str, doc: str, extra=()):
     return cls
 
 
-DeformationConfig = _group("DeformationConfig", "Deformation: the model (``indreg.models``: lddmm, metamorphosis), "
-                           "time steps N, group action, backward, interpolation, and the model's own options.")
-KernelConfig = _group("KernelConfig", "Kernel: the Gaussian RKHS kernel width sigma (physical units).")
-SolverConfig = _group("SolverConfig", "Solver: ``name`` algorithm1, fast, torch_optim (with ``optimizer``) or a "
-                      "torch.optim name; objective weights, steps and iterations (``indreg.options``). "
-                      "``step_size`` is Algorithm 1's, ``lr`` torch.optim's: each is used only by its solver, so an "
-                      "``experiment=`` preset never changes an optimizer's learning rate.",
-                      extra=[("optimizer", str, field(default="lbfgs"))])
-ValidationConfig = _group("ValidationConfig", "Validation without a ground truth (``indreg.validation``): "
-                          "``holdout`` angles (every k-th, or a list of indices) are left out of the fit and their "
-                          "relative residual is evaluated every ``logging.every`` iterations; ``patience``: early "
-                          "stopping after that many evaluations without a new minimum.")
-
-
 @dataclass
 class BaselineConfig:
     """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock); for volumes also
@@ -212,25 +197,55 @@ class LoggingConfig:
     figure: bool = True
 
 
-@dataclass
-class RegisterConfig:
-    """The whole run. ``stop_after``: stop (checkpoint, as if interrupted) once this many iterations are done."""
-    name: str = "suite1_jv"
-    seed: int = 0
-    dtype: Dtype = Dtype.float32
-    device: str = "auto"
-    resume: bool = False
-    stop_after: Optional[int] = None
-    data: DataConfig = field(default_factory=DataConfig)
-    phantom: PhantomConfig = field(default_factory=PhantomConfig)
-    geometry: GeometryConfig = field(default_factory=GeometryConfig)
-    noise: NoiseConfig = field(default_factory=NoiseConfig)
-    deformation: DeformationConfig = field(default_factory=DeformationConfig)
-    kernel: KernelConfig = field(default_factory=KernelConfig)
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    baseline: BaselineConfig = field(default_factory=BaselineConfig)
-    logging: LoggingConfig = field(default_factory=LoggingConfig)
-    validation: ValidationConfig = field(default_factory=ValidationConfig)
+_GROUP_DOCS = {
+    "deformation": "Deformation: the model (``indreg.models``: lddmm, metamorphosis, spatiotemporal or a plug-in "
+                   "``module:attribute``), time steps N, group action, backward, interpolation, and the model's own "
+                   "options.",
+    "kernel": "Kernel: the Gaussian RKHS kernel width sigma (physical units).",
+    "solver": "Solver: ``name`` algorithm1, fast, torch_optim (with ``optimizer``) or a torch.optim name; objective "
+              "weights, steps and iterations (``indreg.options``). ``step_size`` is Algorithm 1's, ``lr`` "
+              "torch.optim's: each is used only by its solver, so an ``experiment=`` preset never changes an "
+              "optimizer's learning rate.",
+    "validation": "Validation without a ground truth (``indreg.validation``): ``holdout`` angles (every k-th, or a "
+                  "list of indices) are left out of the fit and their relative residual is evaluated every "
+                  "``logging.every`` iterations; ``patience``: early stopping after that many evaluations without a "
+                  "new minimum.",
+}
+_GROUP_EXTRA = {"solver": [("optimizer", str, field(default="lbfgs"))]}
+
+
+def _group(name: str, base=None):
+    """The schema of config group ``name`` generated from ``indreg.options`` (one declaration for the app and
+    ``indreg.register``; the registered models' options included), on ``base`` (the app's own keys)."""
+    cls = make_dataclass(f"{name.capitalize()}Config", [*_options.schema_fields(name), *_GROUP_EXTRA.get(name, ())],
+                         bases=(base,) if base else ())
+    cls.__doc__ = _DATA_DOC if name == "data" else _GROUP_DOCS[name]
+    return cls
+
+
+def build_schema() -> type:
+    """``RegisterConfig``, the whole run's schema, from the option table as it is now: a model registered after
+    the import of this module (a plug-in named on the command line) brings its options (``register_schema``)."""
+    groups = {name: _group(name, _DataFiles if name == "data" else None) for name in ("data", *_GROUP_DOCS)}
+    cls = make_dataclass("RegisterConfig", [
+        ("name", str, field(default="suite1_jv")), ("seed", int, field(default=0)),
+        ("dtype", Dtype, field(default=Dtype.float32)), ("device", str, field(default="auto")),
+        ("resume", bool, field(default=False)), ("stop_after", Optional[int], field(default=None)),
+        ("data", groups["data"], field(default_factory=groups["data"])),
+        ("phantom", PhantomConfig, field(default_factory=PhantomConfig)),
+        ("geometry", GeometryConfig, field(default_factory=GeometryConfig)),
+        ("noise", NoiseConfig, field(default_factory=NoiseConfig)),
+        *((g, groups[g], field(default_factory=groups[g])) for g in ("deformation", "kernel", "solver")),
+        ("baseline", BaselineConfig, field(default_factory=BaselineConfig)),
+        ("logging", LoggingConfig, field(default_factory=LoggingConfig)),
+        ("validation", groups["validation"], field(default_factory=groups["validation"]))])
+    cls.__doc__ = "The whole run. ``stop_after``: stop (checkpoint, as if interrupted) once this many iterations " \
+                  "are done."
+    return cls
+
+
+#: The schema of the built-in models and sources (``build_schema``; ``register_schema`` rebuilds it).
+RegisterConfig = build_schema()
 
 
 SCHEMA_NAME = "indreg_schema"
@@ -245,13 +260,38 @@ CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
-def register_schema() -> None:
+def register_schema(argv=()) -> None:
     """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
-    resolver ``${indreg_data:name}`` (the path of a file shipped in ``indreg/data``)."""
+    resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models named
+    in the command line ``argv`` (``deformation.model=module:attribute``) are imported first, so that their
+    options are config keys (``deformation.my_option=3``)."""
     from hydra.core.config_store import ConfigStore
 
+    global RegisterConfig
+    if import_plugins(argv):
+        RegisterConfig = build_schema()
     ConfigStore.instance().store(name=SCHEMA_NAME, node=RegisterConfig)
     register_resolvers()
+
+
+def import_plugins(argv) -> bool:
+    """Import the models named ``module:attribute`` in the overrides ``argv`` (``deformation.model=...``), the
+    working directory on ``sys.path`` as with ``python -m`` (console scripts leave it off). Returns whether one was
+    new; an import error is left to the config's validation, which names the key."""
+    import sys
+
+    names = [a.split("=", 1)[1] for a in argv if a.split("=", 1)[0].lstrip("+~") == "deformation.model" and "=" in a]
+    names = [n for n in names if ":" in n and n not in _options.MODELS]
+    if names and "" not in sys.path and "." not in sys.path:
+        sys.path.append("")
+    new = False
+    for name in names:
+        try:
+            _options.model(name)
+            new = True
+        except ValueError:
+            pass
+    return new
 
 
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")

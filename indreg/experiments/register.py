@@ -599,6 +599,7 @@ def main() -> None:
     from .._malloc import use_heap_allocator
 
     use_heap_allocator()
+    register_schema(sys.argv[1:])   # plug-in models named on the command line: their options become keys
     preflight(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=_CONFIG_NAME)(_task)()
 

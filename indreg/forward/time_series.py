@@ -47,8 +47,10 @@ class TimeSeriesOperator(StackedOperator):
 
 def as_time_series(operator, data) -> tuple:
     """A sequence of operators becomes a :class:`TimeSeriesOperator` and a sequence of data one stacked tensor
-    ``(K, *R)`` (arrays / tensors; the data's dtype is kept, ``indreg.run.setup`` casts it); anything else is
-    returned as given."""
+    ``(K, *R)`` (arrays / tensors in their common dtype, integers as float64; ``indreg.run.setup`` casts it);
+    anything else is returned as given."""
+    import functools
+
     import numpy as np
 
     if isinstance(operator, (list, tuple)):
@@ -64,5 +66,7 @@ def as_time_series(operator, data) -> tuple:
                                  f"(operators[{k}].range_shape)")
         if len({tuple(d.shape) for d in items}) > 1:
             raise ValueError(f"the data sets have different shapes {[tuple(d.shape) for d in items]}")
-        data = torch.stack([d.to(items[0].dtype) for d in items])
+        common = functools.reduce(torch.promote_types, [d.dtype for d in items])   # an integer frame truncates none
+        data = torch.stack([d.to(common if common.is_floating_point or common.is_complex else torch.float64)
+                            for d in items])
     return operator, data

@@ -1,0 +1,79 @@
+"""A deformation model from outside indreg with options of its own: from ``indreg.register`` and from the command
+line (``deformation.model=module:attribute deformation.<option>=...``), the module in the working directory."""
+import json
+import textwrap
+
+import pytest
+import torch
+
+import indreg
+from indreg import phantoms
+
+from experiment_helpers import run_cli
+
+PLUGIN = textwrap.dedent('''
+    """A plug-in model: LDDMM of the template times ``brightness``, with ``extra_steps`` more time steps."""
+    import indreg
+    from indreg.models import Model, Option, number
+
+    class Scaled(indreg.IndirectRegistration):
+        def __init__(self, *args, brightness, extra_steps, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.brightness, self.extra_steps = brightness, extra_steps
+
+        def hparams(self):
+            return {"brightness": self.brightness, "extra_steps": self.extra_steps}
+
+    def build(operator, template, data, kernel, o):
+        W = indreg.LDDMMDeformation(kernel.domain, o["num_steps"] + o["extra_steps"], o["action"],
+                                    o["backward"] or "paper", o["interpolation"] or "reinterpolate")
+        return Scaled(operator, W, kernel, o["brightness"] * template, data, o["gamma"],
+                      brightness=o["brightness"], extra_steps=o["extra_steps"]), {}
+
+    MODEL = Model("scaled", build, doc="LDDMM of a brighter template", options=(
+        Option("brightness", "deformation", "brightness", 1.0, number(0.0, strict=True), "template factor", float,
+               models=("scaled",)),
+        Option("extra_steps", "deformation", "extra_steps", 0, number(0, integer=True), "more time steps", int,
+               models=("scaled",)),
+    ))
+''')
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    (tmp_path / "my_plugin.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
+def test_plugin_model_options_from_python(plugin):
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
+    template = phantoms.get("j", domain)
+    r = indreg.register(template, T(phantoms.get("v", domain)), T, model="my_plugin:MODEL", brightness=2.0,
+                        extra_steps=1, num_steps=3, max_iter=2)
+    assert r.problem.hparams() == {"brightness": 2.0, "extra_steps": 1} and r.problem.num_steps == 4
+    torch.testing.assert_close(r.problem.template, 2.0 * template)
+    with pytest.raises(TypeError, match="brightness"):   # an option of the plug-in, given to another model
+        indreg.register(template, T(template), T, brightness=2.0, max_iter=1)
+
+
+def test_plugin_model_options_from_the_command_line(plugin):
+    out = plugin / "run"
+    args = ["deformation.model=my_plugin:MODEL", "deformation.brightness=3", "deformation.extra_steps=2",
+            "phantom.size=16", "deformation.num_steps=3", "solver.max_iter=2", "baseline.enabled=false",
+            "logging.figure=false", "logging.tensorboard=false", "device=cpu", f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=plugin)   # the module is found in the working directory, as with python -m
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["hparams"]["brightness"] == 3.0 and m["hparams"]["extra_steps"] == 2 and m["status"] == "completed"
+    bad = run_cli(args[:1] + ["deformation.brightness=-1"] + args[2:], cwd=plugin)
+    assert bad.returncode == 1 and "deformation.brightness" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_plugin_that_fails_to_import_is_one_line_and_not_registered(tmp_path, monkeypatch):
+    (tmp_path / "broken_plugin.py").write_text("import indreg\nraise RuntimeError('boom at import')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ValueError, match="cannot be imported: RuntimeError: boom at import"):
+        indreg.options.model("broken_plugin:MODEL")
+    assert "broken_plugin:MODEL" not in indreg.options.MODELS
