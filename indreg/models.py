@@ -217,12 +217,12 @@ def _check_spatiotemporal(o: dict, label) -> None:
     from .solvers.spatiotemporal import time_indices
 
     _backward_in(("autograd", "exact"))(o, label)
-    if o["times"] is not None:   # their number is checked against the data's frames at setup
+    if isinstance(o["times"], (list, tuple)):   # their number is checked against the data's frames at setup
         try:
-            time_indices(o["times"], o["num_steps"], len(o["times"]) if hasattr(o["times"], "__len__") else 0)
-        except ValueError:
-            raise OptionError(label("times"), o["times"], f"increasing times in [0, 1] on the grid j / num_steps "
-                              f"(num_steps={o['num_steps']}), or None") from None
+            time_indices(o["times"], o["num_steps"], len(o["times"]))
+        except ValueError as e:
+            raise OptionError(label("times"), o["times"], f"None or valid times ({str(e).split(', got ')[0]})") \
+                from None
     if o["solver"] == "fast":
         raise OptionError(label("solver"), o["solver"], "'algorithm1' or a torch.optim name for "
                           "model='spatiotemporal' (no coarse-to-fine form)")

@@ -268,8 +268,8 @@ class RegistrationLoop:
 
     def _stalled(self) -> bool:
         """Step halving has collapsed the step (:data:`STALL_WINDOW`)."""
-        h, solver = self.history, self.solver
-        if not (getattr(solver, "step_halving", False) and hasattr(solver, "step_sizes")) or len(h) <= STALL_WINDOW:
+        h = self.history
+        if not self.solver.halves_steps or len(h) <= STALL_WINDOW:
             return False
         old, new = h[-1 - STALL_WINDOW]["objective"], h[-1]["objective"]
         return any(x.get("halvings") for x in h) and old - new <= self.rtol * abs(old)
@@ -384,24 +384,35 @@ class RegistrationResult:
         raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
 
 
-#: A finished run whose relative residual exceeds ``POOR_FIT[0] * noise + POOR_FIT[1]`` (``noise``: what the data's
-#: noise explains, ``indreg.units.noise_residual``) is reported as a poor fit: the model does not explain the data.
-POOR_FIT = (2.0, 0.1)
+#: A finished run whose objective has levelled off (it decreased by less than ``POOR_FIT[2]``, relative, over the
+#: last :data:`STALL_WINDOW` iterations) at a relative residual above ``POOR_FIT[0] * noise + POOR_FIT[1]``
+#: (``noise``: what the data's noise explains, ``indreg.units.noise_residual``) is reported as a poor fit: the model
+#: cannot explain the data (measured: angles and bins swapped, a template at half the data's units).
+POOR_FIT = (2.0, 0.1, 0.02)
 
 
-def final_status(status: str, residual: float, noise: float = math.nan) -> str:
+def levelled_off(history: list) -> bool:
+    """The objective decreased by less than ``POOR_FIT[2]`` (relative) over the last ``STALL_WINDOW`` iterations."""
+    if len(history) <= STALL_WINDOW:
+        return False
+    old, new = history[-1 - STALL_WINDOW]["objective"], history[-1]["objective"]
+    return old - new <= POOR_FIT[2] * abs(new)
+
+
+def final_status(status: str, residual: float, noise: float = math.nan, levelled: bool = False) -> str:
     """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1``
     (or not finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so).
-    One whose residual is far above what the noise explains (``noise``, :data:`POOR_FIT`) keeps its status with a
-    warning: a layout mistake (angles and bins swapped, a transposed template), an offset or a wrong scale."""
+    One that ``levelled`` off far above what the noise explains (``noise``, :data:`POOR_FIT`) keeps its status with
+    a warning: a layout mistake (angles and bins swapped, a transposed template), an offset or a wrong scale."""
     finished = status in ("completed", "converged", "stalled", "early_stopped")
     if finished and not residual < 1:
         log.warning("the run diverged: relative data residual ||T f - g|| / ||g|| = %.4g >= 1, worse than a zero "
                     "image; check the units of template and data (template_scale, background) and the step",
                     residual)
         return "diverged"
-    if finished and residual > POOR_FIT[0] * noise + POOR_FIT[1]:
-        log.warning("poor fit: the relative data residual %.4g is far above the %.4g that the data's noise explains; "
+    if finished and levelled and residual > POOR_FIT[0] * noise + POOR_FIT[1]:
+        log.warning("poor fit: the objective levelled off at a relative data residual %.4g, far above the %.4g that "
+                    "the data's noise explains; "
                     "check the layout (angles and detector bins swapped? the template transposed or flipped?), an "
                     "offset (background) and the template's scale (template_scale)", residual, noise)
     return status
@@ -426,7 +437,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
-        residual=residual, status=final_status(status, residual, units.noise_residual),
+        residual=residual, status=final_status(status, residual, units.noise_residual, levelled_off(history)),
         warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x), units=units)
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)

@@ -194,7 +194,7 @@ def test_objective_increases_within_rounding_are_not_warnings():
 
 class _FlatSolver:
     """Algorithm 1's interface with a step that halves once and never changes the objective."""
-    step_halving, step_sizes, max_iter = True, [1.0], 50
+    halves_steps, step_sizes, max_iter = True, [1.0], 50
 
     def step(self, state):
         state.iteration += 1
@@ -250,3 +250,19 @@ def test_tv_weight_at_the_data_scale():
     a = tv_reconstruction(T, data, mu=3.0 * u, num_iter=30)[0]
     b = tv_reconstruction(T, 255 * data, mu=3.0 * intensity_scale(T, 255 * data), num_iter=30)[0]
     assert torch.allclose(b, 255 * a, rtol=1e-8, atol=1e-8 * float(b.abs().max()))
+
+
+def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog):
+    """A square sinogram with angles and bins swapped fits far worse than its noise: the run keeps its status and
+    warns; the same data the right way round do not."""
+    domain = indreg.ImageDomain.paper(32)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(32, 32))
+    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
+    data, _ = indreg.noise.add_white_noise(T(target), snr_db=15, seed=0)
+    caplog.set_level(logging.WARNING, logger="indreg")
+    right = indreg.register(template, data, T, num_steps=5, max_iter=40)
+    assert not [m for m in warnings_of(caplog) if "poor fit" in m]
+    swapped = indreg.register(template, data.T.contiguous(), T, num_steps=5, max_iter=40)
+    poor = [m for m in warnings_of(caplog) if "poor fit" in m]
+    assert swapped.status == right.status == "completed" and len(poor) == 1
+    assert swapped.residual > 2 * swapped.units.noise_residual + 0.1 > right.residual

@@ -100,6 +100,13 @@ class Algorithm1(IterativeSolver):
         """The momentum's step (it may have been halved)."""
         return self.step_sizes[0]
 
+    @property
+    def halves_steps(self) -> bool:
+        return self.control.halving
+
+    def reported_step(self) -> float:
+        return float(self.step_size)
+
     @step_size.setter
     def step_size(self, value: float) -> None:
         self.step_sizes[0] = check_positive(value, "step_size")

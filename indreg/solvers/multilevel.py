@@ -199,6 +199,10 @@ class MultilevelSolver(IterativeSolver):
         self._written = None     # (state.momentum written by the last step, its _version)
         self._pending = False    # resumed on the problem's grid: the level's momentum is the caller's state
 
+    def reported_step(self) -> float:
+        """Algorithm 1's step on every level (``inner="algorithm1"``), else L-BFGS's learning rate 1."""
+        return float(self.step_size) if self.inner == "algorithm1" else 1.0
+
     def __repr__(self):
         grids = " -> ".join(f"{'x'.join(map(str, s))} N={n}" for s, n, _ in self.schedule)
         return (f"MultilevelSolver({grids}, inner={self.inner!r}, max_iter={self.max_iter}, "

@@ -334,6 +334,9 @@ class IntertwinedSolver:
         self.registration_steps = check_int(registration_steps, "registration_steps", 1)
         self.mu = 2.0 * float(template_tv_weight)
 
+    def reported_step(self) -> float:
+        return self.inner.reported_step()
+
     def __repr__(self):
         return (f"IntertwinedSolver(TV reconstruction of the template: {self.template_steps} iterations, mu="
                 f"{self.mu:g}, then {self.registration_steps} steps of {self.inner!r})")
@@ -349,6 +352,10 @@ class IntertwinedSolver:
     @property
     def step_halving(self) -> bool:
         return self.inner.step_halving
+
+    @property
+    def halves_steps(self) -> bool:
+        return self.inner.halves_steps
 
     def reconstruct_template(self, x: tuple) -> torch.Tensor:
         """The template step at ``x = (m, I)``: ``template_steps`` Chambolle-Pock iterations from ``I``."""

@@ -143,6 +143,13 @@ class IterativeSolver:
 
     max_iter: int
     grad_tol: float
+    #: Whether the solver halves its steps (step control): the run loop then watches for a collapsed step
+    #: (status ``stalled``, ``indreg.run.STALL_WINDOW``).
+    halves_steps: bool = False
+
+    def reported_step(self) -> float:
+        """The step this solver reports (hyperparameters, metrics.json): a step size or a learning rate."""
+        return math.nan
 
     def failed(self, info: dict) -> bool:
         """True on a non-finite objective or gradient norm: the iteration broke down."""

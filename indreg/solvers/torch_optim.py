@@ -115,6 +115,9 @@ class TorchOptimSolver(IterativeSolver):
         """The momentum's parameter ``p_0 = m / s``."""
         return self.parameters[0]
 
+    def reported_step(self) -> float:
+        return float(self.lr)
+
     def __repr__(self):
         return (f"TorchOptimSolver(optimizer={type(self.optimizer).__name__}, lr={self.lr}, "
                 f"max_iter={self.max_iter}, grad_tol={self.grad_tol})")
