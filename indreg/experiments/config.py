@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dataclasses import make_dataclass
 
+from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
