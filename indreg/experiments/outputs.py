@@ -21,7 +21,7 @@ from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
 
-__all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters"]
+__all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality"]
 
 log = logging.getLogger("indreg.experiments.register")
 
@@ -141,16 +141,16 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
     with open(out / "metrics.json", "w") as f:
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
-    write_figures(cfg, exp, r, rec, result, out, writer, it)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
-        log.info("%s, SSIM %.4f, PSNR %.2f dB%s; FBP %s; TV %s; %d warnings", done, result["ssim"], result["psnr"],
-                 paper, _pair(result, "fbp"), _pair(result, "tv") + (f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec
-                                                                     else ""), result["warnings"])
+        sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""
+        log.info("%s, %s%s; FBP %s; TV %s%s; %d warnings", done, quality(result, exp, r.outputs), paper,
+                 _pair(result, "fbp"), _pair(result, "tv"), sirt, result["warnings"])
     else:
         log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
                  result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
@@ -158,6 +158,19 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)", r.holdout["holdout_indices"],
                  r.holdout["holdout_residual"], r.holdout["holdout_best_residual"], r.holdout["holdout_best_iteration"])
     return result
+
+
+def quality(result: dict, exp, outputs: dict) -> str:
+    """The run's figures of merit in one phrase (the log's headline, the figures' titles): the model's own summary
+    where it has one, a stack of outputs with its truth (e.g. frames: the means over the frames), else the
+    reconstruction's SSIM / PSNR against the target, else the relative data residual."""
+    for name, truth in exp.targets.items():
+        if name in outputs and truth.dim() > exp.domain.ndim and f"{name}_ssim" in result:
+            return (f"SSIM {result[f'{name}_ssim']:.4f}, PSNR {result[f'{name}_psnr']:.2f} dB (means over the "
+                    f"{truth.shape[0]} {name})")
+    if exp.target_64 is not None:
+        return f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB"
+    return f"relative data residual {result['residual']:.4f}"
 
 
 def _pair(result: dict, name: str) -> str:

@@ -14,7 +14,7 @@ import torch
 
 from . import figures
 
-__all__ = ["write_figures", "domain_extent", "to_numpy"]
+__all__ = ["write_figures", "domain_extent", "frame_times", "to_numpy"]
 
 
 def to_numpy(x) -> np.ndarray:
@@ -22,15 +22,14 @@ def to_numpy(x) -> np.ndarray:
     return x.detach().to("cpu", torch.float64).numpy()
 
 
-def write_figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: int) -> None:
+def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int) -> None:
     """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
-    splits its reconstruction (``deformation_part`` / ``intensity_part``), and TensorBoard's final images."""
-    traj, target = to_numpy(r.trajectory), exp.target_64
+    splits its reconstruction (``deformation_part`` / ``intensity_part``), frames.png and frames.gif when it
+    has frames, and TensorBoard's final images; ``quality``: the figures of merit in the titles."""
+    traj = to_numpy(r.trajectory)
     volume = exp.domain.ndim == 3
     parts = (r.outputs["deformation_part"], r.outputs["intensity_part"]) \
         if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
-    quality = (f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB" if target is not None
-               else f"relative data residual {result['residual']:.4f}")
     if cfg.logging.figure:
         figure = _ortho_figure if volume else _paper_figure
         figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
@@ -52,7 +51,8 @@ def write_figures(cfg, exp, r, rec: dict, result: dict, out: Path, writer, it: i
         if cfg.logging.figure:
             shown = exp.target_64 if exp.target_64 is not None else frames[-1]
             figures.save(figures.frames_figure(frames, None if truth is None else to_numpy(truth),
-                                               title=f"{cfg.name}: frames (top), truth (bottom)"), out / "frames.png")
+                                               title=f"{cfg.name}: {quality}", times=frame_times(exp.problem)),
+                         out / "frames.png")
             figures.save_gif(frames, out / "frames.gif", float(shown.min()), float(shown.max()))
     if parts is not None:
         writer.image("images/deformation_part", parts[0], it)
@@ -83,7 +83,8 @@ def _ortho_figure(exp, traj, rec: dict, title: str = ""):
     panels += [("target", None if exp.target_64 is None else exp.target_64.numpy())]
     panels += [(k.upper(), to_numpy(v)) for k, v in rec.items()]
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
-    return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title)
+    return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title,
+                                box=(exp.domain.min_pt, exp.domain.max_pt))
 
 
 def _parts_figure(exp, final, parts, title: str = ""):
@@ -91,9 +92,16 @@ def _parts_figure(exp, final, parts, title: str = ""):
     target."""
     target = None if exp.target_64 is None else exp.target_64.numpy()
     if exp.domain.ndim == 3:
-        return figures.parts_ortho_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target, title=title)
+        return figures.parts_ortho_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target, title=title,
+                                          box=(exp.domain.min_pt, exp.domain.max_pt))
     return figures.parts_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target,
                                 extent=domain_extent(exp.domain), title=title)
+
+
+def frame_times(problem) -> list | None:
+    """The times ``t_k = j_k / N`` of a model's frames (its grid indices ``indices`` on ``num_steps``), else None."""
+    indices, n = getattr(problem, "indices", None), getattr(problem, "num_steps", None)
+    return None if indices is None or not n else [j / n for j in indices]
 
 
 def domain_extent(domain) -> tuple:
