@@ -155,8 +155,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
                  result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
     if r.holdout:
-        log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)", r.holdout["holdout_indices"],
-                 r.holdout["holdout_residual"], r.holdout["holdout_best_residual"], r.holdout["holdout_best_iteration"])
+        log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)",
+                 r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],
+                 r.holdout["holdout_best_iteration"])
     return result
 
 

@@ -31,9 +31,9 @@ the run dir: ``metrics.json``, ``history.json``, ``final.npy``, ``trajectory.npy
 ``momentum.npy``, ``deformation.npy`` (phi_{1,0}), ``target.npy``, ``template.npy``, ``data.npy``,
 ``data_clean.npy``, ``fbp.npy``, ``tv.npy``, ``figure.png``, ``tensorboard/``, ``checkpoint.pt`` (a model with
 frames, ``spatiotemporal``: ``frames.npy``, ``frames.png`` and the movie ``frames.gif``; volumes also
-``final.mrc``, with the voxel size in its header, and ``sirt.npy``; ``figure.png`` shows orthogonal slices); measured data
-without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the relative data
-misfit, is always in metrics.json).
+``final.mrc``, with the voxel size in its header, and ``sirt.npy``; ``figure.png`` shows orthogonal slices);
+measured data without a target have no ``target.npy`` / ``data_clean.npy`` and no SSIM / PSNR (``residual``, the
+relative data misfit, is always in metrics.json).
 
 This module is the entry point and the Hydra task; it imports no torch until a run starts (``--help`` answers at
 once). The run itself: :mod:`indreg.experiments.runner` (loop, resume, signals), :mod:`.baselines`, :mod:`.outputs`

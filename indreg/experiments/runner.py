@@ -126,7 +126,8 @@ def run(cfg: DictConfig, output_dir) -> dict:
     ``early_stopped`` (``validation.patience`` held-out evaluations without a new minimum), ``stopped``
     (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed``, ``converged``,
     ``stalled``, ``early_stopped`` and ``diverged`` runs write the final outputs. A bad config value, a bad data file,
-    a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or ``CheckpointError`` before any computing.
+    a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or
+    ``CheckpointError`` before any computing.
     """
     from .tblog import RunWriter
 
