@@ -231,25 +231,37 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
 
 
 # ------------------------------------------------------------------------------------------------ outputs
-def figure(volumes: dict, path: Path) -> None:
+def scale_bar_nm(width_nm: float) -> float:
+    """A round length (1, 2 or 5 times a power of ten, in nm) of at most a third of ``width_nm``."""
+    top = width_nm / 3
+    power = 10.0 ** np.floor(np.log10(top))
+    return max(m * power for m in (1, 2, 5) if m * power <= top)
+
+
+def figure(volumes: dict, path: Path, cell_nm: float) -> None:
     """Central slices of every volume: the x-z slice across the rod (orthogonal to the tilt axis) and the x-y
-    slice along it, each on its own grey scale."""
+    slice along it, each on its own grey scale, with a scale bar in nm (voxels of ``cell_nm``)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-    fig, ax = plt.subplots(2, len(volumes), figsize=(2.1 * len(volumes), 4.6), squeeze=False)
+    fig, ax = plt.subplots(2, len(volumes), figsize=(3.0 * len(volumes), 6.6), squeeze=False)
     for j, (name, v) in enumerate(volumes.items()):
         nx, ny, nz = v.shape
         ax[0, j].imshow(v[:, ny // 2, :].T, cmap="gray", origin="lower")
         ax[1, j].imshow(v[:, :, nz // 2].T, cmap="gray", origin="lower")
-        ax[0, j].set_title(name, fontsize=8)
+        ax[0, j].set_title(name, fontsize=13)
+        bar = scale_bar_nm(nx * cell_nm)
         for a in ax[:, j]:
             a.set_xticks([]), a.set_yticks([])
-    ax[0, 0].set_ylabel("x-z (across)", fontsize=8)
-    ax[1, 0].set_ylabel("x-y (along axis)", fontsize=8)
+            a.add_artist(AnchoredSizeBar(a.transData, bar / cell_nm, f"{bar:g} nm", "lower right", pad=0.4,
+                                         color="yellow", frameon=False, size_vertical=max(nz, ny) / 80,
+                                         fontproperties={"size": 12}))
+    ax[0, 0].set_ylabel("x-z (across)", fontsize=13)
+    ax[1, 0].set_ylabel("x-y (along axis)", fontsize=13)
     fig.tight_layout()
-    fig.savefig(path, dpi=60)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -368,7 +380,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     metrics["scores"] = scores
 
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
-    figure(volumes, out / "figure.png")
+    figure(volumes, out / "figure.png", cell)
     save(volumes, domain, out)
     metrics["cpu_seconds"] = time.process_time() - t0
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))

@@ -1,28 +1,56 @@
-"""indreg: indirect image registration with large diffeomorphic deformations (LDDMM) in PyTorch."""
+"""indreg: indirect image registration with large diffeomorphic deformations (LDDMM) in PyTorch.
+
+The public names are imported on first use (PEP 562), so that importing a light submodule (e.g. the app's entry
+point answering ``--help``) does not load torch; ``from indreg import register`` works as ever.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+
 from . import _openmp
 
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
-from .domain import ImageDomain
-from .forward import (FanBeamGeometry, ImageOperator, LinearOperator, ParallelBeamGeometry, RayTransform,
-                      TiltSeriesGeometry, TiltSeriesTransform, compose, restrict, stack)
-from .deform import CoarseVelocityDeformation, GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
-from . import metrics, noise, phantoms
-from .solvers import IndirectRegistration, Algorithm1, TorchOptimSolver, MultilevelSolver, RegistrationProblem
-from .solvers import SolverState, StepControl
-from .solvers import MetamorphosisRegistration, MetamorphosisDescent, MetamorphosisTorchOptim
-from .deform.shooting import GeodesicShooting, ShootingResult
-from .learn.loss import IndirectShootingLoss
-from . import models
-from .api import RegistrationResult, register
-from .inputs import RegistrationInputs, load
+#: public name -> the submodule that defines it
+_HOME = {
+    "ImageDomain": "domain",
+    **dict.fromkeys(("FanBeamGeometry", "LinearOperator", "ParallelBeamGeometry", "RayTransform",
+                     "TiltSeriesGeometry", "TiltSeriesTransform", "ImageOperator", "compose", "stack", "restrict"),
+                    "forward"),
+    **dict.fromkeys(("CoarseVelocityDeformation", "GaussianKernel", "LDDMMDeformation", "MetamorphosisDeformation"),
+                    "deform"),
+    **dict.fromkeys(("IndirectRegistration", "Algorithm1", "TorchOptimSolver", "MultilevelSolver",
+                     "RegistrationProblem", "SolverState", "StepControl", "MetamorphosisRegistration",
+                     "MetamorphosisDescent", "MetamorphosisTorchOptim"), "solvers"),
+    **dict.fromkeys(("GeodesicShooting", "ShootingResult"), "deform.shooting"),
+    "IndirectShootingLoss": "learn.loss",
+    **dict.fromkeys(("RegistrationResult", "register"), "api"),
+    **dict.fromkeys(("RegistrationInputs", "load"), "inputs"),
+}
 
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform", "ImageOperator", "compose", "stack", "restrict",
-           "GaussianKernel", "LDDMMDeformation", "CoarseVelocityDeformation", "IndirectRegistration", "Algorithm1", "TorchOptimSolver",
-           "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
+           "GaussianKernel", "LDDMMDeformation", "CoarseVelocityDeformation", "IndirectRegistration", "Algorithm1",
+           "TorchOptimSolver", "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
            "load", "RegistrationInputs",
            "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """A public name (imported from its submodule on first use) or a submodule (``indreg.forward``, ...)."""
+    if name in _HOME:
+        value = getattr(importlib.import_module(f".{_HOME[name]}", __name__), name)
+    elif importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        value = importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list:
+    return sorted({*globals(), *__all__})

@@ -151,3 +151,8 @@ def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
     assert len(calls) == 1 and example.WHEEL in calls[0] and "--no-deps" in calls[0]
     assert sorted(p.name for p in cache.iterdir()) == ["HAADF.mrc", "HAADF.rawtlt", "LICENSE"]
     assert example.read_raw(cache)[0].shape == (31, 32, 32)
+
+
+def test_scale_bar_is_round_and_at_most_a_third_of_the_width(example):
+    assert example.scale_bar_nm(64 * 3.36) == 50        # 215 nm wide: 50 nm
+    assert example.scale_bar_nm(30.0) == 10 and example.scale_bar_nm(3.0) == 1 and example.scale_bar_nm(1.4) == 0.2

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, make_dataclass
 from enum import Enum
 from typing import Any, Optional
 
+from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES

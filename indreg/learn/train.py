@@ -15,7 +15,8 @@ replicas stay identical (checked at the end: ``replica_max_abs_diff`` in ``metri
 
 Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/data_fit``,
 ``train/regulariser``, ``train/ssim``, ``val/ssim``, ``val/loss``, images ``val/template``, ``val/fbp``,
-``val/target``, ``val/prediction``), ``checkpoint.pt`` (model, optimizer, step, RNG), ``metrics.json``.
+``val/target``, ``val/prediction``), ``checkpoint.pt`` (model, optimizer, step, RNG), ``metrics.json``,
+``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in the domain's units).
 """
 from __future__ import annotations
 
@@ -176,6 +177,35 @@ def evaluate_algorithm1(cfg, parts: dict, dataset, device, dtype) -> dict:
             "per_sample_ssim": scores}
 
 
+def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: str = ""):
+    """``count`` held-out examples, one row each: template, FBP(g), the prediction ``W(Lambda(template, FBP),
+    template)`` (its SSIM against the target) and the target, on one grey scale a row (the range of template,
+    prediction and target; FBP's values beyond it are clipped), with its colour bar."""
+    from matplotlib.figure import Figure
+
+    from ..experiments.figures import show_image
+
+    k = min(count, len(dataset))
+    batch = gather(dataset, torch.arange(k), device)
+    prediction = predict(model, parts["shooting"], batch)
+    d = parts["domain"]
+    extent = (d.min_pt[0], d.max_pt[0], d.min_pt[1], d.max_pt[1])
+    fig = Figure(figsize=(11.5, 2.7 * k + 0.5), layout="constrained")
+    for i, row in enumerate(fig.subplots(k, 4, squeeze=False)):
+        target = batch["target"][i]
+        row_images = torch.stack([batch["template"][i], prediction[i], target])
+        lo, hi = float(row_images.min()), float(row_images.max())
+        shown = [("template", batch["template"][i]), ("FBP", batch["fbp"][i]),
+                 (f"prediction (SSIM {ssim(prediction[i], target):.3f})", prediction[i]), ("target", target)]
+        for ax, (label, image) in zip(row, shown):
+            im = show_image(ax, image.detach().to("cpu", torch.float64).numpy(), f"{i + 1}: {label}",
+                            lo, hi, extent, colorbar=False)
+        fig.colorbar(im, ax=list(row), fraction=0.03, pad=0.02)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
 def validation_loss(loss_fn, model, dataset, device) -> float:
     batch = gather(dataset, torch.arange(len(dataset)), device)
     with torch.no_grad():
@@ -264,6 +294,9 @@ def train(cfg, run_dir) -> dict:
             metrics["algorithm1"]["network_ssim_same_samples"] = float(
                 np.mean(metrics["network"]["per_sample_ssim"][:count]))
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
+        heldout_figure(model, parts, val_set, device, title=f"held-out examples after {steps} steps: mean SSIM "
+                       f"{metrics['network']['ssim']:.3f} (template {metrics['network']['template_ssim']:.3f})"
+                       ).savefig(run_dir / "figure.png", dpi=100)
         writer.close()
         (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
         print(json.dumps(metrics, indent=2), flush=True)

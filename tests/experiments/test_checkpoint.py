@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from indreg.experiments import checkpoint, register
+from indreg.experiments import checkpoint, runner
 from indreg.experiments.checkpoint import CheckpointError
 from indreg.experiments.config import ConfigError, validate
 
@@ -44,7 +44,7 @@ def _forbid_build(cfg):
 @pytest.fixture
 def no_build(monkeypatch):
     """Fail the test if the app gets as far as building the problem."""
-    monkeypatch.setattr(register, "build", _forbid_build)
+    monkeypatch.setattr(runner, "build", _forbid_build)
 
 
 @pytest.fixture(scope="module")
@@ -185,7 +185,7 @@ def test_damaged_checkpoint_is_refused_in_one_line(tmp_path, stopped, case):
     assert message.startswith(f"checkpoint {path}") and message.endswith("delete it or run without resume=true")
     if case != "bad_content":    # found before building the problem (the content check needs the solver)
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(register, "build", _forbid_build)
+            mp.setattr(runner, "build", _forbid_build)
             with pytest.raises(CheckpointError):
                 run_app(F64 + ["resume=true"], out)
 

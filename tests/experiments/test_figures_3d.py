@@ -21,10 +21,15 @@ def test_orthoslices_are_the_central_planes():
         figures.orthoslices(np.zeros((4, 4)))
 
 
+def panels(fig) -> list:
+    """The figure's axes but its colour bars."""
+    return [ax for ax in fig.get_axes() if ax.get_label() != "<colorbar>"]
+
+
 def test_ortho_figure_rows_and_columns():
     fig = figures.ortho_figure([("template", volume()), ("FBP", None), ("target", volume())], title="t")
-    axes = fig.get_axes()
-    assert len(axes) == 9
+    axes = panels(fig)
+    assert len(axes) == 9 and len(fig.get_axes()) == 9 + 2    # a colour bar per shown row
     assert [ax.get_title() for ax in axes[:3]] == ["template: xy", "template: xz", "template: yz"]
     assert axes[3].get_title() == "FBP (off)" and not axes[4].axison
 
@@ -45,9 +50,18 @@ def test_parts_ortho_figure_rows_and_the_intensity_rows_own_scale():
     change = np.zeros_like(v)
     change[1, 2, 3] = -0.5
     fig = figures.parts_ortho_figure(v + change, v, change, target=v)
-    axes = fig.get_axes()
+    axes = panels(fig)
     assert len(axes) == 12
     assert [ax.get_title() for ax in axes[::3]] == ["f(1): xy", "W(nu, I): xy", "f(1) - W(nu, I) (+-0.5): xy",
                                                   "target: xy"]
     assert axes[3].get_images()[0].get_clim() == (float(v.min()), float(v.max()))
     assert axes[6].get_images()[0].get_clim() == (-0.5, 0.5)
+
+
+def test_ortho_figure_axes_in_the_domains_units():
+    """With the domain's box the slices are drawn on its coordinates: xy spans x and y, xz x and z, yz y and z."""
+    fig = figures.ortho_figure([("template", volume())], box=((-3, -4, -5), (3, 4, 5)))
+    xy, xz, yz = panels(fig)
+    assert xy.get_images()[0].get_extent() == [-3, 3, -4, 4] and (xy.get_xlabel(), xy.get_ylabel()) == ("x", "y")
+    assert xz.get_images()[0].get_extent() == [-3, 3, -5, 5] and (xz.get_xlabel(), xz.get_ylabel()) == ("x", "z")
+    assert yz.get_images()[0].get_extent() == [-4, 4, -5, 5] and (yz.get_xlabel(), yz.get_ylabel()) == ("y", "z")

@@ -1,6 +1,8 @@
 """The spatiotemporal model in the indreg-register app: a tiny dynamic run, its outputs, resume, the CLI."""
 import json
+import logging
 
+import imageio.v2 as imageio
 import numpy as np
 import pytest
 
@@ -11,11 +13,17 @@ DYN = ["experiment=suite_dynamic_2d", "phantom.size=24", "data.frames=3", "geome
        "logging.checkpoint_every=3", "logging.progress=false", "dtype=float64", "device=cpu"]
 
 
-def test_dynamic_run_outputs_and_resume(tmp_path):
+def test_dynamic_run_outputs_and_resume(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="indreg")
     ref = run_app(DYN, tmp_path / "ref")
     assert ref["status"] == "completed" and ref["iterations"] == 6 and 0 < ref["frames_ssim"] <= 1
+    headline = [r.getMessage() for r in caplog.records if r.getMessage().startswith("done: 6 iterations")]
+    # the model's summary, the means over the frames, not the last frame's SSIM
+    assert len(headline) == 1 and f"SSIM {ref['frames_ssim']:.4f}, PSNR {ref['frames_psnr']:.2f} dB (means over the " \
+        "3 frames)" in headline[0], headline
     assert np.load(tmp_path / "ref" / "frames.npy").shape == (3, 24, 24)
-    assert (tmp_path / "ref" / "frames.gif").is_file() and (tmp_path / "ref" / "frames.png").is_file()
+    assert (tmp_path / "ref" / "frames.png").stat().st_size > 10_000
+    assert np.asarray(imageio.mimread(tmp_path / "ref" / "frames.gif")[0]).shape[:2] == (264, 264)  # 24 px x 11
     out = tmp_path / "run"
     assert run_app(DYN + ["stop_after=3"], out)["status"] == "stopped"
     second = run_app(DYN + ["resume=true"], out)

@@ -51,6 +51,7 @@ def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
     assert {"val/template", "val/fbp", "val/target", "val/prediction"} <= set(acc.Tags()["images"])
     assert "val/ssim" in acc.Tags()["scalars"]
     assert parameters(tmp_path / "a")["step"] == 2
+    assert (tmp_path / "a" / "figure.png").stat().st_size > 10_000     # the held-out examples
     shutil.copytree(tmp_path / "a", tmp_path / "b")
 
     resumed = run(tmp_path / "b", "train.steps=4", "eval.algorithm1.num_samples=0")

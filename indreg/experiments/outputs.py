@@ -1,0 +1,180 @@
+"""The final outputs of a run in its directory: arrays, ``metrics.json``, ``history.json``, the figures, and the
+log's headline (``finish``); a failed run's record (``failed``).
+
+Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.run.build_result`` (images ``(nx, ny)``,
+volumes ``(nx, ny, nz)``, a model's stacks with a leading axis, e.g. frames ``(K, nx, ny)``); SSIM / PSNR use the
+target's data range; a stack's figures of merit are the means over its first axis.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from ..run import build_result, count_halvings, count_rejected
+from .baselines import tv_mu
+from .config import to_plain
+from .run_figures import to_numpy, write_figures
+
+__all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality"]
+
+log = logging.getLogger("indreg.experiments.register")
+
+
+def figures_of_merit(image, target_64, paper: bool = True) -> dict:
+    """SSIM / PSNR against the target (data range of the target) and, for the paper's phantoms (``paper``:
+    grey levels 0..1), also in the paper's convention (``ssim_paper`` / ``psnr_paper``: a fixed data range 2 / 1
+    that means nothing for other units; docs/paper_notes.md)."""
+    from .. import metrics
+
+    x = image.detach().to("cpu", torch.float64)
+    out = {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64)}
+    if paper:
+        out.update(ssim_paper=metrics.ssim_paper(x, target_64), psnr_paper=metrics.psnr_paper(x, target_64))
+    return out
+
+
+def output_fom(image, truth, ndim: int) -> dict:
+    """SSIM / PSNR of a model's output against its ground truth; a stack (one more axis than the domain's, e.g.
+    frames) gets the means over its first axis."""
+    if truth.dim() == ndim:
+        return figures_of_merit(image, truth, paper=False)
+    each = [figures_of_merit(a, b, paper=False) for a, b in zip(image, truth)]
+    return {k: sum(e[k] for e in each) / len(each) for k in each[0]}
+
+
+def _step_size(exp) -> float:
+    """The configured step: Algorithm 1's (also solver=fast's inner one), else the optimiser's lr."""
+    o = exp.options
+    if hasattr(exp.solver, "step_sizes") or getattr(exp.solver, "inner", None) == "algorithm1":
+        return float(exp.solver.step_size)
+    return float(o["lr"] if o["lr"] is not None else 1.0)
+
+
+def hyperparameters(cfg: DictConfig, exp) -> dict:
+    """The run's parameters shown in TensorBoard's HParams tab and in metrics.json (the model adds its own)."""
+    o = exp.options
+    return {"gamma": float(o["gamma"]), "sigma": float(o["sigma"]), "N": int(o["num_steps"]), "model": o["model"],
+            "step_size": _step_size(exp), "action": o["action"], "solver": o["solver"], "template": exp.label,
+            "size": int(exp.domain.shape[0]), "max_iter": int(o["max_iter"]), "dtype": cfg.dtype.value,
+            "seed": int(cfg.seed), **exp.problem.hparams()}
+
+
+def _json_float(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return v
+
+
+def failed(out: Path, history: list) -> dict:
+    """A run whose objective or gradient became non-finite: ``metrics.json`` and ``history.json`` say so."""
+    last = history[-1]
+    result = {"status": "failed", "iteration": last["iteration"], "objective": last["objective"],
+              "grad_norm": last["grad_norm"], "evaluations": last["evaluations"],
+              "warning": last["warning"] or "non-finite gradient norm"}
+    with open(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    log.error("failed at iteration %d: %s (%s is not overwritten: it keeps the last periodic checkpoint, if any)",
+              result["iteration"], result["warning"], out / "checkpoint.pt")
+    return result
+
+
+def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: str) -> dict:
+    """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams, from the
+    result that ``indreg.register`` would return (``indreg.run.build_result``).
+
+    Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
+    data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (e.g. a source and
+    the parts of f(1)) are saved by name; those it scores (``problem.scored``) get SSIM / PSNR."""
+    from .tblog import METRICS
+
+    problem, it = exp.problem, state.iteration
+    r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation)
+    target = exp.target_64
+    result = {}
+    if target is not None:
+        def fom(image):
+            return figures_of_merit(image, target, exp.paper)
+
+        result.update(fom(r.deformed))
+        for name, image in rec.items():
+            result.update({f"{name}_{k}": v for k, v in fom(image).items()})
+        result.update({f"template_{k}": v for k, v in fom(exp.template_64).items()})
+        for name in problem.scored:
+            result.update({f"{name}_{k}": v for k, v in fom(r.outputs[name]).items()})
+    for name, truth in exp.targets.items():   # a model's outputs against their own ground truths
+        if name in r.outputs:
+            result.update({f"{name}_{k}": v for k, v in output_fom(r.outputs[name], truth, exp.domain.ndim).items()})
+    result.update(r.terms)
+    result.update({
+        "status": r.status, "residual": r.residual, "iterations": it,
+        "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
+        "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
+        "evaluations": history[-1]["evaluations"] if history else 0,
+        "warnings": r.warnings, "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
+        "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
+    result.update(r.holdout)
+    result.update(exp.report)
+    if exp.snr_db is not None:
+        result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
+    arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
+              "deformation": r.deformation, "template": exp.template_64, "data": exp.noisy_data_64, **rec,
+              **r.outputs}
+    if target is not None:
+        arrays["target"] = target
+    if exp.clean_data_64 is not None:
+        arrays["data_clean"] = exp.clean_data_64
+    for name, a in arrays.items():
+        np.save(out / f"{name}.npy", to_numpy(a))
+    if exp.domain.ndim == 3:  # the registered volume for IMOD / ChimeraX too (voxel size in the header)
+        from ..io import write_volume
+        write_volume(out / "final.mrc", to_numpy(r.deformed), exp.domain)
+    with open(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it)
+    writer.metrics(result, it)
+    writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
+                                                        if k in result})
+    done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
+    if target is not None:
+        paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
+        sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""
+        log.info("%s, %s%s; FBP %s; TV %s%s; %d warnings", done, quality(result, exp, r.outputs), paper,
+                 _pair(result, "fbp"), _pair(result, "tv"), sirt, result["warnings"])
+    else:
+        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
+                 result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+    if r.holdout:
+        log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)",
+                 r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],
+                 r.holdout["holdout_best_iteration"])
+    return result
+
+
+def quality(result: dict, exp, outputs: dict) -> str:
+    """The run's figures of merit in one phrase (the log's headline, the figures' titles): the model's own summary
+    where it has one, a stack of outputs with its truth (e.g. frames: the means over the frames), else the
+    reconstruction's SSIM / PSNR against the target, else the relative data residual."""
+    for name, truth in exp.targets.items():
+        if name in outputs and truth.dim() > exp.domain.ndim and f"{name}_ssim" in result:
+            return (f"SSIM {result[f'{name}_ssim']:.4f}, PSNR {result[f'{name}_psnr']:.2f} dB (means over the "
+                    f"{truth.shape[0]} {name})")
+    if exp.target_64 is not None:
+        return f"SSIM {result['ssim']:.4f}, PSNR {result['psnr']:.2f} dB"
+    return f"relative data residual {result['residual']:.4f}"
+
+
+def _pair(result: dict, name: str) -> str:
+    if f"{name}_ssim" not in result:
+        return "off"
+    return f"{result[f'{name}_ssim']:.4f} / {result[f'{name}_psnr']:.2f}"

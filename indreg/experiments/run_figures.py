@@ -1,0 +1,110 @@
+"""The figures of a run (``figure.png``, ``parts.png``, ``frames.png``, ``frames.gif``) and TensorBoard's final
+images, from its result (:func:`indreg.run.build_result`), built with :mod:`indreg.experiments.figures`.
+
+Convention: as :mod:`indreg.experiments.figures` (images ``(nx, ny)``, axis 0 = x; volumes ``(nx, ny, nz)``); panels
+of images are drawn on the domain's extent in its units (``ImageDomain.min_pt`` / ``max_pt``).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import figures
+
+__all__ = ["write_figures", "domain_extent", "frame_times", "to_numpy"]
+
+
+def to_numpy(x) -> np.ndarray:
+    """A tensor as a float64 numpy array on the CPU."""
+    return x.detach().to("cpu", torch.float64).numpy()
+
+
+def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int) -> None:
+    """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
+    splits its reconstruction (``deformation_part`` / ``intensity_part``), frames.png and frames.gif when it
+    has frames, and TensorBoard's final images; ``quality``: the figures of merit in the titles."""
+    traj = to_numpy(r.trajectory)
+    volume = exp.domain.ndim == 3
+    parts = (r.outputs["deformation_part"], r.outputs["intensity_part"]) \
+        if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
+    if cfg.logging.figure:
+        figure = _ortho_figure if volume else _paper_figure
+        figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+        if parts is not None:
+            figures.save(_parts_figure(exp, r.deformed, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
+    n = traj.shape[0] - 1
+    writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
+    writer.image("images/deformed_template", r.deformed, it)
+    grid = to_numpy(r.deformation)
+    if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
+        grid = grid[:2, :, :, grid.shape[-1] // 2]
+    writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
+    if "frames" in r.outputs:   # several time points: the frames in a row, one image each, and a movie
+        frames = to_numpy(r.outputs["frames"])
+        truth = exp.targets.get("frames")
+        writer.strip("images/frames", list(frames), it)
+        for k, f in enumerate(frames):
+            writer.image(f"images/frames/{k:02d}", f, it)
+        if cfg.logging.figure:
+            shown = exp.target_64 if exp.target_64 is not None else frames[-1]
+            figures.save(figures.frames_figure(frames, None if truth is None else to_numpy(truth),
+                                               title=f"{cfg.name}: {quality}", times=frame_times(exp.problem)),
+                         out / "frames.png")
+            figures.save_gif(frames, out / "frames.gif", float(shown.min()), float(shown.max()))
+    if parts is not None:
+        writer.image("images/deformation_part", parts[0], it)
+        bound = max(float(parts[1].abs().max()), 1e-12)
+        writer.image_scaled("images/intensity_part", parts[1], it, -bound, bound)
+        writer.figure("images/parts", _parts_figure(exp, r.deformed, parts), it)
+
+
+def _paper_figure(exp, traj, rec: dict, title: str):
+    """``figures.paper_figure`` of a 2D run: the data panel shows the first row of the data against the
+    detector coordinate where the geometry gives one (``det_points``), else against the bin index."""
+    noisy = exp.noisy_data_64.reshape(-1, exp.noisy_data_64.shape[-1])
+    clean = None if exp.clean_data_64 is None else exp.clean_data_64.reshape(noisy.shape)[0].numpy()
+    det = getattr(exp.geometry, "det_points", None)
+    angles = getattr(exp.geometry, "angles", None)
+    target = None if exp.target_64 is None else exp.target_64.numpy()
+    return figures.paper_figure(exp.template_64.numpy(), traj, target,
+                                np.arange(noisy.shape[-1]) if det is None else det.numpy(), clean, noisy[0].numpy(),
+                                to_numpy(rec["fbp"]) if "fbp" in rec else None,
+                                to_numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
+                                title=title, angle_deg=0.0 if angles is None else float(angles[0]) * 180 / math.pi)
+
+
+def _ortho_figure(exp, traj, rec: dict, title: str = ""):
+    """A volume's run: orthogonal slices of the template, W(nu, I) at t = 0.5 and 1, target and baselines."""
+    n = traj.shape[0] - 1
+    panels = [("template", exp.template_64.numpy()), ("t = 0.5", traj[n // 2]), ("t = 1", traj[n])]
+    panels += [("target", None if exp.target_64 is None else exp.target_64.numpy())]
+    panels += [(k.upper(), to_numpy(v)) for k, v in rec.items()]
+    shown = exp.target_64 if exp.target_64 is not None else exp.template_64
+    return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title,
+                                box=(exp.domain.min_pt, exp.domain.max_pt))
+
+
+def _parts_figure(exp, final, parts, title: str = ""):
+    """``figures.parts_figure`` of a run (volumes: ``parts_ortho_figure``): f(1), W(nu, I), f(1) - W(nu, I),
+    target."""
+    target = None if exp.target_64 is None else exp.target_64.numpy()
+    if exp.domain.ndim == 3:
+        return figures.parts_ortho_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target, title=title,
+                                          box=(exp.domain.min_pt, exp.domain.max_pt))
+    return figures.parts_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target,
+                                extent=domain_extent(exp.domain), title=title)
+
+
+def frame_times(problem) -> list | None:
+    """The times ``t_k = j_k / N`` of a model's frames (its grid indices ``indices`` on ``num_steps``), else None."""
+    indices, n = getattr(problem, "indices", None), getattr(problem, "num_steps", None)
+    return None if indices is None or not n else [j / n for j in indices]
+
+
+def domain_extent(domain) -> tuple:
+    """``imshow`` extent (x_min, x_max, y_min, y_max) of the domain."""
+    (x0, y0), (x1, y1) = domain.min_pt, domain.max_pt
+    return x0, x1, y0, y1

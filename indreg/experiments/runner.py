@@ -1,0 +1,211 @@
+"""One run of the app: build the problem, the baselines, resume from a checkpoint, iterate (``AppLoop``: TensorBoard,
+checkpoints, SIGINT / SIGTERM), then the final outputs (:mod:`indreg.experiments.outputs`).
+
+Convention: ``run(cfg, output_dir)`` writes everything into ``output_dir`` (``checkpoint.pt``, ``baselines.npz``,
+``tensorboard/`` and the outputs) and returns ``metrics.json``'s dict.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from ..io import DataFileError
+from ..run import RegistrationLoop, initial_state
+from . import checkpoint as ckpt
+from .baselines import baselines
+from .build import build, seed_everything
+from .config import ConfigError, to_plain, validate
+from .outputs import failed, figures_of_merit, finish
+
+__all__ = ["run", "AppLoop", "StopRequest"]
+
+log = logging.getLogger("indreg.experiments.register")
+
+# Config keys that may change between an interrupted run and its resumption.
+_RESUMABLE = ("name", "device", "resume", "stop_after", "logging", "baseline")
+
+
+class StopRequest:
+    """SIGINT / SIGTERM handlers that only record the signal; the loop then checkpoints and exits.
+
+    A second signal gets the previous handler (e.g. a second Ctrl-C raises KeyboardInterrupt at once).
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum = None
+        self._previous = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # e.g. a launcher running jobs in threads: signals are not ours to handle
+        for s in self.SIGNALS:
+            self._previous[s] = signal.signal(s, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        self.signum = signum
+        log.warning("received %s: writing a checkpoint after this iteration, then exiting",
+                    signal.Signals(signum).name)
+        self.restore()
+
+    def restore(self) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        self._previous = {}
+
+
+def _problem_config(plain: dict) -> dict:
+    """The config keys that define the iterates (all but ``_RESUMABLE`` and ``solver.max_iter``)."""
+    out = {k: v for k, v in plain.items() if k not in _RESUMABLE}
+    out["solver"] = {k: v for k, v in out["solver"].items() if k != "max_iter"}
+    return out
+
+
+class AppLoop(RegistrationLoop):
+    """The shared registration loop plus the app's outputs: TensorBoard scalars every iteration; SSIM / PSNR
+    (with a target) and the deformed template every ``logging.every``; a checkpoint every
+    ``logging.checkpoint_every``; ``stop_after`` and SIGINT / SIGTERM stop it (``stopped`` / ``interrupted``)."""
+
+    def __init__(self, cfg, exp, state, writer, path: Path, problem_cfg: dict, history, seconds):
+        super().__init__(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
+                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
+                         validation=exp.validation)
+        self.cfg, self.exp, self.writer, self.path, self.problem_cfg = cfg, exp, writer, path, problem_cfg
+        self.stop = StopRequest()
+        self._fom = ""
+
+    def save_checkpoint(self) -> None:
+        ckpt.save(self.path, {"iteration": self.state.iteration, "state": self.state.state_dict(),
+                              "solver": self.solver.state_dict(), "rng": ckpt.rng_state(), "history": self.history,
+                              "seconds": self.seconds, "problem": self.problem_cfg})
+
+    def before_step(self):
+        stop_after = self.cfg.stop_after
+        return "stopped" if stop_after is not None and self.state.iteration >= stop_after else None
+
+    def after_step(self, info: dict, done: bool):
+        it, lg, exp = self.state.iteration, self.cfg.logging, self.exp
+        self.writer.scalars(info, it)
+        if "holdout_residual" in info:
+            self.writer.validation(info["holdout_residual"], it)
+        self._fom = ""
+        if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
+            deformed = self.problem.reconstruction(self.state.iterate)
+            if exp.target_64 is not None:
+                fom = figures_of_merit(deformed, exp.target_64, exp.paper)
+                self.writer.metrics(fom, it)
+                self._fom = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
+            self.writer.image("images/deformed_template", deformed, it)
+        if it % lg.checkpoint_every == 0:
+            self.save_checkpoint()
+        return "interrupted" if self.stop.signum is not None else None
+
+    def describe(self, info: dict) -> str:
+        return self._fom
+
+    def run(self) -> str:
+        self.stop.install()
+        try:
+            return super().run()
+        finally:
+            self.stop.restore()
+
+
+def run(cfg: DictConfig, output_dir) -> dict:
+    """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
+
+    The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
+    ``stalled`` (step halving collapsed the step: ``indreg.run.STALL_WINDOW``), ``diverged`` (finished with a
+    relative data residual >= 1), ``failed`` (a non-finite objective or gradient: ``metrics.json`` and
+    ``history.json`` hold the status, the iteration and the warning; the checkpoint keeps the last finite iterate),
+    ``early_stopped`` (``validation.patience`` held-out evaluations without a new minimum), ``stopped``
+    (``stop_after``) or ``interrupted`` (a signal; ``signal`` holds its number). Only ``completed``, ``converged``,
+    ``stalled``, ``early_stopped`` and ``diverged`` runs write the final outputs. A bad config value, a bad data file,
+    a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or
+    ``CheckpointError`` before any computing.
+    """
+    from .tblog import RunWriter
+
+    validate(cfg)
+    out = Path(output_dir)
+    path = out / "checkpoint.pt"
+    ckpt.check_location(path, cfg.resume)
+    problem_cfg = _problem_config(to_plain(cfg))
+    saved = _read_checkpoint(cfg, path, problem_cfg)
+    seed_everything(cfg.seed)
+    try:
+        exp = build(cfg)  # reads and checks the data (files) before any computing
+    except DataFileError:
+        raise
+    except (ValueError, TypeError) as e:  # the operators' input validation
+        raise ConfigError(f"invalid configuration: {e}") from e
+    problem = exp.problem
+    log.info("%s | %s | %s", cfg.name, problem, exp.solver)
+    rec = baselines(cfg, exp, out)
+
+    state = initial_state(problem)
+    history, seconds = [], 0.0
+    if saved is not None:
+        with ckpt.restoring(path):
+            ckpt.check_state(saved, state, cfg.solver.max_iter)
+            state.load_state_dict(saved["state"])
+            state.iterate = tuple(t.to(device=exp.template.device, dtype=exp.template.dtype) for t in state.iterate)
+            problem.check_iterate(state.iterate)
+            exp.solver.load_state_dict(saved["solver"])
+            ckpt.set_rng_state(saved["rng"])
+            history, seconds = list(saved["history"]), float(saved["seconds"])
+        log.info("resumed from %s at iteration %d", path, state.iteration)
+
+    shown = exp.target_64 if exp.target_64 is not None else exp.template_64
+    # a resumed run drops the events an interrupted one logged after its checkpoint
+    writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None,
+                       float(shown.min()), float(shown.max()), enabled=cfg.logging.tensorboard)
+    if state.iteration == 0:
+        writer.image("images/template", exp.template_64, 0)
+        if exp.target_64 is not None:
+            writer.image("images/target", exp.target_64, 0)
+        for k, v in rec.items():
+            writer.image(f"images/{k}", v, 0)
+        writer.image("images/deformed_template", exp.template_64, 0)
+        if exp.target_64 is not None:
+            writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper), 0)
+
+    loop = AppLoop(cfg, exp, state, writer, path, problem_cfg, history, seconds)
+    status = loop.run()
+    if status == "failed":  # keep the last checkpoint: its iterate is finite
+        writer.close()
+        return failed(out, loop.history)
+    loop.save_checkpoint()
+    if status in ("stopped", "interrupted"):
+        writer.close()
+        log.warning("%s at iteration %d; continue with resume=true (same run dir %s)", status, state.iteration, out)
+        return {"status": status, "iteration": state.iteration, "signal": loop.stop.signum}
+    result = finish(cfg, exp, state, rec, loop.history, loop.seconds, out, writer, status)
+    writer.close()
+    return result
+
+
+def _read_checkpoint(cfg: DictConfig, path: Path, problem_cfg: dict):
+    """With ``resume``: the verified checkpoint at ``path`` (None if there is none), refused if its problem
+    differs from the config's or it is past ``solver.max_iter``."""
+    if not cfg.resume:
+        return None
+    if not path.exists():
+        log.warning("resume=true but there is no %s: starting at iteration 0", path)
+        return None
+    saved = ckpt.load(path, keys=("iteration", "state", "solver", "rng", "history", "seconds", "problem"))
+    with ckpt.restoring(path):
+        mismatch = ckpt.problem_mismatch(saved["problem"], problem_cfg)
+        iteration = int(saved["iteration"])
+    if mismatch:
+        raise ConfigError("resume=true but the config differs from the checkpoint's: " + "; ".join(mismatch))
+    if iteration > cfg.solver.max_iter:
+        raise ckpt.CheckpointError(f"checkpoint {path} is at iteration {iteration}, past solver.max_iter="
+                                   f"{cfg.solver.max_iter}: raise solver.max_iter to at least {iteration} or "
+                                   "run without resume=true")
+    return saved
