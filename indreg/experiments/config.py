@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dataclasses import make_dataclass
 
+from .. import conventions as _conventions
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
@@ -78,6 +79,9 @@ class NoiseConvention(str, Enum):
 
 
 TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z
+#: data=files: the tool whose layout, angles, units and detector centre the files follow (indreg.conventions).
+FileConvention = Enum("FileConvention", {name: name for name in _conventions.CONVENTIONS}, type=str)
+IntegerScale = Enum("IntegerScale", {name: name for name in _conventions.INTEGER_SCALES}, type=str)
 
 
 class FBPFilter(str, Enum):
@@ -112,6 +116,8 @@ class _DataFiles:
     frames: int = 12                # source=dynamic: time points K (t_k = k / K)
     amplitude: float = 0.4          # source=dynamic: the breathing amplitude A (indreg.dynamic)
     template_known: bool = True     # source=dynamic: false: the template is unknown (reconstructed with the motion)
+    convention: FileConvention = FileConvention.indreg   # source=files: skimage, astra, tomopy, imod, odl
+    integer_scale: IntegerScale = IntegerScale.fraction  # source=files: 8/16-bit pictures as fractions, or raw
 
 
 DataConfig = make_dataclass("DataConfig", _options.schema_fields("data"), bases=(_DataFiles,))
@@ -120,7 +126,9 @@ DataConfig.__doc__ = """Where template and data come from: ``source`` is a built
 
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
-    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
+    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid, in
+    another tool's ``convention`` (``indreg.conventions``: layout, angles, units, detector centre) and with 8- /
+    16-bit pictures as fractions of their full scale (``integer_scale: fraction``, or ``raw``).
     ``dynamic``: the breathing phantom of ``indreg.dynamic`` measured at ``frames`` time points (``amplitude``;
     ``template_known: false`` hands the run no template: ``deformation=spatiotemporal`` reconstructs it).
     ``template_scale`` / ``background`` (``indreg.options``, the same as ``indreg.register``'s): the template's
