@@ -31,9 +31,9 @@ import numpy as np
 from .domain import ImageDomain
 
 __all__ = ["Convention", "CONVENTIONS", "INTEGER_SCALES", "get_convention", "image_to_indreg", "image_from_indreg",
-           "sinogram_layout", "sinogram_units", "sinogram_to_indreg",
-           "sinogram_from_indreg", "orientation_scores", "orientation_hint", "angles_to_indreg", "angles_from_indreg", "domain_for",
-           "detector_for", "describe_image", "describe_sinogram"]
+           "sinogram_layout", "sinogram_units", "sinogram_to_indreg", "sinogram_from_indreg", "angles_to_indreg",
+           "angles_from_indreg", "domain_for", "detector_for", "describe_image", "describe_sinogram",
+           "orientation_scores", "orientation_hint"]
 
 #: How 8- and 16-bit pictures are read: ``fraction`` of the full scale (value / 255, / 65535) or ``raw`` values.
 INTEGER_SCALES = ("fraction", "raw")

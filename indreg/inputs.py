@@ -299,7 +299,8 @@ def _convention(name, integer_scale, geometry: str, key: dict) -> conventions.Co
     if integer_scale not in conventions.INTEGER_SCALES:
         raise ValueError(f"{key['integer_scale']} must be one of {', '.join(conventions.INTEGER_SCALES)}, got "
                          f"{integer_scale!r}")
-    allowed = {"tilt_series": _CONVENTIONS_3D, "fan_flat": _CONVENTIONS_FAN}.get(geometry, tuple(conventions.CONVENTIONS))
+    allowed = {"tilt_series": _CONVENTIONS_3D, "fan_flat": _CONVENTIONS_FAN}.get(geometry,
+                                                                                 tuple(conventions.CONVENTIONS))
     if conv.name not in allowed:
         raise ValueError(f"{key['convention']}={conv.name} is for 2D parallel-beam data; with {key['geometry']}="
                          f"{geometry} use {' or '.join(allowed)}")
