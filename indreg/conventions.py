@@ -33,7 +33,7 @@ from .domain import ImageDomain
 __all__ = ["Convention", "CONVENTIONS", "INTEGER_SCALES", "get_convention", "image_to_indreg", "image_from_indreg",
            "sinogram_layout", "sinogram_units", "sinogram_to_indreg", "sinogram_from_indreg", "angles_to_indreg",
            "angles_from_indreg", "domain_for", "detector_for", "describe_image", "describe_sinogram",
-           "orientation_scores", "orientation_hint"]
+           "orientation_scores", "orientation_hint", "flip_hint"]
 
 #: How 8- and 16-bit pictures are read: ``fraction`` of the full scale (value / 255, / 65535) or ``raw`` values.
 INTEGER_SCALES = ("fraction", "raw")
@@ -253,3 +253,28 @@ def orientation_hint(scores: dict, current) -> str | None:
     swapped = f", with the sinogram's axes swapped ({best}'s is {layout})" if scores[best][1] else ""
     return (f"read as convention {c.name}, the template's projection correlates {scores[own][0]:.2f} with the "
             f"data; read as {names}, {scores[best][0]:.2f} ({listed}): the files probably follow {names}{swapped}")
+
+
+#: Mirror images no convention makes: a picture saved upside down, an array saved transposed.
+_FLIPS = {"flipped along y (np.flip(f, 1): a picture upside down?)": lambda f: f[:, ::-1],
+          "flipped along x (np.flip(f, 0))": lambda f: f[::-1],
+          "transposed (f.T)": lambda f: f.T}
+
+
+def flip_hint(f, g, radians, convention, half_width: float, det_min=None, det_max=None) -> str | None:
+    """A one-line hint when the template ``f`` (indreg's layout, as read in ``convention``) fits the data ``g``
+    clearly better mirrored (:data:`_FLIPS`); ``radians``: the angles as given; ``None`` otherwise."""
+    c = get_convention(convention)
+    stored_g = g.T if c.sinogram == "bin_angle" else g
+
+    def score(image):
+        stored = image_from_indreg(np.ascontiguousarray(image), c)
+        return _fit(stored, stored_g, np.asarray(radians), c, half_width, det_min, det_max, False)
+
+    own = score(f)
+    scores = {name: score(flip(f)) for name, flip in _FLIPS.items()}
+    best = max(scores, key=lambda name: scores[name][0])
+    if own is None or scores[best][0] < own[0] + MARGIN:
+        return None
+    return (f"the template's projection correlates {own[0]:.2f} with the data, {scores[best][0]:.2f} with the "
+            f"template {best}: check the template's orientation")

@@ -339,6 +339,11 @@ def _check_orientation(f: np.ndarray, g: np.ndarray, radians: np.ndarray, conv, 
     hint = conventions.orientation_hint(scores, conv)
     if hint is not None:
         log.warning("%s: %s; set %s accordingly", _where(key["template"], template), hint, key["convention"])
+        return
+    hint = conventions.flip_hint(f, g, conventions.angles_from_indreg(radians, conv), conv, half_width, det_min,
+                                 det_max)
+    if hint is not None:
+        log.warning("%s: %s", _where(key["template"], template), hint)
 
 
 def _may_have_sibling(data, ndim: int) -> bool:

@@ -220,3 +220,18 @@ def test_skimage_case_registers_as_indreg_data():
               for data in (d.data, own)]
     assert scores[0] > ssim(d.template, d.target) + 0.2
     assert abs(scores[0] - scores[1]) < 0.01
+
+
+def test_upside_down_picture_is_warned(tmp_path, caplog):
+    """A picture saved upside down (no convention reads it so): the warning says the template fits flipped."""
+    import imageio.v3 as iio
+
+    pic = picture()
+    iio.imwrite(tmp_path / "t.png", np.round(255 * pic[::-1] / pic.max()).astype(np.uint8))
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        indreg.load(tmp_path / "t.png", radon(warped(pic)), angles=THETA, convention="skimage")
+        assert "flipped along y (np.flip(f, 1): a picture upside down?)" in caplog.text
+        caplog.clear()
+        iio.imwrite(tmp_path / "t.png", np.round(255 * pic / pic.max()).astype(np.uint8))
+        indreg.load(tmp_path / "t.png", radon(warped(pic)), angles=THETA, convention="skimage")
+    assert caplog.text == ""
