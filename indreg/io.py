@@ -52,8 +52,8 @@ PICTURE = (".png", ".tif", ".tiff")
 MRC = (".mrc", ".st", ".ali")
 CONTAINER = (".npz", ".h5", ".hdf5", ".hspy")
 FORMATS = (".npy",) + CONTAINER + MRC + PICTURE
-#: Full scale of the unsigned integer pictures read as fractions (``integer_scale="fraction"``), by bits.
-FULL_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+#: Full scale of the unsigned integer pictures read as fractions (``integer_scale="fraction"``), by bytes a pixel.
+FULL_SCALE = {1: 255.0, 2: 65535.0}
 
 log = logging.getLogger("indreg")
 #: ITU-R BT.709 luminance weights of R, G, B (``skimage.color.rgb2gray``).
@@ -131,7 +131,7 @@ def _grey(pixels: np.ndarray, rgb: bool) -> np.ndarray:
 
 def _scaled(pixels: np.ndarray, integer_scale: str) -> tuple:
     """``(values, note)``: 8- / 16-bit pixels as fractions of their full scale (``integer_scale="fraction"``)."""
-    full = FULL_SCALE.get(pixels.dtype)
+    full = FULL_SCALE.get(pixels.dtype.itemsize) if pixels.dtype.kind == "u" else None   # any byte order
     bits = 8 * pixels.dtype.itemsize
     if full is None:
         return pixels, f"{pixels.dtype} values as stored"

@@ -197,6 +197,15 @@ def test_integer_picture_read_as_fraction_of_full_scale(tmp_path, caplog, ext, d
     np.testing.assert_allclose(read_sinogram(path), shown / full, rtol=0, atol=1e-15)
 
 
+def test_big_endian_and_signed_tiffs(tmp_path):
+    """A big-endian 16-bit TIFF is a 16-bit picture (/ 65535); a signed one keeps its values (no full scale)."""
+    shown = picture(dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "be.tif", shown.astype(">u2"), byteorder=">")
+    np.testing.assert_allclose(np.rot90(read_image(tmp_path / "be.tif")), shown / 65535, rtol=0, atol=1e-15)
+    tifffile.imwrite(tmp_path / "s.tif", shown.astype(np.int16) - 50)
+    np.testing.assert_array_equal(np.rot90(read_image(tmp_path / "s.tif")), shown.astype(np.int16) - 50)
+
+
 def test_integer_arrays_and_float_pictures_keep_their_values(tmp_path):
     """Counts in ``.npy`` are physical: an integer array is not rescaled; nor is a float TIFF."""
     counts = picture(dtype=np.uint16)
