@@ -20,6 +20,11 @@ Convention:
       domain), ``"middle"`` (one pixel a bin, centred on the rotation axis) or ``"index"`` (one pixel a bin, bin
       ``D // 2`` on the rotation axis, which is the image's pixel ``n // 2`` in rows and columns: the domain is
       shifted by half a pixel for even ``n``, scikit-image's centre).
+    - Arrays handed to ``indreg.load`` follow the same ``image`` and ``sinogram`` layouts as array files. Angles
+      are radians here (``angle_unit`` is converted before).
+    - The orientation check (:func:`orientation_scores`, :func:`orientation_hint`, :func:`flip_hint`) projects the
+      template as each convention reads it (or mirrored) on a copy of at most 64^2 pixels and 18 angles and
+      correlates the projection with the data; a reading better by :data:`MARGIN` is named in a warning.
 """
 from __future__ import annotations
 
