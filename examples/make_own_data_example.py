@@ -52,7 +52,7 @@ def main(out: Path) -> None:
     grey = np.round(255 * (template - template.min()) / (template.max() - template.min())).astype(np.uint8)
     import imageio.v3 as iio
     iio.imwrite(out / "own_data_template.png", np.rot90(grey))                      # displayed upright
-    template_f = torch.from_numpy(io.read_image(out / "own_data_template.png"))     # as a user's run reads it
+    template_f = torch.from_numpy(io.read_image(out / "own_data_template.png", integer_scale="raw"))  # 0..255
 
     W = indreg.LDDMMDeformation(domain, num_steps=20, interpolation="compose")   # one interpolation: no blur
     velocity = known_velocity(domain, 20)

@@ -22,6 +22,7 @@ d = indreg.load(DATA / "own_data_template.png",                    # (64, 64), g
                 "parallel", angles=DATA / "own_data_angles.tlt",   # degrees (angle_unit="deg")
                 det_min=-24.0, det_max=24.0,                       # the detector, in the domain's units
                 half_width=16.0,                                   # the domain [-16, 16]^2
+                integer_scale="raw",                               # grey levels 0..255: the data's intensity unit
                 target=DATA / "own_data_target.npy")               # ground truth (optional)
 
 result = indreg.register(d.template, d.data, d.operator, sigma=3.0, max_iter=200, target=d.target, progress=True)

@@ -24,6 +24,11 @@ Convention:
       ``file.h5:/dataset``, ...) or an array (numpy, torch) in indreg's layout. ``angles``: a text file (one angle
       a line, IMOD ``.tlt``) or a list, in ``angle_unit``; without it, the ``.tlt`` / ``.rawtlt`` next to the
       data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
+    - ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
+      (``indreg.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
+      series takes ``indreg`` (= ``imod``). ``integer_scale``: 8- / 16-bit pictures as ``fraction`` of their full
+      scale (default) or ``raw``. The log says how each file was read and warns when the template's projection
+      fits the data better read another way (:func:`indreg.conventions.orientation_hint`).
     - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
       agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
       tilt series gets columns as wide as the voxels, centred on the tilt axis.
@@ -44,7 +49,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import io
+from . import conventions, io
 from ._checks import check_positive
 from .domain import AXES, ImageDomain
 from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry
@@ -56,7 +61,11 @@ log = logging.getLogger("indreg")
 GEOMETRIES = ("parallel", "fan_flat", "tilt_series")
 #: How error messages call :func:`load`'s arguments; the app passes its config keys instead.
 NAMES = {key: key for key in ("template", "data", "target", "geometry", "angles", "angle_unit", "half_width",
-                              "num_angles", "det_count", "tilt_axis", "tilt_axis_angle")}
+                              "num_angles", "det_count", "tilt_axis", "tilt_axis_angle", "convention",
+                              "integer_scale")}
+#: Conventions with a meaning beyond the 2D parallel beam: a tilt series (IMOD's layout is indreg's), a fan beam.
+_CONVENTIONS_3D = ("indreg", "imod")
+_CONVENTIONS_FAN = ("indreg", "odl")
 
 
 @dataclass
@@ -89,7 +98,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
          half_width: float = 16.0, det_min: Optional[float] = None, det_max: Optional[float] = None,
          det_count: Optional[int] = None, num_angles: Optional[int] = None, tilt_axis: str = "y",
          tilt_axis_angle: Optional[float] = None, src_radius: Optional[float] = None, det_radius: float = 0.0,
-         names: Optional[dict] = None) -> RegistrationInputs:
+         convention: str = "indreg", integer_scale: str = "fraction", names: Optional[dict] = None
+         ) -> RegistrationInputs:
     """Template, data, operator (and optionally the ground truth ``target``) of a registration from files or
     arrays (see the module's Convention).
 
@@ -111,25 +121,32 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     """
     key = {**NAMES, **(names or {})}
     _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angle, key)
+    conv = _convention(convention, integer_scale, geometry, key)
     ndim = 3 if geometry == "tilt_series" else 2
-    f = _image(template, key["template"], ndim)
+    read = dict(convention=conv, integer_scale=integer_scale)
+    f = _image(template, key["template"], ndim, **read)
     if ndim == 2 and f.shape[0] != f.shape[1]:
         raise DataFileError(f"{_where(key['template'], template)}: shape {f.shape[0]} x {f.shape[1]} is not square; "
                             f"the domain [-{half_width:g}, {half_width:g}]^2 needs n x n pixels (square cells): pad "
                             "or resample the image")
-    g = _measurements(data, key["data"], ndim)
+    g = _measurements(data, key["data"], ndim, **read)
     axis = None
     if ndim == 3:
         g, tilt_axis_angle, axis = _align(g, data, tilt_axis_angle, key)
-    radians = _angles(angles, angle_unit, data, g.shape[0], ndim, key)
+    radians = _angles(angles, angle_unit, data, g.shape, ndim, key)
     _check_counts(g.shape, data, num_angles, det_count, ndim, key)
-    truth = _target(target, f, ndim, key)
-    domain = square_domain(f.shape[0], half_width) if ndim == 2 else box_domain(f.shape, half_width)
+    truth = _target(target, f, ndim, key, read)
+    domain = conventions.domain_for(conv, f.shape[0], half_width) if ndim == 2 else box_domain(f.shape, half_width)
+    given_detector = det_min, det_max
+    if ndim == 2:   # the convention's units, angles and detector
+        h = domain.cell_sides[0]
+        g, radians = conventions.sinogram_units(g, conv, h), conventions.angles_to_indreg(radians, conv)
+        det_min, det_max = conventions.detector_for(conv, g.shape[-1], h, det_min, det_max)
     if ndim == 3 and det_min is None and det_max is None:   # measured data: columns as wide as the voxels
         det_max = g.shape[2] * domain.cell_sides[1 if tilt_axis == "x" else 0] / 2
         det_min = -det_max
     try:
-        T = make_operator(domain, make_geometry(geometry, g.shape[-1], angles=radians, det_min=det_min,
+        T = make_operator(domain, make_geometry(geometry, g.shape[-1], angles=torch.as_tensor(radians), det_min=det_min,
                                                 det_max=det_max, src_radius=src_radius, det_radius=det_radius,
                                                 tilt_axis=tilt_axis))
     except ValueError as e:
@@ -138,6 +155,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
         raise DataFileError(f"{_where(key['data'], data)}: shape {tuple(g.shape)} but the template {tuple(f.shape)} "
                             f"with tilt axis {tilt_axis} needs {tuple(T.range_shape)} (tilts, rows along the tilt "
                             "axis, columns)")
+    if ndim == 2 and geometry == "parallel":
+        _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
     label = io.split_path(template)[0].name if _is_path(template) else "array"
     return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=T, domain=domain,
                               geometry=T.geometry, target=truth, label=label, tilt_axis_angle=tilt_axis_angle,
@@ -274,16 +293,57 @@ def _array(value, name: str, ndim: int) -> np.ndarray:
     return out
 
 
-def _image(value, name: str, ndim: int) -> np.ndarray:
-    """A template / target ``(nx, ny[, nz])``: read from a file (``io.read_image`` / ``read_volume``) or given."""
-    return io.read_image(value, name=name, ndim=ndim) if _is_path(value) else _array(value, name, ndim)
+def _convention(name, integer_scale, geometry: str, key: dict) -> conventions.Convention:
+    """The :class:`~indreg.conventions.Convention` ``name``, checked against the geometry; ``integer_scale`` checked."""
+    conv = conventions.get_convention(name, key["convention"])
+    if integer_scale not in conventions.INTEGER_SCALES:
+        raise ValueError(f"{key['integer_scale']} must be one of {', '.join(conventions.INTEGER_SCALES)}, got "
+                         f"{integer_scale!r}")
+    allowed = {"tilt_series": _CONVENTIONS_3D, "fan_flat": _CONVENTIONS_FAN}.get(geometry,
+                                                                                 tuple(conventions.CONVENTIONS))
+    if conv.name not in allowed:
+        raise ValueError(f"{key['convention']}={conv.name} is for 2D parallel-beam data; with {key['geometry']}="
+                         f"{geometry} use {' or '.join(allowed)}")
+    return conv
 
 
-def _measurements(value, name: str, ndim: int) -> np.ndarray:
+def _image(value, name: str, ndim: int, convention=conventions.CONVENTIONS["indreg"],
+           integer_scale: str = "fraction") -> np.ndarray:
+    """A template / target ``(nx, ny[, nz])``: read from a file (``io.read_image`` / ``read_volume``) or given (in
+    the convention's layout)."""
+    if _is_path(value):
+        return io.read_image(value, name=name, ndim=ndim, convention=convention, integer_scale=integer_scale)
+    a = _array(value, name, ndim)
+    return conventions.image_to_indreg(a, convention) if ndim == 2 else a
+
+
+def _measurements(value, name: str, ndim: int, convention=conventions.CONVENTIONS["indreg"],
+                  integer_scale: str = "fraction") -> np.ndarray:
     """The data: a sinogram (``io.read_sinogram``) or a stack of projections (``io.read_stack``), or given."""
     if not _is_path(value):
-        return _array(value, name, ndim)
-    return io.read_sinogram(value, name=name) if ndim == 2 else io.read_stack(value, name=name)
+        a = _array(value, name, ndim)
+        return conventions.sinogram_layout(a, convention) if ndim == 2 else a
+    if ndim == 3:
+        return io.read_stack(value, name=name)
+    return io.read_sinogram(value, name=name, convention=convention, integer_scale=integer_scale)
+
+
+def _check_orientation(f: np.ndarray, g: np.ndarray, radians: np.ndarray, conv, template, half_width: float,
+                       det_min, det_max, key: dict) -> None:
+    """Warn when the files read in another convention fit the data clearly better (``orientation_hint``)."""
+    picture = _is_path(template) and io.split_path(template)[0].suffix.lower() in io.PICTURE
+    stored_f = np.rot90(f) if picture else conventions.image_from_indreg(f, conv)
+    stored_g = g.T if conv.sinogram == "bin_angle" else g
+    scores = conventions.orientation_scores(stored_f, stored_g, conventions.angles_from_indreg(radians, conv),
+                                            half_width, det_min, det_max, picture)
+    hint = conventions.orientation_hint(scores, conv)
+    if hint is not None:
+        log.warning("%s: %s; set %s accordingly", _where(key["template"], template), hint, key["convention"])
+        return
+    hint = conventions.flip_hint(f, g, conventions.angles_from_indreg(radians, conv), conv, half_width, det_min,
+                                 det_max)
+    if hint is not None:
+        log.warning("%s: %s", _where(key["template"], template), hint)
 
 
 def _may_have_sibling(data, ndim: int) -> bool:
@@ -291,7 +351,7 @@ def _may_have_sibling(data, ndim: int) -> bool:
     return _is_path(data) and (ndim == 3 or io.split_path(data)[0].suffix.lower() in io.MRC)
 
 
-def _angles(angles, unit: str, data, count: int, ndim: int, key: dict) -> torch.Tensor:
+def _angles(angles, unit: str, data, shape: tuple, ndim: int, key: dict) -> np.ndarray:
     """The data's angles in radians, one per row (2D) or tilt (3D): ``angles``, else the sibling angle file."""
     if angles is None:
         angles = io.tilt_angles_for(data) if _may_have_sibling(data, ndim) else None
@@ -300,11 +360,13 @@ def _angles(angles, unit: str, data, count: int, ndim: int, key: dict) -> torch.
                                 f"{key['angle_unit']}{_sibling_hint(data, ndim, key)}")
     origin = str(angles) if _is_path(angles) else key["angles"]
     radians = io.read_angles(angles, unit, name=key["angles"])
-    if radians.size != count:
+    if radians.size != shape[0]:
         what = "rows (one per angle)" if ndim == 2 else "tilts (sections)"
-        raise DataFileError(f"{_where(key['data'], data)}: {count} {what} but {origin} gives {radians.size} "
-                            "angles")
-    return torch.as_tensor(radians, dtype=torch.float64)
+        swapped = (f"; its columns are as many: the sinogram is (bins, angles), give {key['convention']}=skimage "
+                   "or transpose it") if ndim == 2 and shape[1] == radians.size else ""
+        raise DataFileError(f"{_where(key['data'], data)}: {shape[0]} {what} but {origin} gives {radians.size} "
+                            f"angles{swapped}")
+    return radians
 
 
 def _sibling_hint(data, ndim: int, key: dict) -> str:
@@ -324,11 +386,11 @@ def _check_counts(shape: tuple, data, num_angles, det_count, ndim: int, key: dic
         raise DataFileError(f"{_where(key['data'], data)}: {shape[-1]} {bins} but {key['det_count']}={det_count}")
 
 
-def _target(target, template: np.ndarray, ndim: int, key: dict) -> Optional[torch.Tensor]:
-    """The optional ground truth, shaped as the template."""
+def _target(target, template: np.ndarray, ndim: int, key: dict, read: dict) -> Optional[torch.Tensor]:
+    """The optional ground truth, shaped as the template, read as it (``read``: convention, integer_scale)."""
     if target is None:
         return None
-    truth = _image(target, key["target"], ndim)
+    truth = _image(target, key["target"], ndim, **read)
     if truth.shape != template.shape:
         raise DataFileError(f"{_where(key['target'], target)}: shape {truth.shape} differs from the template's "
                             f"{template.shape}")

@@ -129,7 +129,7 @@ def test_picture_image_is_upright_under_rot90(tmp_path, ext, dtype):
     shown = picture(dtype=dtype)
     path = tmp_path / f"pic{ext}"
     (iio.imwrite if ext == ".png" else tifffile.imwrite)(path, shown)
-    f = read_image(path)
+    f = read_image(path, integer_scale="raw")
     assert f.shape == (7, 5) and f.dtype == np.float64          # (nx, ny): columns are x
     np.testing.assert_array_equal(np.rot90(f), shown)             # shown upright, values not rescaled
     # top-left pixel of the picture is at the smallest x and the largest y
@@ -141,7 +141,7 @@ def test_picture_sinogram_is_taken_as_displayed(tmp_path, ext):
     shown = picture(dtype=np.uint16)
     path = tmp_path / f"sino{ext}"
     (iio.imwrite if ext == ".png" else tifffile.imwrite)(path, shown)
-    np.testing.assert_array_equal(read_sinogram(path), shown)    # rows = angles, columns = bins
+    np.testing.assert_array_equal(read_sinogram(path, integer_scale="raw"), shown)    # rows = angles, columns = bins
 
 
 @pytest.mark.parametrize("ext", [".png", ".tif"])
@@ -156,7 +156,7 @@ def test_rgb_picture_to_grey_by_luminance(tmp_path, ext, channels):
     else:
         tifffile.imwrite(path, rgb, photometric="rgb")
     expected = rgb[..., :3].astype(np.float64) @ np.array([0.2125, 0.7154, 0.0721])
-    np.testing.assert_allclose(np.rot90(read_image(path)), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.rot90(read_image(path)), expected / 255, rtol=0, atol=1e-12)
 
 
 def test_palette_png_to_grey(tmp_path):
@@ -166,13 +166,59 @@ def test_palette_png_to_grey(tmp_path):
     rgb = np.asarray(Image.open(tmp_path / "p.png").convert("RGB"), dtype=np.float64)
     assert len(np.unique(rgb)) > 1
     expected = rgb @ np.array([0.2125, 0.7154, 0.0721])
-    np.testing.assert_allclose(np.rot90(read_image(tmp_path / "p.png")), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.rot90(read_image(tmp_path / "p.png", integer_scale="raw")), expected, rtol=0,
+                               atol=1e-12)
 
 
 def test_grey_alpha_png_drops_alpha(tmp_path):
     la = np.stack([picture(), np.full((5, 7), 9, np.uint8)], axis=-1)
     iio.imwrite(tmp_path / "la.png", la)
-    np.testing.assert_array_equal(np.rot90(read_image(tmp_path / "la.png")), picture())
+    np.testing.assert_array_equal(np.rot90(read_image(tmp_path / "la.png", integer_scale="raw")), picture())
+
+
+# --- 8- and 16-bit pictures as fractions of their full scale ------------------------------------------
+
+@pytest.mark.parametrize("ext", [".png", ".tif"])
+@pytest.mark.parametrize("dtype, full", [(np.uint8, 255), (np.uint16, 65535)])
+def test_integer_picture_read_as_fraction_of_full_scale(tmp_path, caplog, ext, dtype, full):
+    """As ``skimage.util.img_as_float``: 8-bit / 255, 16-bit / 65535, the log says so; ``raw`` keeps values."""
+    from skimage.util import img_as_float
+
+    shown = picture(dtype=dtype)
+    shown[0, 0] = np.iinfo(dtype).max                            # full scale reads as 1
+    path = tmp_path / f"pic{ext}"
+    (iio.imwrite if ext == ".png" else tifffile.imwrite)(path, shown)
+    with caplog.at_level("INFO", logger="indreg"):
+        f = read_image(path)
+    np.testing.assert_allclose(np.rot90(f), img_as_float(shown), rtol=0, atol=1e-15)
+    assert f[0, -1] == 1.0 and f.max() == 1.0
+    assert f"{8 * np.dtype(dtype).itemsize}-bit grey levels as fractions of {full}" in caplog.text
+    np.testing.assert_array_equal(np.rot90(read_image(path, integer_scale="raw")), shown)
+    np.testing.assert_allclose(read_sinogram(path), shown / full, rtol=0, atol=1e-15)
+
+
+def test_big_endian_and_signed_tiffs(tmp_path):
+    """A big-endian 16-bit TIFF is a 16-bit picture (/ 65535); a signed one keeps its values (no full scale)."""
+    shown = picture(dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "be.tif", shown.astype(">u2"), byteorder=">")
+    np.testing.assert_allclose(np.rot90(read_image(tmp_path / "be.tif")), shown / 65535, rtol=0, atol=1e-15)
+    tifffile.imwrite(tmp_path / "s.tif", shown.astype(np.int16) - 50)
+    np.testing.assert_array_equal(np.rot90(read_image(tmp_path / "s.tif")), shown.astype(np.int16) - 50)
+
+
+def test_integer_arrays_and_float_pictures_keep_their_values(tmp_path):
+    """Counts in ``.npy`` are physical: an integer array is not rescaled; nor is a float TIFF."""
+    counts = picture(dtype=np.uint16)
+    np.save(tmp_path / "c.npy", counts)
+    np.testing.assert_array_equal(read_image(tmp_path / "c.npy"), counts)
+    tifffile.imwrite(tmp_path / "f.tif", counts.astype(np.float32) * 0.5)
+    np.testing.assert_array_equal(np.rot90(read_image(tmp_path / "f.tif")), counts * 0.5)
+
+
+def test_bad_integer_scale_is_one_line(tmp_path):
+    iio.imwrite(tmp_path / "p.png", picture())
+    with pytest.raises(ValueError, match=r"^integer_scale must be one of fraction, raw, got 'scaled'$"):
+        read_image(tmp_path / "p.png", integer_scale="scaled")
 
 
 # --- errors: one line, naming the file and the problem ------------------------------------------------

@@ -48,19 +48,11 @@ def output_fom(image, truth, ndim: int) -> dict:
     return {k: sum(e[k] for e in each) / len(each) for k in each[0]}
 
 
-def _step_size(exp) -> float:
-    """The configured step: Algorithm 1's (also solver=fast's inner one), else the optimiser's lr."""
-    o = exp.options
-    if hasattr(exp.solver, "step_sizes") or getattr(exp.solver, "inner", None) == "algorithm1":
-        return float(exp.solver.step_size)
-    return float(o["lr"] if o["lr"] is not None else 1.0)
-
-
 def hyperparameters(cfg: DictConfig, exp) -> dict:
     """The run's parameters shown in TensorBoard's HParams tab and in metrics.json (the model adds its own)."""
     o = exp.options
     return {"gamma": float(o["gamma"]), "sigma": float(o["sigma"]), "N": int(o["num_steps"]), "model": o["model"],
-            "step_size": _step_size(exp), "action": o["action"], "solver": o["solver"], "template": exp.label,
+            "step_size": exp.solver.reported_step(), "action": o["action"], "solver": o["solver"], "template": exp.label,
             "size": int(exp.domain.shape[0]), "max_iter": int(o["max_iter"]), "dtype": cfg.dtype.value,
             "seed": int(cfg.seed), **exp.problem.hparams()}
 

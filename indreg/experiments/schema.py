@@ -13,13 +13,14 @@ from dataclasses import dataclass, field, make_dataclass
 from enum import Enum
 from typing import Any, Optional
 
+from .. import conventions as _conventions
 from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
 
 __all__ = ["Phantom", "Dtype", "AnglePartition", "GeometryKind", "AngleUnit", "NoiseConvention", "TiltAxis",
-           "FBPFilter", "PhantomConfig", "GeometryConfig", "NoiseConfig", "BaselineConfig", "LoggingConfig",
+           "FBPFilter", "FileConvention", "IntegerScale", "PhantomConfig", "GeometryConfig", "NoiseConfig", "BaselineConfig", "LoggingConfig",
            "build_schema"]
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
@@ -56,6 +57,9 @@ class NoiseConvention(str, Enum):
 
 
 TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z
+#: data=files: the tool whose layout, angles, units and detector centre the files follow (indreg.conventions).
+FileConvention = Enum("FileConvention", {name: name for name in _conventions.CONVENTIONS}, type=str)
+IntegerScale = Enum("IntegerScale", {name: name for name in _conventions.INTEGER_SCALES}, type=str)
 
 
 class FBPFilter(str, Enum):
@@ -90,6 +94,8 @@ class _DataFiles:
     frames: int = 12                # source=dynamic: time points K (t_k = k / K)
     amplitude: float = 0.4          # source=dynamic: the breathing amplitude A (indreg.dynamic)
     template_known: bool = True     # source=dynamic: false: the template is unknown (reconstructed with the motion)
+    convention: FileConvention = FileConvention.indreg   # source=files: skimage, astra, tomopy, imod, odl
+    integer_scale: IntegerScale = IntegerScale.fraction  # source=files: 8/16-bit pictures as fractions, or raw
 
 
 _DATA_DOC = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
@@ -97,7 +103,9 @@ _DATA_DOC = """Where template and data come from: ``source`` is a built-in sourc
 
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
-    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid.
+    (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid, in
+    another tool's ``convention`` (``indreg.conventions``: layout, angles, units, detector centre) and with 8- /
+    16-bit pictures as fractions of their full scale (``integer_scale: fraction``, or ``raw``).
     ``dynamic``: the breathing phantom of ``indreg.dynamic`` measured at ``frames`` time points (``amplitude``;
     ``template_known: false`` hands the run no template: ``deformation=spatiotemporal`` reconstructs it).
     ``template_scale`` / ``background`` (``indreg.options``, the same as ``indreg.register``'s): the template's

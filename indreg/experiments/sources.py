@@ -58,7 +58,8 @@ CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "
                "half_width": "data.half_width", "geometry": "geometry.kind", "angles": "geometry.angles",
                "angle_unit": "geometry.angle_unit", "num_angles": "geometry.num_angles",
                "det_count": "geometry.det_count", "tilt_axis": "geometry.tilt_axis",
-               "tilt_axis_angle": "geometry.tilt_axis_angle"}
+               "tilt_axis_angle": "geometry.tilt_axis_angle", "convention": "data.convention",
+               "integer_scale": "data.integer_scale"}
 
 
 @dataclass
@@ -239,14 +240,16 @@ def check_files(cfg: DictConfig) -> None:
 def file_data(cfg: DictConfig) -> Data:
     """``indreg.load`` with the ``data`` and ``geometry`` groups' values (messages name the config keys): a square
     template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
-    the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree). No noise is added."""
+    the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
+    ``data.integer_scale`` say how to read them. No noise is added."""
     d, g = cfg.data, cfg.geometry
     try:
         inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
                              angle_unit=g.angle_unit.value, target=d.target or None, half_width=d.half_width,
                              det_min=g.det_min, det_max=g.det_max, det_count=g.det_count, num_angles=g.num_angles,
                              tilt_axis=g.tilt_axis.value, tilt_axis_angle=g.tilt_axis_angle,
-                             src_radius=g.src_radius, det_radius=g.det_radius, names=CONFIG_KEYS)
+                             src_radius=g.src_radius, det_radius=g.det_radius, convention=d.convention.value,
+                             integer_scale=d.integer_scale.value, names=CONFIG_KEYS)
     except DataFileError:
         raise
     except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key

@@ -1,5 +1,6 @@
 """``data=files``: the app on the user's own files (every format), without a target, limited angle, bad input."""
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -48,9 +49,9 @@ def write_format(fmt: str, d):
     if fmt == "png":
         import imageio.v3 as iio
         grey = np.round(255 * template).astype(np.uint8)
-        iio.imwrite(d / "t.png", np.rot90(grey))          # as displayed: upright
-        np.save(d / "s.npy", 255 * sino)
-        return files_args(d / "t.png", d / "s.npy", *angles), grey.astype(float), 255 * sino
+        iio.imwrite(d / "t.png", np.rot90(grey))          # as displayed: upright; read as fractions of 255
+        np.save(d / "s.npy", sino)
+        return files_args(d / "t.png", d / "s.npy", *angles), grey / 255.0, sino
     if fmt == "tif":
         import tifffile
         tifffile.imwrite(d / "t.tif", np.rot90(template).astype(np.float32))
@@ -100,6 +101,34 @@ def test_files_geometry_and_angles(tmp_path):
     assert exp.geometry.det_count == 24 and exp.domain.shape == (N, N)
     np.testing.assert_allclose(exp.geometry.angles.numpy(), np.deg2rad(DEG))
     assert exp.target_64 is None and exp.snr_db is None and exp.solver.step_halving
+
+
+def test_files_convention_and_integer_scale(tmp_path):
+    """``data.convention=skimage``: the picture and ``radon``'s (bins, angles) sinogram in pixel units as they come
+    (skimage's centre: the domain shifted by half a pixel); ``data.integer_scale=raw`` keeps a PNG's 0..255."""
+    import imageio.v3 as iio
+    from skimage.transform import radon
+
+    from indreg.experiments.build import build
+
+    template, _, _ = problem()
+    shown = np.rot90(template)
+    np.save(tmp_path / "t.npy", shown)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # skimage: J reaches beyond the inscribed circle
+        np.save(tmp_path / "s.npy", radon(shown, theta=DEG % 180, circle=True))
+    tlt = tmp_path / "s.tlt"
+    tlt.write_text("".join(f"{a:g}\n" for a in DEG % 180))
+    exp = build(compose(["data=files", f"data.template={tmp_path / 't.npy'}", f"data.sinogram={tmp_path / 's.npy'}",
+                         "geometry=parallel", f"geometry.angles={tlt}", "data.convention=skimage"]))
+    assert exp.domain.min_pt == (-17.0, -15.0) and exp.geometry.det_count == N
+    assert (exp.geometry.det_min, exp.geometry.det_max) == (-17.0, 15.0)
+    np.testing.assert_array_equal(exp.template_64.numpy(), template)
+    grey = np.round(255 * template).astype(np.uint8)
+    iio.imwrite(tmp_path / "t.png", np.rot90(grey))
+    args = files_args(tmp_path / "t.png", tmp_path / "s.npy", f"geometry.angles={tlt}", "data.convention=skimage")
+    np.testing.assert_array_equal(build(compose(args + ["data.integer_scale=raw"])).template_64.numpy(), grey)
+    np.testing.assert_allclose(build(compose(args)).template_64.numpy(), grey / 255.0, rtol=1e-15)
 
 
 def test_no_target_writes_what_it_can(tmp_path):

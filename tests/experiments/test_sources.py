@@ -32,7 +32,7 @@ def test_load_is_the_files_source_of_the_shipped_example():
     data = sources.load(compose(["experiment=own_data_example"]))
     loaded = indreg.load(DATA_DIR / "own_data_template.png", DATA_DIR / "own_data_sinogram.npy",
                          angles=DATA_DIR / "own_data_angles.tlt", det_min=-24.0, det_max=24.0,
-                         target=DATA_DIR / "own_data_target.npy")
+                         target=DATA_DIR / "own_data_target.npy", integer_scale="raw")
     same(loaded, data)
     assert data.template_64.shape == (64, 64) and data.data_64.shape == (61, 92) and data.snr_db is None
 

@@ -19,10 +19,11 @@ OWN = ["experiment=own_data_example", "deformation.num_steps=10", "baseline.enab
 
 
 def unit_files(d):
-    """The own-data example's template as a PNG (grey levels 0..255) and its sinogram in 0..1 units."""
+    """The own-data example's template as a PNG (grey levels 0..255, read raw by the preset) and its sinogram in 0..1
+    units."""
     import imageio.v3 as iio
 
-    grey = read_image(DATA_DIR / "own_data_template.png")
+    grey = read_image(DATA_DIR / "own_data_template.png", integer_scale="raw")
     iio.imwrite(d / "template.png", np.rot90(np.round(grey).astype(np.uint8)))
     np.save(d / "sino01.npy", np.load(DATA_DIR / "own_data_sinogram.npy") / 255)
     return [f"data.template={d / 'template.png'}", f"data.sinogram={d / 'sino01.npy'}"]
@@ -35,7 +36,7 @@ def test_png_template_with_data_in_other_units(tmp_path, caplog):
     run_app(OWN + files + ["solver.max_iter=0"], tmp_path / "plain")
     warned = [r.getMessage() for r in caplog.records if "different units" in r.getMessage()]
     assert len(warned) == 1 and "data.template_scale='auto'" in warned[0] and "0.00388" in warned[0]
-    np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png") / 255)
+    np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png"))   # 8-bit: / 255
     ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=30"],
                   tmp_path / "x1")
     auto = run_app(OWN + files + ["solver.max_iter=30", "data.template_scale=auto"], tmp_path / "auto")
