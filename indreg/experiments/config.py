@@ -70,22 +70,27 @@ def register_schema(argv=()) -> None:
 
 
 def import_plugins(argv) -> bool:
-    """Import the models named ``module:attribute`` in the overrides ``argv`` (``deformation.model=...``), the
-    working directory on ``sys.path`` as with ``python -m`` (console scripts leave it off). Returns whether one was
-    new; an import error is left to the config's validation, which names the key."""
+    """Import the model and the data source named ``module:attribute`` in the overrides ``argv``
+    (``deformation.model=...``, ``data.source=...``), the working directory on ``sys.path`` as with ``python -m``
+    (console scripts leave it off). Returns whether one brought keys of its own; an import error is left to the
+    config's validation, which names the key."""
     import sys
 
-    names = [a.split("=", 1)[1] for a in argv if a.split("=", 1)[0].lstrip("+~") == "deformation.model" and "=" in a]
-    names = [n for n in names if ":" in n and n not in _options.MODELS]
-    if names and "" not in sys.path and "." not in sys.path:
+    given = dict(a.lstrip("+~").split("=", 1) for a in argv if "=" in a)
+    model, source = given.get("deformation.model", ""), given.get("data.source", "")
+    model, source = (model if ":" in model and model not in _options.MODELS else None,
+                     source if ":" in source and source not in sources.SOURCES else None)
+    if (model or source) and "" not in sys.path and "." not in sys.path:
         sys.path.append("")
     new = False
-    for name in names:
-        try:
-            _options.model(name)
+    try:
+        if model:
+            _options.model(model)
             new = True
-        except ValueError:
-            pass
+        if source and sources.get(source).options:
+            new = True
+    except (ValueError, ConfigError):
+        pass
     return new
 
 
@@ -181,25 +186,9 @@ def check_registration(cfg: DictConfig) -> dict:
 def _validate_data(c: DictConfig) -> None:
     """The ``data`` and ``geometry`` groups (which keys a source needs is its own business, checked here)."""
     d, g = c.data, c.geometry
-    sources.resolve(d.source)
-    if d.source == "files":
-        for key in ("template", "sinogram"):
-            _require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
-        _require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
-    elif d.source == "dynamic":
-        _require(d.frames >= 1, "data.frames", "an integer >= 1", d.frames)
-        _require(_finite(d.amplitude) and 0 <= d.amplitude < 1, "data.amplitude", "a number in [0, 1)", d.amplitude)
-        _require(g.num_angles is not None and g.num_angles >= 1, "geometry.num_angles",
-                 "an integer >= 1 (angles per time point)", g.num_angles)
-        _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)
-        _require(g.kind.value == "parallel", "geometry", "parallel (the dynamic source simulates 2D parallel-beam "
-                 "frames)", g.kind.value)
-    elif d.source == "phantom":
-        _require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None
-                 or g.kind.value == "tilt_series", "geometry.num_angles", "an integer >= 1 (or geometry.angles)",
-                 g.num_angles)
-        _require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1",
-                 g.det_count)
+    source = sources.get(d.source)
+    if source.check is not None:   # the source's own keys (and what it needs of the geometry)
+        source.check(c, _require)
     _require((g.det_min is None) == (g.det_max is None), "geometry.det_min",
              "both det_min and det_max, or neither (fitted to the domain)", (g.det_min, g.det_max))
     if g.det_min is not None:
@@ -210,13 +199,9 @@ def _validate_data(c: DictConfig) -> None:
         _require(_finite(g.tilt_min) and _finite(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
                  "finite tilt_min <= tilt_max", (g.tilt_min, g.tilt_max))
     _require(g.tilt_axis_angle is None or (_finite(g.tilt_axis_angle) and abs(g.tilt_axis_angle) <= 180),
-             "geometry.tilt_axis_angle", "a number of degrees in [-180, 180] or null", g.tilt_axis_angle)
-    _require(g.tilt_axis_angle is None or (g.kind.value == "tilt_series" and d.source != "phantom"),
-             "geometry.tilt_axis_angle", "null except for a measured tilt series (data=files geometry=tilt_series): "
-             "simulated data are in indreg's layout", g.tilt_axis_angle)
-    if d.source == "phantom":
-        ndim = 3 if g.kind.value == "tilt_series" else 2
-        _require(c.phantom.ndim == ndim, "phantom.ndim", f"{ndim} for geometry.kind={g.kind.value}", c.phantom.ndim)
+             "geometry.tilt_axis_angle", "a finite number of degrees in [-180, 180] or null", g.tilt_axis_angle)
+    _require(g.tilt_axis_angle is None or g.kind.value == "tilt_series", "geometry.tilt_axis_angle",
+             "null except for a measured tilt series (data=files geometry=tilt_series)", g.tilt_axis_angle)
     if g.kind.value == "fan_flat":
         _require(_finite(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
                  "a number > 0 (source to origin) for geometry.kind=fan_flat", g.src_radius)
@@ -251,8 +236,8 @@ def register_resolvers() -> None:
 
 def simulated_only(source: str, value):
     """``value`` for a simulated data source (a preset's absolute weight on its own data), None for measured
-    data (``data=files``: the relative form applies, ``indreg.units``)."""
-    return None if source == "files" else value
+    data (``Source.measured``, e.g. ``data=files``: the relative form applies, ``indreg.units``)."""
+    return None if sources.is_measured(source) else value
 
 
 def to_plain(cfg: DictConfig) -> dict:

@@ -14,7 +14,7 @@ import torch
 
 from . import figures
 
-__all__ = ["write_figures", "domain_extent", "frame_times", "to_numpy"]
+__all__ = ["write_figures", "domain_extent", "to_numpy"]
 
 
 def to_numpy(x) -> np.ndarray:
@@ -24,12 +24,14 @@ def to_numpy(x) -> np.ndarray:
 
 def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int) -> None:
     """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
-    splits its reconstruction (``deformation_part`` / ``intensity_part``), frames.png and frames.gif when it
-    has frames, and TensorBoard's final images; ``quality``: the figures of merit in the titles."""
+    splits its reconstruction (two outputs of kind ``"parts"``, ``problem.output_kinds``), frames.png and frames.gif
+    when it has an output of kind ``"frames"``, and TensorBoard's final images; ``quality``: the figures of merit in the titles."""
     traj = to_numpy(r.trajectory)
     volume = exp.domain.ndim == 3
-    parts = (r.outputs["deformation_part"], r.outputs["intensity_part"]) \
-        if {"deformation_part", "intensity_part"} <= set(r.outputs) else None
+    kinds = exp.problem.output_kinds
+    part_names = [n for n, kind in kinds.items() if kind == "parts" and n in r.outputs]
+    parts = tuple(r.outputs[n] for n in part_names) if len(part_names) == 2 else None   # the summands of f(1)
+    frames_name = next((n for n, kind in kinds.items() if kind == "frames" and n in r.outputs), None)
     if cfg.logging.figure:
         figure = _ortho_figure if volume else _paper_figure
         figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
@@ -42,22 +44,22 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
     if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
         grid = grid[:2, :, :, grid.shape[-1] // 2]
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
-    if "frames" in r.outputs:   # several time points: the frames in a row, one image each, and a movie
-        frames = to_numpy(r.outputs["frames"])
-        truth = exp.targets.get("frames")
+    if frames_name is not None:   # several time points: the frames in a row, one image each, and a movie
+        frames = to_numpy(r.outputs[frames_name])
+        truth = exp.targets.get(frames_name)
         writer.strip("images/frames", list(frames), it)
         for k, f in enumerate(frames):
             writer.image(f"images/frames/{k:02d}", f, it)
         if cfg.logging.figure:
             shown = exp.target_64 if exp.target_64 is not None else frames[-1]
             figures.save(figures.frames_figure(frames, None if truth is None else to_numpy(truth),
-                                               title=f"{cfg.name}: {quality}", times=frame_times(exp.problem)),
+                                               title=f"{cfg.name}: {quality}", times=exp.problem.frame_times()),
                          out / "frames.png")
             figures.save_gif(frames, out / "frames.gif", float(shown.min()), float(shown.max()))
     if parts is not None:
-        writer.image("images/deformation_part", parts[0], it)
+        writer.image(f"images/{part_names[0]}", parts[0], it)
         bound = max(float(parts[1].abs().max()), 1e-12)
-        writer.image_scaled("images/intensity_part", parts[1], it, -bound, bound)
+        writer.image_scaled(f"images/{part_names[1]}", parts[1], it, -bound, bound)
         writer.figure("images/parts", _parts_figure(exp, r.deformed, parts), it)
 
 
@@ -96,12 +98,6 @@ def _parts_figure(exp, final, parts, title: str = ""):
                                           box=(exp.domain.min_pt, exp.domain.max_pt))
     return figures.parts_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target,
                                 extent=domain_extent(exp.domain), title=title)
-
-
-def frame_times(problem) -> list | None:
-    """The times ``t_k = j_k / N`` of a model's frames (its grid indices ``indices`` on ``num_steps``), else None."""
-    indices, n = getattr(problem, "indices", None), getattr(problem, "num_steps", None)
-    return None if indices is None or not n else [j / n for j in indices]
 
 
 def domain_extent(domain) -> tuple:

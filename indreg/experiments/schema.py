@@ -13,14 +13,14 @@ from dataclasses import dataclass, field, make_dataclass
 from enum import Enum
 from typing import Any, Optional
 
-from .. import conventions as _conventions
 from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
+from . import sources
 
 __all__ = ["Phantom", "Dtype", "AnglePartition", "GeometryKind", "AngleUnit", "NoiseConvention", "TiltAxis",
-           "FBPFilter", "FileConvention", "IntegerScale", "PhantomConfig", "GeometryConfig", "NoiseConfig", "BaselineConfig", "LoggingConfig",
+           "FBPFilter", "PhantomConfig", "GeometryConfig", "NoiseConfig", "BaselineConfig", "LoggingConfig",
            "build_schema"]
 
 Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
@@ -57,9 +57,6 @@ class NoiseConvention(str, Enum):
 
 
 TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z
-#: data=files: the tool whose layout, angles, units and detector centre the files follow (indreg.conventions).
-FileConvention = Enum("FileConvention", {name: name for name in _conventions.CONVENTIONS}, type=str)
-IntegerScale = Enum("IntegerScale", {name: name for name in _conventions.INTEGER_SCALES}, type=str)
 
 
 class FBPFilter(str, Enum):
@@ -84,22 +81,8 @@ class PhantomConfig:
     thickness: Optional[int] = None
 
 
-@dataclass
-class _DataFiles:
-    source: str = "phantom"
-    template: Optional[str] = None
-    sinogram: Optional[str] = None
-    target: Optional[str] = None
-    half_width: float = 16.0
-    frames: int = 12                # source=dynamic: time points K (t_k = k / K)
-    amplitude: float = 0.4          # source=dynamic: the breathing amplitude A (indreg.dynamic)
-    template_known: bool = True     # source=dynamic: false: the template is unknown (reconstructed with the motion)
-    convention: FileConvention = FileConvention.indreg   # source=files: skimage, astra, tomopy, imod, odl
-    integer_scale: IntegerScale = IntegerScale.fraction  # source=files: 8/16-bit pictures as fractions, or raw
-
-
 _DATA_DOC = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or
-    ``module:function`` (``indreg.experiments.sources``).
+    ``module:attribute`` (``indreg.experiments.sources``); each source declares the keys it reads.
 
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
@@ -192,11 +175,13 @@ _GROUP_DOCS = {
 _GROUP_EXTRA = {"solver": [("optimizer", str, field(default="lbfgs"))]}
 
 
-def _group(name: str, base=None):
+def _group(name: str):
     """The schema of config group ``name`` generated from ``indreg.options`` (one declaration for the app and
-    ``indreg.register``; the registered models' options included), on ``base`` (the app's own keys)."""
-    cls = make_dataclass(f"{name.capitalize()}Config", [*_options.schema_fields(name), *_GROUP_EXTRA.get(name, ())],
-                         bases=(base,) if base else ())
+    ``indreg.register``; the registered models' options included) and, for ``data``, from the registered data
+    sources' own keys (``indreg.experiments.sources.Source.options``)."""
+    own = [("source", str, field(default="phantom")), *sources.data_fields()] if name == "data" else []
+    cls = make_dataclass(f"{name.capitalize()}Config",
+                         [*own, *_options.schema_fields(name), *_GROUP_EXTRA.get(name, ())])
     cls.__doc__ = _DATA_DOC if name == "data" else _GROUP_DOCS[name]
     return cls
 
@@ -204,7 +189,7 @@ def _group(name: str, base=None):
 def build_schema() -> type:
     """``RegisterConfig``, the whole run's schema, from the option table as it is now: a model registered after
     the import of this module (a plug-in named on the command line) brings its options (``register_schema``)."""
-    groups = {name: _group(name, _DataFiles if name == "data" else None) for name in ("data", *_GROUP_DOCS)}
+    groups = {name: _group(name) for name in ("data", *_GROUP_DOCS)}
     cls = make_dataclass("RegisterConfig", [
         ("name", str, field(default="suite1_jv")), ("seed", int, field(default=0)),
         ("dtype", Dtype, field(default=Dtype.float32)), ("device", str, field(default="auto")),

@@ -1,6 +1,8 @@
 """Data sources of the experiment app: where the template, the data and the forward operator come from.
 
-``data.source`` picks a function ``fn(cfg) -> Data`` (:func:`resolve`):
+``data.source`` names a :class:`Source` (:func:`get`): a function ``load(cfg) -> Data`` with the ``data`` group's
+keys it reads (``options``, each declared by its source: the app's schema is built from them) and a check of their
+values. Built in (:mod:`indreg.experiments.builtin_sources`):
 
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
     dynamic   a breathing Shepp-Logan phantom measured a few angles at a time (``indreg.dynamic``): data of
@@ -11,18 +13,16 @@
     NAME      an entry point ``NAME = "my_package.my_module:my_source"`` of the group ``indreg.sources`` (in the
               ``[project.entry-points."indreg.sources"]`` table of your package's pyproject.toml)
     my_package.my_module:my_source
-              any importable ``module:function``, no installation needed (the module on ``sys.path`` /
-              ``PYTHONPATH``): ``indreg-register data=files data.source=my_package.my_module:my_source
-              data.sinogram=...`` (``data=files`` first: the settings for measured data, docs/own_data.md)
+              any importable ``module:attribute``, no installation needed (the module on ``sys.path`` /
+              ``PYTHONPATH`` or in the working directory): a :class:`Source` (with keys of its own:
+              ``data.my_key=...``) or a plain function ``cfg -> Data``
 
-The contract of a source: ``fn(cfg)`` gets the composed, validated config (a ``DictConfig`` of
-``indreg.experiments.config.RegisterConfig``: ``cfg.data.template``, ``cfg.data.sinogram``, ``cfg.data.target``,
-``cfg.data.half_width``, the ``geometry`` group, ``cfg.seed``, ...) and returns a :class:`Data` record, or what
-``indreg.load`` returns (a ``RegistrationInputs``, e.g. ``return indreg.load(my_template, my_data, ...)``).
-Invalid input raises one line before any computation: ``indreg.io.DataFileError`` (a file),
-:class:`~indreg.experiments.errors.ConfigError` (a config value) or ``ValueError`` (shown as an invalid
-configuration). The run loop only sees :class:`Data`, so a new source is one function (built in: one here with
-:func:`source` and a ``conf/data/<name>.yaml``).
+The contract of a source's ``load``: it gets the composed, validated config (``cfg.data.<its keys>``, the
+``geometry`` group, ``cfg.seed``, ...) and returns a :class:`Data` record, or what ``indreg.load`` returns (a
+``RegistrationInputs``, e.g. ``return indreg.load(my_template, my_data, ...)``). Invalid input raises one line
+before any computation: ``indreg.io.DataFileError`` (a file), :class:`~indreg.experiments.errors.ConfigError`
+(a config value) or ``ValueError`` (shown as an invalid configuration). The run loop only sees :class:`Data`, so a
+new source is one function and, for keys of its own, one :class:`Source`.
 
 Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, axis 0 = x, on
 ``[-half_width, half_width]^d`` (square / cubic cells); data ``operator.range_shape``: ``(num_angles, det_count)``
@@ -31,35 +31,23 @@ Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, 
 from __future__ import annotations
 
 import importlib
-import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Optional
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from .. import phantoms
 from ..domain import ImageDomain
-from ..inputs import RegistrationInputs, box_domain, make_geometry, make_operator, square_domain
-from ..inputs import load as load_inputs
-from ..io import DataFileError, check_file, read_angles
-from ..tilt_axis import check_tilt_axis
+from ..inputs import RegistrationInputs
 from .errors import ConfigError
 
-log = logging.getLogger(__name__)
+__all__ = ["Data", "Source", "SOURCES", "register_source", "get", "resolve", "load", "data_fields", "check_files",
+           "is_measured"]
 
 #: The entry-point group of installed sources (``data.source=<entry point name>``).
 ENTRY_POINTS = "indreg.sources"
-#: The built-in sources by name (:func:`source`).
+#: The registered sources by name (:func:`register_source`; the built-ins, then plug-ins named on the command line).
 SOURCES: dict = {}
-#: How ``indreg.load``'s messages name its arguments in the app: the config keys.
-CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "data.target",
-               "half_width": "data.half_width", "geometry": "geometry.kind", "angles": "geometry.angles",
-               "angle_unit": "geometry.angle_unit", "num_angles": "geometry.num_angles",
-               "det_count": "geometry.det_count", "tilt_axis": "geometry.tilt_axis",
-               "tilt_axis_angle": "geometry.tilt_axis_angle", "convention": "data.convention",
-               "integer_scale": "data.integer_scale"}
 
 
 @dataclass
@@ -92,17 +80,65 @@ class Data:
                    data_64=d.data, label=d.label, target_64=d.target, report=d.report())
 
 
-def source(name: str) -> Callable:
-    """Register ``fn(cfg) -> Data`` as the built-in data source ``name``."""
-    def register(fn):
-        SOURCES[name] = fn
-        return fn
-    return register
+@dataclass(frozen=True)
+class Source:
+    """A data source. ``load(cfg) -> Data`` (or a ``RegistrationInputs``); ``options``: the ``data`` group's keys it
+    reads, ``(key, type, default)`` (they join the app's schema; a key two sources share must have one type and
+    default); ``check(cfg, require)``: its values' checks before the run, ``require(ok, key, expected, value)``
+    raising a one-line error naming the key; ``preflight(cfg)``: what else must hold before the run directory is
+    made (files exist); ``measured``: the data are measured, not simulated (the paper's presets' absolute weights
+    then give way to the relative ones, ``indreg.units``)."""
+    name: str
+    load: Callable
+    options: tuple = ()
+    check: Optional[Callable] = None
+    preflight: Optional[Callable] = None
+    measured: bool = False
+    doc: str = ""
+
+
+def register_source(source: Source) -> Source:
+    """Add ``source`` to the registry under its name (a name already there is replaced)."""
+    if not isinstance(source, Source):
+        raise TypeError(f"register_source takes an indreg.experiments.sources.Source, got {type(source).__name__}")
+    SOURCES[source.name] = source
+    return source
+
+
+def get(name: str) -> Source:
+    """The source of ``data.source=name``: a registered one, else an entry point ``name`` of the group
+    ``indreg.sources``, else ``module:attribute`` imported (a :class:`Source`, registered under ``name``, or a
+    function ``cfg -> Data``). Raises :class:`ConfigError` (one line) when it is none of these or cannot be
+    imported."""
+    if name in SOURCES:
+        return SOURCES[name]
+    try:
+        obj, problem = (_import(name) if ":" in name else _entry_point(name)), None
+    except Exception as e:   # the user's module: a missing module or attribute, a syntax error, ... as one line
+        obj, problem = None, f"{type(e).__name__}: {' '.join(str(e).split())}"
+    if problem is not None:   # raised outside the except: no chained context in the one-line message
+        raise ConfigError(f"invalid config value data.source={name!r}: cannot import it ({problem})")
+    if obj is None:
+        known = sorted(SOURCES) + sorted(ep.name for ep in _entry_points())
+        raise ConfigError(f"invalid config value data.source={name!r}: expected one of {', '.join(known)} or an "
+                          "importable module:function (e.g. my_package.my_module:my_source)")
+    if isinstance(obj, Source):
+        SOURCES[name] = obj
+        return obj
+    if not callable(obj):
+        raise ConfigError(f"invalid config value data.source={name!r}: {type(obj).__name__} is not callable; "
+                          "expected a function cfg -> Data or an indreg.experiments.sources.Source")
+    return Source(name, obj)
+
+
+def resolve(name: str) -> Callable:
+    """The load function of ``data.source=name`` (:func:`get`)."""
+    return get(name).load
 
 
 def load(cfg: DictConfig) -> Data:
-    """The data of ``cfg.data.source`` (:func:`resolve`)."""
-    data = resolve(cfg.data.source)(cfg)
+    """The data of ``cfg.data.source`` (:func:`get`)."""
+    data = get(cfg.data.source).load(cfg)
     if isinstance(data, RegistrationInputs):
         return Data.from_inputs(data)
     if not isinstance(data, Data):
@@ -111,26 +147,31 @@ def load(cfg: DictConfig) -> Data:
     return data
 
 
-def resolve(name: str) -> Callable:
-    """The source function of ``data.source=name``: a built-in source, else an entry point ``name`` of the group
-    ``indreg.sources``, else ``module:function`` imported. Raises :class:`ConfigError` (one line) when it is none
-    of these or cannot be imported."""
-    if name in SOURCES:
-        return SOURCES[name]
+def check_files(cfg: DictConfig) -> None:
+    """The source's ``preflight`` (``data=files``: the files exist), before the app creates its run directory."""
+    source = get(cfg.data.source)
+    if source.preflight is not None:
+        source.preflight(cfg)
+
+
+def is_measured(name: str) -> bool:
+    """Whether ``data.source=name`` brings measured data (``Source.measured``); False for one that cannot be had."""
     try:
-        fn, problem = (_import(name) if ":" in name else _entry_point(name)), None
-    except Exception as e:   # the user's module: a missing module or attribute, a syntax error, ... as one line
-        fn, problem = None, f"{type(e).__name__}: {' '.join(str(e).split())}"
-    if problem is not None:   # raised outside the except: no chained context in the one-line message
-        raise ConfigError(f"invalid config value data.source={name!r}: cannot import it ({problem})")
-    if fn is None:
-        known = sorted(SOURCES) + sorted(ep.name for ep in _entry_points())
-        raise ConfigError(f"invalid config value data.source={name!r}: expected one of {', '.join(known)} or an "
-                          "importable module:function (e.g. my_package.my_module:my_source)")
-    if not callable(fn):
-        raise ConfigError(f"invalid config value data.source={name!r}: {type(fn).__name__} is not callable; "
-                          "expected a function cfg -> Data")
-    return fn
+        return get(name).measured
+    except ConfigError:
+        return False
+
+
+def data_fields() -> list:
+    """``(key, type, dataclasses.field(default=...))`` of every registered source's keys, for the app's schema."""
+    seen: dict = {}
+    for source in SOURCES.values():
+        for key, kind, default in source.options:
+            if key in seen and seen[key][:2] != (kind, default):
+                raise TypeError(f"data.{key} is declared twice with different types or defaults (source "
+                                f"{source.name!r} and an earlier one)")
+            seen[key] = (kind, default)
+    return [(k, kind, field(default=d)) for k, (kind, d) in seen.items()]
 
 
 def _import(path: str):
@@ -156,124 +197,4 @@ def _entry_point(name: str):
     return None
 
 
-def _angles(g) -> Optional[torch.Tensor]:
-    """``geometry.angles`` (a text-file path or a list, in ``geometry.angle_unit``) in radians, or None."""
-    spec = _angle_spec(g)
-    if spec is None:
-        return None
-    try:
-        angles = read_angles(spec, g.angle_unit.value, name="geometry.angles")
-    except DataFileError:
-        raise
-    except ValueError as e:  # inline values
-        raise ConfigError(f"geometry.angles: {e}") from None
-    return torch.as_tensor(angles, dtype=torch.float64)
-
-
-def _angle_spec(g):
-    """``geometry.angles`` as plain Python: a path (str), a list, or None."""
-    if g.angles is None:
-        return None
-    return OmegaConf.to_container(g.angles) if OmegaConf.is_list(g.angles) else str(g.angles)
-
-
-def geometry_options(g) -> dict:
-    """The ``geometry`` group as keywords of ``indreg.inputs.make_geometry`` (all but ``det_count``, ``angles``)."""
-    return {"num_angles": g.num_angles, "partition": g.partition.value, "det_min": g.det_min, "det_max": g.det_max,
-            "src_radius": g.src_radius, "det_radius": g.det_radius, "tilt_axis": g.tilt_axis.value,
-            "tilt_min": g.tilt_min, "tilt_max": g.tilt_max, "tilt_step": g.tilt_step,
-            "angle_unit": g.angle_unit.value}
-
-
-def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
-    """Noise-free and noisy data (float64, CPU) and the realised SNR in dB (``cfg.noise.convention``)."""
-    from ..noise import add_white_noise, snr_db
-
-    clean = T(target_64)
-    n = cfg.noise
-    if n.snr_db is None and n.std is None:
-        return clean, clean.clone(), float("inf")
-    seed = cfg.seed if n.seed is None else n.seed
-    k = len(T.range_shape)  # one data set: a sinogram or a whole tilt series
-    noisy, noise = add_white_noise(clean, snr_db=n.snr_db, std=n.std, convention=n.convention.value, seed=seed,
-                                   event_dims=k)
-    return clean, noisy, float(snr_db(clean, noise, convention=n.convention.value, event_dims=k))
-
-
-@source("phantom")
-def phantom_data(cfg: DictConfig) -> Data:
-    """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
-    (noise drawn with the run's seed), so the same config gives the same data on every device."""
-    p, g = cfg.phantom, cfg.geometry
-    domain = (square_domain(p.size, p.half_width, p.ndim) if p.thickness is None
-              else box_domain((p.size, p.size, p.thickness), p.half_width))
-    T = make_operator(domain, make_geometry(g.kind.value, g.det_count, angles=_angles(g), **geometry_options(g)))
-    target = phantoms.get(p.target.value, domain)
-    template = phantoms.get(p.template.value, domain)
-    clean, noisy, snr = make_data(cfg, T, target)
-    report = {}
-    if g.kind.value == "tilt_series":   # simulated in indreg's layout: the check's numbers, for comparison
-        check = check_tilt_axis(noisy.numpy())
-        log.info("simulated tilt series: %s", check.describe())
-        report = {"tilt_axis_angle": None, **check.metrics()}
-    return Data(domain=domain, geometry=T.geometry, operator=T, template_64=template, data_64=noisy,
-                label=p.template.value, target_64=target, clean_64=clean, snr_db=snr, report=report,
-                paper=True)
-
-
-def check_files(cfg: DictConfig) -> None:
-    """``data=files``: the files named by the config exist and have a known format (``indreg.io.check_file``;
-    an angle file exists), checked before the app creates its run directory; their contents are read by the run.
-    Raises ``DataFileError`` naming the key."""
-    d, g = cfg.data, cfg.geometry
-    if d.source != "files":
-        return
-    for key in ("template", "sinogram", "target"):
-        if d[key]:
-            check_file(d[key], f"data.{key}")
-    spec = _angle_spec(g)
-    if isinstance(spec, str) and not Path(spec).is_file():
-        raise DataFileError(f"geometry.angles file {spec}: no such file")
-
-
-@source("files")
-def file_data(cfg: DictConfig) -> Data:
-    """``indreg.load`` with the ``data`` and ``geometry`` groups' values (messages name the config keys): a square
-    template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
-    the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
-    ``data.integer_scale`` say how to read them. No noise is added."""
-    d, g = cfg.data, cfg.geometry
-    try:
-        inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
-                             angle_unit=g.angle_unit.value, target=d.target or None, half_width=d.half_width,
-                             det_min=g.det_min, det_max=g.det_max, det_count=g.det_count, num_angles=g.num_angles,
-                             tilt_axis=g.tilt_axis.value, tilt_axis_angle=g.tilt_axis_angle,
-                             src_radius=g.src_radius, det_radius=g.det_radius, convention=d.convention.value,
-                             integer_scale=d.integer_scale.value, names=CONFIG_KEYS)
-    except DataFileError:
-        raise
-    except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key
-        raise ConfigError(str(e)) from None
-    return Data.from_inputs(inputs)
-
-
-@source("dynamic")
-def dynamic_data(cfg: DictConfig) -> Data:
-    """``indreg.dynamic.acquisition``: ``data.frames`` frames of the breathing phantom (``data.amplitude``) on
-    ``phantom.size^2`` cells of [-16, 16]^2, ``geometry.num_angles`` angles per frame (all frames together uniform
-    on [0, pi)), ``geometry.det_count`` bins, noise at ``noise.snr_db`` per frame (seeded). The operator is a
-    ``TimeSeriesOperator``; the target is the last frame, ``targets`` the true frames and template."""
-    from ..dynamic import acquisition
-    from ..forward import TimeSeriesOperator
-
-    d, g, n = cfg.data, cfg.geometry, cfg.noise
-    if n.std is not None:
-        raise ConfigError("data.source=dynamic takes noise.snr_db (per frame), not noise.std")
-    seed = cfg.seed if n.seed is None else n.seed
-    a = acquisition(cfg.phantom.size, d.frames, g.num_angles, g.det_count, d.amplitude,
-                    300.0 if n.snr_db is None else n.snr_db, seed)
-    template = a.template if d.template_known else torch.zeros_like(a.template)
-    targets = {"frames": a.frames} if d.template_known else {"frames": a.frames, "template": a.template}
-    return Data(domain=a.domain, geometry=a.operators[0].geometry, operator=TimeSeriesOperator(a.operators),
-                template_64=template, data_64=a.data, label="breathing_shepp_logan", target_64=a.frames[-1],
-                clean_64=a.clean, snr_db=a.snr_db, template_known=d.template_known, targets=targets)
+from . import builtin_sources  # noqa: E402,F401  (registers phantom, files, dynamic)

@@ -228,6 +228,7 @@ class MetamorphosisRegistration(RegistrationProblem):
     # the registration-problem protocol (indreg.solvers.problem): the iterate is x = (m, s)
     iterate_names = ("momentum", "source")
     scored = ("deformation_part",)
+    output_kinds = {"deformation_part": "parts", "intensity_part": "parts"}
 
     def zero_iterate(self) -> tuple:
         return self.zero_momentum(), self.zero_source()

@@ -38,6 +38,8 @@ determinant of ``phi_{1,0}``.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import math
 
 import torch
@@ -52,6 +54,10 @@ class RegistrationProblem:
     iterate_names: tuple = ("momentum",)
     #: names in ``outputs(x)`` that are images to compare with a target (SSIM / PSNR)
     scored: tuple = ()
+    #: the kind of each output of ``outputs(x)`` that reports dispatch on (others are saved only): ``"parts"`` (a
+    #: split of the reconstruction into summands, in order), ``"frames"`` (images over time, a leading axis whose
+    #: times are ``frame_times()``)
+    output_kinds: dict = {}
 
     @property
     def time_weight(self) -> float:
@@ -104,6 +110,10 @@ class RegistrationProblem:
     def hparams(self) -> dict:
         """The model's own hyperparameters for reports (TensorBoard's HParams, metrics.json)."""
         return {}
+
+    def frame_times(self) -> Optional[list]:
+        """The times of the ``"frames"`` outputs (None: no frames)."""
+        return None
 
     def outputs(self, x: tuple) -> dict:
         """Model-specific results at ``x`` by name (tensors), besides the reconstruction and the deformation."""

@@ -263,6 +263,12 @@ class SpatiotemporalRegistration(RegistrationProblem):
             r = T.frames(self.all_frames(x)) - g
             return math.sqrt(float(T.inner_data(r, r)) / float(T.inner_data(g, g)))
 
+    output_kinds = {"frames": "frames"}
+
+    def frame_times(self) -> list:
+        """``t_k = j_k / N``: the frames' times on the time grid."""
+        return [j / self.num_steps for j in self.indices]
+
     def outputs(self, x: tuple) -> dict:
         out = {"frames": self.all_frames(x)}
         if not self.known:
