@@ -236,8 +236,8 @@ def _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angl
     if tilt_axis_angle is not None:
         if isinstance(tilt_axis_angle, bool) or not isinstance(tilt_axis_angle, numbers.Real) \
                 or not abs(tilt_axis_angle) <= 180:
-            raise ValueError(f"{key['tilt_axis_angle']} must be a finite number of degrees in [-180, 180] or None, got "
-                             f"{tilt_axis_angle!r}")
+            raise ValueError(f"{key['tilt_axis_angle']} must be a finite number of degrees in [-180, 180] or None, "
+                             f"got {tilt_axis_angle!r}")
         if geometry != "tilt_series":
             raise ValueError(f"{key['tilt_axis_angle']} applies to a tilt series ({key['geometry']}=tilt_series), "
                              f"got {key['geometry']}={geometry}")

@@ -77,3 +77,35 @@ def test_plugin_that_fails_to_import_is_one_line_and_not_registered(tmp_path, mo
     with pytest.raises(ValueError, match="cannot be imported: RuntimeError: boom at import"):
         indreg.options.model("broken_plugin:MODEL")
     assert "broken_plugin:MODEL" not in indreg.options.MODELS
+
+
+SOURCE = textwrap.dedent('''
+    """A plug-in data source with a key of its own: the paper's phantoms, template and data times ``my_gain``."""
+    import dataclasses
+
+    from indreg.experiments.builtin_sources import phantom_data
+    from indreg.experiments.sources import Source
+
+    def load(cfg):
+        d = phantom_data(cfg)
+        g = cfg.data.my_gain
+        return dataclasses.replace(d, template_64=g * d.template_64, data_64=g * d.data_64, label=f"gain{g:g}")
+
+    SOURCE = Source("gained", load, options=(("my_gain", float, 1.0),),
+                    check=lambda c, require: require(c.data.my_gain > 0, "data.my_gain", "a number > 0",
+                                                     c.data.my_gain))
+''')
+
+
+def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
+    (tmp_path / "my_source.py").write_text(SOURCE)
+    out = tmp_path / "run"
+    args = ["data.source=my_source:SOURCE", "data.my_gain=2", "phantom.size=16", "deformation.num_steps=3",
+            "solver.max_iter=2", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
+            "device=cpu", f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["hparams"]["template"] == "gain2" and m["config"]["data"]["my_gain"] == 2.0
+    bad = run_cli(args[:1] + ["data.my_gain=-1"] + args[2:], cwd=tmp_path)
+    assert bad.returncode == 1 and "data.my_gain" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
