@@ -76,8 +76,8 @@ def _make_solver(problem, o: dict, solver_options: dict):
         return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
                                 **extra)
     if kind == opts.ALGORITHM1:
-        return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"], step_halving=o["step_halving"],
-                          max_halvings=o["max_halvings"], **extra)
+        return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"],
+                          step_halving=o["step_halving"], max_halvings=o["max_halvings"], **extra)
     return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
                             grad_tol=o["grad_tol"], **extra, **o["optimizer_kwargs"])
 

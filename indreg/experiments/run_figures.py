@@ -24,8 +24,9 @@ def to_numpy(x) -> np.ndarray:
 
 def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int) -> None:
     """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
-    splits its reconstruction (two outputs of kind ``"parts"``, ``problem.output_kinds``), frames.png and frames.gif
-    when it has an output of kind ``"frames"``, and TensorBoard's final images; ``quality``: the figures of merit in the titles."""
+    splits its reconstruction (two outputs of kind ``"parts"``, ``problem.output_kinds``), frames.png and
+    frames.gif when it has an output of kind ``"frames"``, and TensorBoard's final images; ``quality``: the
+    figures of merit in the titles."""
     traj = to_numpy(r.trajectory)
     volume = exp.domain.ndim == 3
     kinds = exp.problem.output_kinds
