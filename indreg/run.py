@@ -202,69 +202,40 @@ def _regularisers(info: dict) -> str:
     return ", regularisers " + " / ".join(f"{k} {info[k]:.4g}" for k in ("regulariser", *extra))
 
 
-def _held_out(info: dict) -> str:
-    return f", held-out residual {info['holdout_residual']:.4g}" if "holdout_residual" in info else ""
-
-
 class RegistrationLoop:
     """``info = solver.step(state)`` until done; history, warnings, progress log lines and a tqdm bar.
 
-    Subclasses (the experiment app) hook in with :meth:`before_step` (may return a stop status),
-    :meth:`after_step` (every iteration; may return a stop status) and :meth:`describe` (extra text for the
-    log line printed every ``every`` iterations). ``run()`` returns the status: ``completed``,
-    ``converged``, ``stalled`` (:data:`STALL_WINDOW`), ``failed`` (a non-finite objective or gradient; the state
-    keeps the last iterate the solver accepted), ``early_stopped`` (``validation`` ran out of patience), or what a
-    hook returned. ``callback(state, info)`` returning True stops it (``stopped``).
-
-    ``validation`` (``indreg.validation.Validation``, from ``holdout``): every ``every`` iterations the held-out
-    residual of the current reconstruction goes into ``info`` and the history as ``holdout_residual`` (before
-    the hooks see ``info``) and into the log line.
+    ``callbacks`` (``indreg.callbacks.Callback``, composed with ``&``) hook in before and after every step (either
+    may return a status that stops the loop) and add text to the log line printed every ``every`` iterations; the
+    app adds TensorBoard, evaluation, checkpoints and its stop requests so. ``validation``
+    (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in the chain (the
+    held-out residual every ``every`` iterations, in ``info``, the history and the log line; early stopping);
+    ``callback(state, info)`` returning True stops the loop (``stopped``, ``indreg.callbacks.UserCallback``,
+    last). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
+    ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver accepted),
+    ``early_stopped`` (``validation`` ran out of patience), or what a callback returned.
     """
 
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
-                 desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None):
+                 desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None,
+                 callbacks=None):
+        from .callbacks import Callbacks, HeldOut, UserCallback
+
         self.problem, self.solver, self.state = problem, solver, state
         self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc
         self.history = [] if history is None else history
         self.seconds = seconds
-        self.callback = callback
         self.warnings = count_warnings(self.history)
         self.rtol = rounding_tolerance(state.iterate[0].dtype)
-        self.validation = validation
-        if validation is not None:
-            validation.restore(self.history)
-
-    def before_step(self) -> Optional[str]:
-        return None
-
-    def after_step(self, info: dict, done: bool) -> Optional[str]:
-        if self.callback is not None and self.callback(self.state, info):
-            return "stopped"
-        return None
-
-    def describe(self, info: dict) -> str:
-        return ""
+        chain = [HeldOut(validation)] if validation is not None else []
+        chain += [callbacks] if callbacks is not None else []
+        self.callbacks = Callbacks(*chain, *([UserCallback(callback)] if callback is not None else []))
 
     def _warn(self, it: int, info: dict) -> None:
         """Count a warning; log the first one and then one every ``every`` iterations."""
         self.warnings += 1
         if self.warnings == 1 or it % self.every == 0:
             log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
-
-    def _validate(self, it: int, info: dict) -> Optional[str]:
-        """Every ``every`` iterations: the held-out residual into ``info`` and the history; ``early_stopped`` when
-        the validation's patience has run out."""
-        v = self.validation
-        if v is None or it % self.every:
-            return None
-        info["holdout_residual"] = self.history[-1]["holdout_residual"] = \
-            v.record(it, self.problem.reconstruction(self.state.iterate))
-        if not v.exhausted():
-            return None
-        best, value = v.best
-        log.info("iteration %d: the held-out residual has not decreased in %d evaluations (least %.4g at "
-                 "iteration %d); stopping", it, v.patience, value, best)
-        return "early_stopped"
 
     def _stalled(self) -> bool:
         """Step halving has collapsed the step (:data:`STALL_WINDOW`)."""
@@ -281,9 +252,10 @@ class RegistrationLoop:
         meter = Progress(self.max_iter, state.iteration)
         bar = tqdm(total=self.max_iter, initial=state.iteration, desc=self.desc, dynamic_ncols=True,
                    disable=not (self.progress and sys.stderr.isatty()))
+        self.callbacks.begin(self)
         try:
             while state.iteration < self.max_iter:
-                stop = self.before_step()
+                stop = self.callbacks.before(self)
                 if stop:
                     status = stop
                     break
@@ -310,12 +282,11 @@ class RegistrationLoop:
                               info.get("warning") or "grad_norm is not finite")
                     break
                 done = reason is not None
-                early = self._validate(it, info)
-                stop = self.after_step(info, done) or early
+                stop = self.callbacks.after(self, info, done)
                 if it % self.every == 0 and not done:
-                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s%s", meter.line(it),
+                    log.info("%s: objective %.6g, data fit %.6g, min Jacobian %.4g%s%s", meter.line(it),
                              info["objective"], info["data_fit"], info["min_jacobian"], _regularisers(info),
-                             _held_out(info), self.describe(info))
+                             self.callbacks.describe(info))
                 bar.update(1)
                 bar.set_postfix(objective=f"{info['objective']:.4g}")
                 if stop:
@@ -326,6 +297,7 @@ class RegistrationLoop:
                     break
         finally:
             bar.close()
+            self.callbacks.end(self)
         rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
             log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)", self.warnings,

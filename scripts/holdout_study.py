@@ -58,6 +58,7 @@ def compose(overrides: list):
 def study(suite: str, angles: int, holdout: int, max_iter: int, every: int, extra: list) -> dict:
     """One run: the held-out residual and the true SSIM every ``every`` iterations."""
     from indreg import metrics
+    from indreg.callbacks import Callback
     from indreg.experiments.build import build, seed_everything
     from indreg.run import RegistrationLoop, initial_state
 
@@ -67,15 +68,14 @@ def study(suite: str, angles: int, holdout: int, max_iter: int, every: int, extr
     exp = build(cfg)
     ssim = []
 
-    class Loop(RegistrationLoop):
-        def after_step(self, info, done):
+    class TrueSSIM(Callback):   # after the held-out residual: the SSIM at the same iterations
+        def after(self, loop, info, done):
             if "holdout_residual" in info:
-                f = self.problem.reconstruction(self.state.iterate).detach().to("cpu").double()
-                ssim.append((self.state.iteration, metrics.ssim(f, exp.target_64)))
-            return None
+                f = loop.problem.reconstruction(loop.state.iterate).detach().to("cpu").double()
+                ssim.append((loop.state.iteration, metrics.ssim(f, exp.target_64)))
 
-    loop = Loop(exp.problem, exp.solver, initial_state(exp.problem), max_iter, every=every,
-                validation=exp.validation)
+    loop = RegistrationLoop(exp.problem, exp.solver, initial_state(exp.problem), max_iter, every=every,
+                            validation=exp.validation, callbacks=TrueSSIM())
     status = loop.run()
     curve = exp.validation.curve
     i_hold, r_hold = exp.validation.best

@@ -1,5 +1,6 @@
-"""One run of the app: build the problem, the baselines, resume from a checkpoint, iterate (``AppLoop``: TensorBoard,
-checkpoints, SIGINT / SIGTERM), then the final outputs (:mod:`indreg.experiments.outputs`).
+"""One run of the app: build the problem, the baselines, resume from a checkpoint, iterate (the shared loop with the
+app's callbacks: TensorBoard, evaluation, checkpoints, ``stop_after``, SIGINT / SIGTERM), then the final outputs
+(:mod:`indreg.experiments.outputs`).
 
 Convention: ``run(cfg, output_dir)`` writes everything into ``output_dir`` (``checkpoint.pt``, ``baselines.npz``,
 ``tensorboard/`` and the outputs) and returns ``metrics.json``'s dict.
@@ -13,6 +14,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from ..callbacks import Callback
 from ..io import DataFileError
 from ..run import RegistrationLoop, initial_state
 from . import checkpoint as ckpt
@@ -21,7 +23,7 @@ from .build import build, seed_everything
 from .config import ConfigError, to_plain, validate
 from .outputs import failed, figures_of_merit, finish
 
-__all__ = ["run", "AppLoop", "StopRequest"]
+__all__ = ["run", "StopRequest", "StopAfter", "Signals", "TensorBoard", "Evaluation", "Checkpoints"]
 
 log = logging.getLogger("indreg.experiments.register")
 
@@ -66,54 +68,83 @@ def _problem_config(plain: dict) -> dict:
     return out
 
 
-class AppLoop(RegistrationLoop):
-    """The shared registration loop plus the app's outputs: TensorBoard scalars every iteration; SSIM / PSNR
-    (with a target) and the deformed template every ``logging.every``; a checkpoint every
-    ``logging.checkpoint_every``; ``stop_after`` and SIGINT / SIGTERM stop it (``stopped`` / ``interrupted``)."""
+class StopAfter(Callback):
+    """``stop_after``: stop (``stopped``, checkpointed as if interrupted) once this many iterations are done."""
 
-    def __init__(self, cfg, exp, state, writer, path: Path, problem_cfg: dict, history, seconds):
-        super().__init__(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
-                         progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
-                         validation=exp.validation)
-        self.cfg, self.exp, self.writer, self.path, self.problem_cfg = cfg, exp, writer, path, problem_cfg
-        self.stop = StopRequest()
-        self._fom = ""
+    def __init__(self, iterations):
+        self.iterations = iterations
 
-    def save_checkpoint(self) -> None:
-        ckpt.save(self.path, {"iteration": self.state.iteration, "state": self.state.state_dict(),
-                              "solver": self.solver.state_dict(), "rng": ckpt.rng_state(), "history": self.history,
-                              "seconds": self.seconds, "problem": self.problem_cfg})
+    def before(self, loop):
+        return "stopped" if self.iterations is not None and loop.state.iteration >= self.iterations else None
 
-    def before_step(self):
-        stop_after = self.cfg.stop_after
-        return "stopped" if stop_after is not None and self.state.iteration >= stop_after else None
 
-    def after_step(self, info: dict, done: bool):
-        it, lg, exp = self.state.iteration, self.cfg.logging, self.exp
+class Signals(Callback):
+    """SIGINT / SIGTERM (:class:`StopRequest`) end the loop after the running step (``interrupted``)."""
+
+    def __init__(self):
+        self.request = StopRequest()
+
+    def begin(self, loop):
+        self.request.install()
+
+    def after(self, loop, info, done):
+        return "interrupted" if self.request.signum is not None else None
+
+    def end(self, loop):
+        self.request.restore()
+
+
+class TensorBoard(Callback):
+    """The report's scalars every iteration, the held-out residual when it was evaluated (``tblog.RunWriter``)."""
+
+    def __init__(self, writer):
+        self.writer = writer
+
+    def after(self, loop, info, done):
+        it = loop.state.iteration
         self.writer.scalars(info, it)
         if "holdout_residual" in info:
             self.writer.validation(info["holdout_residual"], it)
-        self._fom = ""
-        if it % lg.every == 0 and not done:  # the last iterate is evaluated by finish()
-            deformed = self.problem.reconstruction(self.state.iterate)
-            if exp.target_64 is not None:
-                fom = figures_of_merit(deformed, exp.target_64, exp.paper)
-                self.writer.metrics(fom, it)
-                self._fom = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
-            self.writer.image("images/deformed_template", deformed, it)
-        if it % lg.checkpoint_every == 0:
-            self.save_checkpoint()
-        return "interrupted" if self.stop.signum is not None else None
 
-    def describe(self, info: dict) -> str:
-        return self._fom
 
-    def run(self) -> str:
-        self.stop.install()
-        try:
-            return super().run()
-        finally:
-            self.stop.restore()
+class Evaluation(Callback):
+    """Every ``every`` iterations (not the last: ``finish`` evaluates it): SSIM / PSNR against the target (to
+    TensorBoard and the log line) and the reconstruction's image."""
+
+    def __init__(self, exp, writer, every: int):
+        self.exp, self.writer, self.every, self.text = exp, writer, every, ""
+
+    def after(self, loop, info, done):
+        it, exp = loop.state.iteration, self.exp
+        self.text = ""
+        if it % self.every or done:
+            return
+        deformed = loop.problem.reconstruction(loop.state.iterate)
+        if exp.target_64 is not None:
+            fom = figures_of_merit(deformed, exp.target_64, exp.paper)
+            self.writer.metrics(fom, it)
+            self.text = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
+        self.writer.image("images/deformed_template", deformed, it)
+
+    def describe(self, info):
+        return self.text
+
+
+class Checkpoints(Callback):
+    """A checkpoint every ``every`` iterations (:meth:`save`: iterate, solver, random state, history, time and the
+    problem's config, which a resume checks)."""
+
+    def __init__(self, path: Path, problem_cfg: dict, every: int):
+        self.path, self.problem_cfg, self.every = path, problem_cfg, every
+
+    def save(self, loop) -> None:
+        ckpt.save(self.path, {"iteration": loop.state.iteration, "state": loop.state.state_dict(),
+                              "solver": loop.solver.state_dict(), "rng": ckpt.rng_state(), "history": loop.history,
+                              "seconds": loop.seconds, "problem": self.problem_cfg})
+
+    def after(self, loop, info, done):
+        if loop.state.iteration % self.every == 0:
+            self.save(loop)
 
 
 def run(cfg: DictConfig, output_dir) -> dict:
@@ -175,16 +206,20 @@ def run(cfg: DictConfig, output_dir) -> dict:
         if exp.target_64 is not None:
             writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper), 0)
 
-    loop = AppLoop(cfg, exp, state, writer, path, problem_cfg, history, seconds)
+    checkpoints, signals = Checkpoints(path, problem_cfg, cfg.logging.checkpoint_every), Signals()
+    loop = RegistrationLoop(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
+                            progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
+                            validation=exp.validation, callbacks=StopAfter(cfg.stop_after) & TensorBoard(writer)
+                            & Evaluation(exp, writer, cfg.logging.every) & checkpoints & signals)
     status = loop.run()
     if status == "failed":  # keep the last checkpoint: its iterate is finite
         writer.close()
         return failed(out, loop.history)
-    loop.save_checkpoint()
+    checkpoints.save(loop)
     if status in ("stopped", "interrupted"):
         writer.close()
         log.warning("%s at iteration %d; continue with resume=true (same run dir %s)", status, state.iteration, out)
-        return {"status": status, "iteration": state.iteration, "signal": loop.stop.signum}
+        return {"status": status, "iteration": state.iteration, "signal": signals.request.signum}
     result = finish(cfg, exp, state, rec, loop.history, loop.seconds, out, writer, status)
     writer.close()
     return result

@@ -1,0 +1,123 @@
+"""Callbacks of the registration loop (``indreg.run.RegistrationLoop``), composable with ``&`` like ODL's.
+
+A :class:`Callback` sees the loop at four moments: :meth:`~Callback.begin` (before the first step),
+:meth:`~Callback.before` (before every step), :meth:`~Callback.after` (after every step, with the solver's report
+``info``) and :meth:`~Callback.end`. ``before`` and ``after`` may return a status that stops the loop
+(``"stopped"``, ``"early_stopped"``, ...); :meth:`~Callback.describe` adds text to the progress log line. ``a & b``
+runs ``a`` then ``b`` (:class:`Callbacks`): every callback runs each time, the first status returned wins.
+
+Built in: :class:`UserCallback` (``register(callback=fn)``: ``fn(state, info)`` returning True stops the run),
+:class:`HeldOut` (``holdout=``: the held-out residual every ``every`` iterations, early stopping). The app adds
+TensorBoard, evaluation, checkpoints and its stop requests the same way (``indreg.experiments.runner``).
+
+Convention: ``loop`` is the running ``RegistrationLoop`` (``loop.state``, ``loop.problem``, ``loop.solver``,
+``loop.history``, ``loop.every``); ``info`` the solver's report of the step (a dict, also the last entry of
+``loop.history``); iterations count from 1.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Optional
+
+__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut"]
+
+log = logging.getLogger("indreg")
+
+
+class Callback:
+    """A hook of the registration loop (module docstring); the base does nothing."""
+
+    def begin(self, loop) -> None:
+        """Before the first step (after a resume too)."""
+
+    def before(self, loop) -> Optional[str]:
+        """Before every step: a status stops the loop before the step."""
+        return None
+
+    def after(self, loop, info: dict, done: bool) -> Optional[str]:
+        """After every step (``done``: the solver ends here): a status stops the loop."""
+        return None
+
+    def describe(self, info: dict) -> str:
+        """Text for the progress log line (``, SSIM 0.87``)."""
+        return ""
+
+    def end(self, loop) -> None:
+        """After the last step, also when a step raised."""
+
+    def __and__(self, other: "Callback") -> "Callbacks":
+        return Callbacks(self, other)
+
+
+class Callbacks(Callback):
+    """Callbacks run in order (``a & b & c``); the first status any of them returns stops the loop."""
+
+    def __init__(self, *callbacks: Callback):
+        self.callbacks = []
+        for c in callbacks:
+            if not isinstance(c, Callback):
+                raise TypeError(f"callbacks must be indreg.callbacks.Callback instances, got {type(c).__name__}")
+            self.callbacks += c.callbacks if isinstance(c, Callbacks) else [c]
+
+    def begin(self, loop) -> None:
+        for c in self.callbacks:
+            c.begin(loop)
+
+    def before(self, loop) -> Optional[str]:
+        return _first([c.before(loop) for c in self.callbacks])
+
+    def after(self, loop, info: dict, done: bool) -> Optional[str]:
+        return _first([c.after(loop, info, done) for c in self.callbacks])
+
+    def describe(self, info: dict) -> str:
+        return "".join(c.describe(info) for c in self.callbacks)
+
+    def end(self, loop) -> None:
+        for c in self.callbacks:
+            c.end(loop)
+
+    def __repr__(self) -> str:
+        return " & ".join(type(c).__name__ for c in self.callbacks) or "Callbacks()"
+
+
+def _first(statuses: list) -> Optional[str]:
+    return next((s for s in statuses if s), None)
+
+
+class UserCallback(Callback):
+    """``fn(state, info)`` after every step; True stops the loop (``stopped``)."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+
+    def after(self, loop, info: dict, done: bool) -> Optional[str]:
+        return "stopped" if self.fn(loop.state, info) else None
+
+
+class HeldOut(Callback):
+    """Validation on held-out angles (``indreg.validation.Validation``): every ``loop.every`` iterations the
+    held-out residual of the current reconstruction goes into ``info`` and the history as ``holdout_residual``
+    (put it first in a chain, so that the callbacks after it see it); ``early_stopped`` when the validation's
+    patience has run out."""
+
+    def __init__(self, validation):
+        self.validation = validation
+
+    def begin(self, loop) -> None:
+        self.validation.restore(loop.history)   # a resumed run continues its curve
+
+    def after(self, loop, info: dict, done: bool) -> Optional[str]:
+        v, it = self.validation, loop.state.iteration
+        if it % loop.every:
+            return None
+        info["holdout_residual"] = loop.history[-1]["holdout_residual"] = \
+            v.record(it, loop.problem.reconstruction(loop.state.iterate))
+        if not v.exhausted():
+            return None
+        best, value = v.best
+        log.info("iteration %d: the held-out residual has not decreased in %d evaluations (least %.4g at "
+                 "iteration %d); stopping", it, v.patience, value, best)
+        return "early_stopped"
+
+    def describe(self, info: dict) -> str:
+        return f", held-out residual {info['holdout_residual']:.4g}" if "holdout_residual" in info else ""
