@@ -182,12 +182,18 @@ class Model:
     defaults: Optional[Callable] = None  # defaults(options): fills options left None by the model's own rules
 
 
+def add_to_registry(registry: dict, entry, cls: type, expected: str):
+    """``registry[entry.name] = entry`` (a name already there is replaced) for an instance of ``cls``; else a
+    one-line TypeError (``expected``: e.g. "register_model takes an indreg.models.Model"). Returns ``entry``."""
+    if not isinstance(entry, cls):
+        raise TypeError(f"{expected}, got {type(entry).__name__}")
+    registry[entry.name] = entry
+    return entry
+
+
 def register_model(model: Model) -> Model:
     """Add ``model`` to the registry (a name already there is replaced)."""
-    if not isinstance(model, Model):
-        raise TypeError(f"register_model takes an indreg.models.Model, got {type(model).__name__}")
-    MODELS[model.name] = model
-    return model
+    return add_to_registry(MODELS, model, Model, "register_model takes an indreg.models.Model")
 
 
 def model(name: str) -> Model:

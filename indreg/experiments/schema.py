@@ -27,33 +27,21 @@ Phantom = Enum("Phantom", {name: name for name in _phantoms.names()}, type=str)
 Phantom.__doc__ = "Phantom names accepted by ``indreg.phantoms.get``."
 
 
-class Dtype(str, Enum):
-    float32 = "float32"
-    float64 = "float64"
+def _choices(name: str, values, doc: str = "") -> type:
+    """A string enum whose members are named by their values (``values``)."""
+    cls = Enum(name, {v: v for v in values}, type=str)
+    cls.__doc__ = doc or f"One of {', '.join(values)}."
+    return cls
 
 
-class AnglePartition(str, Enum):
-    """``paper``: ODL's ``uniform_partition(0, pi, n, nodes_on_bdry=(True, False))``; ``uniform``: k pi / n."""
-    paper = "paper"
-    uniform = "uniform"
-
-
-class GeometryKind(str, Enum):
-    """``parallel``: ``ParallelBeamGeometry``; ``fan_flat``: ``FanBeamGeometry`` (flat detector), both 2D;
-    ``tilt_series``: ``TiltSeriesGeometry`` (3D, single-axis tilt series of electron tomography)."""
-    parallel = "parallel"
-    fan_flat = "fan_flat"
-    tilt_series = "tilt_series"
-
-
-class AngleUnit(str, Enum):
-    deg = "deg"
-    rad = "rad"
-
-
-class NoiseConvention(str, Enum):
-    code = "code"
-    paper = "paper"
+Dtype = _choices("Dtype", ("float32", "float64"))
+AnglePartition = _choices("AnglePartition", ("paper", "uniform"), "``paper``: ODL's ``uniform_partition(0, pi, n, "
+                          "nodes_on_bdry=(True, False))``; ``uniform``: k pi / n.")
+GeometryKind = _choices("GeometryKind", ("parallel", "fan_flat", "tilt_series"), "``parallel``: "
+                        "``ParallelBeamGeometry``; ``fan_flat``: ``FanBeamGeometry`` (flat detector), both 2D; "
+                        "``tilt_series``: ``TiltSeriesGeometry`` (3D, single-axis tilt series of electron tomography).")
+AngleUnit = _choices("AngleUnit", ("deg", "rad"))
+NoiseConvention = _choices("NoiseConvention", ("code", "paper"))
 
 
 TiltAxis = Enum("TiltAxis", {name: name for name in AXES}, type=str)   # the image axes x, y, z

@@ -39,6 +39,7 @@ from omegaconf import DictConfig
 
 from ..domain import ImageDomain
 from ..inputs import RegistrationInputs
+from ..options import add_to_registry
 from .errors import ConfigError
 
 __all__ = ["Data", "Source", "SOURCES", "register_source", "get", "resolve", "load", "data_fields", "check_files",
@@ -99,10 +100,7 @@ class Source:
 
 def register_source(source: Source) -> Source:
     """Add ``source`` to the registry under its name (a name already there is replaced)."""
-    if not isinstance(source, Source):
-        raise TypeError(f"register_source takes an indreg.experiments.sources.Source, got {type(source).__name__}")
-    SOURCES[source.name] = source
-    return source
+    return add_to_registry(SOURCES, source, Source, "register_source takes an indreg.experiments.sources.Source")
 
 
 def get(name: str) -> Source:
