@@ -21,12 +21,11 @@ from typing import Any, Callable, Dict, Optional
 
 import torch
 
+from .units import GAMMA_REL, STEP_REL
+
 #: ``register()``'s torch.optim solvers are named by their class name (``"lbfgs"``, ``"adam"``, ...).
 ALGORITHM1, FAST = "algorithm1", "fast"
 _NONE = object()
-#: The relative defaults (``indreg.units``): the paper's suite-1 ``gamma = 1e-6`` and step 0.02 at its data-term
-#: scale ``S = ||g||^2 / L^2 = 5.95`` (10 angles x 92 bins, 4.87 dB, the box [-16, 16]^2).
-GAMMA_REL, STEP_REL = 1.7e-7, 0.12
 
 
 class OptionError(ValueError):

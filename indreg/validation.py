@@ -20,7 +20,7 @@ from typing import Optional
 
 import torch
 
-from .forward.algebra import restrict
+from .forward.stacking import restrict
 from .options import OptionError
 
 

@@ -17,6 +17,7 @@ from .. import models as _models  # noqa: F401  (fills the registry of models wh
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
+from . import builtin_sources  # noqa: F401  (registers the built-in sources: phantom, files, dynamic)
 from . import sources
 
 __all__ = ["Phantom", "Dtype", "AnglePartition", "GeometryKind", "AngleUnit", "NoiseConvention", "TiltAxis",

@@ -2,7 +2,7 @@
 
 ``data.source`` names a :class:`Source` (:func:`get`): a function ``load(cfg) -> Data`` with the ``data`` group's
 keys it reads (``options``, each declared by its source: the app's schema is built from them) and a check of their
-values. Built in (:mod:`indreg.experiments.builtin_sources`):
+values. Built in (:mod:`indreg.experiments.builtin_sources`, registered when the app's schema is imported):
 
     phantom   the paper's suites: ``indreg.phantoms`` template and target, data ``T(target)`` plus white noise
     dynamic   a breathing Shepp-Logan phantom measured a few angles at a time (``indreg.dynamic``): data of
@@ -194,5 +194,3 @@ def _entry_point(name: str):
             return ep.load()
     return None
 
-
-from . import builtin_sources  # noqa: E402,F401  (registers phantom, files, dynamic)

@@ -1,4 +1,5 @@
-"""Operator algebra: compositions, sums, multiples, stacks and row restrictions of linear forward operators.
+"""Operator algebra: compositions, sums and multiples of linear forward operators (stacks and row restrictions:
+:mod:`indreg.forward.stacking`), and the mixins that give indreg's operators ``*``, ``+`` and the protocol's checks.
 
 Each operator here follows the protocol of ``indreg.forward.operator`` and is built from operators that follow it:
 indreg's own (which also write ``A * B``, ``c * A``, ``A + B``, ``A - B``: ``OperatorAlgebra``) or foreign ones
@@ -31,16 +32,18 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from typing import Callable, Optional, Sequence
 
+import numpy as np
 import torch
 
 from .._checks import check_number, check_tensor
 from ..domain import ImageDomain
-from .operator import OperatorAlgebra, check_data_pair, check_operator
+from .operator import MEMBERS, adjointness, check_data_pair, check_operator, norm_data, operator_norm
 
-__all__ = ["ImageOperator", "ComposedOperator", "SumOperator", "ScaledOperator", "StackedOperator",
-           "RestrictedOperator", "compose", "add", "scale", "stack", "restrict"]
+__all__ = ["OperatorAlgebra", "WeightedDataMixin", "ImageOperator", "ComposedOperator", "SumOperator",
+           "ScaledOperator", "compose", "add", "scale"]
 
 
 def _name(op) -> str:
@@ -73,6 +76,88 @@ def _on_domain(build: Callable, *parts) -> Optional[Callable]:
     if not all(callable(r) for r in rebuilds):
         return None
     return lambda domain: build(*[r(domain) for r in rebuilds])
+
+
+class OperatorAlgebra:
+    """Operator arithmetic and the protocol's checks on the operator itself, for indreg's operators (the ray
+    transform, the tilt series, the deepinv wrapper, the generic operators of ``indreg.forward.algebra``).
+
+    ``A * B`` is the composition ``f -> A(B f)`` (``B`` an image-space operator, e.g. a blur, or any operator whose
+    range is ``A``'s domain), ``c * A`` / ``A * c`` a multiple, ``A + B`` / ``A - B`` / ``-A`` sums; ``B`` may be a
+    foreign operator of the protocol. Anything else (``A * tensor``) is refused by Python's ``TypeError``: an
+    operator is applied by calling it, ``A(f)``."""
+
+    def __mul__(self, other):
+        if _is_number(other):
+            return scale(other, self)
+        return compose(self, other) if _is_operator(other) else NotImplemented
+
+    def __rmul__(self, other):
+        if _is_number(other):
+            return scale(other, self)
+        return compose(other, self) if _is_operator(other) else NotImplemented
+
+    def __add__(self, other):
+        return add(self, other) if _is_operator(other) else NotImplemented
+
+    def __radd__(self, other):
+        return add(other, self) if _is_operator(other) else NotImplemented
+
+    def __neg__(self):
+        return scale(-1.0, self)
+
+    def __sub__(self, other):
+        return add(self, scale(-1.0, other)) if _is_operator(other) else NotImplemented
+
+    def __rsub__(self, other):
+        return add(other, -self) if _is_operator(other) else NotImplemented
+
+    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
+        """Weighted data norm over the data axes (:func:`norm_data`)."""
+        return norm_data(self, y)
+
+    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
+        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (:func:`adjointness`)."""
+        return adjointness(self, dtype, device, seed)
+
+    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
+                      seed: int = 0) -> float:
+        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
+        return operator_norm(self, num_iter, dtype, device, seed)
+
+
+def _is_number(x) -> bool:
+    return (isinstance(x, numbers.Real) or (isinstance(x, torch.Tensor) and x.dim() == 0)) \
+        and not isinstance(x, (bool, np.bool_))
+
+
+def _is_operator(x) -> bool:
+    return all(hasattr(x, m) for m in MEMBERS)
+
+
+class WeightedDataMixin(OperatorAlgebra):
+    """The data-space members of a projector whose data inner product is ``geometry.data_weight * sum`` over
+    ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``range_shape``, ``adjoint_scale`` and
+    ``inner_data``; the arithmetic and the checks (``adjointness_test``, ``operator_norm``) from
+    ``OperatorAlgebra``."""
+
+    @property
+    def range_shape(self) -> tuple:
+        """Data shape: ``geometry.shape``."""
+        return self.geometry.shape
+
+    @property
+    def adjoint_scale(self) -> float:
+        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
+        return self.geometry.data_weight / self.domain.cell_volume
+
+    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
+        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept.
+
+        Convention: ``y1``, ``y2`` ``(..., *range_shape)``, float32 / float64 alike, batch dims broadcast; values
+        are not checked for finiteness (a residual may hold nan / inf, which the sum then reports)."""
+        dims = check_data_pair(y1, y2, self.range_shape)
+        return self.geometry.data_weight * (y1 * y2).sum(dim=dims)
 
 
 class ImageOperator(OperatorAlgebra):
@@ -252,154 +337,6 @@ class ScaledOperator(OperatorAlgebra):
         return f"{self.factor:g} * {self.operator!r}"
 
 
-class StackedOperator(OperatorAlgebra):
-    """The operators ``T_1 .. T_K`` of one domain and one range shape ``R``, stacked (deepinv's ``stack``).
-
-    Convention:
-        - ``range_shape`` ``(K, *R)``: part ``k``'s data on axis ``-len(R) - 1``.
-        - ``__call__``: ``(..., *domain.shape) -> (..., K, *R)``, ``f -> (T_1 f, ..., T_K f)``; ``adjoint``: back,
-          ``g -> sum_k T_k^* g_k``.
-        - ``frames`` / ``frames_adjoint``: the block-diagonal operator ``(f_1, .., f_K) -> (T_1 f_1, .., T_K f_K)``,
-          ``(..., K, *domain.shape) <-> (..., K, *R)`` (a frame per part, e.g. per time point).
-        - ``inner_data`` sums the parts' ``T_k.inner_data`` (batch dims kept); ``frame_inner`` keeps the parts.
-    """
-
-    def __init__(self, operators: Sequence):
-        ops = list(operators) if isinstance(operators, (list, tuple)) else None
-        if not ops:
-            raise ValueError(f"operators must be a non-empty list of operators, got "
-                             f"{type(operators).__name__}{'' if ops is None else ' of length 0'}")
-        for k, op in enumerate(ops):
-            check_operator(op, f"operators[{k}]")
-            _check_alike(ops[0], op, "operators[0]", f"operators[{k}]")
-        self.operators = ops
-        self.domain = ops[0].domain
-        self.frame_shape = tuple(ops[0].range_shape)
-        self.range_shape = (len(ops), *self.frame_shape)
-
-    def __len__(self) -> int:
-        return len(self.operators)
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({len(self)} x {self.operators[0]!r})"
-
-    @property
-    def _image_axis(self) -> int:
-        return -self.domain.ndim - 1
-
-    @property
-    def _data_axis(self) -> int:
-        return -len(self.frame_shape) - 1
-
-    def frames(self, f: torch.Tensor) -> torch.Tensor:
-        """``(T_1 f_1, ..., T_K f_K)``: frames ``(..., K, *domain.shape)`` -> data ``(..., K, *R)`` (differentiable)."""
-        check_tensor(f, "frames", (len(self), *self.domain.shape), finite=False)
-        a = self._image_axis
-        return torch.stack([T(f.select(a, k)) for k, T in enumerate(self.operators)], dim=self._data_axis)
-
-    def frames_adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        """``(T_1^* y_1, ..., T_K^* y_K)``: data ``(..., K, *R)`` -> frames ``(..., K, *domain.shape)``."""
-        check_tensor(y, "data", self.range_shape, finite=False)
-        a = self._data_axis
-        return torch.stack([T.adjoint(y.select(a, k)) for k, T in enumerate(self.operators)], dim=self._image_axis)
-
-    def __call__(self, f: torch.Tensor) -> torch.Tensor:
-        """``(T_1 f, ..., T_K f)`` of one image: ``(..., *domain.shape)`` -> ``(..., K, *R)``."""
-        check_tensor(f, "f", self.domain.shape, finite=False)
-        return torch.stack([T(f) for T in self.operators], dim=self._data_axis)
-
-    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        """``sum_k T_k^* y_k``: ``(..., K, *R)`` -> ``(..., *domain.shape)`` (the adjoint of ``__call__``)."""
-        return self.frames_adjoint(y).sum(dim=self._image_axis)
-
-    def frame_inner(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """``<y1_k, y2_k>_k`` per part, ``(..., K)``."""
-        check_data_pair(y1, y2, self.range_shape)
-        a = self._data_axis
-        return torch.stack([T.inner_data(y1.select(a, k), y2.select(a, k)) for k, T in enumerate(self.operators)],
-                           dim=-1)
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """``sum_k <y1_k, y2_k>_k``: the parts' data inner products summed, batch dims kept."""
-        return self.frame_inner(y1, y2).sum(dim=-1)
-
-    @property
-    def on_domain(self) -> Optional[Callable]:
-        """``domain -> type(self)([T_k.on_domain(domain)])`` when every ``T_k`` has ``on_domain``, else None."""
-        return _on_domain(lambda *ops: type(self)(list(ops)), *self.operators)
-
-    def frames_adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
-        """``adjointness_test`` of ``frames`` / ``frames_adjoint`` on random frames ``(K, *shape)`` and data
-        ``(K, *R)``."""
-        gen = torch.Generator().manual_seed(int(seed))
-        f = torch.randn((len(self), *self.domain.shape), generator=gen, dtype=dtype).to(device)
-        y = torch.randn(self.range_shape, generator=gen, dtype=dtype).to(device)
-        with torch.no_grad():
-            tf = self.frames(f)
-            lhs = self.inner_data(tf, y)
-            rhs = self.domain.inner(f, self.frames_adjoint(y)).sum()
-            return float((lhs - rhs).abs() / (self.norm_data(tf) * self.norm_data(y)))
-
-
-class RestrictedOperator(OperatorAlgebra):
-    """``T`` restricted to some rows of its range: ``T_S f = (T f)[rows]`` along the first data axis (the angles of
-    a ray transform, the tilts of a tilt series, the parts of a stack); it computes ``T f`` and selects.
-
-    Convention:
-        - ``range_shape`` ``(len(rows), *T.range_shape[1:])``; ``rows`` strictly increasing indices in
-          ``[0, T.range_shape[0])``.
-        - ``inner_data(y1, y2) = c * T.inner_data(E y1, E y2)`` with ``E`` the zero fill into ``T``'s range and
-          ``c = T.range_shape[0] / len(rows)``: the weight per datum is that of ``T`` with only these rows (a ray
-          transform's ``angle_cell = pi / num_angles`` becomes ``pi / len(rows)``), so a data term keeps its scale
-          per datum whatever is left out. ``adjoint(y) = c * T.adjoint(E y)`` is then the L2 adjoint, for any ``T``
-          whose data inner product is a weighted sum over data entries (every indreg operator).
-    """
-
-    def __init__(self, operator, rows):
-        check_operator(operator, "operator")
-        count = int(operator.range_shape[0])
-        self.rows = torch.as_tensor(rows, dtype=torch.long).flatten()
-        if self.rows.numel() == 0 or bool((self.rows < 0).any()) or bool((self.rows >= count).any()) \
-                or bool((self.rows[1:] <= self.rows[:-1]).any()):
-            raise ValueError(f"rows must be strictly increasing indices in [0, {count}), got {self.rows.tolist()}")
-        self.operator = operator
-        self.domain = operator.domain
-        self.range_shape = (self.rows.numel(), *tuple(operator.range_shape)[1:])
-        self.scale = count / self.rows.numel()
-
-    @property
-    def _axis(self) -> int:
-        return -len(self.range_shape)
-
-    def __call__(self, f: torch.Tensor) -> torch.Tensor:
-        """``(T f)[..., rows, ...]``: images ``(..., *domain.shape)`` -> data ``(..., *range_shape)``."""
-        y = self.operator(f)
-        return y.index_select(y.dim() + self._axis, self.rows.to(y.device))
-
-    def embed(self, y: torch.Tensor) -> torch.Tensor:
-        """``E y``: data of this operator zero-filled into ``T``'s range (differentiable)."""
-        y = check_tensor(y, "data", self.range_shape, finite=False)
-        full = y.new_zeros((*y.shape[:y.dim() + self._axis], *self.operator.range_shape))
-        return full.index_copy(y.dim() + self._axis, self.rows.to(y.device), y)
-
-    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        """L2 adjoint ``c T^*(E y)``."""
-        return self.scale * self.operator.adjoint(self.embed(y))
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """``c <E y1, E y2>`` in ``T``'s data inner product, batch dims kept."""
-        check_data_pair(y1, y2, self.range_shape)
-        return self.scale * self.operator.inner_data(self.embed(y1), self.embed(y2))
-
-    @property
-    def on_domain(self) -> Optional[Callable]:
-        """``domain -> RestrictedOperator(T.on_domain(domain), rows)``, or None when ``T`` has no ``on_domain``."""
-        return _on_domain(lambda op: RestrictedOperator(op, self.rows), self.operator)
-
-    def __repr__(self) -> str:
-        return f"RestrictedOperator({self.operator!r}, {len(self.rows)} of {self.operator.range_shape[0]} rows)"
-
-
 def compose(*operators) -> ComposedOperator:
     """``A_1 A_2 ... A_n``: ``f -> A_1(A_2(... A_n f))`` (``ComposedOperator``; ``A * B`` for indreg's operators)."""
     if len(operators) < 2:
@@ -417,13 +354,3 @@ def scale(factor, operator) -> ScaledOperator:
     if isinstance(operator, ScaledOperator):
         return ScaledOperator(_factor(factor) * operator.factor, operator.operator)
     return ScaledOperator(factor, operator)
-
-
-def stack(*operators) -> StackedOperator:
-    """``f -> (T_1 f, ..., T_K f)`` (``StackedOperator``, as deepinv's ``stack``)."""
-    return StackedOperator(list(operators))
-
-
-def restrict(operator, rows) -> RestrictedOperator:
-    """``f -> (T f)[rows]`` along the first data axis (``RestrictedOperator``)."""
-    return RestrictedOperator(operator, rows)

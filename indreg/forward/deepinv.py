@@ -30,7 +30,8 @@ from torch import nn
 
 from .._checks import check_positive, check_tensor
 from ..domain import ImageDomain
-from .operator import OperatorAlgebra, check_data_pair
+from .algebra import OperatorAlgebra
+from .operator import check_data_pair
 
 _INSTALL_HINT = 'deepinv is not installed; install the optional extra with: pip install "indreg[deepinv]"'
 _PROTOCOL = ("domain", "range_shape", "adjoint", "inner_data")

@@ -9,8 +9,9 @@ Fourier transform or a wrapped deepinv/ODL/ASTRA operator can be another):
     adjoint(y)    the L2 adjoint for ``domain.inner`` and ``inner_data``: ``<T f, y>_data = <f, T^* y>``
     inner_data(y1, y2)  weighted data inner product over the last ``len(range_shape)`` axes, batch dims kept
 
-Operators combine into operators (``indreg.forward.algebra``): ``R * B``, ``c * A``, ``A + B`` for those that inherit
-``OperatorAlgebra`` (indreg's own), ``compose`` / ``add`` / ``scale`` / ``stack`` / ``restrict`` for any.
+Operators combine into operators (``indreg.forward.algebra``, ``indreg.forward.stacking``): ``R * B``, ``c * A``,
+``A + B`` for those that inherit ``OperatorAlgebra`` (indreg's own), ``compose`` / ``add`` / ``scale`` / ``stack`` /
+``restrict`` for any.
 
 Convention: inner products are weighted (``domain.inner`` uses the cell volume; ``inner_data`` whatever
 weight the data space has, e.g. ``angle_cell * det_cell`` for ray transforms), so ``adjoint`` is the
@@ -19,10 +20,8 @@ weighted L2 adjoint, not the matrix transpose, unless both weights are equal.
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Protocol, runtime_checkable
 
-import numpy as np
 import torch
 
 from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
@@ -115,93 +114,6 @@ def operator_norm(op, num_iter: int = 100, dtype: torch.dtype = torch.float64, d
         x = op.adjoint(op(x))
         x = x / dom.norm(x)
     return float(norm_data(op, op(x)))
-
-
-class OperatorAlgebra:
-    """Operator arithmetic and the protocol's checks on the operator itself, for indreg's operators (the ray
-    transform, the tilt series, the deepinv wrapper, the generic operators of ``indreg.forward.algebra``).
-
-    ``A * B`` is the composition ``f -> A(B f)`` (``B`` an image-space operator, e.g. a blur, or any operator whose
-    range is ``A``'s domain), ``c * A`` / ``A * c`` a multiple, ``A + B`` / ``A - B`` / ``-A`` sums; ``B`` may be a
-    foreign operator of the protocol. Anything else (``A * tensor``) is refused by Python's ``TypeError``: an
-    operator is applied by calling it, ``A(f)``."""
-
-    def __mul__(self, other):
-        if _is_number(other):
-            return _algebra().scale(other, self)
-        return _algebra().compose(self, other) if _is_operator(other) else NotImplemented
-
-    def __rmul__(self, other):
-        if _is_number(other):
-            return _algebra().scale(other, self)
-        return _algebra().compose(other, self) if _is_operator(other) else NotImplemented
-
-    def __add__(self, other):
-        return _algebra().add(self, other) if _is_operator(other) else NotImplemented
-
-    def __radd__(self, other):
-        return _algebra().add(other, self) if _is_operator(other) else NotImplemented
-
-    def __neg__(self):
-        return _algebra().scale(-1.0, self)
-
-    def __sub__(self, other):
-        return _algebra().add(self, _algebra().scale(-1.0, other)) if _is_operator(other) else NotImplemented
-
-    def __rsub__(self, other):
-        return _algebra().add(other, -self) if _is_operator(other) else NotImplemented
-
-    def norm_data(self, y: torch.Tensor) -> torch.Tensor:
-        """Weighted data norm over the data axes (:func:`norm_data`)."""
-        return norm_data(self, y)
-
-    def adjointness_test(self, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
-        """``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random ``x``, ``y`` (:func:`adjointness`)."""
-        return adjointness(self, dtype, device, seed)
-
-    def operator_norm(self, num_iter: int = 100, dtype: torch.dtype = torch.float64, device=None,
-                      seed: int = 0) -> float:
-        """``||T||`` from L2 to the weighted data L2 by power iteration on ``T^* T`` (:func:`operator_norm`)."""
-        return operator_norm(self, num_iter, dtype, device, seed)
-
-
-def _algebra():
-    from . import algebra          # algebra builds on this module: imported when first used
-    return algebra
-
-
-def _is_number(x) -> bool:
-    return (isinstance(x, numbers.Real) or (isinstance(x, torch.Tensor) and x.dim() == 0)) \
-        and not isinstance(x, (bool, np.bool_))
-
-
-def _is_operator(x) -> bool:
-    return all(hasattr(x, m) for m in MEMBERS)
-
-
-class WeightedDataMixin(OperatorAlgebra):
-    """The data-space members of a projector whose data inner product is ``geometry.data_weight * sum`` over
-    ``range_shape`` (``RayTransform``, ``TiltSeriesTransform``): ``range_shape``, ``adjoint_scale`` and
-    ``inner_data``; the arithmetic and the checks (``adjointness_test``, ``operator_norm``) from
-    ``OperatorAlgebra``."""
-
-    @property
-    def range_shape(self) -> tuple:
-        """Data shape: ``geometry.shape``."""
-        return self.geometry.shape
-
-    @property
-    def adjoint_scale(self) -> float:
-        """``data_weight / cell_volume``: the factor between ``adjoint`` and ``transpose``."""
-        return self.geometry.data_weight / self.domain.cell_volume
-
-    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
-        """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept.
-
-        Convention: ``y1``, ``y2`` ``(..., *range_shape)``, float32 / float64 alike, batch dims broadcast; values
-        are not checked for finiteness (a residual may hold nan / inf, which the sum then reports)."""
-        dims = check_data_pair(y1, y2, self.range_shape)
-        return self.geometry.data_weight * (y1 * y2).sum(dim=dims)
 
 
 def relative_residual(operator, image: torch.Tensor, data: torch.Tensor) -> float:

@@ -32,7 +32,7 @@ from torch import nn
 from .._checks import check_tensor
 from ..domain import ImageDomain
 from .geometry import FanBeamGeometry, ParallelBeamGeometry, domain_radius
-from .operator import WeightedDataMixin
+from .algebra import WeightedDataMixin
 
 _PROJECTORS = {}
 

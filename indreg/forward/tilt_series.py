@@ -15,7 +15,7 @@ from torch import nn
 from .._checks import check_tensor
 from ..domain import AXES, ImageDomain
 from .geometry import ParallelBeamGeometry
-from .operator import WeightedDataMixin
+from .algebra import WeightedDataMixin
 from .ray_transform import RayTransform, _Backproject, _Project
 
 TILT_ANGLE_UNITS = ("deg", "rad")

@@ -2,7 +2,7 @@
 
 A *time series* of ``K`` frames measures the image ``f_{t_k}`` at time ``t_k`` with its own operator ``T_k`` (a
 handful of angles per time point, different at every time point). :class:`TimeSeriesOperator` is their stack (a
-``StackedOperator`` of ``indreg.forward.algebra``) and keeps ``T`` and ``g`` single objects for the run loop:
+``StackedOperator`` of ``indreg.forward.stacking``) and keeps ``T`` and ``g`` single objects for the run loop:
 
 - ``frames(F)`` / ``frames_adjoint(G)``: the block-diagonal operator ``(f_1, ..., f_K) -> (T_1 f_1, ..., T_K f_K)``
   on a stack of frames, and its adjoint (what the spatiotemporal model uses);
@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import torch
 
-from .algebra import StackedOperator
+from .stacking import StackedOperator
 
 
 class TimeSeriesOperator(StackedOperator):
     """The forward operators ``T_1 .. T_K`` of the frames of a time series: their ``StackedOperator``
-    (``indreg.forward.algebra``), one part per time point (module docstring).
+    (``indreg.forward.stacking``), one part per time point (module docstring).
 
     Convention:
         - ``operators``: a non-empty sequence of linear operators (``indreg.forward.LinearOperator``) on one

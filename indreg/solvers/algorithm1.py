@@ -8,8 +8,7 @@ import torch
 
 from .._checks import check_bool, check_int, check_positive
 from .._checks import check_nonnegative
-from ..options import STEP_REL
-from ..units import data_term_scale
+from ..units import STEP_REL, data_term_scale
 from .problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
                     rounding_tolerance)
@@ -35,7 +34,7 @@ class Algorithm1(IterativeSolver):
     Args:
         problem: a ``RegistrationProblem``.
         step_size: ``alpha > 0`` for the momentum (the paper's values work unchanged); None: relative to the data
-            term, ``step_rel / S`` (``indreg.units``; ``step_rel`` ``indreg.options.STEP_REL``).
+            term, ``step_rel / S`` (``indreg.units``; ``step_rel``: ``indreg.units.STEP_REL``).
         max_iter: maximum number of iterations ``K``.
         grad_tol: stop when the gradient norm (``hypot`` of the entries' ``L2([0,1], L2)`` norms) is
             ``<= grad_tol``; 0 disables the test.

@@ -4,7 +4,7 @@ import torch
 
 from indreg import ImageDomain, phantoms
 from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform, adjointness
-from indreg.forward.algebra import RestrictedOperator
+from indreg.forward.stacking import RestrictedOperator
 from indreg.forward.operator import check_operator
 
 DOM = ImageDomain.paper(16)
