@@ -140,3 +140,18 @@ def test_errors(series):
         aligned(_sinogram(16, 2), "shifts")
     with pytest.raises(ValueError, match="not 'fast'"):
         indreg.register(template, data, T, align="shifts", solver="fast", max_iter=1)
+
+
+def test_app_writes_alignment_to_metrics_and_a_plot(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from experiment_helpers import FAST, run_app
+
+    out = tmp_path / "run"
+    m = run_app(FAST + ["data.align=shifts"], out)
+    a = m["alignment"]
+    assert a["mode"] == "shifts" and a["estimates"] == 1 and len(a["shifts_px"]) == len(a["tilt_angles_deg"]) == 10
+    assert (out / "alignment.png").stat().st_size > 0
+    assert "alignment" not in run_app(FAST, tmp_path / "plain")
