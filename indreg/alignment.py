@@ -10,8 +10,12 @@ cross-correlation with ``P`` (:func:`coarse_shifts`), later ones from the previo
 Convention:
     - Shifts in detector pixels, ``(num_projections, c)``: ``c = 1`` (2D, across the axis) or 2 (tilt series:
       across, along); the angle in radians here, in degrees in reports.
-    - Gauge: the mean shift of every component is zero (a common offset moves every projection alike, which the
-      deformation of the template carries); the true shifts are known only up to it.
+    - Gauge: a translation ``(a, b)`` of the object in the plane orthogonal to the axis moves projection ``k`` by
+      ``a cos(theta_k) + b sin(theta_k)`` across the axis, one along it moves every projection alike along it; the
+      deformation carries such a translation (the template can move), so the shifts are kept orthogonal to them:
+      across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant too: an offset of the axis, at most
+      nearly a translation over a limited tilt range), along it to ``1`` (:func:`gauge`). The true shifts are
+      known only up to these.
     - Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
       MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
 """
@@ -25,25 +29,27 @@ import torch
 from .forward.shift import AlignedOperator, projection_frame
 
 __all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
-           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "plot_shifts", "summary",
+           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts", "summary",
            "wrap"]
 
 log = logging.getLogger("indreg")
 
 ALIGN_MODES = ("none", "shifts", "shifts+axis")
-#: Iterations between two estimates (docs/alignment.md: an estimate costs about one iteration's projections, and
-#: the reconstruction moves little in 10 of Algorithm 1's steps).
+#: Iterations between two estimates (docs/alignment.md: re-estimating more often did not recover the shifts
+#: better and costs a Gauss-Newton solve each time).
 ALIGN_EVERY = 10
 #: Bound on ``|s|`` as a fraction of the detector's pixels along the component.
 MAX_SHIFT_FRACTION = 0.25
 #: Bound on the tilt-axis angle.
 MAX_ANGLE_DEG = 10.0
-#: Fewest projections that can be aligned (with fewer, the mean-zero gauge leaves at most one free shift).
-MIN_PROJECTIONS = 3
+#: Fewest projections that can be aligned (the gauge removes three shifts across the axis).
+MIN_PROJECTIONS = 4
 #: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: linear
 #: interpolation is linear in ``s`` only within a cell).
 GN_ITERATIONS = 15
 GN_MAX_STEP = 1.0
+#: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
+GN_TOL = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------------- the model
@@ -74,27 +80,39 @@ def _bounds(op: AlignedOperator) -> torch.Tensor:
     return torch.tensor([MAX_SHIFT_FRACTION * n for n in sizes], dtype=torch.float64)
 
 
-def _gauge(shifts: torch.Tensor) -> torch.Tensor:
-    """Mean zero per component."""
-    return shifts - shifts.mean(dim=0, keepdim=True)
+def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
+    """``shifts`` with what a translation of the object explains removed (module Convention): across the axis the
+    least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``, along it the mean."""
+    theta = op.operator.geometry.angles.to(shifts)
+    basis = torch.stack([torch.ones_like(theta), torch.cos(theta), torch.sin(theta)], dim=1)
+    across = shifts[:, :1] - basis @ torch.linalg.lstsq(basis, shifts[:, :1]).solution
+    return torch.cat([across, shifts[:, 1:] - shifts[:, 1:].mean(dim=0, keepdim=True)], dim=1)
 
 
 # ---------------------------------------------------------------------------------------------------- estimation
 def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
-    """Integer shifts ``(K, c)``: the peak of every projection's cross-correlation with ``data`` within the bound
-    (zero-padded FFTs, so no wrap-around)."""
+    """Shifts ``(K, c)`` at the peak of every projection's cross-correlation with ``data`` within the bound
+    (zero-padded FFTs, so no wrap-around), refined by a parabola through the peak and its neighbours along each
+    axis (a start off the integers: there linear interpolation has its kinks)."""
     K, R, D = op.num_projections, op.rows, op.columns
     p, g = projection.reshape(K, R, D), data.reshape(K, R, D)
     size = (2 * R, 2 * D)
     corr = torch.fft.irfft2(torch.fft.rfft2(g, size).mul(torch.fft.rfft2(p, size).conj()), size)
     bound = _bounds(op).floor().long().tolist() + [0]
-    lag_r = torch.fft.fftfreq(2 * R, 1 / (2 * R)).round().long().abs()
-    lag_c = torch.fft.fftfreq(2 * D, 1 / (2 * D)).round().long().abs()
-    allowed = (lag_r.view(-1, 1) <= bound[1]) & (lag_c.view(1, -1) <= bound[0])
+    lags = [torch.fft.fftfreq(n, 1 / n).round().long() for n in size]
+    allowed = (lags[0].abs().view(-1, 1) <= bound[1]) & (lags[1].abs().view(1, -1) <= bound[0])
     peak = corr.masked_fill(~allowed, -math.inf).reshape(K, -1).argmax(dim=1)
-    rows = torch.fft.fftfreq(2 * R, 1 / (2 * R)).round()[peak // (2 * D)]
-    cols = torch.fft.fftfreq(2 * D, 1 / (2 * D)).round()[peak % (2 * D)]
-    return torch.stack([cols, rows], dim=1)[:, :op.components].double()
+    r, c = peak // size[1], peak % size[1]
+    k = torch.arange(K)
+    out = []
+    for axis, i, n in ((1, c, size[1]), (0, r, size[0])):   # (columns, rows)
+        def at(d):
+            return corr[k, (r + d) % size[0], c] if axis == 0 else corr[k, r, (c + d) % size[1]]
+        lo, mid, hi = at(-1), at(0), at(1)
+        curvature = lo - 2 * mid + hi
+        delta = torch.where(curvature < 0, 0.5 * (lo - hi) / curvature.clamp(max=-1e-30), torch.zeros_like(mid))
+        out.append(lags[axis][i].double() + delta.clamp(-0.5, 0.5).double())
+    return torch.stack(out, dim=1)[:, :op.components]
 
 
 def _jacobian(op, projection, shifts, angle, axis: bool) -> list:
@@ -140,10 +158,10 @@ def _cost(op, projection, data, shifts, angle) -> float:
 def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
              angle: torch.Tensor, axis: bool = False, iterations: int = GN_ITERATIONS) -> tuple:
     """Gauss-Newton (Levenberg-damped) on ``(1/2) ||S_{s, alpha} P - g||^2`` from ``(shifts, angle)`` with the
-    projection ``P`` fixed; shifts kept in the gauge (mean zero) and within the bounds. Returns ``(shifts, angle,
+    projection ``P`` fixed; shifts kept in the gauge (:func:`gauge`) and within the bounds. Returns ``(shifts, angle,
     at_bound)`` (float64, CPU; ``at_bound``: how many shifts or angles ended at their bound)."""
     P, g = projection.detach().double(), data.detach().double()
-    s, a = _gauge(shifts.double().cpu()).to(P.device), angle.double().to(P.device)
+    s, a = gauge(op, shifts.double().cpu()).to(P.device), angle.double().to(P.device)
     K, c = op.num_projections, op.components
     bounds, amax = _bounds(op).to(P.device), math.radians(MAX_ANGLE_DEG)
     cost, damping = _cost(op, P, g, s, a), 1e-6
@@ -154,14 +172,17 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
         while damping < 1e8:
             step = -torch.linalg.solve(H + damping * torch.diag(H.diagonal().clamp_min(1e-12)), b)
             step = step * min(1.0, GN_MAX_STEP / max(float(step[:K * c].abs().max()), 1e-30))
-            s_new = torch.maximum(torch.minimum(_gauge(s + step[:K * c].reshape(K, c)), bounds), -bounds)
+            s_new = torch.maximum(torch.minimum(gauge(op, s + step[:K * c].reshape(K, c)), bounds), -bounds)
             a_new = (a + step[-1]).clamp(-amax, amax) if axis else a
             new = _cost(op, P, g, s_new, a_new)
             if new < cost:
+                moved = max(float((s_new - s).abs().max()), math.degrees(abs(float(a_new - a))))
                 s, a, cost, damping = s_new, a_new, new, max(damping / 10, 1e-9)
                 break
             damping *= 10
         else:
+            break
+        if moved < GN_TOL:
             break
     at_bound = int((s.abs() >= bounds - 1e-9).sum()) + int(axis and abs(float(a)) >= amax - 1e-12)
     return s.cpu(), a.cpu(), at_bound
@@ -199,7 +220,7 @@ class AlignmentSolver:
             P = op.operator(self.problem.reconstruction(state.iterate))
             start = op.shifts
             if not op.records:   # first estimate: the integer peak of the cross-correlation
-                start = _gauge(coarse_shifts(op, P.double(), self.data.double()).cpu())
+                start = gauge(op, coarse_shifts(op, P.double(), self.data.double()).cpu())
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
         op.records.append((state.iteration, op.shifts.clone(), float(op.angle)))
         if op.at_bound:
