@@ -1,14 +1,14 @@
 """Alignment in the fit on a simulated misaligned tilt series (docs/alignment.md).
 
 The suite_et_3d data (3D Shepp-Logan -> the same bent and swirled on [-16, 16]^3, tilt axis y, -60..60 degrees in
-2-degree steps, detector as wide as the volume, white noise at 10 dB) with known random shifts (uniform random,
-in the gauge of ``indreg.alignment.gauge``, scaled to at most ``max_shift`` px across and along the axis) and, in a second series, the tilt axis also rotated
-by ``--angle`` degrees in the detector plane. Three registrations with the same settings: no alignment on the aligned
-series, ``align="shifts"`` on the shifted one, ``align="shifts+axis"`` on the shifted and rotated one. Prints a
-table: the shifts' RMS error (px, across / along the axis, in that gauge), the angle's error (deg),
-SSIM, relative residual and seconds of each run.
+2-degree steps, detector as wide as the volume, white noise at 10 dB) with known random shifts (uniform random, in
+the gauge of ``indreg.alignment.gauge``, scaled to at most ``max_shift`` px across and along the axis) and, in a
+second series, the tilt axis also rotated by ``--angle`` degrees in the detector plane. Three registrations with
+the same settings: no alignment on the aligned series, ``align="shifts"`` on the shifted one,
+``align="shifts+axis"`` on the shifted and rotated one. Prints a table: the shifts' RMS error (px, across / along
+the axis, in that gauge), the angle's error (deg), SSIM, relative residual and seconds of each run.
 
-    OMP_NUM_THREADS=1 python scripts/bench_alignment.py            # 64^3, 40 iterations, velocity_factor 2
+    OMP_NUM_THREADS=1 python scripts/bench_alignment.py            # 64^3, 100 iterations, velocity_factor 2
     python scripts/bench_alignment.py --size 32 --iterations 30    # a quick look
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from indreg.forward.shift import AlignedOperator
 def arguments():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--size", type=int, default=64, help="volume side (cells), 64: suite_et_3d")
-    p.add_argument("--iterations", type=int, default=40, help="Algorithm 1 iterations of each run")
+    p.add_argument("--iterations", type=int, default=100, help="Algorithm 1 iterations of each run")
     p.add_argument("--velocity-factor", type=int, default=2, help="the velocity on a grid this many times coarser")
     p.add_argument("--max-shift", type=float, default=8.0, help="largest true shift (px)")
     p.add_argument("--angle", type=float, default=3.0, help="true tilt-axis angle (deg)")

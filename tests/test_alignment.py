@@ -60,7 +60,7 @@ def test_integer_shift_moves_columns_and_rows(series):
 
 
 def test_quarter_turn_rotates_square_detector():
-    domain = ImageDomain((8, 8, 8), (-4., -4., -4.), (4., 4., 4.))   # row_cell = det_cell = 1, detector centred on the axis
+    domain = ImageDomain((8, 8, 8), (-4., -4., -4.), (4., 4., 4.))   # unit cells, detector centred on the axis
     T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-30, 30, 30, det_count=8, det_min=-4., det_max=4.))
     op = AlignedOperator(T)
     y = torch.randn(T.range_shape, dtype=F64)

@@ -22,8 +22,6 @@ Convention:
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 from .._checks import check_tensor
@@ -138,6 +136,3 @@ class AlignedOperator:
         """``T``'s data inner product."""
         check_data_pair(y1, y2, self.range_shape)
         return self.operator.inner_data(y1, y2)
-
-    def angle_degrees(self) -> float:
-        return math.degrees(float(self.angle))
