@@ -158,3 +158,33 @@ def test_app_writes_alignment_to_metrics_and_a_plot(tmp_path):
     assert a["mode"] == "shifts" and a["estimates"] == 1 and len(a["shifts_px"]) == len(a["tilt_angles_deg"]) == 10
     assert (out / "alignment.png").stat().st_size > 0
     assert "alignment" not in run_app(FAST, tmp_path / "plain")
+
+
+def test_app_resume_continues_the_alignment(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from experiment_helpers import FAST, run_app
+
+    base = [o for o in FAST if not o.startswith("solver.max_iter")] + ["solver.max_iter=15", "data.align=shifts",
+                                                                          "dtype=float64"]
+    ref = run_app(base, tmp_path / "ref")
+    out = tmp_path / "run"
+    assert run_app(base + ["stop_after=12"], out)["status"] == "stopped"
+    again = run_app(base + ["resume=true"], out)
+    assert again["alignment"]["estimates"] == ref["alignment"]["estimates"] == 2
+    assert torch.allclose(torch.tensor(again["alignment"]["shifts_px"]), torch.tensor(ref["alignment"]["shifts_px"]),
+                          atol=1e-10)
+    assert again["objective"] == pytest.approx(ref["objective"], rel=1e-10)
+
+
+def test_holdout_and_lbfgs_with_alignment():
+    T = _sinogram(32, 20)
+    template = phantoms.get("shepp_logan_template", T.domain).double()
+    target = phantoms.get("shepp_logan", T.domain).double()
+    data = AlignedOperator(T, _random_shifts(T, 3.0, 5))(target)
+    r = indreg.register(template, data, T, align="shifts", holdout=4, num_steps=4, max_iter=12, sigma=3.0)
+    assert len(r.alignment["shifts_px"]) == 20 and r.alignment["estimates"] == 2 and r.holdout
+    r = indreg.register(template, data, T, align="shifts", solver="lbfgs", num_steps=4, max_iter=12, sigma=3.0)
+    assert r.status in ("completed", "converged") and r.alignment["estimates"] == 2
