@@ -99,11 +99,11 @@ def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Ten
     size = (2 * R, 2 * D)
     corr = torch.fft.irfft2(torch.fft.rfft2(g, size).mul(torch.fft.rfft2(p, size).conj()), size)
     bound = _bounds(op).floor().long().tolist() + [0]
-    lags = [torch.fft.fftfreq(n, 1 / n).round().long() for n in size]
+    lags = [torch.fft.fftfreq(n, 1 / n, device=corr.device).round().long() for n in size]
     allowed = (lags[0].abs().view(-1, 1) <= bound[1]) & (lags[1].abs().view(1, -1) <= bound[0])
     peak = corr.masked_fill(~allowed, -math.inf).reshape(K, -1).argmax(dim=1)
     r, c = peak // size[1], peak % size[1]
-    k = torch.arange(K)
+    k = torch.arange(K, device=corr.device)
     out = []
     for axis, i, n in ((1, c, size[1]), (0, r, size[0])):   # (columns, rows)
         def at(d):
@@ -112,7 +112,7 @@ def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Ten
         curvature = lo - 2 * mid + hi
         delta = torch.where(curvature < 0, 0.5 * (lo - hi) / curvature.clamp(max=-1e-30), torch.zeros_like(mid))
         out.append(lags[axis][i].double() + delta.clamp(-0.5, 0.5).double())
-    return torch.stack(out, dim=1)[:, :op.components]
+    return torch.stack(out, dim=1)[:, :op.components].cpu()
 
 
 def _jacobian(op, projection, shifts, angle, axis: bool) -> list:
@@ -138,8 +138,8 @@ def _normal_equations(columns: list, residual: torch.Tensor, K: int, c: int, axi
     flat = [j.reshape(K, -1) for j in columns]
     r = residual.reshape(K, -1)
     n = K * c + int(axis)
-    H, b = torch.zeros(n, n, dtype=r.dtype), torch.zeros(n, dtype=r.dtype)
-    idx = torch.arange(K) * c
+    H, b = r.new_zeros(n, n), r.new_zeros(n)
+    idx = torch.arange(K, device=r.device) * c
     for i in range(c):
         b[idx + i] = (flat[i] * r).sum(1)
         for j in range(c):
@@ -168,7 +168,6 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     for _ in range(iterations):
         residual = op.warp(P, s, a) - g
         H, b = _normal_equations(_jacobian(op, P, s, a, axis), residual, K, c, axis)
-        H, b = H.to(P.device), b.to(P.device)
         while damping < 1e8:
             step = -torch.linalg.solve(H + damping * torch.diag(H.diagonal().clamp_min(1e-12)), b)
             step = step * min(1.0, GN_MAX_STEP / max(float(step[:K * c].abs().max()), 1e-30))
