@@ -4,8 +4,8 @@ the current reconstruction's projection, alternating with the registration (docs
 The data model is ``T_s f`` (``indreg.forward.shift.AlignedOperator``). Every :data:`ALIGN_EVERY` iterations
 the image ``f_k`` of the current iterate is projected, ``P = T f_k``, and the shifts (and with ``"shifts+axis"``
 the angle) are re-fitted to the data with ``f_k`` fixed: ``min_{s, alpha} (1/2) ||S_{s, alpha} P - g||^2`` by
-Gauss-Newton (:func:`estimate`); the first estimate starts from the integer peak of every projection's
-cross-correlation with ``P`` (:func:`coarse_shifts`), later ones from the previous estimate.
+Gauss-Newton (:func:`estimate`); the first estimate (iteration 0, against the template) starts from the peak of
+every projection's cross-correlation with ``P`` (:func:`coarse_shifts`), later ones from the previous estimate.
 
 Convention:
     - Shifts in detector pixels, ``(num_projections, c)``: ``c = 1`` (2D, across the axis) or 2 (tilt series:
