@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
 
 import torch
 
@@ -115,7 +116,8 @@ def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Ten
     return torch.stack(out, dim=1)[:, :op.components].cpu()
 
 
-def _jacobian(op, projection, shifts, angle, axis: bool) -> list:
+def _jacobian(op: AlignedOperator, projection: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor,
+              axis: bool) -> list:
     """Directional derivatives of ``S P`` along every shift component (all projections at once: projection ``k``
     depends on ``s_k`` only) and along the angle."""
     from torch.func import jvp
@@ -151,7 +153,8 @@ def _normal_equations(columns: list, residual: torch.Tensor, K: int, c: int, axi
     return H, b
 
 
-def _cost(op, projection, data, shifts, angle) -> float:
+def _cost(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
+          angle: torch.Tensor) -> float:
     return 0.5 * float(((op.warp(projection, shifts, angle) - data) ** 2).sum())
 
 
@@ -234,6 +237,7 @@ class AlignmentSolver:
             optimizer.state.clear()
 
     def step(self, state) -> dict:
+        """An estimate when ``state.iteration`` is a multiple of ``every``, then the inner solver's step."""
         if state.iteration % self.every == 0:
             self.align(state)
         info = self.inner.step(state)
@@ -252,7 +256,7 @@ class AlignmentSolver:
         self.inner.load_state_dict(d)
 
 
-def find_aligned(operator):
+def find_aligned(operator) -> AlignedOperator | None:
     """The ``AlignedOperator`` in ``operator`` (itself, or under a ``RestrictedOperator``), else None."""
     while operator is not None and not isinstance(operator, AlignedOperator):
         operator = getattr(operator, "operator", None)
@@ -271,7 +275,7 @@ def summary(problem) -> dict:
             "at_bound": op.at_bound}
 
 
-def plot_shifts(alignment: dict, path) -> None:
+def plot_shifts(alignment: dict, path: str | Path) -> None:
     """Shifts (px) against the tilt angle (deg), one line per component, the axis angle in the title."""
     import matplotlib
     matplotlib.use("Agg")
