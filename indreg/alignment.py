@@ -164,9 +164,10 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     projection ``P`` fixed; shifts kept in the gauge (:func:`gauge`) and within the bounds. Returns ``(shifts, angle,
     at_bound)`` (float64, CPU; ``at_bound``: how many shifts or angles ended at their bound)."""
     P, g = projection.detach().double(), data.detach().double()
-    s, a = gauge(op, shifts.double().cpu()).to(P.device), angle.double().to(P.device)
     K, c = op.num_projections, op.components
     bounds, amax = _bounds(op).to(P.device), math.radians(MAX_ANGLE_DEG)
+    s = torch.maximum(torch.minimum(gauge(op, shifts.double().cpu()).to(P.device), bounds), -bounds)
+    a = angle.double().to(P.device).clamp(-amax, amax)
     cost, damping = _cost(op, P, g, s, a), 1e-6
     for _ in range(iterations):
         residual = op.warp(P, s, a) - g

@@ -188,3 +188,14 @@ def test_holdout_and_lbfgs_with_alignment():
     assert len(r.alignment["shifts_px"]) == 20 and r.alignment["estimates"] == 2 and r.holdout
     r = indreg.register(template, data, T, align="shifts", solver="lbfgs", num_steps=4, max_iter=12, sigma=3.0)
     assert r.status in ("completed", "converged") and r.alignment["estimates"] == 2
+
+
+def test_shifts_beyond_the_bound_warn(caplog):
+    T = _sinogram(32, 20)                       # bound: 0.25 * 32 = 8 px
+    target = phantoms.get("shepp_logan", T.domain).double()
+    data = AlignedOperator(T, _random_shifts(T, 12.0, 6))(target)
+    with caplog.at_level("WARNING", logger="indreg"):
+        r = indreg.register(target, data, T, align="shifts", num_steps=2, max_iter=1)
+    assert r.alignment["at_bound"] > 0
+    assert max(abs(s[0]) for s in r.alignment["shifts_px"]) == pytest.approx(8.0)
+    assert any("at their bound" in m for m in caplog.messages)
