@@ -321,6 +321,9 @@ INPUTS = (
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
            "a number", Optional[Any]),
+    Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
+           "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "
+           "angle of a tilt series), re-estimated against the reconstruction's projection (docs/alignment.md)", str),
 )
 
 RUN = (

@@ -102,6 +102,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
+    from . import alignment
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
@@ -131,7 +132,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
-    validation = None
+    aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]))   # T_s (docs/alignment.md)
+    full_data, validation = data, None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     units.data_scale = data_term_scale(operator, data)
@@ -146,7 +148,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
         raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
                         f"{type(built).__name__}")
     problem, solver_options = built
-    return Setup(problem, make_solver(problem, o, solver_options), o, units, validation)
+    solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
+    return Setup(problem, solver, o, units, validation)
 
 
 def initial_state(problem):
@@ -324,8 +327,9 @@ class RegistrationResult:
     of the relative options. ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
     ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
-    iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``outputs``: the model's
-    own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I), ``intensity_part`` =
+    iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
+    ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
+    ``outputs``: the model's own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I), ``intensity_part`` =
     f(1) - W(nu, I)), also readable as attributes (``result.source``).
     """
     deformed: torch.Tensor
@@ -348,6 +352,7 @@ class RegistrationResult:
     psnr: Optional[float] = None
     units: Units = field(default_factory=Units)
     holdout: dict = field(default_factory=dict)
+    alignment: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -396,7 +401,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     (on the fitted data), the model's outputs, SSIM / PSNR of the reconstruction against ``target`` (float64, CPU)
     if given, and the held-out residuals of ``validation`` if given; ``status`` becomes ``diverged`` if the
     residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
-    from . import metrics
+    from . import alignment, metrics
 
     units = units or Units()
     x = state.iterate
@@ -410,7 +415,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual, units.noise_residual, levelled_off(history)),
-        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x), units=units)
+        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x), units=units,
+        alignment=alignment.summary(problem))
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:

@@ -114,6 +114,10 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
+    if r.alignment:   # shifts per tilt and the tilt-axis angle (docs/alignment.md), and their plot
+        from ..alignment import plot_shifts
+        result["alignment"] = r.alignment
+        plot_shifts(r.alignment, out / "alignment.png")
     result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})

@@ -1,0 +1,308 @@
+"""Alignment in the fit: per-projection shifts and the tilt-axis angle estimated by projection matching against
+the current reconstruction's projection, alternating with the registration (docs/alignment.md).
+
+The data model is ``T_s f`` (``indreg.forward.shift.AlignedOperator``). Every :data:`ALIGN_EVERY` iterations
+the image ``f_k`` of the current iterate is projected, ``P = T f_k``, and the shifts (and with ``"shifts+axis"``
+the angle) are re-fitted to the data with ``f_k`` fixed: ``min_{s, alpha} (1/2) ||S_{s, alpha} P - g||^2`` by
+Gauss-Newton (:func:`estimate`); the first estimate (iteration 0, against the template) starts from the peak of
+every projection's cross-correlation with ``P`` (:func:`coarse_shifts`), later ones from the previous estimate.
+
+Convention:
+    - Shifts in detector pixels, ``(num_projections, c)``: ``c = 1`` (2D, across the axis) or 2 (tilt series:
+      across, along); the angle in radians here, in degrees in reports.
+    - Gauge: a translation ``(a, b)`` of the object in the plane orthogonal to the axis moves projection ``k`` by
+      ``a cos(theta_k) + b sin(theta_k)`` across the axis, one along it moves every projection alike along it; the
+      deformation carries such a translation (the template can move), so the shifts are kept orthogonal to them:
+      across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant too: an offset of the axis, at most
+      nearly a translation over a limited tilt range), along it to ``1`` (:func:`gauge`). The true shifts are
+      known only up to these.
+    - Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
+      MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import torch
+
+from .forward.shift import AlignedOperator, projection_frame
+
+__all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
+           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts", "summary",
+           "wrap"]
+
+log = logging.getLogger("indreg")
+
+ALIGN_MODES = ("none", "shifts", "shifts+axis")
+#: Iterations between two estimates (docs/alignment.md: re-estimating more often did not recover the shifts
+#: better and costs a Gauss-Newton solve each time).
+ALIGN_EVERY = 10
+#: Bound on ``|s|`` as a fraction of the detector's pixels along the component.
+MAX_SHIFT_FRACTION = 0.25
+#: Bound on the tilt-axis angle.
+MAX_ANGLE_DEG = 10.0
+#: Fewest projections that can be aligned (the gauge removes three shifts across the axis).
+MIN_PROJECTIONS = 4
+#: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: linear
+#: interpolation is linear in ``s`` only within a cell).
+GN_ITERATIONS = 15
+GN_MAX_STEP = 1.0
+#: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
+GN_TOL = 1e-3
+
+
+# ---------------------------------------------------------------------------------------------------- the model
+def aligned(operator, mode: str, label: str = "align"):
+    """``operator`` wrapped in an ``AlignedOperator`` for ``mode`` (``"none"``: itself); one-line errors for a bad
+    mode, an operator that is not parallel-beam, the angle without a tilt series, and too few projections."""
+    if mode not in ALIGN_MODES:
+        raise ValueError(f"{label} must be one of {', '.join(map(repr, ALIGN_MODES))}, got {mode!r}")
+    if mode == "none":
+        return operator
+    try:
+        _, count, *_ = projection_frame(operator)
+    except TypeError as e:
+        raise TypeError(f"{label}={mode!r}: {e}") from None
+    if mode == "shifts+axis" and len(operator.range_shape) != 3:
+        raise ValueError(f"{label}='shifts+axis' needs a 3D tilt series (TiltSeriesTransform): a 2D sinogram has "
+                         f"no tilt-axis angle; use {label}='shifts'")
+    if count < MIN_PROJECTIONS:
+        raise ValueError(f"{label}={mode!r} needs at least {MIN_PROJECTIONS} projections, the data have {count}")
+    op = AlignedOperator(operator)
+    op.mode, op.records, op.at_bound = mode, [], 0   # the estimates (AlignmentSolver), for summary()
+    return op
+
+
+def _bounds(op: AlignedOperator) -> torch.Tensor:
+    """``|s|`` bounds per component (pixels)."""
+    sizes = [op.columns, op.rows][:op.components]
+    return torch.tensor([MAX_SHIFT_FRACTION * n for n in sizes], dtype=torch.float64)
+
+
+def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
+    """``shifts`` with what a translation of the object explains removed (module Convention): across the axis the
+    least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``, along it the mean."""
+    theta = op.operator.geometry.angles.to(shifts)
+    basis = torch.stack([torch.ones_like(theta), torch.cos(theta), torch.sin(theta)], dim=1)
+    across = shifts[:, :1] - basis @ torch.linalg.lstsq(basis, shifts[:, :1]).solution
+    return torch.cat([across, shifts[:, 1:] - shifts[:, 1:].mean(dim=0, keepdim=True)], dim=1)
+
+
+# ---------------------------------------------------------------------------------------------------- estimation
+def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
+    """Shifts ``(K, c)`` at the peak of every projection's cross-correlation with ``data`` within the bound
+    (zero-padded FFTs, so no wrap-around), refined by a parabola through the peak and its neighbours along each
+    axis (a start off the integers: there linear interpolation has its kinks)."""
+    K, R, D = op.num_projections, op.rows, op.columns
+    p, g = projection.reshape(K, R, D), data.reshape(K, R, D)
+    size = (2 * R, 2 * D)
+    corr = torch.fft.irfft2(torch.fft.rfft2(g, size).mul(torch.fft.rfft2(p, size).conj()), size)
+    bound = _bounds(op).floor().long().tolist() + [0]
+    lags = [torch.fft.fftfreq(n, 1 / n, device=corr.device).round().long() for n in size]
+    allowed = (lags[0].abs().view(-1, 1) <= bound[1]) & (lags[1].abs().view(1, -1) <= bound[0])
+    peak = corr.masked_fill(~allowed, -math.inf).reshape(K, -1).argmax(dim=1)
+    r, c = peak // size[1], peak % size[1]
+    k = torch.arange(K, device=corr.device)
+    out = []
+    for axis, i, n in ((1, c, size[1]), (0, r, size[0])):   # (columns, rows)
+        def at(d):
+            return corr[k, (r + d) % size[0], c] if axis == 0 else corr[k, r, (c + d) % size[1]]
+        lo, mid, hi = at(-1), at(0), at(1)
+        curvature = lo - 2 * mid + hi
+        delta = torch.where(curvature < 0, 0.5 * (lo - hi) / curvature.clamp(max=-1e-30), torch.zeros_like(mid))
+        out.append(lags[axis][i].double() + delta.clamp(-0.5, 0.5).double())
+    return torch.stack(out, dim=1)[:, :op.components].cpu()
+
+
+def _jacobian(op: AlignedOperator, projection: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor,
+              axis: bool) -> list:
+    """Directional derivatives of ``S P`` along every shift component (all projections at once: projection ``k``
+    depends on ``s_k`` only) and along the angle."""
+    from torch.func import jvp
+
+    def model(s, a):
+        return op.warp(projection, s, a)
+
+    columns = []
+    for c in range(op.components):
+        ds = torch.zeros_like(shifts)
+        ds[:, c] = 1
+        columns.append(jvp(model, (shifts, angle), (ds, torch.zeros_like(angle)))[1])
+    if axis:
+        columns.append(jvp(model, (shifts, angle), (torch.zeros_like(shifts), torch.ones_like(angle)))[1])
+    return columns
+
+
+def _normal_equations(columns: list, residual: torch.Tensor, K: int, c: int, axis: bool) -> tuple:
+    """Gauss-Newton's ``J^T J`` and ``J^T r`` for the unknowns ``(s_{0,0}, ..., s_{K-1,c-1}, alpha)``."""
+    flat = [j.reshape(K, -1) for j in columns]
+    r = residual.reshape(K, -1)
+    n = K * c + int(axis)
+    H, b = r.new_zeros(n, n), r.new_zeros(n)
+    idx = torch.arange(K, device=r.device) * c
+    for i in range(c):
+        b[idx + i] = (flat[i] * r).sum(1)
+        for j in range(c):
+            H[idx + i, idx + j] = (flat[i] * flat[j]).sum(1)
+    if axis:
+        for i in range(c):
+            H[idx + i, -1] = H[-1, idx + i] = (flat[i] * flat[c]).sum(1)
+        H[-1, -1], b[-1] = (flat[c] ** 2).sum(), (flat[c] * r).sum()
+    return H, b
+
+
+def _cost(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
+          angle: torch.Tensor) -> float:
+    return 0.5 * float(((op.warp(projection, shifts, angle) - data) ** 2).sum())
+
+
+def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
+             angle: torch.Tensor, axis: bool = False, iterations: int = GN_ITERATIONS) -> tuple:
+    """Gauss-Newton (Levenberg-damped) on ``(1/2) ||S_{s, alpha} P - g||^2`` from ``(shifts, angle)`` with the
+    projection ``P`` fixed; shifts kept in the gauge (:func:`gauge`) and within the bounds. Returns ``(shifts, angle,
+    at_bound)`` (float64, CPU; ``at_bound``: how many shifts or angles ended at their bound)."""
+    P, g = projection.detach().double(), data.detach().double()
+    K, c = op.num_projections, op.components
+    bounds, amax = _bounds(op).to(P.device), math.radians(MAX_ANGLE_DEG)
+    s = torch.maximum(torch.minimum(gauge(op, shifts.double().cpu()).to(P.device), bounds), -bounds)
+    a = angle.double().to(P.device).clamp(-amax, amax)
+    cost, damping = _cost(op, P, g, s, a), 1e-6
+    for _ in range(iterations):
+        residual = op.warp(P, s, a) - g
+        H, b = _normal_equations(_jacobian(op, P, s, a, axis), residual, K, c, axis)
+        while damping < 1e8:
+            step = -torch.linalg.solve(H + damping * torch.diag(H.diagonal().clamp_min(1e-12)), b)
+            step = step * min(1.0, GN_MAX_STEP / max(float(step[:K * c].abs().max()), 1e-30))
+            s_new = torch.maximum(torch.minimum(gauge(op, s + step[:K * c].reshape(K, c)), bounds), -bounds)
+            a_new = (a + step[-1]).clamp(-amax, amax) if axis else a
+            new = _cost(op, P, g, s_new, a_new)
+            if new < cost:
+                moved = max(float((s_new - s).abs().max()), math.degrees(abs(float(a_new - a))))
+                s, a, cost, damping = s_new, a_new, new, max(damping / 10, 1e-9)
+                break
+            damping *= 10
+        else:
+            break
+        if moved < GN_TOL:
+            break
+    at_bound = int((s.abs() >= bounds - 1e-9).sum()) + int(axis and abs(float(a)) >= amax - 1e-12)
+    return s.cpu(), a.cpu(), at_bound
+
+
+# ---------------------------------------------------------------------------------------------------- in the fit
+class AlignmentSolver:
+    """A solver that re-estimates the alignment of ``operator`` (an ``AlignedOperator`` in ``inner.problem``) every
+    ``every`` iterations from the image of the current iterate, then takes ``inner``'s step.
+
+    ``operator``: made by :func:`aligned` (its ``mode``; ``records``, ``(iteration, shifts, angle)`` per estimate,
+    and ``at_bound`` are kept on it for :func:`summary`). ``data``: the data the shifts are fitted to
+    (``operator``'s range; all projections, held-out ones included). After an estimate the inner solver's cached
+    objective and gradient (and a torch.optim optimizer's memory) are dropped: they belong to the old data model.
+    """
+
+    def __init__(self, inner, operator: AlignedOperator, data: torch.Tensor, every: int = ALIGN_EVERY):
+        self.inner, self.operator, self.data, self.every = inner, operator, data, every
+        self.axis = operator.mode == "shifts+axis"
+        self.problem, self.max_iter, self.grad_tol = inner.problem, inner.max_iter, inner.grad_tol
+
+    def __repr__(self) -> str:
+        what = "shifts and tilt-axis angle" if self.axis else "shifts"
+        return f"AlignmentSolver({what} every {self.every} iterations, then {self.inner!r})"
+
+    def __getattr__(self, name):   # step sizes, step halving, ... are the inner solver's
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def align(self, state) -> None:
+        """Estimate the alignment at ``state.iterate`` and set it on the operator."""
+        op = self.operator
+        with torch.no_grad():
+            P = op.operator(self.problem.reconstruction(state.iterate))
+            start = op.shifts
+            if not op.records:   # first estimate: the integer peak of the cross-correlation
+                start = gauge(op, coarse_shifts(op, P.double(), self.data.double()).cpu())
+            op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
+        op.records.append((state.iteration, op.shifts.clone(), float(op.angle)))
+        if op.at_bound:
+            log.warning("iteration %d: %d alignment parameter(s) at their bound (|s| <= %s px, |alpha| <= %g deg): "
+                        "the data may be misaligned beyond it, or the template too unlike the data", state.iteration,
+                        op.at_bound, [round(float(b), 2) for b in _bounds(op)], MAX_ANGLE_DEG)
+        for attr in ("_current", "_cache"):   # cached objective / gradient of the old data model
+            if hasattr(self.inner, attr):
+                setattr(self.inner, attr, None)
+        optimizer = getattr(self.inner, "optimizer", None)
+        if optimizer is not None:
+            optimizer.state.clear()
+
+    def step(self, state) -> dict:
+        """An estimate when ``state.iteration`` is a multiple of ``every``, then the inner solver's step."""
+        if state.iteration % self.every == 0:
+            self.align(state)
+        info = self.inner.step(state)
+        info["alignment_rms"] = float(self.operator.shifts.pow(2).sum(1).mean().sqrt())
+        return info
+
+    def state_dict(self) -> dict:
+        return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
+                    alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records))
+
+    def load_state_dict(self, d: dict) -> None:
+        d = dict(d)
+        self.operator.shifts = d.pop("alignment_shifts").double()
+        self.operator.angle = torch.tensor(float(d.pop("alignment_angle")), dtype=torch.float64)
+        self.operator.records = list(d.pop("alignment_records"))
+        self.inner.load_state_dict(d)
+
+
+def find_aligned(operator) -> AlignedOperator | None:
+    """The ``AlignedOperator`` in ``operator`` (itself, or under a ``RestrictedOperator``), else None."""
+    while operator is not None and not isinstance(operator, AlignedOperator):
+        operator = getattr(operator, "operator", None)
+    return operator
+
+
+def summary(problem) -> dict:
+    """``result.alignment`` of a run on ``problem``: the mode, shifts (px, per projection), tilt angles (deg), the
+    tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}`` without alignment."""
+    op = find_aligned(getattr(problem, "ray_transform", None))
+    if op is None:
+        return {}
+    return {"mode": op.mode, "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
+            "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
+            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
+            "at_bound": op.at_bound}
+
+
+def plot_shifts(alignment: dict, path: str | Path) -> None:
+    """Shifts (px) against the tilt angle (deg), one line per component, the axis angle in the title."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    shifts = torch.tensor(alignment["shifts_px"])
+    for i, name in enumerate(alignment["components"]):
+        ax.plot(alignment["tilt_angles_deg"], shifts[:, i].numpy(), "o-", ms=3, label=f"{name} the tilt axis")
+    ax.set_xlabel("tilt angle (deg)")
+    ax.set_ylabel("shift (px)")
+    ax.set_title(f"alignment ({alignment['mode']}): tilt-axis angle {alignment['axis_angle_deg']:.3f} deg")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def wrap(solver, operator, data: torch.Tensor, label: str = "align"):
+    """``solver`` with the alignment of ``operator`` (from :func:`aligned`) in the fit: an :class:`AlignmentSolver`;
+    ``solver`` itself when ``operator`` is not aligned. One-line error for solver='fast' (its coarse levels have
+    no aligned operator)."""
+    if not isinstance(operator, AlignedOperator):
+        return solver
+    from .solvers import MultilevelSolver
+
+    if isinstance(solver, MultilevelSolver):
+        raise ValueError(f"{label}={operator.mode!r} needs solver='algorithm1' or a torch.optim solver, not 'fast'")
+    return AlignmentSolver(solver, operator, data)

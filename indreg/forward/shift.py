@@ -1,0 +1,138 @@
+"""Misaligned projections: ``T_s f``, the projections of ``f`` shifted per projection and, for a tilt series,
+rotated in-plane by the tilt-axis angle.
+
+Measured tilt series drift: projection ``k`` is the ideal one moved by ``s_k`` on the detector, and the tilt axis
+lies at an angle ``alpha`` to the detector rows. :class:`AlignedOperator` models both as a linear map ``S`` of the
+data space after a parallel-beam operator ``T`` (a 2D ``RayTransform`` or a 3D ``TiltSeriesTransform``):
+``T_s f = S_{s, alpha} T f``, with ``S`` bilinear interpolation of every projection image at moved points. ``S``
+acts on the data space only, whose inner product is a constant times the plain sum, so the adjoint is
+``T^* S^T`` with ``S^T`` the exact transpose of the interpolation (a scatter-add of the same weights). ``S`` is
+differentiable in the data, the shifts and the angle (its weights are; the cell indices are piecewise constant).
+
+Convention:
+    - A projection image has axes ``(rows, columns)``: rows along the tilt axis (a 2D sinogram has one row),
+      columns across it (the detector bins ``s_d``). Pixels are the detector cells: ``det_cell`` across,
+      ``row_cell`` (the cell side along the tilt axis) along.
+    - ``shifts`` ``(num_projections, c)`` in pixels, ``c = 1`` in 2D (across the axis) and ``c = 2`` for a tilt
+      series (``[:, 0]`` across, ``[:, 1]`` along the axis); ``angle`` ``alpha`` in radians (tilt series only).
+    - A feature at the ideal detector point ``q = (s, t)`` (physical units; ``t = 0`` at the middle row, ``s``
+      as ``det_points``) appears at ``p = R(alpha) q + (s_k det_cell, s_k' row_cell)``, ``R`` the counter-clockwise
+      rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``,
+      zero where that point leaves the detector.
+"""
+from __future__ import annotations
+
+import torch
+
+from .._checks import check_tensor
+from .operator import check_data_pair, check_operator
+
+__all__ = ["AlignedOperator", "projection_frame"]
+
+
+def projection_frame(operator) -> tuple:
+    """``(operator, num_projections, rows, columns, det_points, det_cell, row_cell)`` of a parallel-beam
+    ``RayTransform`` or a ``TiltSeriesTransform``; a one-line TypeError for any other operator."""
+    from .geometry import ParallelBeamGeometry
+    from .ray_transform import RayTransform
+    from .tilt_series import TiltSeriesTransform
+
+    if isinstance(operator, TiltSeriesTransform):
+        g = operator.geometry
+        return operator, g.num_tilts, g.det_rows, g.det_count, g.det_points, g.det_cell, g.row_cell
+    if isinstance(operator, RayTransform) and isinstance(operator.geometry, ParallelBeamGeometry):
+        g = operator.geometry
+        return operator, g.num_angles, 1, g.det_count, g.det_points, g.det_cell, 1.0
+    raise TypeError(f"alignment needs a parallel-beam RayTransform (2D) or a TiltSeriesTransform (3D), got "
+                    f"{type(operator).__name__}" + (f" with {type(operator.geometry).__name__}"
+                                                    if hasattr(operator, "geometry") else ""))
+
+
+class AlignedOperator:
+    """``T_s f = S_{s, alpha} T f`` for a parallel-beam ``T`` (module docstring), a ``LinearOperator`` in ``f``.
+
+    ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
+    as float64 tensors and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
+    (differentiable in all three). ``range_shape`` and ``inner_data`` are ``T``'s.
+    """
+
+    def __init__(self, operator, shifts=None, angle=0.0):
+        check_operator(operator, "operator")
+        frame = projection_frame(operator)
+        self.operator, self.num_projections, self.rows, self.columns = frame[:4]
+        self.det_points, self.det_cell, self.row_cell = frame[4].double(), float(frame[5]), float(frame[6])
+        self.domain, self.range_shape = operator.domain, tuple(operator.range_shape)
+        self.components = 1 if len(self.range_shape) == 2 else 2
+        self.shifts = torch.zeros(self.num_projections, self.components, dtype=torch.float64) if shifts is None \
+            else check_tensor(torch.as_tensor(shifts, dtype=torch.float64), "shifts",
+                              (self.num_projections, self.components))
+        self.angle = torch.as_tensor(float(angle), dtype=torch.float64)
+
+    def __repr__(self) -> str:
+        return f"AlignedOperator({self.operator!r}, {self.num_projections} projections, {self.components} shift(s))"
+
+    # ------------------------------------------------------------------------------------------- interpolation
+    def _points(self, shifts: torch.Tensor, angle: torch.Tensor, like: torch.Tensor) -> tuple:
+        """Fractional (row, column) indices ``(K, rows, columns)`` of ``R(-alpha)(p - shift)`` for every pixel p."""
+        opts = dict(dtype=like.dtype, device=like.device)
+        shifts, angle = shifts.to(**opts), angle.to(**opts)
+        s = self.det_points.to(**opts).view(1, 1, -1)
+        t = ((torch.arange(self.rows, **opts) - (self.rows - 1) / 2) * self.row_cell).view(1, -1, 1)
+        ds = (shifts[:, 0] * self.det_cell).view(-1, 1, 1)
+        dt = (shifts[:, 1] * self.row_cell).view(-1, 1, 1) if self.components == 2 else torch.zeros_like(ds)
+        c, n = torch.cos(angle), torch.sin(angle)
+        qs = c * (s - ds) + n * (t - dt)
+        qt = -n * (s - ds) + c * (t - dt)
+        return qt / self.row_cell + (self.rows - 1) / 2, (qs - s[0, 0, 0]) / self.det_cell
+
+    def _weights(self, shifts, angle, like) -> tuple:
+        """Flat neighbour indices and bilinear weights ``(4, K, rows * columns)`` (zero outside the detector)."""
+        row, col = self._points(shifts, angle, like)
+        r0, c0 = torch.floor(row.detach()), torch.floor(col.detach())
+        fr, fc = row - r0, col - c0
+        index, weight = [], []
+        for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+            r, c = r0 + dr, c0 + dc
+            inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns)
+            index.append((r.clamp(0, self.rows - 1) * self.columns + c.clamp(0, self.columns - 1)).long())
+            weight.append(w * inside)
+        K = self.num_projections
+        return torch.stack(index).reshape(4, K, -1), torch.stack(weight).reshape(4, K, -1)
+
+    def _flat(self, y: torch.Tensor) -> torch.Tensor:
+        return y.reshape(*y.shape[:y.dim() - len(self.range_shape)], self.num_projections, -1)
+
+    def warp(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+        """``S y``: data ``(..., *range_shape)`` sampled at the moved points (module docstring)."""
+        index, weight = self._weights(shifts, angle, y)
+        flat = self._flat(y)
+        out = sum(w * flat.gather(-1, i.expand(flat.shape)) for i, w in zip(index, weight))
+        return out.reshape(y.shape)
+
+    def warp_transpose(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+        """``S^T y``: the exact transpose of :meth:`warp` (scatter-add of the same weights)."""
+        index, weight = self._weights(shifts, angle, y)
+        flat = self._flat(y)
+        out = flat.new_zeros(flat.shape)
+        for i, w in zip(index, weight):
+            out = out.scatter_add(-1, i.expand(flat.shape), w * flat)
+        return out.reshape(y.shape)
+
+    # ------------------------------------------------------------------------------------------- the operator
+    def apply(self, f: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+        """``S_{shifts, angle} T f`` (differentiable in ``f``, ``shifts`` and ``angle``)."""
+        return self.warp(self.operator(f), shifts, angle)
+
+    def __call__(self, f: torch.Tensor) -> torch.Tensor:
+        """``T_s f`` at the current ``shifts`` and ``angle``: images ``(..., *domain.shape)`` -> data."""
+        return self.apply(f, self.shifts, self.angle)
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        """L2 adjoint ``T^* S^T y``."""
+        y = check_tensor(y, "data", self.range_shape, finite=False)
+        return self.operator.adjoint(self.warp_transpose(y, self.shifts, self.angle))
+
+    def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
+        """``T``'s data inner product."""
+        check_data_pair(y1, y2, self.range_shape)
+        return self.operator.inner_data(y1, y2)

@@ -1,0 +1,201 @@
+"""Alignment in the fit: the shifted / rotated data model T_s (adjoint, derivatives, analytic shifts), the
+estimation of shifts and the tilt-axis angle on exact data, the joint fit through indreg.register, and errors."""
+import math
+
+import pytest
+import torch
+
+import indreg
+from indreg import ImageDomain, phantoms
+from indreg.alignment import aligned, coarse_shifts, estimate, gauge, plot_shifts
+from indreg.forward import (FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry,
+                            TiltSeriesTransform)
+from indreg.forward.operator import adjointness
+from indreg.forward.shift import AlignedOperator
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def series():
+    domain = ImageDomain.paper(24, ndim=3)
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-60, 60, 3, det_count=24, det_min=-16., det_max=16.))
+    return T, phantoms.get("shepp_logan_3d", domain).double()
+
+
+def _sinogram(n=48, angles=60):
+    domain = ImageDomain.paper(n)
+    return RayTransform(domain, ParallelBeamGeometry.paper(angles, n))
+
+
+def _random_shifts(T, scale, seed):
+    """Random shifts in the gauge, at most ``scale`` px per component."""
+    op = AlignedOperator(T)
+    gen = torch.Generator().manual_seed(seed)
+    s = gauge(op, torch.rand(op.shifts.shape, generator=gen, dtype=F64) * 2 - 1)
+    return s * (scale / s.abs().amax(dim=0))
+
+
+def test_adjointness_2d_and_3d(series):
+    for T in (series[0], _sinogram(16, 10)):
+        tilt = len(T.range_shape) == 3
+        op = AlignedOperator(T, _random_shifts(T, 3.0, 1), 0.04 if tilt else 0.0)
+        y = torch.randn(T.range_shape, dtype=F64)
+        assert not torch.allclose(op.warp(y, op.shifts, op.angle), y)   # the model does move the data
+        assert adjointness(op) < 1e-13
+        assert adjointness(op, seed=3) < 1e-13
+
+
+def test_integer_shift_moves_columns_and_rows(series):
+    T = series[0]
+    op = AlignedOperator(T)
+    y = torch.randn(T.range_shape, dtype=F64)
+    s = torch.zeros(op.num_projections, 2, dtype=F64)
+    zero = torch.tensor(0.0, dtype=F64)
+    assert torch.allclose(op.warp(y, s, zero), y, atol=1e-12)
+    s[:, 0], s[:, 1] = 2, -1                    # content moves +2 columns, -1 row
+    out = op.warp(y, s, zero)
+    assert torch.allclose(out[:, :-1, 2:], y[:, 1:, :-2], atol=1e-12)
+    assert float(out[:, :, :2].abs().max()) < 1e-12 and float(out[:, -1].abs().max()) < 1e-12
+
+
+def test_quarter_turn_rotates_square_detector():
+    domain = ImageDomain((8, 8, 8), (-4., -4., -4.), (4., 4., 4.))   # unit cells, detector centred on the axis
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-30, 30, 30, det_count=8, det_min=-4., det_max=4.))
+    op = AlignedOperator(T)
+    y = torch.randn(T.range_shape, dtype=F64)
+    out = op.warp(y, op.shifts, torch.tensor(math.pi / 2, dtype=F64))
+    # (S y)(s, t) = y(R(-90deg)(s, t)) = y(t, -s): the image turned a quarter counter-clockwise in (s, t)
+    assert torch.allclose(out, y.transpose(-1, -2).flip(-1), atol=1e-12)
+
+
+def test_gradcheck_in_image_shifts_and_angle():
+    domain = ImageDomain((6, 5, 6), (-3., -2.5, -3.), (3., 2.5, 3.))
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-45, 45, 45, det_count=7))
+    op = AlignedOperator(T)
+    gen = torch.Generator().manual_seed(0)
+    f = torch.randn(domain.shape, generator=gen, dtype=F64, requires_grad=True)
+    s = (torch.rand(op.num_projections, 2, generator=gen, dtype=F64) * 1.6 - 0.8 + 0.1).requires_grad_()
+    a = torch.tensor(0.07, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(op.apply, (f, s, a))
+    T2 = _sinogram(8, 5)
+    op2 = AlignedOperator(T2)
+    f2 = torch.randn(T2.domain.shape, generator=gen, dtype=F64, requires_grad=True)
+    s2 = (torch.rand(5, 1, generator=gen, dtype=F64) * 3 - 1.3).requires_grad_()
+    assert torch.autograd.gradcheck(lambda f, s: op2.apply(f, s, op2.angle), (f2, s2))
+
+
+def test_recovers_shifts_and_axis_angle_3d(series):
+    T, f = series
+    op = aligned(T, "shifts+axis")
+    true, angle = _random_shifts(T, 4.0, 0), torch.tensor(math.radians(2.0), dtype=F64)
+    g = op.warp(T(f), true, angle)
+    P = T(f)
+    start = gauge(op, coarse_shifts(op, P, g))
+    s, a, at_bound = estimate(op, P, g, start, torch.tensor(0.0, dtype=F64), axis=True, iterations=30)
+    assert float((s - true).abs().max()) < 0.05
+    assert abs(math.degrees(float(a)) - 2.0) < 0.05 and at_bound == 0
+
+
+def test_recovers_shifts_2d():
+    T = _sinogram()
+    f = phantoms.get("shepp_logan", T.domain).double()
+    op = aligned(T, "shifts")
+    true = _random_shifts(T, 6.0, 2)
+    g = op.warp(T(f), true, op.angle)
+    P = T(f)
+    s, _, at_bound = estimate(op, P, g, gauge(op, coarse_shifts(op, P, g)), op.angle)
+    assert float((s - true).abs().max()) < 0.05 and at_bound == 0
+
+
+def test_register_with_shifts_recovers_them_and_the_unshifted_ssim(tmp_path):
+    T = _sinogram(48, 60)
+    template = phantoms.get("shepp_logan_template", T.domain).double()
+    target = phantoms.get("shepp_logan", T.domain).double()
+    true = _random_shifts(T, 5.0, 4)
+    data = AlignedOperator(T, true)(target)
+    options = dict(num_steps=6, max_iter=100, sigma=3.0, gamma=1e-7, target=target)
+    plain = indreg.register(template, T(target), T, **options)
+    r = indreg.register(template, data, T, align="shifts", **options)
+    shifts = torch.tensor(r.alignment["shifts_px"], dtype=F64)
+    rms = float((shifts - true).pow(2).mean().sqrt())
+    assert rms < 0.3, rms
+    assert r.alignment["estimates"] == 10 and r.alignment["mode"] == "shifts"
+    assert r.ssim > plain.ssim - 0.01, (r.ssim, plain.ssim)
+    unaligned = indreg.register(template, data, T, **options)
+    assert unaligned.ssim < r.ssim - 0.01
+    plot_shifts(r.alignment, tmp_path / "alignment.png")
+    assert (tmp_path / "alignment.png").stat().st_size > 0
+
+
+def test_errors(series):
+    T = _sinogram(16, 10)
+    data, template = torch.zeros(T.range_shape), torch.zeros(T.domain.shape)
+    with pytest.raises(ValueError, match="align must be one of 'none', 'shifts', 'shifts\\+axis', got 'axis'"):
+        indreg.register(template, data, T, align="axis")
+    with pytest.raises(ValueError, match="needs a 3D tilt series"):
+        aligned(T, "shifts+axis")
+    fan = RayTransform(T.domain, FanBeamGeometry.paper(10, 16) if hasattr(FanBeamGeometry, "paper") else
+                       FanBeamGeometry(num_angles=10, det_count=16, src_radius=40.0, det_radius=40.0))
+    with pytest.raises(TypeError, match="align='shifts': alignment needs a parallel-beam RayTransform"):
+        aligned(fan, "shifts")
+    with pytest.raises(ValueError, match="at least 4 projections, the data have 3"):
+        aligned(_sinogram(16, 3), "shifts")
+    with pytest.raises(ValueError, match="not 'fast'"):
+        indreg.register(template, data, T, align="shifts", solver="fast", max_iter=1)
+
+
+def test_app_writes_alignment_to_metrics_and_a_plot(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from experiment_helpers import FAST, run_app
+
+    out = tmp_path / "run"
+    m = run_app(FAST + ["data.align=shifts"], out)
+    a = m["alignment"]
+    assert a["mode"] == "shifts" and a["estimates"] == 1 and len(a["shifts_px"]) == len(a["tilt_angles_deg"]) == 10
+    assert (out / "alignment.png").stat().st_size > 0
+    assert "alignment" not in run_app(FAST, tmp_path / "plain")
+
+
+def test_app_resume_continues_the_alignment(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    from experiment_helpers import FAST, run_app
+
+    base = [o for o in FAST if not o.startswith("solver.max_iter")] + ["solver.max_iter=15", "data.align=shifts",
+                                                                          "dtype=float64"]
+    ref = run_app(base, tmp_path / "ref")
+    out = tmp_path / "run"
+    assert run_app(base + ["stop_after=12"], out)["status"] == "stopped"
+    again = run_app(base + ["resume=true"], out)
+    assert again["alignment"]["estimates"] == ref["alignment"]["estimates"] == 2
+    assert torch.allclose(torch.tensor(again["alignment"]["shifts_px"]), torch.tensor(ref["alignment"]["shifts_px"]),
+                          atol=1e-10)
+    assert again["objective"] == pytest.approx(ref["objective"], rel=1e-10)
+
+
+def test_holdout_and_lbfgs_with_alignment():
+    T = _sinogram(32, 20)
+    template = phantoms.get("shepp_logan_template", T.domain).double()
+    target = phantoms.get("shepp_logan", T.domain).double()
+    data = AlignedOperator(T, _random_shifts(T, 3.0, 5))(target)
+    r = indreg.register(template, data, T, align="shifts", holdout=4, num_steps=4, max_iter=12, sigma=3.0)
+    assert len(r.alignment["shifts_px"]) == 20 and r.alignment["estimates"] == 2 and r.holdout
+    r = indreg.register(template, data, T, align="shifts", solver="lbfgs", num_steps=4, max_iter=12, sigma=3.0)
+    assert r.status in ("completed", "converged") and r.alignment["estimates"] == 2
+
+
+def test_shifts_beyond_the_bound_warn(caplog):
+    T = _sinogram(32, 20)                       # bound: 0.25 * 32 = 8 px
+    target = phantoms.get("shepp_logan", T.domain).double()
+    data = AlignedOperator(T, _random_shifts(T, 12.0, 6))(target)
+    with caplog.at_level("WARNING", logger="indreg"):
+        r = indreg.register(target, data, T, align="shifts", num_steps=2, max_iter=1)
+    assert r.alignment["at_bound"] > 0
+    assert max(abs(s[0]) for s in r.alignment["shifts_px"]) == pytest.approx(8.0)
+    assert any("at their bound" in m for m in caplog.messages)
