@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 
 from .._checks import check_tensor
+from .algebra import OperatorAlgebra
 from .operator import check_data_pair, check_operator
 
 __all__ = ["AlignedOperator", "projection_frame"]
@@ -48,7 +49,7 @@ def projection_frame(operator) -> tuple:
                                                     if hasattr(operator, "geometry") else ""))
 
 
-class AlignedOperator:
+class AlignedOperator(OperatorAlgebra):
     """``T_s f = S_{s, alpha} T f`` for a parallel-beam ``T`` (module docstring), a ``LinearOperator`` in ``f``.
 
     ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
