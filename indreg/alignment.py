@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 
 from .forward.shift import AlignedOperator, projection_frame
+from .solvers.state import forget_evaluations
 
 __all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
            "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts", "summary",
@@ -230,12 +231,7 @@ class AlignmentSolver:
             log.warning("iteration %d: %d alignment parameter(s) at their bound (|s| <= %s px, |alpha| <= %g deg): "
                         "the data may be misaligned beyond it, or the template too unlike the data", state.iteration,
                         op.at_bound, [round(float(b), 2) for b in _bounds(op)], MAX_ANGLE_DEG)
-        for attr in ("_current", "_cache"):   # cached objective / gradient of the old data model
-            if hasattr(self.inner, attr):
-                setattr(self.inner, attr, None)
-        optimizer = getattr(self.inner, "optimizer", None)
-        if optimizer is not None:
-            optimizer.state.clear()
+        forget_evaluations(self.inner)   # cached objective / gradient of the old data model
 
     def step(self, state) -> dict:
         """An estimate when ``state.iteration`` is a multiple of ``every``, then the inner solver's step."""

@@ -80,17 +80,19 @@ def mapping(v, label):
     return dict(v)
 
 
-def auto_or(check: Callable, what: str) -> Callable:
-    """None, ``"auto"`` or a value that passes ``check`` (``what`` names it in the message)."""
+def auto_or(check: Callable, what: str, words: tuple = ("auto",)) -> Callable:
+    """None, one of ``words`` (``"auto"``) or a value that passes ``check`` (``what`` names it in the message)."""
+    expected = f"None, {', '.join(map(repr, words))} or {what}"
+
     def checked(v, label):
-        if v is None or v == "auto":
+        if v is None or v in words:
             return v
         if isinstance(v, str):
-            raise OptionError(label, v, f"None, 'auto' or {what}")
+            raise OptionError(label, v, expected)
         try:
             return check(v, label)
         except OptionError as e:
-            raise OptionError(label, v, f"None, 'auto' or {what}", e.kind) from None
+            raise OptionError(label, v, expected, e.kind) from None
     return checked
 
 
@@ -315,9 +317,12 @@ CORE = (
 
 #: How the inputs are brought to one unit before the run (``indreg.run.prepare``): the app's ``data.*`` keys.
 INPUTS = (
-    Option("template_scale", "data", "template_scale", None, auto_or(_positive, "a finite number > 0"),
+    Option("template_scale", "data", "template_scale", None,
+           auto_or(_positive, "a finite number > 0", ("auto", "fit", "fit+offset")),
            "the template's intensity factor: None (a warning if ||T I|| / ||g|| is outside [1/3, 3]), 'auto' "
-           "(the least-squares c = <T I, g> / <T I, T I>) or a number", Optional[Any]),
+           "(the least-squares c = <T I, g> / <T I, T I>), 'fit' / 'fit+offset' (a factor, and an offset, fitted "
+           "with the deformation: model lddmm with the geometric action; indreg.intensity) or a number",
+           Optional[Any]),
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
            "a number", Optional[Any]),
@@ -400,6 +405,11 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     if out["patience"] is not None and out["holdout"] is None:
         raise OptionError(label(options["patience"]), out["patience"],
                           f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
+    fit = out["template_scale"] in ("fit", "fit+offset")
+    if fit and (out["model"] != "lddmm" or out["action"] != "geometric"):
+        raise OptionError(label(options["template_scale"]), out["template_scale"], "None, 'auto' or a number with "
+                          f"model={out['model']!r} and action={out['action']!r} (fitting with the deformation needs "
+                          "lddmm with the geometric action)")
     chosen = model(out["model"])
     if chosen.check is not None:
         chosen.check(out, lambda name: label(options[name]))

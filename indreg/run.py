@@ -102,7 +102,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from . import alignment
+    from . import alignment, intensity
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
@@ -149,6 +149,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
                         f"{type(built).__name__}")
     problem, solver_options = built
     solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
+    solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
     return Setup(problem, solver, o, units, validation)
 
 

@@ -61,13 +61,15 @@ UNIT_SNAP = 0.05
 class Units:
     """What :func:`prepare` found and did, for the result (``result.units``) and metrics.json.
 
-    ``template_scale``: the factor applied to the template (1.0: none); ``background``: the offset subtracted
+    ``template_scale``: the factor applied to the template (1.0: none), ``template_offset`` the offset added to it
+    (``template_scale="fit"``, ``indreg.intensity``: both fitted with the deformation); ``background``: the offset subtracted
     from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
     ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
     ``T.inner_data``); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:
     the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`)."""
     template_scale: float = 1.0
+    template_offset: float = 0.0
     background: float = 0.0
     projection_ratio: float = math.nan
     scale_fit: float = math.nan
@@ -75,10 +77,10 @@ class Units:
     noise_residual: float = math.nan
 
     def apply(self, template, data) -> tuple:
-        """``(template * template_scale, data - background)``: the only place the inputs are transformed (the
-        run's tensors and the app's float64 copies alike); a template None (unknown) stays None."""
-        if template is not None and self.template_scale != 1.0:
-            template = template * self.template_scale
+        """``(template * template_scale + template_offset, data - background)``: the only place the inputs are
+        transformed (the run's tensors and the app's float64 copies alike); a template None (unknown) stays None."""
+        if template is not None and (self.template_scale != 1.0 or self.template_offset != 0.0):
+            template = template * self.template_scale + self.template_offset
         return template, (data - self.background if self.background != 0.0 else data)
 
     def as_dict(self) -> dict:
@@ -129,11 +131,13 @@ def unit_factor(c: float) -> float:
 
 def _template_factor(template_scale, units: Units, key: str) -> float:
     """The template's factor for ``template_scale`` (None: 1 and a warning if the units look different)."""
-    if template_scale == "auto":
+    if template_scale in ("auto", "fit", "fit+offset"):
         if not (math.isfinite(units.scale_fit) and units.scale_fit > 0):
-            raise ValueError(f"{key}='auto' found no positive scale: c = <T I, g> / <T I, T I> = "
+            raise ValueError(f"{key}={template_scale!r} found no positive scale: c = <T I, g> / <T I, T I> = "
                              f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
                              f"both, or give {key}=<number>")
+        if template_scale != "auto":   # a start: refitted with the deformation (indreg.intensity)
+            return units.scale_fit
         c = unit_factor(units.scale_fit)
         log.info("template scaled by %.6g (%s='auto': the fitted c = %.6g%s; ||T I|| / ||g|| was %.4g)", c, key,
                  units.scale_fit, "" if c == units.scale_fit else ", taken as the nearest unit factor",

@@ -109,10 +109,11 @@ def test_suite1_at_255_with_auto_matches_the_x1_run(caplog):
 
 
 @pytest.mark.parametrize("value,kind,match", [
-    (0, ValueError, "template_scale must be None, 'auto' or a finite number > 0, got 0"),
+    (0, ValueError, "template_scale must be None, 'auto', 'fit', 'fit\\+offset' or a finite number > 0, got 0"),
     (-2.0, ValueError, "template_scale must be"),
     (float("nan"), ValueError, "template_scale must be"),
-    ("fit", ValueError, "template_scale must be None, 'auto' or a finite number > 0, got 'fit'"),
+    ("fitted", ValueError, "template_scale must be None, 'auto', 'fit', 'fit\\+offset' or a finite number > 0, got "
+               "'fitted'"),
     (True, TypeError, "template_scale must be"),
 ])
 def test_bad_template_scale_is_one_line(value, kind, match):
@@ -266,3 +267,56 @@ def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog):
     poor = [m for m in warnings_of(caplog) if "poor fit" in m]
     assert swapped.status == right.status == "completed" and len(poor) == 1
     assert swapped.residual > 2 * swapped.units.noise_residual + 0.1 > right.residual
+
+
+def test_fit_intensity_solves_the_normal_equations():
+    from indreg.intensity import fit_intensity
+
+    g0 = torch.Generator().manual_seed(0)
+    P, Q = torch.rand(7, 9, generator=g0, dtype=torch.float64), torch.ones(7, 9, dtype=torch.float64)
+    inner = lambda a, b: (a * b).sum(dim=(-2, -1))   # noqa: E731
+    c, b = fit_intensity(P, Q, 2.5 * P - 0.7 * Q, inner)
+    assert c == pytest.approx(2.5, rel=1e-12) and b == pytest.approx(-0.7, rel=1e-12)
+    c, b = fit_intensity(P, 0 * Q, 2.5 * P - 0.7 * Q, inner)   # no offset: the least-squares factor
+    assert b == 0.0 and c == pytest.approx(float((P * (2.5 * P - 0.7)).sum() / (P * P).sum()), rel=1e-12)
+
+
+def _limited_angle():
+    domain = indreg.ImageDomain.paper(32)
+    angles = torch.linspace(-math.pi / 3, math.pi / 3, 21, dtype=torch.float64)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=angles, det_count=46, det_min=-24, det_max=24))
+    template = phantoms.get("shepp_logan_template", domain).double()
+    target = phantoms.get("shepp_logan", domain).double()
+    data, _ = indreg.noise.add_white_noise(T(target), snr_db=20, seed=0)
+    return template, data, T, target
+
+
+def test_template_scale_fit_is_the_same_in_any_units_and_close_to_the_template_in_the_data_units():
+    """template_scale='fit' fits the factor with the deformation: a template in 0..255 gives the same run as one in
+    the data's units, within 0.01 SSIM of the run that needs no factor at all."""
+    template, data, T, target = _limited_angle()
+    options = dict(sigma=2.0, num_steps=6, max_iter=60, target=target)
+    ref = indreg.register(template, data, T, **options)
+    fit = indreg.register(template, data, T, template_scale="fit", **options)
+    grey = indreg.register(255 * template, data, T, template_scale="fit", **options)
+    assert grey.units.template_scale == pytest.approx(fit.units.template_scale / 255, rel=1e-6)
+    assert grey.ssim == pytest.approx(fit.ssim, abs=1e-6) and abs(fit.ssim - ref.ssim) < 0.01
+    assert grey.units.template_offset == 0.0 and fit.history[-1]["template_scale"] == fit.units.template_scale
+
+
+def test_template_scale_fit_with_offset_removes_a_constant():
+    """A template offset by a constant: 'fit+offset' finds the offset and recovers most of the lost SSIM."""
+    template, data, T, target = _limited_angle()
+    options = dict(sigma=2.0, num_steps=6, max_iter=60, target=target)
+    auto = indreg.register(template + 0.3, data, T, template_scale="auto", **options)
+    fit = indreg.register(template + 0.3, data, T, template_scale="fit+offset", **options)
+    assert fit.units.template_offset == pytest.approx(-0.3, abs=0.1)
+    assert fit.ssim > auto.ssim + 0.1
+
+
+def test_template_scale_fit_needs_lddmm_with_the_geometric_action():
+    template, data, T, _ = _limited_angle()
+    for options in ({"model": "metamorphosis"}, {"action": "mass_preserving"}):
+        with pytest.raises(ValueError, match="template_scale must be None, 'auto' or a number with model") as e:
+            indreg.register(template, data, T, template_scale="fit", max_iter=1, **options)
+        assert "\n" not in str(e.value)

@@ -186,6 +186,17 @@ class IterativeSolver:
                 return dict(info, status=status)
 
 
+def forget_evaluations(solver) -> None:
+    """Drop what ``solver`` cached of its last evaluation (Algorithm 1's objective and gradient, torch.optim's
+    closure and optimizer memory): after a change of the problem (its data model, its template) they are stale."""
+    for attr in ("_current", "_cache"):
+        if hasattr(solver, attr):
+            setattr(solver, attr, None)
+    optimizer = getattr(solver, "optimizer", None)
+    if optimizer is not None:
+        optimizer.state.clear()
+
+
 def mark(x: tuple) -> tuple:
     """A token for the tensors of ``x`` as they are now (the tensors and their in-place versions)."""
     return tuple(x), tuple(t._version for t in x)

@@ -94,7 +94,7 @@ def test_offset_data_with_auto_background(tmp_path):
 
 @pytest.mark.parametrize("override,key", [("data.template_scale=0", "data.template_scale"),
                                           ("data.background=nan", "data.background"),
-                                          ("data.template_scale=fit", "data.template_scale")])
+                                          ("data.template_scale=fitted", "data.template_scale")])
 def test_bad_unit_values_name_the_key(tmp_path, override, key):
     with pytest.raises(ConfigError, match=f"invalid config value {key}="):
         run_app(FAST + [override], tmp_path)
