@@ -153,8 +153,9 @@ def test_source_returning_something_else(tmp_path, user_source):
 
 
 def test_sources_does_not_import_config():
-    """``config`` imports ``sources`` (to resolve ``data.source``), never the other way round."""
-    code = ("import sys, indreg.experiments.sources as s; s.resolve('files'); "
+    """``config`` imports ``sources`` (to resolve ``data.source``), never the other way round; the built-in
+    sources register themselves on import."""
+    code = ("import sys, indreg.experiments.builtin_sources, indreg.experiments.sources as s; s.resolve('files'); "
             "assert 'indreg.experiments.config' not in sys.modules, 'sources imported config'; "
             "from indreg.experiments.config import ConfigError; assert ConfigError is s.ConfigError")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
