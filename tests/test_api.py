@@ -204,6 +204,11 @@ def test_a_step_that_overflows_the_working_dtype_is_refused_in_one_line(tiny):
     T, template, _, data = tiny
     with pytest.raises(ValueError, match=r"step_size must be representable in torch\.float32"):
         indreg.register(template.float(), data.float(), T, step_size=1e39, max_iter=1)
+    with pytest.raises(ValueError, match=r"step_size=1e\+38 makes the iterate non-finite in float32") as e:
+        indreg.register(template.float(), data.float(), T, step_size=1e38, step_halving=False, max_iter=1)
+    assert "\n" not in str(e.value)
+    halved = indreg.register(template.float(), data.float(), T, step_size=1e38, max_iter=1)   # halving: rejected
+    assert halved.history[0]["rejected"] and halved.warnings == 1
 
 
 # ---------------------------------------------------------------------------------------------------- velocity_factor

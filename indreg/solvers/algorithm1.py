@@ -197,7 +197,16 @@ class Algorithm1(IterativeSolver):
             for k, a in zip(block, sizes):
                 steps[k] = a
             x_new = self._moved(state.iterate, h, steps, it)
-            new = self._evaluate(x_new)
+            try:
+                new = self._evaluate(x_new)
+            except ValueError as e:   # the step overflowed the dtype (the momentum or its velocity)
+                if "non-finite" not in str(e):
+                    raise
+                if self.control.halving:
+                    return None, math.inf, math.nan
+                raise ValueError(f"step_size={steps[0]:.4g} makes the iterate non-finite in "
+                                 f"{str(x_new[0].dtype).replace('torch.', '')} ({e}): give a smaller step_size (or "
+                                 "step_rel)") from None
             return (x_new, new, tuple(steps)), new[0]["objective"], self._min_jacobian(new[2], it + 1)
 
         rtol = rounding_tolerance(state.iterate[0].dtype)
