@@ -272,9 +272,8 @@ CORE = (
     Option("action", "deformation", "action", "geometric", choice(("geometric", "mass_preserving")),
            "group action: geometric or mass_preserving", str),
     Option("interpolation", "deformation", "interpolation", None, optional(choice(("reinterpolate", "compose"))),
-           "reinterpolate (the paper's) or compose; None: compose with solver='fast' or velocity_factor > 1, "
-           "else reinterpolate",
-           Optional[str], app_default="reinterpolate"),
+           "reinterpolate (the paper's) or compose; None: the model's rule (compose with solver='fast' or "
+           "velocity_factor > 1, else reinterpolate)", Optional[str]),
     Option("backward", "deformation", "backward", None, optional(choice(("paper", "exact", "autograd", "adjoint"))),
            "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
            Optional[str], app_default="paper"),

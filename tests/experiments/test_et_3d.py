@@ -163,7 +163,8 @@ def test_velocity_factor_through_the_app(tmp_path):
 @pytest.mark.parametrize("overrides,match", [
     (["experiment=suite_et_3d", "phantom.size=16", "deformation.velocity_factor=3"],
      r"velocity_factor=3: expected an integer >= 1 dividing every axis of the grid \(16, 16, 16\)"),
-    (["deformation.velocity_factor=2"], r"deformation\.interpolation='reinterpolate': expected 'compose'"),
+    (["deformation.velocity_factor=2", "deformation.interpolation=reinterpolate"],
+     r"deformation\.interpolation='reinterpolate': expected 'compose'"),
 ])
 def test_velocity_factor_config_errors(overrides, match):
     from indreg.experiments.build import build

@@ -20,10 +20,12 @@ F64 = FAST + ["dtype=float64", "device=cpu", "solver=fast"]
 def test_fast_config_composes_validates_and_builds_the_multilevel_solver(experiment, shapes):
     cfg = compose([f"experiment={experiment}", "solver=fast"])
     validate(cfg)
-    assert cfg.solver.name == "fast" and cfg.deformation.interpolation == "compose"
+    assert cfg.solver.name == "fast" and cfg.deformation.interpolation is None   # the model's rule: compose
     # the suite's objective is kept (gamma, iterations from the experiment preset)
     assert cfg.solver.gamma == compose([f"experiment={experiment}"]).solver.gamma
-    solver = build(cfg).solver
+    exp = build(cfg)
+    solver = exp.solver
+    assert exp.options["interpolation"] == "compose"
     assert isinstance(solver, MultilevelSolver) and solver.inner == "algorithm1"
     assert [s[0][0] for s in solver.schedule] == shapes
     assert [s[1] for s in solver.schedule] == [10, 10, 20] and solver.max_iter == cfg.solver.max_iter
