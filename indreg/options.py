@@ -284,7 +284,11 @@ CORE = (
            Optional[float]),
     Option("gamma_rel", "solver", "gamma_rel", GAMMA_REL, _nonneg,
            "with gamma None: the regularisation weight relative to the data term, gamma = gamma_rel S", float),
-    Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg, "weight of a TV term on the reconstruction", float),
+    Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg,
+           "weight of a TV term on the reconstruction (absolute; 0: none, unless tv_rel is given)", float),
+    Option("tv_rel", "solver", "tv_rel", None, optional(_nonneg),
+           "the TV weight relative to the data's intensity unit: tv_weight = tv_rel x indreg.forward.intensity_scale "
+           "(the TV baseline's convention; with tv_weight 0)", Optional[float]),
     Option("solver", "solver", "name", ALGORITHM1, solver_name,
            "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
     Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
@@ -355,13 +359,16 @@ def defaults() -> dict:
     return {o.name: o.default for o in all_options()}
 
 
-def relative(o: dict, scale: float) -> dict:
+def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
     """``gamma`` and ``step_size`` left None take their relative form at the data-term scale ``S`` (``scale``,
-    ``indreg.units.data_term_scale``): ``gamma = gamma_rel S``, ``step_size = step_rel / S``. Returns ``o``."""
+    ``indreg.units.data_term_scale``): ``gamma = gamma_rel S``, ``step_size = step_rel / S``; ``tv_rel`` given (and
+    ``tv_weight`` 0) gives ``tv_weight = tv_rel * intensity()`` (the data's intensity unit). Returns ``o``."""
     if o["gamma"] is None:
         o["gamma"] = o["gamma_rel"] * scale
     if o["step_size"] is None and o["solver"] == ALGORITHM1:
         o["step_size"] = o["step_rel"] / scale
+    if o["tv_rel"] is not None and o["tv_weight"] == 0:
+        o["tv_weight"] = o["tv_rel"] * intensity()
     return o
 
 
@@ -404,6 +411,9 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     if out["patience"] is not None and out["holdout"] is None:
         raise OptionError(label(options["patience"]), out["patience"],
                           f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
+    if out["tv_rel"] is not None and out["tv_weight"] != 0:
+        raise OptionError(label(options["tv_rel"]), out["tv_rel"], f"None when {label(options['tv_weight'])} is "
+                          "given (one TV weight: absolute or relative)")
     fit = out["template_scale"] in ("fit", "fit+offset")
     if fit and (out["model"] != "lddmm" or out["action"] != "geometric"):
         raise OptionError(label(options["template_scale"]), out["template_scale"], "None, 'auto' or a number with "

@@ -176,6 +176,18 @@ def test_default_run_is_invariant_to_the_intensity_unit(tiny, scale):
     assert run.count_halvings(r.history) == run.count_halvings(ref.history)
 
 
+def test_relative_tv_weight_is_invariant_to_the_intensity_unit(tiny):
+    """tv_rel: the TV weight scales with the data's intensity unit, so the run is the same in any units."""
+    T, template, target, data = tiny
+    options = dict(num_steps=4, max_iter=8, tv_rel=0.1)
+    ref = indreg.register(template, data, T, **options)
+    r = indreg.register(1e3 * template, 1e3 * data, T, **options)
+    assert ref.problem.tv_weight > 0 and r.problem.tv_weight == pytest.approx(1e3 * ref.problem.tv_weight, rel=1e-9)
+    torch.testing.assert_close(r.velocity, ref.velocity, rtol=1e-7, atol=1e-9)
+    with pytest.raises(ValueError, match="tv_rel must be None when tv_weight is given"):
+        indreg.register(template, data, T, tv_rel=0.1, tv_weight=1.0, max_iter=1)
+
+
 def test_default_run_is_invariant_to_the_length_unit():
     """The same object in a box 13.44 times larger (nanometres for the paper's units), sigma in the same units:
     the relative defaults give the same reconstruction."""
