@@ -25,6 +25,7 @@ import time
 
 import torch
 
+import indreg
 from indreg import ImageDomain, metrics, noise, phantoms
 from indreg.deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform
@@ -36,18 +37,34 @@ CASES = {  # template, SNR (dB, code convention) of the suite
     "missing": ("shepp_logan_template_missing", 7.06),
     "contrast": ("shepp_logan_template_contrast", 7.06),
     "extra": ("shepp_logan_template_extra", 6.46),
+    "background": ("shepp_logan_template", 7.06),
+    "limited": ("shepp_logan_template_contrast", None),   # 20 angles over [0, pi/4], noise std 0.25 (--gamma 1e-5)
 }
+BACKGROUND = 0.3   # the background case: the target on a uniform disc of this value (the skull's is 1.0)
 # the target's ventricle that the suite-4 template lacks: where the ventricle must appear
 ventricle_mask = phantoms.missing_ventricle_mask
 
 
 def problem_data(case: str, size: int, dtype=torch.float64):
     dom = ImageDomain.paper(size)
-    T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(size * 362 / 256))))
+    bins = int(round(size * 362 / 256))
+    T = RayTransform(dom, ParallelBeamGeometry(20, bins, -24.0, 24.0, angles=[2.25 * k for k in range(20)],
+                                               angle_unit="deg") if case == "limited" else
+                     ParallelBeamGeometry.paper(10, bins))
     name, snr = CASES[case]
     template, target = phantoms.get(name, dom).to(dtype), phantoms.get("shepp_logan", dom).to(dtype)
-    data, _ = noise.add_white_noise(T(target), snr_db=snr, seed=0)
+    if case == "background":
+        target = on_background(target, dom, BACKGROUND)
+    data, _ = noise.add_white_noise(T(target), snr_db=snr, std=0.25 if snr is None else None, seed=0)
     return dom, T, template, target, data
+
+
+def on_background(target: torch.Tensor, domain, level: float, radius: float = 1.5) -> torch.Tensor:
+    """The Shepp-Logan ``target`` on a uniform background: ``level`` on the disc of radius ``radius`` (normalised
+    frame, [-1, 1]) outside the head's outer ellipse (a specimen in resin or ice); the template keeps 0 there."""
+    disc = phantoms.ellipse_phantom(domain, ((1.0, radius, radius, 0.0, 0.0, 0.0),))
+    head = phantoms.ellipse_phantom(domain, ((1.0, *phantoms.SHEPP_LOGAN_ELLIPSES[0][1:]),))
+    return target + level * disc * (1 - head)
 
 
 def scores(image, target, mask) -> dict:
@@ -58,42 +75,41 @@ def scores(image, target, mask) -> dict:
 
 
 def quality(args) -> list:
-    dom, T, template, target, data = problem_data(args.case, args.size)
-    K, mask, rows = GaussianKernel(dom, args.sigma), ventricle_mask(dom), []
-    if not args.no_lddmm:
-        lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, args.gamma)
-        state = SolverState(lddmm.zero_momentum())
+    """LDDMM and metamorphosis through ``indreg.register`` (the defaults' own path) on the same data: one row per
+    run; metamorphosis once per ``--masks`` x ``--tau-rels`` (or absolute ``--taus``), all other options default."""
+    dom, T, template, target, data = problem_data(args.case, args.size, torch.float32)
+    region, rows = region_mask(args.case, dom, template, target), []
+    common = dict(gamma=args.gamma, sigma=args.sigma, step_size=args.step, max_iter=args.iters,
+                  num_steps=args.steps, step_halving=False, target=target, progress=False)
+    runs = [] if args.no_lddmm else [("lddmm", {})]
+    for mask in args.masks:
+        for fraction in args.start_fractions:
+            base = {"source_mask": None if mask == "none" else mask, "source_start_fraction": fraction}
+            runs += [("metamorphosis", {**base, "tau_rel": tau_rel}) for tau_rel in args.tau_rels]
+            runs += [("metamorphosis", {**base, "tau": tau, "source_start": round(fraction * args.iters)})
+                     for tau in args.taus]
+    for model, options in runs:
         t0 = time.perf_counter()
-        Algorithm1(lddmm, step_size=args.step, max_iter=args.iters).run(state)
-        rows.append({"case": args.case, "model": "lddmm", "size": args.size, "iters": args.iters,
-                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
-                     **scores(lddmm.deformed(state.momentum), target, mask)})
-        rows.append({"case": args.case, "model": "template", **scores(template, target, mask)})
+        r = indreg.register(template, data, T, model=model, **options, **common)
+        row = {"case": args.case, "model": model, "size": args.size, "iters": args.iters, **options,
+               "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1), **scores(r.deformed, target, region)}
+        if model == "metamorphosis":
+            row.update(tau=r.problem.tau, deformation_part=metrics.ssim(r.deformation_part.double(), target))
+        rows.append(row)
         if args.save:
-            torch.save({"lddmm": lddmm.deformed(state.momentum)}, f"{args.save}_lddmm.pt")
-    for tau in args.taus:
-        M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
-        Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
-        problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
-                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks,
-                                            source_mask=template_support(template, dom) if args.mask else None)
-        state = MetamorphosisState.zeros(problem)
-        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start,
-                                      step_halving=args.halving)
-        t0 = time.perf_counter()
-        info = solver.run(state)
-        deformed, intensity = problem.parts(state.momentum, state.source)
-        rows.append({"case": args.case, "model": "metamorphosis", "size": args.size, "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
-                     "source_start": args.source_start, "mask": args.mask,
-                     "iters": args.iters,
-                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
-                     "source_regulariser": info["source_regulariser"],
-                     **scores(deformed + intensity, target, mask),
-                     "deformation_part": scores(deformed, target, mask)["ssim"]})
-        if args.save:
-            torch.save({"deformation_part": deformed, "intensity_part": intensity, "target": target},
-                       f"{args.save}_tau{tau:g}.pt")
+            torch.save({"final": r.deformed, "target": target, **r.outputs},
+                       f"{args.save}_{model}_" + "_".join(map(str, options.values())) + ".pt")
     return rows
+
+
+def region_mask(case: str, domain, template: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Where template and target differ in kind (the error there is the "region error"): the ventricle the suite-4
+    template lacks (``missing``), the background outside the head (``background``), else the whole image."""
+    if case == "missing":
+        return ventricle_mask(domain)
+    if case == "background":
+        return on_background(torch.zeros_like(target), domain, 1.0) > 0.5
+    return torch.ones_like(target, dtype=torch.bool)
 
 
 def cost(args) -> list:
@@ -275,16 +291,14 @@ def main(argv=None):
     p.add_argument("--gamma", type=float, default=1e-7)
     p.add_argument("--sigma", type=float, default=2.0)
     p.add_argument("--step", type=float, default=0.02)
-    p.add_argument("--taus", type=float, nargs="*", default=[1.0])
+    p.add_argument("--taus", type=float, nargs="*", default=[], help="quality: absolute tau values")
+    p.add_argument("--tau-rels", type=float, nargs="*", default=[0.01], help="quality: tau_rel values")
+    p.add_argument("--start-fractions", type=float, nargs="*", default=[indreg.models.RELATIVE_DEFAULTS[
+        "source_start_fraction"]], help="quality: source_start_fraction values")
+    p.add_argument("--masks", nargs="*", default=["data"], choices=("data", "template", "none"),
+                   help="quality: source_mask values (none: no mask)")
     p.add_argument("--no-lddmm", action="store_true", help="metamorphosis runs only")
     p.add_argument("--save", default=None, help="prefix of .pt files with the resulting images")
-    p.add_argument("--interpolation", default="reinterpolate")
-    p.add_argument("--source-sigma", type=float, default=0.0, help="RKHS source kernel width (0: L2 source)")
-    p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
-    p.add_argument("--tv-smoothing", type=float, default=1e-3)
-    p.add_argument("--halving", action="store_true", help="metamorphosis: step halving")
-    p.add_argument("--mask", action="store_true", help="metamorphosis: source confined to the template's support")
-    p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None)
