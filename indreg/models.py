@@ -56,10 +56,10 @@ def _coarse_velocity(kernel, o: dict) -> tuple:
     return W, GaussianKernel(velocity_domain, kernel.sigma, kernel.method)
 
 
-def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, label: str):
+def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, width: float, label: str):
     """``source_mask``: None, ``"template"`` (the template's support, ``template_support``), ``"data"`` (that and
-    where the data show mass, ``data_support``) or an array."""
-    from .solvers.metamorphosis import data_support, template_support
+    where the data show mass the template lacks, ``_data_only_support``) or an array."""
+    from .solvers.metamorphosis import template_support
 
     if mask is None:
         return None
@@ -69,12 +69,24 @@ def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, dom
                               f"{tuple(domain.shape)}")
         support = template_support(template, domain)
         if mask == "data":
-            support = torch.maximum(support, data_support(data.to(template.dtype), operator, domain))
+            extra = _data_only_support(template, data.to(template.dtype), operator, domain, width)
+            support = torch.maximum(support, extra)
         return support
     return as_tensor(mask, label, domain.shape, template.dtype, template.device)
 
 
-#: The named source masks: the template's support, or its union with the data's support.
+def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, domain, width: float) -> torch.Tensor:
+    """Where the data's visual hull shows mass that the template's own hull (of its noise-free projection, at the
+    data's noise level) does not (``data_support``), without the parts thinner than about ``2 width`` (the source's
+    width; ``opened``): the strips along the rays of a limited angular range."""
+    from .solvers.metamorphosis import data_support, noise_std, opened
+
+    noise = noise_std(data)
+    own = data_support(operator(template), operator, domain, noise=noise)
+    return opened(data_support(data, operator, domain, noise=noise) * (1 - own), domain, width)
+
+
+#: The named source masks: the template's support, or that and where the data show mass the template lacks.
 SOURCE_MASKS = ("template", "data")
 
 
@@ -90,7 +102,7 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
     problem = MetamorphosisRegistration(operator, M, kernel, template, data, o["gamma"], o["tau"],
                                         tv_weight=o["tv_weight"], source_kernel=source_kernel,
                                         source_mask=_source_mask(o["source_mask"], template, data, operator, domain,
-                                                                "source_mask"),
+                                                                 source_sigma or kernel.sigma, "source_mask"),
                                         tau_rel=o["tau_rel"] if o["tau"] is None else None)
     solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": _source_start(o)}},
                       "torch": {"lrs": {"source": o["source_lr"]}}}

@@ -1,19 +1,27 @@
-"""Metamorphosis vs LDDMM: quality on suite 4 (missing ventricle) and on a template with wrong grey values, and
-cost per iteration / memory at 256^2, N = 20.
+"""Metamorphosis vs LDDMM: quality on suite 4 (missing ventricle, extra disc), a template with wrong grey values,
+limited angles and a specimen on a uniform background, and cost per iteration / memory at 256^2, N = 20.
 
-    python scripts/bench_metamorphosis.py quality --case missing --iters 300 --taus 0.1 1 10
-    python scripts/bench_metamorphosis.py quality --case contrast --iters 300 --taus 1
+    python scripts/bench_metamorphosis.py quality --case background --iters 1000 --masks template data
+    python scripts/bench_metamorphosis.py quality --case missing --size 128 --iters 300 --tau-rels 0.01 0.1 \
+        --start-fractions 0 0.6 --masks data none
+    python scripts/bench_metamorphosis.py quality --case limited --iters 500 --gamma 1e-5
     python scripts/bench_metamorphosis.py cost --size 256 --steps 20 --repeat 5
     python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR [--lddmm RUN_DIR] --figure tau.png
     python scripts/bench_metamorphosis.py table PRESET,METHOD,RUN_DIR ... [--figure table.md]
 
-``quality`` runs LDDMM (Algorithm 1, the suite's gamma / sigma / step) and metamorphosis (``MetamorphosisDescent``,
-the same gamma / sigma / velocity step, source step ``1 / (tau + ||T||^2)``) on the same noisy data (10 angles x
-362 bins, the suite's SNR, seed 0) and prints SSIM / PSNR (honest and paper convention), the error inside the
-ventricle that the template lacks, and the seconds per iteration, as one JSON line per run (``--out`` appends
-them to a file). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and backward of the
-deformation and of T) of both models, interleaved, and the peak of live tensor memory (``tracemalloc`` on
-torch's CPU allocations is not available, so the run is repeated under ``torch.profiler`` memory profiling).
+``quality`` runs LDDMM and metamorphosis through ``indreg.register`` (Algorithm 1, the suite's gamma / sigma /
+step, no step halving, every other option at its default) on the same noisy data (10 angles x 362 bins at the
+suite's SNR, seed 0; ``limited``: 20 angles over [0, pi/4], noise std 0.25) and prints SSIM / PSNR (honest and
+paper convention) and the RMS error in the region where template and target differ in kind (``region_mask``: the
+ventricle the suite-4 template lacks, the background the template lacks; the whole image otherwise; key
+``ventricle_rms``), and the seconds per iteration, as one JSON line per run (``--out`` appends them to a file).
+Metamorphosis runs once per ``--masks`` x ``--start-fractions`` x ``--tau-rels`` (and absolute ``--taus``). The
+background case (``on_background``): the suite-3 template on a zero background, the target the suite-3 target on
+a uniform background of ``BACKGROUND`` (0.3 of the skull's 1.0) filling the field of view outside the head (a
+specimen in resin or ice). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and
+backward of the deformation and of T) of both models, interleaved, and the peak of live tensor memory
+(``tracemalloc`` on torch's CPU allocations is not available, so the run is repeated under ``torch.profiler``
+memory profiling).
 """
 from __future__ import annotations
 
@@ -29,9 +37,7 @@ import indreg
 from indreg import ImageDomain, metrics, noise, phantoms
 from indreg.deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform
-from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
-                            MetamorphosisState, SolverState)
-from indreg.solvers.metamorphosis import template_support
+from indreg.solvers import IndirectRegistration, MetamorphosisRegistration
 
 CASES = {  # template, SNR (dB, code convention) of the suite
     "missing": ("shepp_logan_template_missing", 7.06),
@@ -61,7 +67,8 @@ def problem_data(case: str, size: int, dtype=torch.float64):
 
 def on_background(target: torch.Tensor, domain, level: float, radius: float = 1.5) -> torch.Tensor:
     """The Shepp-Logan ``target`` on a uniform background: ``level`` on the disc of radius ``radius`` (normalised
-    frame, [-1, 1]) outside the head's outer ellipse (a specimen in resin or ice); the template keeps 0 there."""
+    frame, [-1, 1]; 1.5: the whole square field of view) outside the head's outer ellipse (a specimen in resin or
+    ice); the template keeps 0 there."""
     disc = phantoms.ellipse_phantom(domain, ((1.0, radius, radius, 0.0, 0.0, 0.0),))
     head = phantoms.ellipse_phantom(domain, ((1.0, *phantoms.SHEPP_LOGAN_ELLIPSES[0][1:]),))
     return target + level * disc * (1 - head)
@@ -145,7 +152,8 @@ def _run_row(directory, model: str) -> dict:
     data fit, source norm ``sqrt(2 E_source / tau)`` (``||zeta||`` in ``L2([0,1], L2)`` or the source RKHS),
     RMS error in the target's ventricle (suite-4 missing template), TV's SSIM."""
     m, images, _ = _run(directory)
-    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"], "psnr": m["psnr"],
+    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"],
+           "psnr": m["psnr"],
            "data_fit": m["data_fit"], "deformation_part": m.get("deformation_part_ssim", m["ssim"]),
            "source_norm": math.sqrt(2 * m.get("source_regulariser", 0.0) / m["hparams"]["tau"])
            if m["hparams"].get("tau") else 0.0, "tv_ssim": m.get("tv_ssim")}
@@ -229,7 +237,8 @@ def _run(directory: str) -> tuple:
 
 def table(args) -> list:
     """One markdown row per method from ``indreg-register`` run dirs given as ``PRESET,METHOD,DIR`` (FBP and TV
-    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the target's ventricle, and its ratio to
+    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the
+    target's ventricle, and its ratio to
     the preset's LDDMM row, for the suite-4 missing-ventricle template."""
     rows = []
     for spec in args.runs:

@@ -10,7 +10,7 @@ from indreg.deform import GaussianKernel, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
 from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
                             MetamorphosisState, MetamorphosisTorchOptim, SolverState)
-from indreg.solvers.metamorphosis import data_support, template_support
+from indreg.solvers.metamorphosis import data_support, noise_std, opened, template_support
 
 
 def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,
@@ -284,6 +284,27 @@ def test_data_support_3d_tilt_series():
     mask = data_support(T(ball.double()), T, dom)
     assert mask.shape == dom.shape and bool((mask[ball] == 1).all())
     assert float(mask[:, :2].sum()) == 0 and float(mask[:, -2:].sum()) == 0
+
+
+def test_noise_std_of_white_noise_on_a_smooth_signal():
+    """The std of white noise from neighbouring detector cells' differences: within 5% on 20 x 400 cells of a signal
+    whose steps between cells are at most a fifth of the noise (the signal alone reads as less than that)."""
+    s = torch.linspace(-3, 3, 400, dtype=torch.float64)
+    clean = (5 * torch.exp(-s ** 2)).expand(20, 400)
+    noisy = clean + 0.3 * torch.randn(20, 400, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert noise_std(noisy) == pytest.approx(0.3, rel=0.05) and noise_std(clean) < 0.3 / 5
+
+
+@pytest.mark.parametrize("ndim", (2, 3))
+def test_opened_removes_thin_parts_and_keeps_thick_ones(ndim):
+    """Opening by half-width 1 (cells of 1): a 9-cell block stays whole, a 2-cell-thick strip attached to it goes."""
+    dom = ImageDomain((16,) * ndim, (0.0,) * ndim, (16.0,) * ndim)
+    mask = torch.zeros(dom.shape, dtype=torch.float64)
+    mask[(slice(2, 11),) * ndim] = 1.0
+    strip = mask.clone()
+    strip[(slice(11, 16), slice(4, 6), slice(4, 6))[:ndim]] = 1.0
+    torch.testing.assert_close(opened(strip, dom, 1.0), mask)
+    torch.testing.assert_close(opened(mask, dom, 1.0), mask)
 
 
 def test_descent_3d_decreases_the_objective_and_changes_intensities():
