@@ -77,13 +77,14 @@ def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, dom
 
 def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, domain, width: float) -> torch.Tensor:
     """Where the data's visual hull shows mass that the template's own hull (of its noise-free projection, at the
-    data's noise level) does not (``data_support``), without the parts thinner than about ``2 width`` (the source's
-    width; ``opened``): the strips along the rays of a limited angular range."""
+    data's noise level) does not (``data_support``), without the parts thinner than about 4 ``width`` (the source's
+    width; ``opened`` at 2 ``width``): the strips along the rays of a limited angular range, and an outline the
+    deformation can reach (docs/metamorphosis.md, "The source's mask")."""
     from .solvers.metamorphosis import data_support, noise_std, opened
 
     noise = noise_std(data)
     own = data_support(operator(template), operator, domain, noise=noise)
-    return opened(data_support(data, operator, domain, noise=noise) * (1 - own), domain, width)
+    return opened(data_support(data, operator, domain, noise=noise) * (1 - own), domain, 2 * width)
 
 
 #: The named source masks: the template's support, or that and where the data show mass the template lacks.
