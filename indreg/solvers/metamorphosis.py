@@ -17,7 +17,8 @@ iterate is then the source momentum ``s`` (``h_s = tau s + (N / cell_volume) dL/
 h_s``, i.e. ``zeta <- zeta - beta K_s h_s``). Without it (the paper's ``L2([0,1], X)`` norm) ``s = zeta``.
 A ``source_mask`` ``chi`` (values in [0, 1]) confines the intensity changes: ``zeta = chi K_s s`` (or ``chi s``),
 the penalty unchanged, ``h_s = tau s + chi (N / cell_volume) dL/dzeta`` (e.g. ``template_support``: no intensity
-is created where the template and its surroundings are empty).
+is created where the template and its surroundings are empty; ``data_support``: the data's visual hull, where every
+ray through a point carries mass).
 
 ``tau`` relative to the data term (``tau_rel``, docs/metamorphosis.md "Relative tau"): ``tau = tau_rel * ||T||^2
 ||K_s||`` (``tau_scale``; ``||K_s|| = 1`` for the L2 source). At ``nu = 0`` the source update is ``zeta <- zeta -
