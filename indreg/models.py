@@ -64,17 +64,39 @@ def _coarse_velocity(kernel, o: dict) -> tuple:
     return W, GaussianKernel(velocity_domain, kernel.sigma, kernel.method)
 
 
-def _source_mask(mask, template: torch.Tensor, domain, label: str):
-    """``source_mask``: None, ``"template"`` (the template's support, ``template_support``) or an array."""
+def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, width: float, label: str):
+    """``source_mask``: None, ``"template"`` (the template's support, ``template_support``), ``"data"`` (that and
+    where the data show mass the template lacks, ``_data_only_support``) or an array."""
     from .solvers.metamorphosis import template_support
 
     if mask is None:
         return None
     if isinstance(mask, str):
-        if mask != "template":
-            raise OptionError(label, mask, f"None, 'template' or an array {tuple(domain.shape)}")
-        return template_support(template, domain)
+        if mask not in SOURCE_MASKS:
+            raise OptionError(label, mask, f"None, {' or '.join(map(repr, SOURCE_MASKS))} or an array "
+                              f"{tuple(domain.shape)}")
+        support = template_support(template, domain)
+        if mask == "data":
+            extra = _data_only_support(template, data.to(template.dtype), operator, domain, width)
+            support = torch.maximum(support, extra)
+        return support
     return as_tensor(mask, label, domain.shape, template.dtype, template.device)
+
+
+def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, domain, width: float) -> torch.Tensor:
+    """Where the data's visual hull shows mass that the template's own hull (of its noise-free projection, at the
+    data's noise level) does not (``data_support``), without the parts thinner than about 4 ``width`` (the source's
+    width; ``opened`` at 2 ``width``): the strips along the rays of a limited angular range, and an outline the
+    deformation can reach (docs/metamorphosis.md, "The source's mask")."""
+    from .solvers.metamorphosis import data_support, noise_std, opened
+
+    noise = noise_std(data)
+    own = data_support(operator(template), operator, domain, noise=noise)
+    return opened(data_support(data, operator, domain, noise=noise) * (1 - own), domain, 2 * width)
+
+
+#: The named source masks: the template's support, or that and where the data show mass the template lacks.
+SOURCE_MASKS = ("template", "data")
 
 
 def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
@@ -88,7 +110,8 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
     source_kernel = None if source_sigma is None else GaussianKernel(domain, source_sigma)
     problem = MetamorphosisRegistration(operator, M, kernel, template, data, o["gamma"], o["tau"],
                                         tv_weight=o["tv_weight"], source_kernel=source_kernel,
-                                        source_mask=_source_mask(o["source_mask"], template, domain, "source_mask"),
+                                        source_mask=_source_mask(o["source_mask"], template, data, operator, domain,
+                                                                 source_sigma or kernel.sigma, "source_mask"),
                                         tau_rel=o["tau_rel"] if o["tau"] is None else None)
     solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": _source_start(o)}},
                       "torch": {"lrs": {"source": o["source_lr"]}}}
@@ -122,8 +145,8 @@ def _check_metamorphosis(o: dict, label) -> None:
     if o["action"] != "geometric":
         raise OptionError(label("action"), o["action"], "'geometric' for model='metamorphosis'")
     mask = o["source_mask"]
-    if isinstance(mask, str) and mask != "template":
-        raise OptionError(label("source_mask"), mask, "None, 'template' or an array")
+    if isinstance(mask, str) and mask not in SOURCE_MASKS:
+        raise OptionError(label("source_mask"), mask, f"None, {' or '.join(map(repr, SOURCE_MASKS))} or an array")
     for absolute, relative in (("tau", "tau_rel"), ("source_start", "source_start_fraction")):
         if o[absolute] is not None and o[relative] != RELATIVE_DEFAULTS[relative]:
             raise OptionError(label(relative), o[relative], f"left at its default {RELATIVE_DEFAULTS[relative]} when "
@@ -170,9 +193,9 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
     Option("source_sigma", "deformation", "source_sigma", "kernel", _source_sigma,
            "'kernel' (a Gaussian RKHS source of the velocity kernel's width), a width, or None (the paper's L2 "
            "source)", Optional[Any], models=_META),
-    Option("source_mask", "deformation", "source_mask", "template", anything,
-           "'template' (the template's support dilated by 1 unit), None or an array in [0, 1]", Optional[str],
-           models=_META),
+    Option("source_mask", "deformation", "source_mask", "data", anything,
+           "'data' (the template's support dilated by 1 unit, and where the data show mass: data_support), "
+           "'template' (the template's support only), None or an array in [0, 1]", Optional[str], models=_META),
     Option("source_step_size", "solver", "source_step_size", None, optional(number(0.0, strict=True)),
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),

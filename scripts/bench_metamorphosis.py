@@ -1,19 +1,27 @@
-"""Metamorphosis vs LDDMM: quality on suite 4 (missing ventricle) and on a template with wrong grey values, and
-cost per iteration / memory at 256^2, N = 20.
+"""Metamorphosis vs LDDMM: quality on suite 4 (missing ventricle, extra disc), a template with wrong grey values,
+limited angles and a specimen on a uniform background, and cost per iteration / memory at 256^2, N = 20.
 
-    python scripts/bench_metamorphosis.py quality --case missing --iters 300 --taus 0.1 1 10
-    python scripts/bench_metamorphosis.py quality --case contrast --iters 300 --taus 1
+    python scripts/bench_metamorphosis.py quality --case background --iters 1000 --masks template data
+    python scripts/bench_metamorphosis.py quality --case missing --size 128 --iters 300 --tau-rels 0.01 0.1 \
+        --start-fractions 0 0.6 --masks data none
+    python scripts/bench_metamorphosis.py quality --case limited --iters 500 --gamma 1e-5
     python scripts/bench_metamorphosis.py cost --size 256 --steps 20 --repeat 5
     python scripts/bench_metamorphosis.py tau-figure RESULTS.jsonl|MULTIRUN_DIR [--lddmm RUN_DIR] --figure tau.png
     python scripts/bench_metamorphosis.py table PRESET,METHOD,RUN_DIR ... [--figure table.md]
 
-``quality`` runs LDDMM (Algorithm 1, the suite's gamma / sigma / step) and metamorphosis (``MetamorphosisDescent``,
-the same gamma / sigma / velocity step, source step ``1 / (tau + ||T||^2)``) on the same noisy data (10 angles x
-362 bins, the suite's SNR, seed 0) and prints SSIM / PSNR (honest and paper convention), the error inside the
-ventricle that the template lacks, and the seconds per iteration, as one JSON line per run (``--out`` appends
-them to a file). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and backward of the
-deformation and of T) of both models, interleaved, and the peak of live tensor memory (``tracemalloc`` on
-torch's CPU allocations is not available, so the run is repeated under ``torch.profiler`` memory profiling).
+``quality`` runs LDDMM and metamorphosis through ``indreg.register`` (Algorithm 1, the suite's gamma / sigma /
+step, no step halving, every other option at its default) on the same noisy data (10 angles x 362 bins at the
+suite's SNR, seed 0; ``limited``: 20 angles over [0, pi/4], noise std 0.25) and prints SSIM / PSNR (honest and
+paper convention) and the RMS error in the region where template and target differ in kind (``region_mask``: the
+ventricle the suite-4 template lacks, the background the template lacks; the whole image otherwise; key
+``ventricle_rms``), and the seconds per iteration, as one JSON line per run (``--out`` appends them to a file).
+Metamorphosis runs once per ``--masks`` x ``--start-fractions`` x ``--tau-rels`` (and absolute ``--taus``). The
+background case (``on_background``): the suite-3 template on a zero background, the target the suite-3 target on
+a uniform background of ``BACKGROUND`` (0.3 of the skull's 1.0) filling the field of view outside the head (a
+specimen in resin or ice). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and
+backward of the deformation and of T) of both models, interleaved, and the peak of live tensor memory
+(``tracemalloc`` on torch's CPU allocations is not available, so the run is repeated under ``torch.profiler``
+memory profiling).
 """
 from __future__ import annotations
 
@@ -25,29 +33,45 @@ import time
 
 import torch
 
+import indreg
 from indreg import ImageDomain, metrics, noise, phantoms
 from indreg.deform import GaussianKernel, LDDMMDeformation, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform
-from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
-                            MetamorphosisState, SolverState)
-from indreg.solvers.metamorphosis import template_support
+from indreg.solvers import IndirectRegistration, MetamorphosisRegistration
 
 CASES = {  # template, SNR (dB, code convention) of the suite
     "missing": ("shepp_logan_template_missing", 7.06),
     "contrast": ("shepp_logan_template_contrast", 7.06),
     "extra": ("shepp_logan_template_extra", 6.46),
+    "background": ("shepp_logan_template", 7.06),
+    "limited": ("shepp_logan_template_contrast", None),   # 20 angles over [0, pi/4], noise std 0.25 (--gamma 1e-5)
 }
+BACKGROUND = 0.3   # the background case: the target on a uniform disc of this value (the skull's is 1.0)
 # the target's ventricle that the suite-4 template lacks: where the ventricle must appear
 ventricle_mask = phantoms.missing_ventricle_mask
 
 
 def problem_data(case: str, size: int, dtype=torch.float64):
     dom = ImageDomain.paper(size)
-    T = RayTransform(dom, ParallelBeamGeometry.paper(10, int(round(size * 362 / 256))))
+    bins = int(round(size * 362 / 256))
+    T = RayTransform(dom, ParallelBeamGeometry(20, bins, -24.0, 24.0, angles=[2.25 * k for k in range(20)],
+                                               angle_unit="deg") if case == "limited" else
+                     ParallelBeamGeometry.paper(10, bins))
     name, snr = CASES[case]
     template, target = phantoms.get(name, dom).to(dtype), phantoms.get("shepp_logan", dom).to(dtype)
-    data, _ = noise.add_white_noise(T(target), snr_db=snr, seed=0)
+    if case == "background":
+        target = on_background(target, dom, BACKGROUND)
+    data, _ = noise.add_white_noise(T(target), snr_db=snr, std=0.25 if snr is None else None, seed=0)
     return dom, T, template, target, data
+
+
+def on_background(target: torch.Tensor, domain, level: float, radius: float = 1.5) -> torch.Tensor:
+    """The Shepp-Logan ``target`` on a uniform background: ``level`` on the disc of radius ``radius`` (normalised
+    frame, [-1, 1]; 1.5: the whole square field of view) outside the head's outer ellipse (a specimen in resin or
+    ice); the template keeps 0 there."""
+    disc = phantoms.ellipse_phantom(domain, ((1.0, radius, radius, 0.0, 0.0, 0.0),))
+    head = phantoms.ellipse_phantom(domain, ((1.0, *phantoms.SHEPP_LOGAN_ELLIPSES[0][1:]),))
+    return target + level * disc * (1 - head)
 
 
 def scores(image, target, mask) -> dict:
@@ -58,42 +82,41 @@ def scores(image, target, mask) -> dict:
 
 
 def quality(args) -> list:
-    dom, T, template, target, data = problem_data(args.case, args.size)
-    K, mask, rows = GaussianKernel(dom, args.sigma), ventricle_mask(dom), []
-    if not args.no_lddmm:
-        lddmm = IndirectRegistration(T, LDDMMDeformation(dom, args.steps), K, template, data, args.gamma)
-        state = SolverState(lddmm.zero_momentum())
+    """LDDMM and metamorphosis through ``indreg.register`` (the defaults' own path) on the same data: one row per
+    run; metamorphosis once per ``--masks`` x ``--tau-rels`` (or absolute ``--taus``), all other options default."""
+    dom, T, template, target, data = problem_data(args.case, args.size, torch.float32)
+    region, rows = region_mask(args.case, dom, template, target), []
+    common = dict(gamma=args.gamma, sigma=args.sigma, step_size=args.step, max_iter=args.iters,
+                  num_steps=args.steps, step_halving=False, target=target, progress=False)
+    runs = [] if args.no_lddmm else [("lddmm", {})]
+    for mask in args.masks:
+        for fraction in args.start_fractions:
+            base = {"source_mask": None if mask == "none" else mask, "source_start_fraction": fraction}
+            runs += [("metamorphosis", {**base, "tau_rel": tau_rel}) for tau_rel in args.tau_rels]
+            runs += [("metamorphosis", {**base, "tau": tau, "source_start": round(fraction * args.iters)})
+                     for tau in args.taus]
+    for model, options in runs:
         t0 = time.perf_counter()
-        Algorithm1(lddmm, step_size=args.step, max_iter=args.iters).run(state)
-        rows.append({"case": args.case, "model": "lddmm", "size": args.size, "iters": args.iters,
-                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
-                     **scores(lddmm.deformed(state.momentum), target, mask)})
-        rows.append({"case": args.case, "model": "template", **scores(template, target, mask)})
+        r = indreg.register(template, data, T, model=model, **options, **common)
+        row = {"case": args.case, "model": model, "size": args.size, "iters": args.iters, **options,
+               "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1), **scores(r.deformed, target, region)}
+        if model == "metamorphosis":
+            row.update(tau=r.problem.tau, deformation_part=metrics.ssim(r.deformation_part.double(), target))
+        rows.append(row)
         if args.save:
-            torch.save({"lddmm": lddmm.deformed(state.momentum)}, f"{args.save}_lddmm.pt")
-    for tau in args.taus:
-        M = MetamorphosisDeformation(dom, args.steps, interpolation=args.interpolation)
-        Ks = GaussianKernel(dom, args.source_sigma) if args.source_sigma else None
-        problem = MetamorphosisRegistration(T, M, K, template, data, args.gamma, tau, tv_weight=args.tv,
-                                            tv_smoothing=args.tv_smoothing, source_kernel=Ks,
-                                            source_mask=template_support(template, dom) if args.mask else None)
-        state = MetamorphosisState.zeros(problem)
-        solver = MetamorphosisDescent(problem, step_size=args.step, max_iter=args.iters, source_start=args.source_start,
-                                      step_halving=args.halving)
-        t0 = time.perf_counter()
-        info = solver.run(state)
-        deformed, intensity = problem.parts(state.momentum, state.source)
-        rows.append({"case": args.case, "model": "metamorphosis", "size": args.size, "tau": tau, "tv_weight": args.tv, "source_sigma": args.source_sigma,
-                     "source_start": args.source_start, "mask": args.mask,
-                     "iters": args.iters,
-                     "s_per_iter": (time.perf_counter() - t0) / max(args.iters, 1),
-                     "source_regulariser": info["source_regulariser"],
-                     **scores(deformed + intensity, target, mask),
-                     "deformation_part": scores(deformed, target, mask)["ssim"]})
-        if args.save:
-            torch.save({"deformation_part": deformed, "intensity_part": intensity, "target": target},
-                       f"{args.save}_tau{tau:g}.pt")
+            torch.save({"final": r.deformed, "target": target, **r.outputs},
+                       f"{args.save}_{model}_" + "_".join(map(str, options.values())) + ".pt")
     return rows
+
+
+def region_mask(case: str, domain, template: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Where template and target differ in kind (the error there is the "region error"): the ventricle the suite-4
+    template lacks (``missing``), the background outside the head (``background``), else the whole image."""
+    if case == "missing":
+        return ventricle_mask(domain)
+    if case == "background":
+        return on_background(torch.zeros_like(target), domain, 1.0) > 0.5
+    return torch.ones_like(target, dtype=torch.bool)
 
 
 def cost(args) -> list:
@@ -129,7 +152,8 @@ def _run_row(directory, model: str) -> dict:
     data fit, source norm ``sqrt(2 E_source / tau)`` (``||zeta||`` in ``L2([0,1], L2)`` or the source RKHS),
     RMS error in the target's ventricle (suite-4 missing template), TV's SSIM."""
     m, images, _ = _run(directory)
-    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"], "psnr": m["psnr"],
+    row = {"model": model, "tau": m["hparams"].get("tau") if model == "metamorphosis" else None, "ssim": m["ssim"],
+           "psnr": m["psnr"],
            "data_fit": m["data_fit"], "deformation_part": m.get("deformation_part_ssim", m["ssim"]),
            "source_norm": math.sqrt(2 * m.get("source_regulariser", 0.0) / m["hparams"]["tau"])
            if m["hparams"].get("tau") else 0.0, "tv_ssim": m.get("tv_ssim")}
@@ -213,7 +237,8 @@ def _run(directory: str) -> tuple:
 
 def table(args) -> list:
     """One markdown row per method from ``indreg-register`` run dirs given as ``PRESET,METHOD,DIR`` (FBP and TV
-    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the target's ventricle, and its ratio to
+    rows from a dir's baselines when it has them; METHOD ``baselines``: only those); the RMS error inside the
+    target's ventricle, and its ratio to
     the preset's LDDMM row, for the suite-4 missing-ventricle template."""
     rows = []
     for spec in args.runs:
@@ -275,16 +300,14 @@ def main(argv=None):
     p.add_argument("--gamma", type=float, default=1e-7)
     p.add_argument("--sigma", type=float, default=2.0)
     p.add_argument("--step", type=float, default=0.02)
-    p.add_argument("--taus", type=float, nargs="*", default=[1.0])
+    p.add_argument("--taus", type=float, nargs="*", default=[], help="quality: absolute tau values")
+    p.add_argument("--tau-rels", type=float, nargs="*", default=[0.01], help="quality: tau_rel values")
+    p.add_argument("--start-fractions", type=float, nargs="*", default=[indreg.models.RELATIVE_DEFAULTS[
+        "source_start_fraction"]], help="quality: source_start_fraction values")
+    p.add_argument("--masks", nargs="*", default=["data"], choices=("data", "template", "none"),
+                   help="quality: source_mask values (none: no mask)")
     p.add_argument("--no-lddmm", action="store_true", help="metamorphosis runs only")
     p.add_argument("--save", default=None, help="prefix of .pt files with the resulting images")
-    p.add_argument("--interpolation", default="reinterpolate")
-    p.add_argument("--source-sigma", type=float, default=0.0, help="RKHS source kernel width (0: L2 source)")
-    p.add_argument("--source-start", type=int, default=0, help="iterations with the source frozen (LDDMM first)")
-    p.add_argument("--tv-smoothing", type=float, default=1e-3)
-    p.add_argument("--halving", action="store_true", help="metamorphosis: step halving")
-    p.add_argument("--mask", action="store_true", help="metamorphosis: source confined to the template's support")
-    p.add_argument("--tv", type=float, default=0.0, help="tv_weight on f(1) (metamorphosis runs)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default=None)

@@ -17,7 +17,8 @@ iterate is then the source momentum ``s`` (``h_s = tau s + (N / cell_volume) dL/
 h_s``, i.e. ``zeta <- zeta - beta K_s h_s``). Without it (the paper's ``L2([0,1], X)`` norm) ``s = zeta``.
 A ``source_mask`` ``chi`` (values in [0, 1]) confines the intensity changes: ``zeta = chi K_s s`` (or ``chi s``),
 the penalty unchanged, ``h_s = tau s + chi (N / cell_volume) dL/dzeta`` (e.g. ``template_support``: no intensity
-is created where the template and its surroundings are empty).
+is created where the template and its surroundings are empty; ``data_support``: the data's visual hull, where every
+ray through a point carries mass).
 
 ``tau`` relative to the data term (``tau_rel``, docs/metamorphosis.md "Relative tau"): ``tau = tau_rel * ||T||^2
 ||K_s||`` (``tau_scale``; ``||K_s|| = 1`` for the L2 source). At ``nu = 0`` the source update is ``zeta <- zeta -
@@ -288,10 +289,54 @@ class MetamorphosisRegistration(RegistrationProblem):
 def template_support(template: torch.Tensor, domain, margin: float = 1.0, threshold: float = 0.01) -> torch.Tensor:
     """A ``source_mask``: 1 where ``|I| > threshold max |I|`` or within ``margin`` (physical units, a square /
     cubic neighbourhood) of such a pixel, else 0; ``domain.shape`` (2D or 3D) in the template's dtype / device."""
+    return _dilated((template.abs() > threshold * template.abs().max()).to(template.dtype), domain, margin)
+
+
+def data_support(data: torch.Tensor, operator, domain, margin: float = 0.0, smoothing: float = 2.0,
+                 level: float = 3.0, fraction: float = 0.0, noise: float | None = None) -> torch.Tensor:
+    """A ``source_mask`` from the data: 1 where the rays through a point carry mass (the data's visual hull).
+
+    A data cell is *empty* when the data, smoothed along their last (detector) axis by a Gaussian of std
+    ``smoothing`` cells, are within ``level`` times the smoothed noise's std of 0 (``noise``: the data's noise std,
+    None: ``noise_std(data)``; the threshold at least 1e-3 of the largest smoothed value). A point is inside when at
+    most ``fraction`` of the rays through it are empty (``T^* empty <= fraction T^* 1``: the operator's own
+    back-projection, any geometry, 2D or 3D), then dilated by ``margin`` (physical units, as ``template_support``);
+    points that no ray meets are outside. ``domain.shape`` in the data's dtype / device."""
+    weights = _gaussian_weights(smoothing, data)
+    smooth = torch.nn.functional.conv1d(
+        torch.nn.functional.pad(data.reshape(-1, 1, data.shape[-1]), (len(weights) // 2,) * 2, mode="replicate"),
+        weights[None, None]).reshape(data.shape)
+    noise = (noise_std(data) if noise is None else noise) * float(weights.norm())
+    empty = (smooth.abs() <= max(level * noise, 1e-3 * float(smooth.abs().max()))).to(data.dtype)
+    hits, rays = operator.adjoint(empty), operator.adjoint(torch.ones_like(data))
+    return _dilated(((hits <= fraction * rays) & (rays > 1e-6 * float(rays.max()))).to(data.dtype), domain, margin)
+
+
+def noise_std(data: torch.Tensor) -> float:
+    """The std of white noise in ``data`` from the median absolute deviation of the differences of neighbouring
+    detector cells (last axis): robust to the (smooth) signal."""
+    diff = (data[..., 1:] - data[..., :-1]).reshape(-1)
+    return 1.4826 * float((diff - diff.median()).abs().median()) / 2 ** 0.5
+
+
+def _gaussian_weights(std: float, like: torch.Tensor) -> torch.Tensor:
+    """Normalised Gaussian weights of std ``std`` cells, truncated at 3 std (``[1.0]`` for ``std`` 0)."""
+    x = torch.arange(-int(3 * std), int(3 * std) + 1, dtype=like.dtype, device=like.device)
+    w = torch.exp(-0.5 * (x / max(std, 1e-12)) ** 2)
+    return w / w.sum()
+
+
+def opened(mask: torch.Tensor, domain, radius: float) -> torch.Tensor:
+    """The morphological opening of a 0 / 1 ``mask`` by a square / cubic neighbourhood of half-width ``radius``
+    (physical units): what remains of it when parts thinner than about ``2 radius`` are removed."""
+    return _dilated(1 - _dilated(1 - mask, domain, radius), domain, radius)
+
+
+def _dilated(inside: torch.Tensor, domain, margin: float) -> torch.Tensor:
+    """``inside`` (0 / 1, ``domain.shape``) dilated by a square / cubic neighbourhood of half-width ``margin``."""
     sizes = tuple(2 * max(int(round(margin / h)), 0) + 1 for h in domain.cell_sides)
-    inside = (template.abs() > threshold * template.abs().max()).to(template.dtype)[None, None]
     pool = torch.nn.functional.max_pool2d if domain.ndim == 2 else torch.nn.functional.max_pool3d
-    return pool(inside, sizes, stride=1, padding=tuple(k // 2 for k in sizes))[0, 0]
+    return pool(inside[None, None], sizes, stride=1, padding=tuple(k // 2 for k in sizes))[0, 0]
 
 
 class MetamorphosisState(SolverState):

@@ -10,6 +10,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 import indreg
 from indreg import noise, phantoms
 from indreg.experiments.config import ConfigError
+from indreg.solvers.metamorphosis import data_support, noise_std, opened, template_support
 
 from experiment_helpers import FAST, TINY, compose, run_app, run_cli
 from indreg.experiments.config import validate
@@ -92,11 +93,17 @@ def test_relative_tau_follows_the_data_term(tiny):
 
 
 def test_relative_options_and_their_absolute_forms(tiny):
-    """The defaults: RKHS source of the kernel's width, template mask, source frozen for 0.6 max_iter; the absolute
+    """The defaults: RKHS source of the kernel's width, data mask, source frozen for 0.6 max_iter; the absolute
     forms (tau, source_start) replace the relative ones, and giving both is an error."""
     T, template, _, data = tiny
     r = indreg.register(template, data, T, model="metamorphosis", sigma=3.0, num_steps=2, max_iter=5)
-    assert r.problem.source_kernel.sigma == 3.0 and r.problem.source_mask is not None
+    assert r.problem.source_kernel.sigma == 3.0
+    # the data mask: the template's support and where the data's hull shows mass that the template's own hull does
+    # not, opened at twice the source's width (sigma 3)
+    domain, support = r.problem.domain, template_support(template, r.problem.domain)
+    own = data_support(T(template), T, domain, noise=noise_std(data))
+    extra = opened(data_support(data, T, domain) * (1 - own), domain, 6.0)
+    torch.testing.assert_close(r.problem.source_mask, torch.maximum(support, extra))
     assert [h["source_regulariser"] for h in r.history[:3]] == [0.0] * 3 and r.history[-1]["source_regulariser"] > 0
     tau = indreg.register(template, data, T, model="metamorphosis", tau=7.0, num_steps=2, max_iter=1)
     assert tau.problem.tau == 7.0 and tau.problem.hparams()["tau_rel"] == pytest.approx(7.0 / tau.problem.tau_scale)
@@ -105,10 +112,36 @@ def test_relative_options_and_their_absolute_forms(tiny):
                                                                                            source_start_fraction=0.5),
            r"source_start_fraction must be a number in \[0, 1\], got 1.5": dict(source_start_fraction=1.5),
            "source_sigma must be None, 'kernel' or a finite number > 0": dict(source_sigma="wide"),
-           "tau_rel must be a finite number >= 0": dict(tau_rel=-1.0)}
+           "tau_rel must be a finite number >= 0": dict(tau_rel=-1.0),
+           "source_mask must be None, 'template' or 'data' or an array": dict(source_mask="hull")}
     for message, options in bad.items():
         with pytest.raises(ValueError, match=message):
             indreg.register(template, data, T, model="metamorphosis", **options)
+
+
+def on_background(domain, level=0.3):
+    """The background case (scripts/bench_metamorphosis.py): the suite-3 target plus ``level`` on the whole field
+    of view outside the head; the template (suite 3's) on a zero background."""
+    head = phantoms.ellipse_phantom(domain, ((1.0, *phantoms.SHEPP_LOGAN_ELLIPSES[0][1:]),))
+    return phantoms.get("shepp_logan", domain) + level * (1 - head)
+
+
+def test_defaults_explain_a_background_the_template_lacks():
+    """A specimen on a uniform background (48^2, 10 angles, suite-3 noise): the default data mask lets the source
+    create the background and beats LDDMM clearly; the template's mask forbids it there (measured: SSIM 0.331 /
+    0.219 / 0.308; RMS error in the background 0.134 / 0.184 / 0.205 with the defaults / LDDMM / template mask)."""
+    domain = indreg.ImageDomain.paper(48)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(10, 68))
+    template, target = phantoms.get("shepp_logan_template", domain), on_background(domain)
+    data, _ = noise.add_white_noise(T(target), snr_db=7.06, seed=0)
+    background = on_background(domain) - phantoms.get("shepp_logan", domain) > 0.1
+    common = dict(gamma=1e-7, sigma=2.0, max_iter=100, num_steps=10, step_halving=False, target=target)
+    runs = {"lddmm": {}, "defaults": {"model": "metamorphosis"},
+            "template": {"model": "metamorphosis", "source_mask": "template"}}
+    r = {k: indreg.register(template, data, T, **options, **common) for k, options in runs.items()}
+    error = {k: float(((v.deformed - target)[background] ** 2).mean().sqrt()) for k, v in r.items()}
+    assert r["defaults"].ssim >= r["lddmm"].ssim + 0.08 and r["defaults"].ssim > r["template"].ssim, r
+    assert error["defaults"] <= 0.8 * min(error["lddmm"], error["template"]), error
 
 
 def test_app_resume_equals_uninterrupted(tmp_path):
