@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from .forward.shift import AlignedOperator, projection_frame
-from .solvers.state import forget_evaluations
+from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
            "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts", "summary",
@@ -193,7 +193,7 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit
-class AlignmentSolver:
+class AlignmentSolver(RefitSolver):
     """A solver that re-estimates the alignment of ``operator`` (an ``AlignedOperator`` in ``inner.problem``) every
     ``every`` iterations from the image of the current iterate, then takes ``inner``'s step.
 
@@ -204,20 +204,12 @@ class AlignmentSolver:
     """
 
     def __init__(self, inner, operator: AlignedOperator, data: torch.Tensor, every: int = ALIGN_EVERY):
-        self.inner, self.operator, self.data, self.every = inner, operator, data, every
+        super().__init__(inner, every)
+        self.operator, self.data = operator, data
         self.axis = operator.mode == "shifts+axis"
-        self.problem, self.max_iter, self.grad_tol = inner.problem, inner.max_iter, inner.grad_tol
+        self.what = "shifts and tilt-axis angle" if self.axis else "shifts"
 
-    def __repr__(self) -> str:
-        what = "shifts and tilt-axis angle" if self.axis else "shifts"
-        return f"AlignmentSolver({what} every {self.every} iterations, then {self.inner!r})"
-
-    def __getattr__(self, name):   # step sizes, step halving, ... are the inner solver's
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-    def align(self, state) -> None:
+    def refit(self, state) -> None:
         """Estimate the alignment at ``state.iterate`` and set it on the operator."""
         op = self.operator
         with torch.no_grad():
@@ -231,13 +223,8 @@ class AlignmentSolver:
             log.warning("iteration %d: %d alignment parameter(s) at their bound (|s| <= %s px, |alpha| <= %g deg): "
                         "the data may be misaligned beyond it, or the template too unlike the data", state.iteration,
                         op.at_bound, [round(float(b), 2) for b in _bounds(op)], MAX_ANGLE_DEG)
-        forget_evaluations(self.inner)   # cached objective / gradient of the old data model
 
-    def step(self, state) -> dict:
-        """An estimate when ``state.iteration`` is a multiple of ``every``, then the inner solver's step."""
-        if state.iteration % self.every == 0:
-            self.align(state)
-        info = self.inner.step(state)
+    def report(self, info: dict) -> dict:
         info["alignment_rms"] = float(self.operator.shifts.pow(2).sum(1).mean().sqrt())
         return info
 

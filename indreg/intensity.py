@@ -26,7 +26,7 @@ import math
 
 import torch
 
-from .solvers.state import forget_evaluations
+from .solvers.state import RefitSolver
 
 __all__ = ["FITS", "FIT_EVERY", "fit_intensity", "IntensityFitSolver", "wrap"]
 
@@ -53,30 +53,22 @@ def fit_intensity(P: torch.Tensor, Q: torch.Tensor, g: torch.Tensor, inner) -> t
     return (pg * qq - qg * pq) / det, (qg * pp - pg * pq) / det
 
 
-class IntensityFitSolver:
-    """A solver that re-fits the template's factor and offset every ``every`` iterations (module docstring), then
-    takes ``inner``'s step. ``units`` (``indreg.units.Units``) receives the fitted values: ``template_scale``
-    (times the factor ``prepare`` applied first) and ``template_offset``."""
+class IntensityFitSolver(RefitSolver):
+    """A solver that re-fits the template's factor (and offset) every ``every`` iterations (module docstring), then
+    takes ``inner``'s step. ``units`` (``indreg.units.Units``) receives the fitted values: ``template_scale`` (times
+    the factor ``prepare`` applied first) and ``template_offset``."""
 
     def __init__(self, inner, units, offset: bool = False, every: int = FIT_EVERY):
-        self.inner, self.units, self.every, self.with_offset = inner, units, every, offset
-        self.problem, self.max_iter, self.grad_tol = inner.problem, inner.max_iter, inner.grad_tol
+        super().__init__(inner, every)
+        self.units, self.with_offset = units, offset
+        self.what = "factor and offset" if offset else "factor"
         self.template = self.problem.template            # I, as prepared
         self.first = units.template_scale                # the factor prepare applied
         self.scale, self.offset, self.records = 1.0, 0.0, []
         with torch.no_grad():
             self.ones = self.problem.ray_transform(torch.ones_like(self.template))   # T 1
 
-    def __repr__(self) -> str:
-        what = "factor and offset" if self.with_offset else "factor"
-        return f"IntensityFitSolver({what} every {self.every} iterations, then {self.inner!r})"
-
-    def __getattr__(self, name):   # step sizes, step halving, ... are the inner solver's
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-    def fit(self, state) -> None:
+    def refit(self, state) -> None:
         """Fit ``(c, b)`` at ``state.iterate`` and register ``c I + b`` from here on."""
         p = self.problem
         with torch.no_grad():
@@ -90,17 +82,12 @@ class IntensityFitSolver:
         self.scale, self.offset = c, b
         self.records.append((state.iteration, c, b))
         self._apply()
-        forget_evaluations(self.inner)
 
     def _apply(self) -> None:
         self.problem.template = self.scale * self.template + self.offset
         self.units.template_scale, self.units.template_offset = self.first * self.scale, self.offset
 
-    def step(self, state) -> dict:
-        """A fit when ``state.iteration`` is a multiple of ``every``, then the inner solver's step."""
-        if state.iteration % self.every == 0:
-            self.fit(state)
-        info = self.inner.step(state)
+    def report(self, info: dict) -> dict:
         info["template_scale"], info["template_offset"] = self.first * self.scale, self.offset
         return info
 

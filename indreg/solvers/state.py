@@ -186,6 +186,41 @@ class IterativeSolver:
                 return dict(info, status=status)
 
 
+class RefitSolver:
+    """A solver around ``inner`` that re-estimates part of the data model every ``every`` iterations (before the
+    step at iteration ``0, every, 2 every, ...``: :meth:`refit`, which subclasses implement), drops what ``inner``
+    cached of the old model, then takes ``inner``'s step; :meth:`report` adds the estimate to the step's report.
+    Everything else (step sizes, step halving, status, ...) is ``inner``'s. Subclasses: ``indreg.alignment``'s and
+    ``indreg.intensity``'s."""
+
+    def __init__(self, inner, every: int):
+        self.inner, self.every = inner, every
+        self.problem, self.max_iter, self.grad_tol = inner.problem, inner.max_iter, inner.grad_tol
+
+    def __getattr__(self, name):
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    #: what is re-estimated, for the repr
+    what = "the data model"
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.what} every {self.every} iterations, then {self.inner!r})"
+
+    def refit(self, state) -> None:
+        raise NotImplementedError
+
+    def report(self, info: dict) -> dict:
+        return info
+
+    def step(self, state) -> dict:
+        if state.iteration % self.every == 0:
+            self.refit(state)
+            forget_evaluations(self.inner)   # its cached objective / gradient belong to the old model
+        return self.report(self.inner.step(state))
+
+
 def forget_evaluations(solver) -> None:
     """Drop what ``solver`` cached of its last evaluation (Algorithm 1's objective and gradient, torch.optim's
     closure and optimizer memory): after a change of the problem (its data model, its template) they are stale."""
