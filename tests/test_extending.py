@@ -71,5 +71,5 @@ def test_toy_source_and_model_run_through_the_app(toy, tmp_path):
     m = run_app(["data.source=toy_extending:blurred_phantoms", "phantom.size=32", "geometry.det_count=46",
                  "deformation.model=toy_extending:BRIGHTNESS", "deformation.num_steps=4", "solver.max_iter=4",
                  "baseline.enabled=false", "logging.tensorboard=false", "logging.progress=false"], tmp_path)
-    assert m["status"] == "completed" and m["hparams"]["model"] == "toy_extending:BRIGHTNESS"
+    assert m["status"] == "completed" and m["hparams"]["model"] == "brightness"   # the plug-in by its own name
     assert (tmp_path / "brightness.npy").is_file() and (tmp_path / "figure.png").is_file()
