@@ -67,7 +67,7 @@ def _coarse_velocity(kernel, o: dict) -> tuple:
 def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, width: float, label: str):
     """``source_mask``: None, ``"template"`` (the template's support, ``template_support``), ``"data"`` (that and
     where the data show mass the template lacks, ``_data_only_support``) or an array."""
-    from .solvers.metamorphosis import template_support
+    from .problems.metamorphosis import template_support
 
     if mask is None:
         return None
@@ -88,7 +88,7 @@ def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, dom
     data's noise level) does not (``data_support``), without the parts thinner than about 4 ``width`` (the source's
     width; ``opened`` at 2 ``width``): the strips along the rays of a limited angular range, and an outline the
     deformation can reach (docs/metamorphosis.md, "The source's mask")."""
-    from .solvers.metamorphosis import data_support, noise_std, opened
+    from .problems.metamorphosis import data_support, noise_std, opened
 
     noise = noise_std(data)
     own = data_support(operator(template), operator, domain, noise=noise)
@@ -217,7 +217,8 @@ def solver_kind(solver: str) -> str:
 
 def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
     from .deform import LDDMMDeformation
-    from .solvers.spatiotemporal import IntertwinedSolver, SpatiotemporalRegistration
+    from .problems.spatiotemporal import SpatiotemporalRegistration
+    from .solvers.spatiotemporal import IntertwinedSolver
 
     W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                          backward=o["backward"] or "autograd", interpolation=o["interpolation"])
@@ -237,7 +238,7 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
 
 
 def _check_spatiotemporal(o: dict, label) -> None:
-    from .solvers.spatiotemporal import time_indices
+    from .problems.spatiotemporal import time_indices
 
     _backward_in(("autograd", "exact"))(o, label)
     if isinstance(o["times"], (list, tuple)):   # their number is checked against the data's frames at setup

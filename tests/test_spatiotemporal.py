@@ -9,7 +9,8 @@ from indreg import dynamic, phantoms
 from indreg.forward import TimeSeriesOperator
 from indreg.solvers import Algorithm1, SpatiotemporalRegistration
 from indreg.forward.operator import adjointness
-from indreg.solvers.spatiotemporal import FramesOfTemplate, IntertwinedSolver, time_indices
+from indreg.problems.spatiotemporal import FramesOfTemplate, time_indices
+from indreg.solvers.spatiotemporal import IntertwinedSolver
 
 
 def _ops(domain, frames, per_frame=3, det=24):

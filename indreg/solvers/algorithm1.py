@@ -9,7 +9,7 @@ import torch
 from .._checks import check_bool, check_int, check_positive
 from .._checks import check_nonnegative
 from ..units import STEP_REL, data_term_scale
-from .problem import RegistrationProblem
+from ..problems.problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
                     rounding_tolerance)
 

@@ -9,7 +9,7 @@ import torch
 from .._checks import check_int, check_positive
 from .algorithm1 import check_problem
 from .._checks import check_nonnegative
-from .problem import RegistrationProblem
+from ..problems.problem import RegistrationProblem
 from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems, rounding_tolerance
 
 _DEFAULTS = {

@@ -10,7 +10,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 import indreg
 from indreg import noise, phantoms
 from indreg.experiments.config import ConfigError
-from indreg.solvers.metamorphosis import data_support, noise_std, opened, template_support
+from indreg.problems.metamorphosis import data_support, noise_std, opened, template_support
 
 from experiment_helpers import FAST, TINY, compose, run_app, run_cli
 from indreg.experiments.config import validate

@@ -7,7 +7,7 @@ import torch
 from indreg import ImageDomain
 from indreg.deform.kernel import GaussianKernel
 from indreg.solvers import MultilevelSolver, SolverState
-from indreg.solvers.multilevel import prolong, resample_time, restrict
+from indreg.problems.grids import prolong, resample_time, restrict
 
 from solver_problems import make_problem
 

@@ -7,7 +7,7 @@ from indreg import ImageDomain
 from indreg.deform import GaussianKernel, LDDMMDeformation
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.solvers import IndirectRegistration, MultilevelSolver, SolverState
-from indreg.solvers.multilevel import prolong, resample_time, restrict
+from indreg.problems.grids import prolong, resample_time, restrict
 
 FINE, COARSE = (32, 32, 32), (16, 16, 16)
 

@@ -10,7 +10,7 @@ from indreg.deform import GaussianKernel, MetamorphosisDeformation
 from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform
 from indreg.solvers import (Algorithm1, IndirectRegistration, MetamorphosisDescent, MetamorphosisRegistration,
                             MetamorphosisState, MetamorphosisTorchOptim, SolverState)
-from indreg.solvers.metamorphosis import data_support, noise_std, opened, template_support
+from indreg.problems.metamorphosis import data_support, noise_std, opened, template_support
 
 
 def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinterpolate", source_sigma=None,

@@ -193,7 +193,7 @@ class IndirectRegistration(RegistrationProblem):
         """The V-gradient ``K h`` of E at ``nu = K m`` (eq:GradGoalFunctionalVRHKS(_mp) in the code's scale)."""
         return self.kernel.apply(self.l2_gradient(m)[1])
 
-    # the registration-problem protocol (indreg.solvers.problem): the iterate is x = (m,)
+    # the registration-problem protocol (indreg.problems.problem): the iterate is x = (m,)
     def zero_iterate(self) -> tuple:
         return (self.zero_momentum(),)
 
@@ -239,7 +239,7 @@ class IndirectRegistration(RegistrationProblem):
         ``backward``."""
         from ..deform import GaussianKernel
         from ..domain import ImageDomain
-        from .multilevel import restrict
+        from .grids import restrict
 
         d, e, W, T = self.domain, self.image_domain, self.deformation, self.ray_transform
         if tuple(shape) == tuple(d.shape):
