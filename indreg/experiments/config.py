@@ -124,8 +124,10 @@ def _unknown_keys(node, schema, prefix: str = "") -> list:
     return out
 
 
-def validate(cfg: DictConfig) -> None:
-    """Range checks the schema's types cannot express; raises :class:`ConfigError` naming the key."""
+def validate(cfg: DictConfig, registration: bool = True) -> None:
+    """Range checks the schema's types cannot express; raises :class:`ConfigError` naming the key. ``registration``
+    False leaves the registration options to ``indreg.run.setup`` (the run resolves them there once, with the same
+    messages)."""
     c = cfg
     unknown = _unknown_keys(cfg, OmegaConf.structured(RegisterConfig))
     if unknown:
@@ -152,7 +154,8 @@ def validate(cfg: DictConfig) -> None:
              "a number in [-300, 300] (dB) or null", n.snr_db)
     _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
     _require(n.seed is None or 0 <= n.seed < 2 ** 32, "noise.seed", "null or an integer in [0, 2**32)", n.seed)
-    check_registration(c)
+    if registration:
+        check_registration(c)
     b = c.baseline
     _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
              "a number in (0, 1]", b.fbp_frequency_scaling)

@@ -162,7 +162,7 @@ def run(cfg: DictConfig, output_dir) -> dict:
     """
     from .tblog import RunWriter
 
-    validate(cfg)
+    validate(cfg, registration=False)   # the registration options: resolved once, by build's setup
     out = Path(output_dir)
     path = out / "checkpoint.pt"
     ckpt.check_location(path, cfg.resume)
