@@ -8,15 +8,18 @@ work, no copyright in the US; the licence text is in the wheel). Without ``--dat
 optionally ``HAADF_Aligned.hspy``) it runs offline.
 
 Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs,
-how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin to
-``--size`` detector pixels; a template "from an earlier scan" (a smoothed, segmented SIRT reconstruction from the
-even tilts, reconstructed in voxel units as other programs do, so not in the data's units, and turned by
-``--misalign`` degrees); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th),
-the odd tilts between them held out for validation; registration with
-``template_scale="auto"``, ``background="auto"`` and ``holdout``; FBP / SIRT / TV from the same sparse tilts; all
-scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
+how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin
+``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
+earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
+programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
+are aligned first by ``indreg.alignment.projection_matching``, and the tilt axis' offset it finds is taken out of
+the stack); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
+tilts between them held out for validation; registration with ``template_scale="auto"``, ``background="auto"``,
+``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align``; the estimated
+shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
+shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
-    python examples/real_data_haadf.py [--data DIR] [--out DIR] [--size 64] [--iters 100]
+    python examples/real_data_haadf.py [--data DIR] [--out DIR] [--stack raw|aligned] [--size 64] [--iters 100]
 
 Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), the volumes as ``.npy`` and ``.mrc``
 (voxel size in Angstrom).
@@ -139,24 +142,35 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 
 # ------------------------------------------------------------------------------------------------ template
+def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int) -> tuple:
+    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle), then
+    reconstructed again from the tilts centred on the axis (its offset, :func:`axis_offset`, taken out) through
+    the shifts in register's gauge: the object where the data's gauge puts it. Returns ``(SIRT volume, (shifts
+    (px, with the offset), angle (deg), offset (px)))``."""
+    A, _, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
+    shifts, offset = A.shifts.clone(), axis_offset(A.shifts.numpy(), angles)
+    A.keep_offset, A.shifts = False, alignment.gauge(A, A.shifts)
+    x, _ = sirt(A, torch.from_numpy(ndimage.shift(y.numpy(), (0, 0, -offset), order=1, mode="nearest")),
+                num_iter=iters, nonneg=True)
+    say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
+        f"; tilt-axis angle {math.degrees(float(A.angle)):.3f} deg, axis offset {offset:.3f} px")
+    return x, (shifts.numpy(), math.degrees(float(A.angle)), offset)
+
+
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
                   smooth: float = 0.5, classes: int = 5, align_rounds: int = 0) -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
     turned by ``misalign`` degrees about the beam (a specimen mounted differently). With ``align_rounds`` the
-    tilts are aligned first (``indreg.alignment.projection_matching``, shifts and tilt-axis angle). Returns
-    ``(template, sirt volume, the alignment's (shifts (px), angle (deg)) or None)``."""
-    from scipy import ndimage
+    tilts are aligned first (:func:`align_template_scan`). Returns ``(template, sirt volume, the alignment's
+    (shifts (px), angle (deg), axis offset (px)) or None)``."""
     from skimage.filters import threshold_multiotsu
 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
     T, y, found = operator(unit, angles), torch.from_numpy(data), None
     if align_rounds:
-        A, x, records = alignment.projection_matching(T, y, "shifts+axis", align_rounds, iters)
-        found = (A.shifts.numpy(), float(np.degrees(A.angle)))
-        say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
-            f"; tilt-axis angle {found[1]:.3f} deg")
+        x, found = align_template_scan(T, y, angles, align_rounds, iters)
     else:
         x, _ = sirt(T, y, num_iter=iters, nonneg=True)
     v = ndimage.gaussian_filter(x.numpy(), smooth)
@@ -319,7 +333,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
             factor)
         say(f"  the even tilts' shifts against etspy's: {metrics['template_shifts_vs_etspy']}")
     if even is not None:   # the axis' offset, measured over the template's full range, taken out of the stack
-        offset = axis_offset(even[0], angles[tilts["template"]])
+        offset = even[2]
         binned = ndimage.shift(binned, (0, -offset, 0), order=1, mode="nearest")
         turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
         metrics["axis_offset_raw_px"] = offset * factor

@@ -4,6 +4,7 @@ files when ``INDREG_HAADF_DIR`` names a folder holding them (``HAADF.mrc``, ``HA
 import importlib.util
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import h5py
@@ -181,7 +182,7 @@ def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
             z.writestr("etspy/__init__.py", "")
             z.writestr("etspy-1.3.0.dist-info/LICENSE", "NIST")
 
-    monkeypatch.setattr(example.subprocess, "run", fake_pip)
+    monkeypatch.setattr(subprocess, "run", fake_pip)                       # fetch's (examples/haadf_files.py)
     cache = tmp_path / "cache"
     assert example.fetch(cache) == cache and example.fetch(cache) == cache
     assert len(calls) == 1 and example.WHEEL in calls[0] and "--no-deps" in calls[0]
