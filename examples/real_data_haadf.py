@@ -266,7 +266,7 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
-        stack: str = "raw", align: str = "shifts+axis", align_rounds: int = 8, rescale: float = 1.0,
+        stack: str = "raw", align: str = "shifts", align_rounds: int = 8, rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
@@ -419,7 +419,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", type=Path, default=Path("real_data_haadf"))
     p.add_argument("--stack", choices=("raw", "aligned"), default="raw",
                    help="raw: HAADF.mrc, aligned in the fit; aligned: etspy's aligned stack")
-    p.add_argument("--align", choices=("shifts", "shifts+axis"), default="shifts+axis",
+    p.add_argument("--align", choices=("shifts", "shifts+axis"), default="shifts",
                    help="what the registration estimates (--stack raw)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")

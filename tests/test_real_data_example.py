@@ -112,7 +112,7 @@ def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
     """--stack raw: the template's tilts aligned by projection matching, the data by the registration; both
     recover the recorded drift (2 raw pixels per binned one) in the gauge."""
     m = example.run(stand_in, tmp_path / "raw", size=16, depth=16, iters=10, sigma_cells=2.0, num_steps=4,
-                    misalign=3.0, max_angle=30.0, align_rounds=2, baselines_too=False, quick=True)
+                    misalign=3.0, max_angle=30.0, align="shifts+axis", align_rounds=2, baselines_too=False, quick=True)
     assert m["stack"] == "raw" and m["alignment"]["mode"] == "shifts+axis"
     assert m["registration"]["background"] == pytest.approx(OFFSET, abs=2)
     for key in ("template_shifts_vs_etspy", "shifts_vs_etspy"):
