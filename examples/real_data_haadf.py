@@ -270,7 +270,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
-    ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`self_align`, the data by the
+    ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests)."""
     if stack not in ("raw", "aligned"):
