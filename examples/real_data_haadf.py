@@ -8,15 +8,18 @@ work, no copyright in the US; the licence text is in the wheel). Without ``--dat
 optionally ``HAADF_Aligned.hspy``) it runs offline.
 
 Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs,
-how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin to
-``--size`` detector pixels; a template "from an earlier scan" (a smoothed, segmented SIRT reconstruction from the
-even tilts, reconstructed in voxel units as other programs do, so not in the data's units, and turned by
-``--misalign`` degrees); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th),
-the odd tilts between them held out for validation; registration with
-``template_scale="auto"``, ``background="auto"`` and ``holdout``; FBP / SIRT / TV from the same sparse tilts; all
-scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
+how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin
+``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
+earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
+programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
+are aligned first by ``indreg.alignment.projection_matching``, and the tilt axis' offset it finds is taken out of
+the stack); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
+tilts between them held out for validation; registration with ``template_scale="auto"``, ``background="auto"``,
+``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align``; the estimated
+shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
+shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
-    python examples/real_data_haadf.py [--data DIR] [--out DIR] [--size 64] [--iters 100]
+    python examples/real_data_haadf.py [--data DIR] [--out DIR] [--stack raw|aligned] [--size 64] [--iters 100]
 
 Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), the volumes as ``.npy`` and ``.mrc``
 (voxel size in Angstrom).
@@ -31,72 +34,32 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import subprocess
+import math
 import sys
-import tempfile
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 import indreg
-from indreg import io
+from indreg import alignment
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
+from indreg.forward.shift import AlignedOperator
+from indreg.run import count_halvings
 from indreg.forward.tv import intensity_scale
 from indreg.units import border_level, check_offset, prepare
 from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
+from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, bin_stack,  # noqa: E402, F401
+                         compare_shifts, etspy_frame, fetch, figure, read_aligned, read_etspy_shifts, read_raw, save,
+                         say, scale_bar_nm)
+
 log = logging.getLogger("indreg")
 
-WHEEL = "etspy==1.3.0"
-MEMBERS = "etspy/tests/test_data/HAADF"
-ALIGNED_KEY = "/Experiments/__unnamed__/data"   # HyperSpy's signal array in the .hspy (HDF5) file
-PIXEL_NM = 3.36                                  # "Image pixel size [nm]: 3.36" of HAADF.txt
-TILT_AXIS_ANGLE = 90.0                           # "Tilt Axis Angle: 90.00" of HAADF.txt
-
-
-def say(text: str) -> None:
-    print(text, flush=True)
-
-
-# ------------------------------------------------------------------------------------------------ the data
-def fetch(cache: Path) -> Path:
-    """The folder with ``HAADF.*``: ``cache`` if it has them, else downloaded there (pip download, unzip)."""
-    if (cache / "HAADF.mrc").exists():
-        return cache
-    cache.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        say(f"downloading {WHEEL} (66 MB, not installed) into {tmp}")
-        subprocess.run([sys.executable, "-m", "pip", "download", WHEEL, "--no-deps", "-d", tmp], check=True)
-        wheel = next(Path(tmp).glob("etspy-*.whl"))
-        with zipfile.ZipFile(wheel) as z:
-            for member in z.namelist():
-                if member.startswith(MEMBERS) or member.endswith("LICENSE"):
-                    (cache / Path(member).name).write_bytes(z.read(member))
-    return cache
-
-
-def read_raw(folder: Path) -> tuple:
-    """The raw stack ``(tilts, rows, cols)`` as stored and its angles (radians): ``HAADF.mrc`` + ``HAADF.rawtlt``."""
-    return io.read_tilt_series(folder / "HAADF.mrc", folder / "HAADF.rawtlt")
-
-
-def read_aligned(folder: Path):
-    """etspy's aligned stack (``HAADF_Aligned.hspy``, shifts removed), or None without that file."""
-    path = folder / "HAADF_Aligned.hspy"
-    return io.read_stack(f"{path}:{ALIGNED_KEY}", name="aligned stack") if path.exists() else None
-
-
-def bin_stack(stack: np.ndarray, size: int) -> np.ndarray:
-    """Every image averaged over square blocks down to ``size x size`` (the counts per pixel are kept)."""
-    t, rows, cols = stack.shape
-    f = rows // size
-    if rows != cols or f * size != rows:
-        raise ValueError(f"--size must divide the image size {rows} x {cols}, got {size}")
-    return stack.reshape(t, size, f, size, f).mean(axis=(2, 4))
 
 
 # ------------------------------------------------------------------------------------------------ checks
@@ -179,18 +142,37 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 
 # ------------------------------------------------------------------------------------------------ template
+def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int) -> tuple:
+    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle), then
+    reconstructed again from the tilts centred on the axis (its offset, :func:`axis_offset`, taken out) through
+    the shifts in register's gauge: the object where the data's gauge puts it. Returns ``(SIRT volume, (shifts
+    (px, with the offset), angle (deg), offset (px)))``."""
+    A, _, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
+    shifts, offset = A.shifts.clone(), axis_offset(A.shifts.numpy(), angles)
+    A.keep_offset, A.shifts = False, alignment.gauge(A, A.shifts)
+    x, _ = sirt(A, torch.from_numpy(ndimage.shift(y.numpy(), (0, 0, -offset), order=1, mode="nearest")),
+                num_iter=iters, nonneg=True)
+    say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
+        f"; tilt-axis angle {math.degrees(float(A.angle)):.3f} deg, axis offset {offset:.3f} px")
+    return x, (shifts.numpy(), math.degrees(float(A.angle)), offset)
+
+
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 0.5, classes: int = 5) -> tuple:
+                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0) -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
-    turned by ``misalign`` degrees about the beam (a specimen mounted differently). Returns
-    ``(template, sirt volume)``."""
-    from scipy import ndimage
+    turned by ``misalign`` degrees about the beam (a specimen mounted differently). With ``align_rounds`` the
+    tilts are aligned first (:func:`align_template_scan`). Returns ``(template, sirt volume, the alignment's
+    (shifts (px), angle (deg), axis offset (px)) or None)``."""
     from skimage.filters import threshold_multiotsu
 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
-    x, _ = sirt(operator(unit, angles), torch.from_numpy(data), num_iter=iters, nonneg=True)
+    T, y, found = operator(unit, angles), torch.from_numpy(data), None
+    if align_rounds:
+        x, found = align_template_scan(T, y, angles, align_rounds, iters)
+    else:
+        x, _ = sirt(T, y, num_iter=iters, nonneg=True)
     v = ndimage.gaussian_filter(x.numpy(), smooth)
     thresholds = threshold_multiotsu(v, classes=classes)
     labels = np.digitize(v, thresholds)
@@ -201,16 +183,26 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     say(f"  SIRT of {len(angles)} even tilts on unit voxels ({iters} iterations), phases at {thresholds.round(1)}: "
         f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; "
         f"turned by {misalign:g} deg")
-    return template, x.numpy()
+    return template, x.numpy(), found
 
 
 # ------------------------------------------------------------------------------------------------ baselines
+def unwarped(T, y: torch.Tensor) -> tuple:
+    """``(T, y)``, or for an ``AlignedOperator`` its plain operator and the data moved back, ``S_{s, alpha}^{-1} y =
+    S_{s', -alpha} y`` with ``s' = -R(-alpha) s`` (square pixels): for FBP, which needs a plain ray transform."""
+    if not isinstance(T, AlignedOperator):
+        return T, y
+    c, s = math.cos(float(T.angle)), math.sin(float(T.angle))
+    back = -T.shifts @ torch.tensor([[c, -s], [s, c]], dtype=torch.float64)   # rows: -R(-alpha) s_k
+    return T.operator, T.warp(y, back, -T.angle)
+
+
 def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters=(10, 25, 50, 100, 200),
               tv_mus=(0.03, 0.1, 0.3, 1.0), tv_iters: int = 200) -> dict:
     """FBP (Hamming, 0.4, the app's), SIRT (nonnegative, iterations chosen by the validation tilts) and TV
     (nonnegative, ``mu`` relative to the data's intensity unit chosen by the validation tilts) from the fit
     tilts. Returns ``{name: (volume, info)}``."""
-    out = {"FBP": (fbp(T_fit, y_fit), {})}
+    out = {"FBP": (fbp(*unwarped(T_fit, y_fit)), {})}
     best, x, done = None, None, 0
     for n in sirt_iters:
         x, _ = sirt(T_fit, y_fit, num_iter=n - done, x0=x, nonneg=True)
@@ -230,61 +222,62 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
     return out
 
 
-# ------------------------------------------------------------------------------------------------ outputs
-def scale_bar_nm(width_nm: float) -> float:
-    """A round length (1, 2 or 5 times a power of ten, in nm) of at most a third of ``width_nm``."""
-    top = width_nm / 3
-    power = 10.0 ** np.floor(np.log10(top))
-    return max(m * power for m in (1, 2, 5) if m * power <= top)
+# ------------------------------------------------------------------------------------------------ alignment
+def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:
+    """The tilt axis' offset (px, across) in ``shifts`` ``(K, 2)``: the constant of their least-squares fit by
+    ``c + a cos(theta) + b sin(theta)`` (the rest is an object translation, docs/alignment.md)."""
+    basis = np.stack([np.ones_like(angles), np.cos(angles), np.sin(angles)], axis=1)
+    return float(np.linalg.lstsq(basis, shifts[:, 0], rcond=None)[0][0])
 
 
-def figure(volumes: dict, path: Path, cell_nm: float) -> None:
-    """Central slices of every volume: the x-z slice across the rod (orthogonal to the tilt axis) and the x-y
-    slice along it, each on its own grey scale, with a scale bar in nm (voxels of ``cell_nm``)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
-
-    fig, ax = plt.subplots(2, len(volumes), figsize=(3.0 * len(volumes), 6.6), squeeze=False)
-    for j, (name, v) in enumerate(volumes.items()):
-        nx, ny, nz = v.shape
-        ax[0, j].imshow(v[:, ny // 2, :].T, cmap="gray", origin="lower")
-        ax[1, j].imshow(v[:, :, nz // 2].T, cmap="gray", origin="lower")
-        ax[0, j].set_title(name, fontsize=13)
-        bar = scale_bar_nm(nx * cell_nm)
-        for a in ax[:, j]:
-            a.set_xticks([]), a.set_yticks([])
-            a.add_artist(AnchoredSizeBar(a.transData, bar / cell_nm, f"{bar:g} nm", "lower right", pad=0.4,
-                                         color="yellow", frameon=False, size_vertical=max(nz, ny) / 80,
-                                         fontproperties={"size": 12}))
-    ax[0, 0].set_ylabel("x-z (across)", fontsize=13)
-    ax[1, 0].set_ylabel("x-y (along axis)", fontsize=13)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float) -> np.ndarray:
+    """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
+    ``indreg.alignment.estimate`` with the angle kept): for tilts no fit saw."""
+    A = AlignedOperator(T, angle=angle)
+    P = T(x)
+    start = alignment.gauge(A, alignment.coarse_shifts(A, P, y))
+    return alignment.estimate(A, P, y, start, A.angle)[0].numpy()
 
 
-def save(volumes: dict, domain: ImageDomain, out: Path) -> None:
-    """Every volume as ``.npy`` and ``.mrc`` (the voxel size in Angstrom, as the MRC format has it)."""
-    angstrom = ImageDomain(domain.shape, tuple(10 * float(m) for m in domain.min_pt),
-                           tuple(10 * float(m) for m in domain.max_pt))
+def aligned_operators(result, T: dict, Y: dict, rows: np.ndarray, tilts: dict) -> dict:
+    """The operators of the fit, validation and test tilts through the registration's alignment: its shifts for
+    the tilts it saw, for the test tilts shifts fitted against the registered volume (:func:`shifts_of`)."""
+    a = result.alignment
+    shifts, axis = np.asarray(a["shifts_px"]), np.radians(a["axis_angle_deg"])
+    say(f"  alignment: axis angle {a['axis_angle_deg']:.3f} deg, shifts RMS "
+        f"{np.sqrt((shifts ** 2).mean(axis=0)).round(3).tolist()} px [across, along], {a['at_bound']} at their bound")
+    fitted = {k: shifts[np.isin(rows, tilts[k])] for k in ("fit", "validation")}
+    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis)
+    return {k: AlignedOperator(T[k], torch.as_tensor(v), axis) for k, v in fitted.items()}
+
+
+def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
+    """Every volume's relative residual on the test, validation and fit tilts (and the baselines' choices)."""
+    scores = {}
     for name, v in volumes.items():
-        stem = name.lower().replace(" ", "_").replace("(", "").replace(")", "")
-        np.save(out / f"{stem}.npy", v)
-        io.write_volume(out / f"{stem}.mrc", v, angstrom)
+        x = torch.from_numpy(np.ascontiguousarray(v))
+        s = scores[name] = {f"{k}_residual": residual(T[k], x, Y[k]) for k in ("test", "validation", "fit")}
+        s.update(chosen.get(name, {}))
+        say(f"  {name:10s} test {s['test_residual']:.4f}   validation {s['validation_residual']:.4f}   "
+            f"fit {s['fit_residual']:.4f}")
+    return scores
 
 
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
-        step_size: float = 0.02, max_halvings: int = 40, classes: int = 5, smooth: float = 0.5,
+        stack: str = "raw", align: str = "shifts", align_rounds: int = 8, rescale: float = 1.0,
+        gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
-    ``quick``: fewer SIRT / TV iterations and candidates (the tests)."""
+    ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
+    registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
+    invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests)."""
+    if stack not in ("raw", "aligned"):
+        raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
     t0 = time.process_time()
     out.mkdir(parents=True, exist_ok=True)
-    metrics = {"data": str(folder)}
+    metrics = {"data": str(folder), "stack": stack, "rescale": rescale}
 
     say("1. the raw stack")
     raw, angles = read_raw(folder)
@@ -292,19 +285,24 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     say(f"  HAADF.mrc: {raw.shape} (tilts, rows, columns), angles {np.degrees(angles[0]):g}..{np.degrees(angles[-1]):g}"
         f" deg, {len(angles)} tilts; aligned stack: {None if aligned is None else aligned.shape}")
     metrics["raw_shape"], metrics["num_tilts"] = list(raw.shape), len(angles)
+    if stack == "aligned" and aligned is None:
+        raise FileNotFoundError(f"--stack aligned needs {folder / 'HAADF_Aligned.hspy'}")
+    raw, aligned = raw * rescale, None if aligned is None else aligned * rescale
 
     say("2. the tilt axis (as stored; indreg wants it along the rows' index)")
     metrics["tilt_axis_as_stored"] = axis_checks(raw, aligned)
-    stack = aligned if aligned is not None else raw
+    chosen = aligned if stack == "aligned" else raw
 
     say("3. the background")
     metrics["background_raw"] = background_report(raw, "raw stack")
     if aligned is not None:
         metrics["background_aligned"] = background_report(aligned, "aligned stack")
 
-    say(f"4. binned to {size} x {size} pixels, turned by -{TILT_AXIS_ANGLE:g} degrees (tilt_axis_angle)")
-    binned = bin_stack(stack, size)
-    cell = PIXEL_NM * stack.shape[1] / size
+    say(f"4. the {stack} stack binned to {size} x {size} pixels, turned by -{TILT_AXIS_ANGLE:g} degrees "
+        f"(tilt_axis_angle)")
+    binned = bin_stack(chosen, size)
+    factor = chosen.shape[1] // size
+    cell = PIXEL_NM * chosen.shape[1] / size
     turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
     check = check_tilt_axis(turned)
     say(f"  turned: {check.describe()}; voxel {cell:g} nm")
@@ -317,14 +315,33 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"{hand['mirror_difference']:.1e} (relative): the data cannot tell the sign, only the handedness changes")
     metrics["handedness"] = hand
 
-    say("5. the template: an earlier scan (even tilts)")
+    say("5. the template: an earlier scan (even tilts" + (", aligned by projection matching)" if stack == "raw"
+                                                          else ")"))
     tilts = split_tilts(angles, fit_every, max_angle)
     metrics["tilts_deg"] = {k: np.degrees(angles[v]).round(2).tolist() for k, v in tilts.items()}
     for k, v in tilts.items():
         say(f"  {k:10s} {len(v):2d} tilts: {np.degrees(angles[v]).round(0).astype(int).tolist()}")
-    template, sirt_even = make_template(turned[tilts["template"]] - level, angles[tilts["template"]],
-                                        domain.shape, misalign, iters=20 if quick else 50, smooth=smooth,
-                                        classes=classes)
+    template, sirt_even, even = make_template(
+        turned[tilts["template"]] - level, angles[tilts["template"]], domain.shape, misalign,
+        iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0)
+    recorded = read_etspy_shifts(folder)
+    if even is not None:
+        metrics["template_alignment"] = {"shifts_px": even[0].tolist(), "axis_angle_deg": even[1]}
+    if even is not None and recorded is not None:
+        metrics["template_shifts_vs_etspy"] = compare_shifts(
+            even[0], etspy_frame(recorded[tilts["template"]], factor), operator(domain, angles[tilts["template"]]),
+            factor)
+        say(f"  the even tilts' shifts against etspy's: {metrics['template_shifts_vs_etspy']}")
+    if even is not None:   # the axis' offset, measured over the template's full range, taken out of the stack
+        offset = even[2]
+        binned = ndimage.shift(binned, (0, -offset, 0), order=1, mode="nearest")
+        turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
+        metrics["axis_offset_raw_px"] = offset * factor
+        if recorded is not None:
+            metrics["etspy_axis_offset_raw_px"] = factor * axis_offset(
+                etspy_frame(recorded[tilts["template"]], factor), angles[tilts["template"]])
+        say(f"  the tilt axis lies {offset * factor:.2f} raw px off the detector's middle (across): the stack moved "
+            f"back by it")
 
     say("6. the data and the units")
     rows = np.sort(np.concatenate([tilts["fit"], tilts["validation"]]))
@@ -336,48 +353,55 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     say(f"  template as made: ||T I|| / ||g|| = {units.projection_ratio:.4g}, c = {units.scale_fit:.4g} (the data "
         f"after the background {units.background:.4g}); 1 / voxel side = {1 / cell:.4g} per nm")
 
-    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out")
+    align = align if stack == "raw" else "none"
+    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out, align={align!r}")
     sigma = sigma_cells * cell
+    extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             template_scale="auto", background="auto", holdout=holdout, log_every=10,
-                             step_size=step_size, max_halvings=max_halvings, progress=True)
+                             template_scale="auto", background="auto", holdout=holdout, align=align, log_every=10,
+                             progress=True, **extra)
     reg_seconds = result.seconds
+    halvings = count_halvings(result.history)
     say(f"  {result.status} after {result.iterations} iterations ({reg_seconds:.0f} s): template_scale "
         f"{result.units.template_scale:.4g}, background {result.units.background:.4g}, residual {result.residual:.4f}, "
         f"held-out {result.holdout.get('holdout_residual', float('nan')):.4f} (best "
         f"{result.holdout.get('holdout_best_residual', float('nan')):.4f} at iteration "
-        f"{result.holdout.get('holdout_best_iteration')}), min Jacobian {result.min_jacobian:.3f}")
+        f"{result.holdout.get('holdout_best_iteration')}), min Jacobian {result.min_jacobian:.3f}, {halvings} step "
+        f"halvings")
     metrics["registration"] = {"status": result.status, "iterations": result.iterations, "seconds": reg_seconds,
                                "sigma_nm": sigma, "num_steps": num_steps, "template_scale": result.units.template_scale,
                                "background": result.units.background, "scale_fit": result.units.scale_fit,
-                               "projection_ratio": result.units.projection_ratio, "residual": result.residual,
-                               "min_jacobian": result.min_jacobian, "warnings": result.warnings, **result.holdout}
-
-    say("8. baselines from the same fit tilts")
+                               "projection_ratio": result.units.projection_ratio, "data_scale": result.units.data_scale,
+                               "gamma_rel": gamma_rel, "terms": result.terms,
+                               "residual": result.residual, "min_jacobian": result.min_jacobian, "halvings": halvings,
+                               "warnings": result.warnings, **result.holdout}
     y = torch.from_numpy(turned - result.units.background)
     T = {k: operator(domain, angles[v]) for k, v in tilts.items()}
     Y = {k: y[v] for k, v in tilts.items()}
-    tb = time.process_time()
-    base = baselines(T["fit"], Y["fit"], T["validation"], Y["validation"],
-                     sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
-                     tv_mus=(0.1,) if quick else (0.3, 1.0, 3.0, 10.0), tv_iters=20 if quick else 200)
-    metrics["baselines_cpu_seconds"] = time.process_time() - tb
+    if result.alignment:
+        metrics["alignment"] = result.alignment
+        T = aligned_operators(result, T, Y, rows, tilts)
+        if recorded is not None:
+            metrics["shifts_vs_etspy"] = compare_shifts(np.asarray(result.alignment["shifts_px"]),
+                                                        etspy_frame(recorded[rows], factor),
+                                                        operator(domain, angles[rows]), factor)
+            say(f"  the fitted tilts' shifts against etspy's: {metrics['shifts_vs_etspy']}")
+
+    base = {}
+    if baselines_too:
+        say("8. baselines from the same fit tilts" + (" (through the registration's shifts)" if result.alignment
+                                                      else ""))
+        tb = time.process_time()
+        base = baselines(T["fit"], Y["fit"], T["validation"], Y["validation"],
+                         sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
+                         tv_mus=(0.1,) if quick else (0.3, 1.0, 3.0, 10.0), tv_iters=20 if quick else 200)
+        metrics["baselines_cpu_seconds"] = time.process_time() - tb
 
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
     volumes = {"template": (d.template * result.units.template_scale).numpy(),
                "registered": result.deformed.double().numpy(),
                **{k: v[0].numpy() for k, v in base.items()}}
-    scores = {}
-    for name, v in volumes.items():
-        x = torch.from_numpy(np.ascontiguousarray(v))
-        scores[name] = {"test_residual": residual(T["test"], x, Y["test"]),
-                        "validation_residual": residual(T["validation"], x, Y["validation"]),
-                        "fit_residual": residual(T["fit"], x, Y["fit"]),
-                        **({} if name not in base else base[name][1])}
-        s = scores[name]
-        say(f"  {name:10s} test {s['test_residual']:.4f}   validation {s['validation_residual']:.4f}   "
-            f"fit {s['fit_residual']:.4f}")
-    metrics["scores"] = scores
+    metrics["scores"] = score(volumes, T, Y, {k: v[1] for k, v in base.items()})
 
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
     figure(volumes, out / "figure.png", cell)
@@ -393,6 +417,10 @@ def main(argv=None) -> None:
     p.add_argument("--data", type=Path, help="folder with HAADF.mrc, HAADF.rawtlt (HAADF_Aligned.hspy); offline")
     p.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "indreg" / "etspy_haadf")
     p.add_argument("--out", type=Path, default=Path("real_data_haadf"))
+    p.add_argument("--stack", choices=("raw", "aligned"), default="raw",
+                   help="raw: HAADF.mrc, aligned in the fit; aligned: etspy's aligned stack")
+    p.add_argument("--align", choices=("shifts", "shifts+axis"), default="shifts",
+                   help="what the registration estimates (--stack raw)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")
     p.add_argument("--iters", type=int, default=100)
@@ -400,13 +428,17 @@ def main(argv=None) -> None:
     p.add_argument("--misalign", type=float, default=5.0, help="template turned by this many degrees")
     p.add_argument("--max-angle", type=float, default=40.0, help="fit and validation tilts within +-this (deg)")
     p.add_argument("--fit-every", type=int, default=2, help="every k-th odd tilt in the range is fitted")
-    p.add_argument("--max-halvings", type=int, default=40, help="step halvings per iteration (register's)")
+    p.add_argument("--gamma-rel", type=float, help="regularisation weight relative to the data term (default: "
+                   "indreg's)")
+    p.add_argument("--rescale", type=float, default=1.0, help="multiply every count by this (unit invariance)")
+    p.add_argument("--no-baselines", action="store_true", help="skip FBP / SIRT / TV")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
     torch.set_num_threads(1)
     folder = a.data if a.data is not None else fetch(a.cache)
     run(folder, a.out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
-        max_angle=a.max_angle, fit_every=a.fit_every, max_halvings=a.max_halvings)
+        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, rescale=a.rescale,
+        gamma_rel=a.gamma_rel, baselines_too=not a.no_baselines)
 
 
 if __name__ == "__main__":

@@ -31,8 +31,8 @@ from .forward.shift import AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
-           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts", "summary",
-           "wrap"]
+           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts",
+           "projection_matching", "summary", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -84,9 +84,11 @@ def _bounds(op: AlignedOperator) -> torch.Tensor:
 
 def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
     """``shifts`` with what a translation of the object explains removed (module Convention): across the axis the
-    least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``, along it the mean."""
+    least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``, along it the mean. With ``op.keep_offset`` (set
+    by :func:`projection_matching`) the constant ``c``, the tilt axis' offset from the detector's middle, stays."""
     theta = op.operator.geometry.angles.to(shifts)
-    basis = torch.stack([torch.ones_like(theta), torch.cos(theta), torch.sin(theta)], dim=1)
+    ones = [] if getattr(op, "keep_offset", False) else [torch.ones_like(theta)]
+    basis = torch.stack(ones + [torch.cos(theta), torch.sin(theta)], dim=1)
     across = shifts[:, :1] - basis @ torch.linalg.lstsq(basis, shifts[:, :1]).solution
     return torch.cat([across, shifts[:, 1:] - shifts[:, 1:].mean(dim=0, keepdim=True)], dim=1)
 
@@ -190,6 +192,31 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
             break
     at_bound = int((s.abs() >= bounds - 1e-9).sum()) + int(axis and abs(float(a)) >= amax - 1e-12)
     return s.cpu(), a.cpu(), at_bound
+
+
+def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50) -> tuple:
+    """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
+    reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
+    projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
+    shifts keep the tilt axis' offset (``keep_offset``, :func:`gauge`): a constant shift is an object translation
+    only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis (docs/alignment.md).
+    Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
+    move in px)`` per round (the relative residual before the round's estimate)."""
+    from .forward.sirt import sirt
+
+    if mode == "none":
+        raise ValueError("projection_matching needs mode 'shifts' or 'shifts+axis', got 'none'")
+    op, records = aligned(operator, mode, "projection_matching"), []
+    op.keep_offset = True
+    for r in range(rounds):
+        x, history = sirt(op, data, num_iter=iters, nonneg=True)
+        P, before = operator(x), op.shifts.clone()
+        start = gauge(op, coarse_shifts(op, P.double(), data.double())) if r == 0 else op.shifts
+        op.shifts, op.angle, op.at_bound = estimate(op, P, data, start, op.angle, mode == "shifts+axis")
+        norm = op.inner_data(data, data).sqrt()
+        records.append((float(history["data_residual"][-1] / norm), float((op.shifts - before).abs().max())))
+    x, _ = sirt(op, data, num_iter=iters, nonneg=True)
+    return op, x, records
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit

@@ -4,6 +4,7 @@ files when ``INDREG_HAADF_DIR`` names a folder holding them (``HAADF.mrc``, ``HA
 import importlib.util
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import h5py
@@ -18,6 +19,8 @@ from indreg.domain import ImageDomain
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "real_data_haadf.py"
 OFFSET = -31886          # the raw stack's int16 level outside the specimen
 SCALE = 400.0            # counts per unit line integral
+RNG = np.random.default_rng(7)
+SHIFTS = np.stack([RNG.integers(-3, 4, 31), RNG.integers(-1, 2, 31)], axis=1).astype(float)   # etspy's (row, col)
 
 
 @pytest.fixture(scope="module")
@@ -40,19 +43,25 @@ def rod_series(example, angles_deg: np.ndarray, pixels: int = 32) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def stand_in(tmp_path_factory, example):
-    """A folder like the etspy one: an int16 raw stack with the tilt axis along X and an offset, its .rawtlt,
-    and an "aligned" .hspy (float32, minimum moved to 0, as etspy's)."""
+    """A folder like the etspy one: an int16 raw stack with the tilt axis along X, an offset and the drift
+    ``-SHIFTS`` (raw(p) = aligned(p + s), etspy's convention), its .rawtlt, and an "aligned" .hspy (float32,
+    minimum moved to 0, as etspy's) with ``SHIFTS`` recorded."""
+    from scipy import ndimage
+
     folder = tmp_path_factory.mktemp("haadf")
     angles = np.arange(-60.0, 61.0, 4.0)                                    # 31 tilts
     series = rod_series(example, angles)
-    raw = np.rot90(series, k=-1, axes=(1, 2))                               # axis along X, as the raw stack
-    counts = np.round(SCALE * raw + OFFSET).astype(np.int16)
+    ideal = np.rot90(series, k=-1, axes=(1, 2))                             # axis along X, as the raw stack
+    drifted = np.stack([ndimage.shift(im, -s, order=0) for im, s in zip(ideal, SHIFTS)])
+    counts = np.round(SCALE * drifted + OFFSET).astype(np.int16)
     with mrcfile.new(folder / "HAADF.mrc") as m:
         m.set_data(counts)
     (folder / "HAADF.rawtlt").write_text("".join(f"{a:8.2f}\n" for a in angles))
+    aligned = SCALE * ideal + OFFSET
     with h5py.File(folder / "HAADF_Aligned.hspy", "w") as f:
-        f.create_dataset(example.ALIGNED_KEY, data=(counts - counts.min()).astype(np.float32))
+        f.create_dataset(example.ALIGNED_KEY, data=(aligned - aligned.min()).astype(np.float32))
         f.create_dataset("/Experiments/__unnamed__/metadata/Tomography/tilts", data=angles)
+        f.create_dataset(example.SHIFTS_KEY, data=SHIFTS)
     return folder
 
 
@@ -85,10 +94,38 @@ def test_handedness_negated_angles_mirror_the_volume(example):
     assert out["mirror_difference"] < 1e-10
 
 
+def test_compare_shifts_ignores_offset_and_object_translation(example):
+    angles = np.arange(-60.0, 61.0, 10.0)
+    T = example.operator(example.volume_domain(8, 8, 1.0), np.radians(angles))
+    theta = np.radians(angles)
+    translation = np.stack([2.0 - 3.0 * np.cos(theta) + 0.5 * np.sin(theta), np.full_like(theta, 4.0)], axis=1)
+    out = example.compare_shifts(translation, np.zeros_like(translation), T, factor=4)
+    assert out["rms_px_gauge_removed"] == pytest.approx([0.0, 0.0], abs=1e-12)
+    assert out["rms_px_offset_removed"][1] == pytest.approx(0.0, abs=1e-12) and out["rms_px_offset_removed"][0] > 1.0
+    jitter = np.zeros_like(translation)
+    jitter[::2, 1] = 1.0
+    rms = example.compare_shifts(jitter, 0 * jitter, T, factor=4)["rms_px_offset_removed"][1]
+    assert rms == pytest.approx(4 * np.sqrt(7 * 6) / 13)                    # 7 ones, 6 zeros
+
+
+def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
+    """--stack raw: the template's tilts aligned by projection matching, the data by the registration; both
+    recover the recorded drift (2 raw pixels per binned one) in the gauge."""
+    m = example.run(stand_in, tmp_path / "raw", size=16, depth=16, iters=10, sigma_cells=2.0, num_steps=4,
+                    misalign=3.0, max_angle=30.0, align="shifts+axis", align_rounds=2, baselines_too=False, quick=True)
+    assert m["stack"] == "raw" and m["alignment"]["mode"] == "shifts+axis"
+    assert m["registration"]["background"] == pytest.approx(OFFSET, abs=2)
+    for key in ("template_shifts_vs_etspy", "shifts_vs_etspy"):
+        rms, drift = m[key]["rms_px_gauge_removed"], m[key]["rms_px_reference_in_gauge"]
+        assert drift[0] > 1.0 and max(rms) < 0.5, (key, rms, drift)
+    assert set(m["scores"]) == {"template", "registered"}
+    assert m["scores"]["registered"]["fit_residual"] < m["scores"]["template"]["fit_residual"]
+
+
 def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
     out = tmp_path / "out"
     m = example.run(stand_in, out, size=16, depth=16, iters=4, sigma_cells=2.0, num_steps=4, misalign=3.0,
-                    max_angle=30.0, quick=True)
+                    max_angle=30.0, stack="aligned", quick=True)
     assert json.loads((out / "metrics.json").read_text())["num_tilts"] == 31
     assert (out / "figure.png").stat().st_size > 0
     for name in ("registered", "template", "fbp", "sirt", "tv"):
@@ -145,7 +182,7 @@ def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
             z.writestr("etspy/__init__.py", "")
             z.writestr("etspy-1.3.0.dist-info/LICENSE", "NIST")
 
-    monkeypatch.setattr(example.subprocess, "run", fake_pip)
+    monkeypatch.setattr(subprocess, "run", fake_pip)                       # fetch's (examples/haadf_files.py)
     cache = tmp_path / "cache"
     assert example.fetch(cache) == cache and example.fetch(cache) == cache
     assert len(calls) == 1 and example.WHEEL in calls[0] and "--no-deps" in calls[0]

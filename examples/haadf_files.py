@@ -1,0 +1,150 @@
+"""The files of the HAADF walk-through (examples/real_data_haadf.py, docs/real_data.md): fetching and reading
+etspy's HAADF series and its recorded alignment, binning, comparing shifts, and writing the figure and volumes.
+
+Convention: stacks ``(tilt, row, column)`` as stored (the tilt axis along the columns' index); shifts in detector
+pixels, etspy's ``[row, column]`` of the stored images, indreg's ``[across, along]`` of the turned ones
+(docs/alignment.md); volumes ``(nx, ny, nz)`` on a domain in nm.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import zipfile
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from indreg import alignment, io
+from indreg.domain import ImageDomain
+from indreg.forward.shift import AlignedOperator
+
+__all__ = ["WHEEL", "MEMBERS", "ALIGNED_KEY", "SHIFTS_KEY", "PIXEL_NM", "TILT_AXIS_ANGLE", "say", "fetch", "read_raw",
+           "read_aligned", "read_etspy_shifts", "bin_stack", "scale_bar_nm", "figure", "save", "etspy_frame",
+           "compare_shifts"]
+
+WHEEL = "etspy==1.3.0"
+MEMBERS = "etspy/tests/test_data/HAADF"
+ALIGNED_KEY = "/Experiments/__unnamed__/data"   # HyperSpy's signal array in the .hspy (HDF5) file
+SHIFTS_KEY = "/Experiments/__unnamed__/metadata/Tomography/_sig_shifts/data"   # etspy's shifts (tilts, [row, col])
+PIXEL_NM = 3.36                                  # "Image pixel size [nm]: 3.36" of HAADF.txt
+TILT_AXIS_ANGLE = 90.0                           # "Tilt Axis Angle: 90.00" of HAADF.txt
+
+
+def say(text: str) -> None:
+    print(text, flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ the data
+def fetch(cache: Path) -> Path:
+    """The folder with ``HAADF.*``: ``cache`` if it has them, else downloaded there (pip download, unzip)."""
+    if (cache / "HAADF.mrc").exists():
+        return cache
+    cache.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        say(f"downloading {WHEEL} (66 MB, not installed) into {tmp}")
+        subprocess.run([sys.executable, "-m", "pip", "download", WHEEL, "--no-deps", "-d", tmp], check=True)
+        wheel = next(Path(tmp).glob("etspy-*.whl"))
+        with zipfile.ZipFile(wheel) as z:
+            for member in z.namelist():
+                if member.startswith(MEMBERS) or member.endswith("LICENSE"):
+                    (cache / Path(member).name).write_bytes(z.read(member))
+    return cache
+
+
+def read_raw(folder: Path) -> tuple:
+    """The raw stack ``(tilts, rows, cols)`` as stored and its angles (radians): ``HAADF.mrc`` + ``HAADF.rawtlt``."""
+    return io.read_tilt_series(folder / "HAADF.mrc", folder / "HAADF.rawtlt")
+
+
+def read_aligned(folder: Path):
+    """etspy's aligned stack (``HAADF_Aligned.hspy``, shifts removed), or None without that file."""
+    path = folder / "HAADF_Aligned.hspy"
+    return io.read_stack(f"{path}:{ALIGNED_KEY}", name="aligned stack") if path.exists() else None
+
+
+def read_etspy_shifts(folder: Path):
+    """etspy's recorded shifts ``(tilts, 2)`` in raw pixels, ``[:, 0]`` along the stored rows' index (across the
+    tilt axis), ``[:, 1]`` along the columns' (along it); etspy moved each raw image by them (``aligned(p + s) =
+    raw(p)``). None without the file."""
+    import h5py
+
+    path = folder / "HAADF_Aligned.hspy"
+    if not path.exists():
+        return None
+    with h5py.File(path, "r") as f:
+        return np.asarray(f[SHIFTS_KEY], dtype=np.float64) if SHIFTS_KEY in f else None
+
+
+def bin_stack(stack: np.ndarray, size: int) -> np.ndarray:
+    """Every image averaged over square blocks down to ``size x size`` (the counts per pixel are kept)."""
+    t, rows, cols = stack.shape
+    f = rows // size
+    if rows != cols or f * size != rows:
+        raise ValueError(f"--size must divide the image size {rows} x {cols}, got {size}")
+    return stack.reshape(t, size, f, size, f).mean(axis=(2, 4))
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+def scale_bar_nm(width_nm: float) -> float:
+    """A round length (1, 2 or 5 times a power of ten, in nm) of at most a third of ``width_nm``."""
+    top = width_nm / 3
+    power = 10.0 ** np.floor(np.log10(top))
+    return max(m * power for m in (1, 2, 5) if m * power <= top)
+
+
+def figure(volumes: dict, path: Path, cell_nm: float) -> None:
+    """Central slices of every volume: the x-z slice across the rod (orthogonal to the tilt axis) and the x-y
+    slice along it, each on its own grey scale, with a scale bar in nm (voxels of ``cell_nm``)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    fig, ax = plt.subplots(2, len(volumes), figsize=(3.0 * len(volumes), 6.6), squeeze=False)
+    for j, (name, v) in enumerate(volumes.items()):
+        nx, ny, nz = v.shape
+        ax[0, j].imshow(v[:, ny // 2, :].T, cmap="gray", origin="lower")
+        ax[1, j].imshow(v[:, :, nz // 2].T, cmap="gray", origin="lower")
+        ax[0, j].set_title(name, fontsize=13)
+        bar = scale_bar_nm(nx * cell_nm)
+        for a in ax[:, j]:
+            a.set_xticks([]), a.set_yticks([])
+            a.add_artist(AnchoredSizeBar(a.transData, bar / cell_nm, f"{bar:g} nm", "lower right", pad=0.4,
+                                         color="yellow", frameon=False, size_vertical=max(nz, ny) / 80,
+                                         fontproperties={"size": 12}))
+    ax[0, 0].set_ylabel("x-z (across)", fontsize=13)
+    ax[1, 0].set_ylabel("x-y (along axis)", fontsize=13)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def save(volumes: dict, domain: ImageDomain, out: Path) -> None:
+    """Every volume as ``.npy`` and ``.mrc`` (the voxel size in Angstrom, as the MRC format has it)."""
+    angstrom = ImageDomain(domain.shape, tuple(10 * float(m) for m in domain.min_pt),
+                           tuple(10 * float(m) for m in domain.max_pt))
+    for name, v in volumes.items():
+        stem = name.lower().replace(" ", "_").replace("(", "").replace(")", "")
+        np.save(out / f"{stem}.npy", v)
+        io.write_volume(out / f"{stem}.mrc", v, angstrom)
+
+
+# ------------------------------------------------------------------------------------------------ alignment
+def etspy_frame(shifts: np.ndarray, factor: int) -> np.ndarray:
+    """etspy's shifts (:func:`read_etspy_shifts`) as indreg's ``[across, along]`` in binned pixels: a feature at
+    the ideal point ``q`` lies at ``q - s`` in the raw image, and the turn by ``tilt_axis_angle=90`` (``np.rot90``)
+    takes the stored rows to indreg's columns (across) and the stored columns, reversed, to its rows (along)."""
+    return np.stack([-shifts[:, 0], shifts[:, 1]], axis=1) / factor
+
+
+def compare_shifts(estimated: np.ndarray, reference: np.ndarray, T, factor: int) -> dict:
+    """RMS differences ``[across, along]`` in raw pixels (``factor`` raw pixels per binned one) of two shift sets of
+    the tilts of ``T`` in binned pixels, less a common offset, and in indreg's gauge (``indreg.alignment.gauge``);
+    and the reference's RMS in the gauge."""
+    d, ref = torch.as_tensor(estimated - reference), torch.as_tensor(reference)
+    gauge = partial(alignment.gauge, AlignedOperator(T))
+    rms = {"offset_removed": d - d.mean(dim=0), "gauge_removed": gauge(d), "reference_in_gauge": gauge(ref)}
+    return {f"rms_px_{k}": (factor * v.pow(2).mean(dim=0).sqrt()).tolist() for k, v in rms.items()}
