@@ -202,7 +202,7 @@ CORE = (
            "(None: never)", Optional[int]),
 )
 
-#: How the inputs are brought to one unit before the run (``indreg.run.prepare``): the app's ``data.*`` keys.
+#: How the inputs are brought to one unit before the run (``indreg.units.prepare``): the app's ``data.*`` keys.
 INPUTS = (
     Option("template_scale", "data", "template_scale", None,
            auto_or(_positive, "a finite number > 0", ("auto", "fit", "fit+offset")),
