@@ -71,7 +71,7 @@ def test_held_out_residual_and_curve(tiny):
 
 
 def test_holdout_after_units(tiny):
-    """``template_scale`` / ``background`` act first (``indreg.run.prepare``), the split is of the prepared data:
+    """``template_scale`` / ``background`` act first (``indreg.units.prepare``), the split is of the prepared data:
     the same run and held-out residuals as with the inputs already in one unit."""
     T, template, target, data = tiny
     r = indreg.register(template, data + 5.0, T, holdout=3, template_scale=2.0, background=5.0, **FAST)
