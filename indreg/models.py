@@ -56,9 +56,11 @@ def _coarse_velocity(kernel, o: dict) -> tuple:
     from .deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
 
     domain, f = kernel.domain, o["velocity_factor"]
-    if any(n % f for n in domain.shape):
-        raise OptionError("velocity_factor", f, f"an integer >= 1 dividing every axis of the grid {domain.shape}")
-    velocity_domain = coarse_domain(domain, f)
+    try:
+        velocity_domain = coarse_domain(domain, f)   # checks that f divides every axis
+    except ValueError:
+        raise OptionError("velocity_factor", f, f"an integer >= 1 dividing every axis of the grid {domain.shape}") \
+            from None
     backward = "exact" if o["backward"] in (None, "paper") else o["backward"]
     W = CoarseVelocityDeformation(domain, velocity_domain, o["num_steps"], o["action"], backward, o["interpolation"])
     return W, GaussianKernel(velocity_domain, kernel.sigma, kernel.method)

@@ -235,6 +235,14 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("indreg_path", path_component, replace=True)
     OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
     OmegaConf.register_new_resolver("indreg_simulated", simulated_only, replace=True)
+    OmegaConf.register_new_resolver("indreg_run_name", run_name, replace=True)
+
+
+def run_name(source: str, model: str) -> str:
+    """The default experiment's run name: ``suite1_jv``, or named after a plug-in (``module:attribute``) data
+    source (its attribute) and model (``-`` and its attribute), so that a plug-in's runs are not filed as suite 1's."""
+    base = source.rpartition(":")[2] if ":" in source else "suite1_jv"
+    return base + (f"-{model.rpartition(':')[2]}" if ":" in model else "")
 
 
 def simulated_only(source: str, value):

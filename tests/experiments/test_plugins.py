@@ -67,6 +67,7 @@ def test_plugin_model_options_from_the_command_line(plugin):
     assert p.returncode == 0, p.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["hparams"]["brightness"] == 3.0 and m["hparams"]["extra_steps"] == 2 and m["status"] == "completed"
+    assert m["config"]["name"] == "suite1_jv-MODEL"   # not filed as suite 1's run
     bad = run_cli(args[:1] + ["deformation.brightness=-1"] + args[2:], cwd=plugin)
     assert bad.returncode == 1 and "deformation.brightness" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
@@ -107,5 +108,6 @@ def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["hparams"]["template"] == "gain2" and m["config"]["data"]["my_gain"] == 2.0
+    assert m["config"]["name"] == "SOURCE"
     bad = run_cli(args[:1] + ["data.my_gain=-1"] + args[2:], cwd=tmp_path)
     assert bad.returncode == 1 and "data.my_gain" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
