@@ -33,7 +33,8 @@ def number(lo: float = -math.inf, strict: bool = False, integer: bool = False) -
         ("" if lo == -math.inf else f" {'>' if strict else '>='} {lo:g}")
 
     def check(v, label):
-        if isinstance(v, (bool, str)) or not isinstance(v, numbers.Real) or (integer and not isinstance(v, numbers.Integral)):
+        if isinstance(v, (bool, str)) or not isinstance(v, numbers.Real) \
+                or (integer and not isinstance(v, numbers.Integral)):
             raise OptionError(label, v, what, TypeError)
         if not math.isfinite(float(v)) or (v <= lo if strict else v < lo):
             raise OptionError(label, v, what)

@@ -30,8 +30,8 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-__all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units", "border_level", "check_offset",
-           "compare_units", "unit_factor", "data_term_scale", "noise_residual", "prepare"]
+__all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units",
+           "border_level", "check_offset", "compare_units", "unit_factor", "data_term_scale", "noise_residual", "prepare"]
 
 log = logging.getLogger("indreg")
 
@@ -62,8 +62,8 @@ class Units:
     """What :func:`prepare` found and did, for the result (``result.units``) and metrics.json.
 
     ``template_scale``: the factor applied to the template (1.0: none), ``template_offset`` the offset added to it
-    (``template_scale="fit"``, ``indreg.intensity``: both fitted with the deformation); ``background``: the offset subtracted
-    from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
+    (``template_scale="fit"``, ``indreg.intensity``: both fitted with the deformation); ``background``: the offset
+    subtracted from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
     ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
     ``T.inner_data``); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:

@@ -53,7 +53,8 @@ def hyperparameters(cfg: DictConfig, exp) -> dict:
     o = exp.options
     return {"gamma": float(o["gamma"]), "sigma": float(o["sigma"]), "N": int(o["num_steps"]), "model": o["model"],
             "step_size": exp.solver.reported_step(), "action": o["action"], "solver": o["solver"],
-            "template": exp.label, "size": int(exp.domain.shape[0]), "max_iter": int(o["max_iter"]), "dtype": cfg.dtype.value,
+            "template": exp.label, "size": int(exp.domain.shape[0]), "max_iter": int(o["max_iter"]),
+            "dtype": cfg.dtype.value,
             "seed": int(cfg.seed), **exp.problem.hparams()}
 
 

@@ -3,7 +3,8 @@
 The data model is ``g = T(W(nu, I)) + noise`` (``eq:OptimV``); ``T`` is any ``LinearOperator`` (protocol in
 ``operator``), by default the 2D ray transform for a parallel-beam or fan-beam geometry, or in 3D the
 single-axis tilt series of electron tomography (``tilt_series``); data at several time points: one operator per
-frame (``time_series``). Operators combine (``algebra``, ``stacking``): ``R * B`` (a blur ``B = ImageOperator(...)``, then ``R``),
+frame (``time_series``). Operators combine (``algebra``, ``stacking``): ``R * B`` (a blur ``B = ImageOperator(...)``,
+then ``R``),
 ``A + B``, ``c * A``, ``stack(T_1, ..., T_K)``, ``restrict(T, rows)``. Baselines: FBP, SIRT and TV (2D and 3D).
 """
 from .geometry import FanBeamGeometry, ParallelBeamGeometry
