@@ -16,11 +16,18 @@ Stores, per case, the overrides (options) and the scalars of the metrics (result
     python scripts/make_presets_golden.py --out /tmp/golden.json
     python scripts/make_presets_golden.py --only app:suite1_jv-metamorphosis api:metamorphosis
                                                      # only these cases, the others kept as stored
+    python scripts/make_presets_golden.py --floors   # the quality floors of the quick cases (below)
+
+Floors (``--floors [KIND:NAME ...]``): each case run again at its converged iteration count (the preset's own
+``solver.max_iter``, or the API's 200), its SSIM stored with ``floor = SSIM - FLOOR_MARGIN``: whoever changes the
+numerics on purpose re-records the golden numbers and keeps the floors
+(``tests/experiments/test_presets_floors.py``). Without names: ``FLOOR_CASES``, the cases that converge in seconds.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -58,6 +65,12 @@ VARIANTS = {
     "suite4_missing_object_metamorphosis-source_start_1": [
         "experiment=suite4_missing_object_metamorphosis", "solver.source_start=1", "solver.max_iter=3"],
 }
+#: The cases whose converged run takes seconds (64^2): their floors are recorded and checked in CI.
+FLOOR_CASES = ("app:suite1_jv", "app:own_data_example", "app:suite_dynamic_2d", "app:suite_dynamic_2d_unknown",
+               "app:suite1_jv-backward_exact", "app:suite1_jv-mass_preserving", "app:suite1_jv-metamorphosis",
+               "app:suite1_jv-fast", "api:default", "api:fast", "api:metamorphosis")
+FLOOR_MARGIN = 0.01
+API_CONVERGED = 200
 API_CASES = {
     "default": {"max_iter": 10},
     "lbfgs": {"solver": "lbfgs", "max_iter": 5},
@@ -91,7 +104,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=GOLDEN)
     ap.add_argument("--only", nargs="+", metavar="KIND:NAME", default=None,
                     help="regenerate only these cases (app:NAME / api:NAME) and keep the others as stored in --out")
+    ap.add_argument("--floors", nargs="*", metavar="KIND:NAME", default=None,
+                    help="record the quality floors of these cases (default: FLOOR_CASES) at their converged "
+                         "iteration count, keeping the golden numbers")
     args = ap.parse_args()
+    if args.floors is not None:
+        return record_floors(args.out, args.floors or FLOOR_CASES)
     cases = {"app": app_cases(), "api": API_CASES}
     if args.only is None:
         golden = {"about": {"indreg_commit": _commit(), "torch": torch.__version__,
@@ -122,6 +140,37 @@ def main() -> None:
         print(f"| {kind} | {name} | {seconds:.1f} | {m['status']} | {m['iterations']} | {m['objective']:.6g} | "
               f"{m.get('ssim', float('nan')):.4f} |")
     print(f"\nwrote {args.out} ({len(rows)} cases)")
+
+
+def converged(kind: str, case):
+    """The case at its converged iteration count: the app's overrides without ``solver.max_iter`` (the preset's
+    own), the API's options with ``max_iter`` ``API_CONVERGED``."""
+    if kind == "app":
+        return [o for o in case if not o.startswith("solver.max_iter=")]
+    return dict(case, max_iter=API_CONVERGED)
+
+
+def record_floors(out: Path, chosen) -> None:
+    """SSIM of each case at its converged iteration count, stored under ``floors`` with ``SSIM - FLOOR_MARGIN``."""
+    golden = json.loads(out.read_text())
+    cases = {"app": app_cases(), "api": API_CASES}
+    print("| case | iterations | SSIM | floor | seconds |\n|---|---|---|---|---|")
+    for spec in chosen:
+        kind, name = spec.split(":", 1)
+        run = converged(kind, cases[kind][name])
+        t0 = time.perf_counter()
+        if kind == "app":
+            with tempfile.TemporaryDirectory() as out_dir:
+                numbers = app_numbers(run, out_dir)
+        else:
+            numbers = api_numbers(run)
+        ssim = numbers["ssim"]
+        seconds = time.perf_counter() - t0
+        golden.setdefault("floors", {})[spec] = {"run": run, "ssim": ssim, "seconds": round(seconds, 1),
+                                                 "floor": math.floor((ssim - FLOOR_MARGIN) * 1000) / 1000}
+        print(f"| {spec} | {numbers['iterations']} | {ssim:.4f} | {golden['floors'][spec]['floor']:.3f} | "
+              f"{seconds:.1f} |", flush=True)
+    out.write_text(json.dumps(golden, indent=2, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":
