@@ -331,8 +331,8 @@ class RegistrationResult:
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
     ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
-    ``outputs``: the model's own results by name (metamorphosis: ``source``, ``deformation_part`` = W(nu, I),
-    ``intensity_part`` = f(1) - W(nu, I)), also readable as attributes (``result.source``).
+    ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
+    docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
     """
     deformed: torch.Tensor
     momentum: torch.Tensor

@@ -116,18 +116,19 @@ def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"
     return fig
 
 
-def parts_figure(final, deformation_part, intensity_part, target=None, extent=None, title: str = ""):
-    """Metamorphosis: f(1), its pure-deformation part W(nu, I), its intensity part f(1) - W(nu, I) (own symmetric
-    grey scale, 0 = mid grey) and the target, in a 2 x 2 grid; f(1), W(nu, I) and the target share the target's
-    grey scale."""
+def parts_figure(final, summand, remainder, target=None, extent=None, title: str = ""):
+    """A reconstruction split into two parts (a model's outputs of kind ``"parts"``; metamorphosis: the
+    deformation's ``summand`` W(nu, I) and the intensities' ``remainder`` f(1) - W(nu, I)): f(1), the summand, the
+    remainder (own symmetric grey scale, 0 = mid grey) and the target, in a 2 x 2 grid; f(1), the summand and the
+    target share the target's grey scale."""
     scale = final if target is None else target
     vmin, vmax = float(np.min(scale)), float(np.max(scale))
-    bound = max(float(np.max(np.abs(intensity_part))), 1e-12)
+    bound = max(float(np.max(np.abs(remainder))), 1e-12)
     fig = Figure(figsize=(9, 8.6), layout="constrained")
     axes = fig.subplots(2, 2).flat
     show_image(axes[0], final, "$f(1)$", vmin, vmax, extent)
-    show_image(axes[1], deformation_part, r"$W(\nu, I)$ (deformation part)", vmin, vmax, extent)
-    show_image(axes[2], intensity_part, r"$f(1) - W(\nu, I)$ (intensity part)", -bound, bound, extent)
+    show_image(axes[1], summand, r"$W(\nu, I)$ (deformation part)", vmin, vmax, extent)
+    show_image(axes[2], remainder, r"$f(1) - W(\nu, I)$ (intensity part)", -bound, bound, extent)
     if target is None:
         axes[3].set_axis_off()
     else:
@@ -137,13 +138,13 @@ def parts_figure(final, deformation_part, intensity_part, target=None, extent=No
     return fig
 
 
-def parts_ortho_figure(final, deformation_part, intensity_part, target=None, title: str = "", box=None):
+def parts_ortho_figure(final, summand, remainder, target=None, title: str = "", box=None):
     """``parts_figure`` of volumes: one row of orthogonal slices (``ortho_figure``) for each of f(1), W(nu, I),
     f(1) - W(nu, I) (own symmetric grey scale, 0 = mid grey) and the target (the target's grey scale)."""
     scale = final if target is None else target
-    bound = max(float(np.max(np.abs(intensity_part))), 1e-12)
-    panels = [("f(1)", final), ("W(nu, I)", deformation_part),
-              (f"f(1) - W(nu, I) (+-{bound:.3g})", intensity_part, (-bound, bound)), ("target", target)]
+    bound = max(float(np.max(np.abs(remainder))), 1e-12)
+    panels = [("f(1)", final), ("W(nu, I)", summand),
+              (f"f(1) - W(nu, I) (+-{bound:.3g})", remainder, (-bound, bound)), ("target", target)]
     return ortho_figure(panels, float(np.min(scale)), float(np.max(scale)), title=title, box=box)
 
 
