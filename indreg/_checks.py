@@ -70,6 +70,14 @@ def _shown(value) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
+def is_finite_number(v) -> bool:
+    """A finite real number (bools and strings are not numbers): a config value's range checks start from it."""
+    try:
+        return v is not None and math.isfinite(check_number(v, "value"))
+    except (TypeError, ValueError):
+        return False
+
+
 def check_number(value, name: str, expected: str = "a real number") -> float:
     """``value`` as a python float if it is a real number (module docstring), else a ``TypeError``.
 

@@ -38,16 +38,19 @@ FIT_EVERY = 10
 FITS = ("fit", "fit+offset")
 
 
-def fit_intensity(P: torch.Tensor, Q: torch.Tensor, g: torch.Tensor, inner) -> tuple:
+def fit_intensity(P: torch.Tensor, Q, g: torch.Tensor, inner) -> tuple:
     """``(c, b)`` minimising ``||c P + b Q - g||^2`` in the data inner product ``inner`` (float64 normal equations);
-    ``b = 0`` when ``Q`` and ``P`` are (nearly) parallel."""
+    ``b = 0`` when ``Q`` is None or (nearly) parallel to ``P``."""
     def dot(x, y):
         return float(inner(x.double(), y.double()).sum())
 
-    pp, pq, qq, pg, qg = dot(P, P), dot(P, Q), dot(Q, Q), dot(P, g), dot(Q, g)
-    det = pp * qq - pq * pq
+    pp, pg = dot(P, P), dot(P, g)
     if pp <= 0:
         return math.nan, 0.0
+    if Q is None:
+        return pg / pp, 0.0
+    pq, qq, qg = dot(P, Q), dot(Q, Q), dot(Q, g)
+    det = pp * qq - pq * pq
     if det <= 1e-9 * pp * qq:
         return pg / pp, 0.0
     return (pg * qq - qg * pq) / det, (qg * pp - pg * pq) / det
@@ -65,16 +68,15 @@ class IntensityFitSolver(RefitSolver):
         self.template = self.problem.template            # I, as prepared
         self.first = units.template_scale                # the factor prepare applied
         self.scale, self.offset, self.records = 1.0, 0.0, []
-        with torch.no_grad():
-            self.ones = self.problem.ray_transform(torch.ones_like(self.template))   # T 1
+        with torch.no_grad():   # T 1, the offset's projection
+            self.ones = self.problem.ray_transform(torch.ones_like(self.template)) if offset else None
 
     def refit(self, state) -> None:
         """Fit ``(c, b)`` at ``state.iterate`` and register ``c I + b`` from here on."""
         p = self.problem
         with torch.no_grad():
             deformed = (p.reconstruction(state.iterate) - self.offset) / self.scale   # W(nu, I)
-            c, b = fit_intensity(p.ray_transform(deformed), self.ones if self.with_offset else 0 * self.ones, p.data,
-                                 p.ray_transform.inner_data)
+            c, b = fit_intensity(p.ray_transform(deformed), self.ones, p.data, p.ray_transform.inner_data)
         if not (math.isfinite(c) and c > 0 and math.isfinite(b)):
             log.warning("iteration %d: the template's factor fit gave c = %.4g; keeping c = %.4g, b = %.4g",
                         state.iteration, c, self.scale, self.offset)

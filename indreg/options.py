@@ -121,14 +121,13 @@ def _import(path: str) -> None:
     before = dict(MODELS)
     try:
         model = getattr(importlib.import_module(module), attr)
-    except Exception as e:   # a syntax error or an exception at import: one line, and nothing left registered
+        problem = None if isinstance(model, Model) else f"is a {type(model).__name__}, not an indreg.models.Model"
+    except Exception as e:   # a syntax error or an exception at import: one line
+        problem = f"cannot be imported: {type(e).__name__}: {e}"
+    if problem is not None:   # nothing the failed import registered stays
         MODELS.clear()
         MODELS.update(before)
-        raise ValueError(f"model {path!r} cannot be imported: {type(e).__name__}: {e}") from None
-    if not isinstance(model, Model):
-        MODELS.clear()
-        MODELS.update(before)
-        raise ValueError(f"model {path!r} is a {type(model).__name__}, not an indreg.models.Model")
+        raise ValueError(f"model {path!r} {problem}")
     MODELS[path] = model
     MODELS.setdefault(model.name, model)   # its options name it (Option.models) by its own name
 

@@ -277,7 +277,7 @@ def test_fit_intensity_solves_the_normal_equations():
     inner = lambda a, b: (a * b).sum(dim=(-2, -1))   # noqa: E731
     c, b = fit_intensity(P, Q, 2.5 * P - 0.7 * Q, inner)
     assert c == pytest.approx(2.5, rel=1e-12) and b == pytest.approx(-0.7, rel=1e-12)
-    c, b = fit_intensity(P, 0 * Q, 2.5 * P - 0.7 * Q, inner)   # no offset: the least-squares factor
+    c, b = fit_intensity(P, None, 2.5 * P - 0.7 * Q, inner)   # no offset: the least-squares factor
     assert b == 0.0 and c == pytest.approx(float((P * (2.5 * P - 0.7)).sum() / (P * P).sum()), rel=1e-12)
 
 

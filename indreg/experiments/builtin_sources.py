@@ -8,7 +8,6 @@ Convention: as :mod:`indreg.experiments.sources` (images float64 on the CPU, axi
 from __future__ import annotations
 
 import logging
-import math
 from enum import Enum
 from pathlib import Path
 from typing import Optional
@@ -17,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from .. import conventions as _conventions
+from .._checks import is_finite_number
 from .. import phantoms
 from ..inputs import box_domain, make_geometry, make_operator, square_domain
 from ..inputs import load as load_inputs
@@ -161,10 +161,6 @@ def dynamic_data(cfg: DictConfig) -> Data:
                 clean_64=a.clean, snr_db=a.snr_db, template_known=d.template_known, targets=targets)
 
 
-def _finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def _check_phantom(c: DictConfig, require) -> None:
     g = c.geometry
     require(g.num_angles is not None and g.num_angles >= 1 or g.angles is not None or g.kind.value == "tilt_series",
@@ -180,13 +176,13 @@ def _check_files(c: DictConfig, require) -> None:
     d = c.data
     for key in ("template", "sinogram"):
         require(bool(d[key]), f"data.{key}", "a file path (data=files)", d[key])
-    require(_finite(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
+    require(is_finite_number(d.half_width) and d.half_width > 0, "data.half_width", "a number > 0", d.half_width)
 
 
 def _check_dynamic(c: DictConfig, require) -> None:
     d, g = c.data, c.geometry
     require(d.frames >= 1, "data.frames", "an integer >= 1", d.frames)
-    require(_finite(d.amplitude) and 0 <= d.amplitude < 1, "data.amplitude", "a number in [0, 1)", d.amplitude)
+    require(is_finite_number(d.amplitude) and 0 <= d.amplitude < 1, "data.amplitude", "a number in [0, 1)", d.amplitude)
     require(g.num_angles is not None and g.num_angles >= 1, "geometry.num_angles",
             "an integer >= 1 (angles per time point)", g.num_angles)
     require(g.det_count is not None and g.det_count >= 1, "geometry.det_count", "an integer >= 1", g.det_count)

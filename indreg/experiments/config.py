@@ -28,13 +28,13 @@ the configs of the checkout.
 """
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from .. import options as _options
+from .._checks import is_finite_number
 from . import sources
 from .errors import ConfigError   # re-exported: ``from indreg.experiments.config import ConfigError``
 from .schema import build_schema
@@ -103,15 +103,6 @@ def _require(ok: bool, key: str, expected: str, value) -> None:
         raise ConfigError(f"invalid config value {key}={value!r}: expected {expected}")
 
 
-def _finite(v) -> bool:
-    """A finite real number (bools and strings are not numbers)."""
-    from .._checks import check_number
-
-    try:
-        return v is not None and math.isfinite(check_number(v, "value"))
-    except (TypeError, ValueError):
-        return False
-
 
 def _unknown_keys(node, schema, prefix: str = "") -> list:
     """Dotted keys of ``node`` absent from ``schema`` (e.g. added with Hydra's ``+key=value``)."""
@@ -144,22 +135,22 @@ def validate(cfg: DictConfig, registration: bool = True) -> None:
     _require(c.phantom.thickness is None or (c.phantom.ndim == 3 and 7 <= c.phantom.thickness <= c.phantom.size),
              "phantom.thickness", "null or, for volumes (phantom.ndim=3), an integer in [7, phantom.size] (7: the "
              "SSIM window)", c.phantom.thickness)
-    _require(_finite(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
+    _require(is_finite_number(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
              c.phantom.half_width)
     _validate_data(c)
     n = c.noise
     _require(n.snr_db is None or n.std is None, "noise.snr_db", "at most one of noise.snr_db and noise.std",
              (n.snr_db, n.std))
-    _require(n.snr_db is None or (_finite(n.snr_db) and abs(n.snr_db) <= 300), "noise.snr_db",
+    _require(n.snr_db is None or (is_finite_number(n.snr_db) and abs(n.snr_db) <= 300), "noise.snr_db",
              "a number in [-300, 300] (dB) or null", n.snr_db)
-    _require(n.std is None or (_finite(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
+    _require(n.std is None or (is_finite_number(n.std) and n.std >= 0), "noise.std", "a number >= 0 or null", n.std)
     _require(n.seed is None or 0 <= n.seed < 2 ** 32, "noise.seed", "null or an integer in [0, 2**32)", n.seed)
     if registration:
         check_registration(c)
     b = c.baseline
-    _require(_finite(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
+    _require(is_finite_number(b.fbp_frequency_scaling) and 0 < b.fbp_frequency_scaling <= 1, "baseline.fbp_frequency_scaling",
              "a number in (0, 1]", b.fbp_frequency_scaling)
-    _require(_finite(b.tv_mu) and b.tv_mu >= 0, "baseline.tv_mu", "a number >= 0", b.tv_mu)
+    _require(is_finite_number(b.tv_mu) and b.tv_mu >= 0, "baseline.tv_mu", "a number >= 0", b.tv_mu)
     _require(b.tv_iterations >= 1, "baseline.tv_iterations", "an integer >= 1", b.tv_iterations)
     _require(b.sirt_iterations >= 1, "baseline.sirt_iterations", "an integer >= 1", b.sirt_iterations)
     lg = c.logging
@@ -195,20 +186,20 @@ def _validate_data(c: DictConfig) -> None:
     _require((g.det_min is None) == (g.det_max is None), "geometry.det_min",
              "both det_min and det_max, or neither (fitted to the domain)", (g.det_min, g.det_max))
     if g.det_min is not None:
-        _require(_finite(g.det_min) and _finite(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
+        _require(is_finite_number(g.det_min) and is_finite_number(g.det_max) and g.det_min < g.det_max, "geometry.det_min",
                  "finite det_min < det_max", (g.det_min, g.det_max))
     if g.kind.value == "tilt_series":
-        _require(_finite(g.tilt_step) and g.tilt_step > 0, "geometry.tilt_step", "a number > 0", g.tilt_step)
-        _require(_finite(g.tilt_min) and _finite(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
+        _require(is_finite_number(g.tilt_step) and g.tilt_step > 0, "geometry.tilt_step", "a number > 0", g.tilt_step)
+        _require(is_finite_number(g.tilt_min) and is_finite_number(g.tilt_max) and g.tilt_min <= g.tilt_max, "geometry.tilt_min",
                  "finite tilt_min <= tilt_max", (g.tilt_min, g.tilt_max))
-    _require(g.tilt_axis_angle is None or (_finite(g.tilt_axis_angle) and abs(g.tilt_axis_angle) <= 180),
+    _require(g.tilt_axis_angle is None or (is_finite_number(g.tilt_axis_angle) and abs(g.tilt_axis_angle) <= 180),
              "geometry.tilt_axis_angle", "a finite number of degrees in [-180, 180] or null", g.tilt_axis_angle)
     _require(g.tilt_axis_angle is None or g.kind.value == "tilt_series", "geometry.tilt_axis_angle",
              "null except for a measured tilt series (data=files geometry=tilt_series)", g.tilt_axis_angle)
     if g.kind.value == "fan_flat":
-        _require(_finite(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
+        _require(is_finite_number(g.src_radius) and g.src_radius > 0, "geometry.src_radius",
                  "a number > 0 (source to origin) for geometry.kind=fan_flat", g.src_radius)
-    _require(_finite(g.det_radius) and g.det_radius >= 0, "geometry.det_radius", "a number >= 0", g.det_radius)
+    _require(is_finite_number(g.det_radius) and g.det_radius >= 0, "geometry.det_radius", "a number >= 0", g.det_radius)
 
 
 def _check_cuda(device: str) -> None:
