@@ -170,6 +170,13 @@ def test_bad_background_is_one_line(value, match):
         indreg.register(template, data, T, background=value)
 
 
+def test_a_template_scale_that_overflows_the_dtype_is_one_line():
+    template, data, T, _ = tiny()
+    with pytest.raises(ValueError, match=r"^template_scale=1e\+300 makes the template non-finite in float32 \(scale "
+                                         r"factor 1e\+300\)$"):
+        indreg.register(template.float(), data.float(), T, template_scale=1e300)
+
+
 def test_a_background_that_zeroes_the_data_is_one_line_naming_it(caplog):
     """Constant data with background='auto': one line naming the background and what it subtracted, before any
     comparison of units (no warning about them first)."""
