@@ -18,6 +18,19 @@ FLOAT_DTYPES = (torch.float32, torch.float64)
 INT_MAX = 2 ** 63 - 1
 
 
+class StepOverflowError(ValueError):
+    """A step found only in the run to overflow the iterate's dtype (step halving off); :meth:`message` names the
+    options by ``label`` (the keywords, or the app's config keys)."""
+
+    def __init__(self, value: float, dtype: torch.dtype, detail: str):
+        self.value, self.dtype, self.detail = value, str(dtype).replace("torch.", ""), detail
+        super().__init__(self.message(lambda name: name))
+
+    def message(self, label) -> str:
+        return (f"{label('step_size')}={self.value:.4g} makes the iterate non-finite in {self.dtype} ({self.detail}): "
+                f"give a smaller {label('step_size')} (or {label('step_rel')})")
+
+
 def check_dtype(x: torch.Tensor, name: str) -> None:
     """Check that a tensor is float32 or float64 (the dtypes every operator supports)."""
     if not x.is_floating_point():

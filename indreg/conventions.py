@@ -13,8 +13,8 @@ Convention:
       (rows = y from the bottom up, MRC sections as IMOD shows them: ``f = a.T``). Pictures (``.png``, ``.tif``)
       are always read as displayed, whatever the convention.
     - ``sinogram``: ``"angle_bin"`` (rows = angles) or ``"bin_angle"`` (columns = angles: transposed).
-    - ``angle_offset`` (degrees): indreg's angle = the tool's angle + ``angle_offset`` (no tool here reverses the
-      sense of rotation or the bins).
+    - ``angle_offset`` (degrees): indreg's angle = the tool's angle + ``angle_offset`` (0 for every tool here: none
+      reverses the sense of rotation or the bins; kept for other tools).
     - ``pixel_units``: the data are line integrals in pixels (multiplied by the pixel side ``h`` on reading).
     - ``bins``: the detector when ``det_min`` / ``det_max`` are not given: ``"fit"`` (indreg fits it to the
       domain), ``"middle"`` (one pixel a bin, centred on the rotation axis) or ``"index"`` (one pixel a bin, bin
@@ -63,8 +63,9 @@ CONVENTIONS = {c.name: c for c in (
                source="skimage.transform.radon: picture in, (bins, angles) out, pixel sums, centre n // 2"),
     Convention("astra", image="displayed", pixel_units=True, bins="middle",
                source="ASTRA 'parallel' on its default volume (one unit a pixel), detector centred"),
-    Convention("tomopy", image="displayed", angle_offset=90.0, pixel_units=True, bins="middle",
-               source="tomopy.project / recon: slices as displayed, centre = det_count / 2 (libtomo calc_coords)"),
+    Convention("tomopy", image="displayed", pixel_units=True, bins="middle",
+               source="tomopy.project / recon: ASTRA's (libtomo calc_coords: rays along (cos, sin) of the slice's "
+                      "(row, column) axes, bins along (-sin, cos), centre = det_count / 2)"),
     Convention("imod", image="yx", bins="middle",
                source="IMOD / MRC: sections (Y, X) with Y up, one row of a tilt series, tilt axis centred"),
 )}
@@ -195,7 +196,7 @@ def _correlation(a, b) -> float:
 
 
 def _distinct() -> dict:
-    """One convention per distinct reading (``odl`` reads as ``indreg``): ``{name: [names]}``."""
+    """One convention per distinct reading (``odl`` reads as ``indreg``, ``tomopy`` as ``astra``): ``{first: names}``."""
     groups: dict = {}
     for c in CONVENTIONS.values():
         key = (c.image, c.sinogram, c.angle_offset, c.pixel_units, c.bins)

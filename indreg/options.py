@@ -88,6 +88,23 @@ class Model:
     template_optional: bool = False    # template=None (unknown) is allowed: the model reconstructs it
     defaults: Optional[Callable] = None  # defaults(options): fills options left None by the model's own rules
 
+    def make(self, operator, template, data, kernel, o: dict) -> tuple:
+        """``(problem, solver_options)`` of :attr:`build`, its return checked; a plug-in's own exception other
+        than a ValueError / TypeError (which name their problem) becomes one ValueError naming the model, the
+        original chained."""
+        try:
+            built = self.build(operator, template, data, kernel, o)
+        except (ValueError, TypeError):
+            raise
+        except Exception as e:
+            if getattr(self.build, "__module__", "").startswith("indreg."):
+                raise
+            raise ValueError(f"model {o['model']!r}: build raised {type(e).__name__}: {e}") from e
+        if not (isinstance(built, tuple) and len(built) == 2 and isinstance(built[1], dict)):
+            raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
+                            f"{type(built).__name__}")
+        return built
+
 
 def add_to_registry(registry: dict, entry, cls: type, expected: str):
     """``registry[entry.name] = entry`` (a name already there is replaced) for an instance of ``cls``; else a

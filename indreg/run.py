@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import models, options as opts
+from . import metrics, models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
@@ -128,6 +128,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     data = as_tensor(data, "data", operator.range_shape, dtype, device)
     if o["target"] is not None:
         o["target"] = as_tensor(o["target"], "target", domain.shape, torch.float64, torch.device("cpu"))
+        if min(domain.shape) < metrics.SSIM_WINDOW:   # refused before the run, not after it
+            raise ValueError(f"target: SSIM needs at least {metrics.SSIM_WINDOW} cells along every axis (its window), "
+                             f"the image is {tuple(domain.shape)}: leave target out")
     if model.defaults is not None:   # the model's own rules for options left None
         model.defaults(o)
     names = {option.name: option for option in opts.all_options()}
@@ -144,11 +147,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
         if o[name] is not None:
             check_finite_in(o[name], label(names[name]), dtype)
     kernel = GaussianKernel(domain, o["sigma"])
-    built = model.build(operator, template, data, kernel, o)
-    if not (isinstance(built, tuple) and len(built) == 2 and isinstance(built[1], dict)):
-        raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
-                        f"{type(built).__name__}")
-    problem, solver_options = built
+    problem, solver_options = model.make(operator, template, data, kernel, o)
     solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
     solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
     return Setup(problem, solver, o, units, validation)
@@ -331,6 +330,8 @@ class RegistrationResult:
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
     ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
+    ``poor_fit``: the warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a
+    layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
     ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
     docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
     """
@@ -355,6 +356,7 @@ class RegistrationResult:
     units: Units = field(default_factory=Units)
     holdout: dict = field(default_factory=dict)
     alignment: dict = field(default_factory=dict)
+    poor_fit: str = ""
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -363,11 +365,15 @@ class RegistrationResult:
         raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
 
 
-#: A finished run whose objective has levelled off (it decreased by less than ``POOR_FIT[2]``, relative, over the
-#: last :data:`STALL_WINDOW` iterations) at a relative residual above ``POOR_FIT[0] * noise + POOR_FIT[1]``
-#: (``noise``: what the data's noise explains, ``indreg.units.noise_residual``) is reported as a poor fit: the model
-#: cannot explain the data (measured: angles and bins swapped, a template at half the data's units).
+#: A finished run of more than :data:`STALL_WINDOW` iterations that ends at a relative residual above
+#: ``POOR_FIT[0] * noise + POOR_FIT[1]`` (``noise``: what the data's noise explains, ``indreg.units.noise_residual``)
+#: is reported as a poor fit: levelled off (its objective decreased by less than ``POOR_FIT[2]``, relative, over the
+#: last ``STALL_WINDOW`` iterations) the model cannot explain the data (measured: angles and bins swapped, a template
+#: at half the data's units); still falling, it may need more iterations or be offset (measured: a template + 0.3).
 POOR_FIT = (2.0, 0.1, 0.02)
+#: What to check when a run fits far worse than its noise.
+_CHECK = ("check the layout (angles and detector bins swapped? the template transposed or flipped?), an offset "
+          "(background, template_scale='fit+offset') and the template's scale (template_scale)")
 
 
 def levelled_off(history: list) -> bool:
@@ -378,23 +384,32 @@ def levelled_off(history: list) -> bool:
     return old - new <= POOR_FIT[2] * abs(new)
 
 
-def final_status(status: str, residual: float, noise: float = math.nan, levelled: bool = False) -> str:
+def final_status(status: str, residual: float) -> str:
     """A finished run (``completed``, ``converged``, ``stalled``, ``early_stopped``) whose relative residual is ``>= 1``
-    (or not finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so).
-    One that ``levelled`` off far above what the noise explains (``noise``, :data:`POOR_FIT`) keeps its status with
-    a warning: a layout mistake (angles and bins swapped, a transposed template), an offset or a wrong scale."""
+    (or not finite) has ``diverged``: its reconstruction fits the data worse than a zero image (a warning says so)."""
     finished = status in ("completed", "converged", "stalled", "early_stopped")
     if finished and not residual < 1:
         log.warning("the run diverged: relative data residual ||T f - g|| / ||g|| = %.4g >= 1, worse than a zero "
                     "image; check the units of template and data (template_scale, background) and the step",
                     residual)
         return "diverged"
-    if finished and levelled and residual > POOR_FIT[0] * noise + POOR_FIT[1]:
-        log.warning("poor fit: the objective levelled off at a relative data residual %.4g, far above the %.4g that "
-                    "the data's noise explains; "
-                    "check the layout (angles and detector bins swapped? the template transposed or flipped?), an "
-                    "offset (background) and the template's scale (template_scale)", residual, noise)
     return status
+
+
+def poor_fit(status: str, residual: float, noise: float, history: list, held_out: Optional[float] = None) -> str:
+    """The poor-fit warning of a finished run (:data:`POOR_FIT`), ``""`` for none; the larger of the fitted and the
+    ``held_out`` residual counts. The status stays what it was: the warning is the word that goes with it."""
+    if status not in ("completed", "converged", "stalled", "early_stopped") or len(history) <= STALL_WINDOW:
+        return ""
+    value, where = (held_out, " on the held-out angles") if held_out is not None and held_out > residual else \
+        (residual, "")
+    if not value > POOR_FIT[0] * noise + POOR_FIT[1]:
+        return ""
+    far = f"a relative data residual{where} {value:.4g}, far above the {noise:.4g} that the data's noise explains"
+    if levelled_off(history):
+        return f"poor fit: the objective levelled off at {far}; {_CHECK}"
+    return f"poor fit: the run ended at {far}, its objective still falling: more iterations (max_iter) may fit " \
+           f"better; if not, {_CHECK}"
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
@@ -403,7 +418,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     (on the fitted data), the model's outputs, SSIM / PSNR of the reconstruction against ``target`` (float64, CPU)
     if given, and the held-out residuals of ``validation`` if given; ``status`` becomes ``diverged`` if the
     residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
-    from . import alignment, metrics
+    from . import alignment
 
     units = units or Units()
     x = state.iterate
@@ -416,11 +431,14 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
-        residual=residual, status=final_status(status, residual, units.noise_residual, levelled_off(history)),
-        warnings=count_warnings(history), seconds=seconds, problem=problem, outputs=problem.outputs(x), units=units,
-        alignment=alignment.summary(problem))
+        residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
+        problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:
         result.holdout = validation.summary(image)
+    result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,
+                               result.holdout.get("holdout_residual"))
+    if result.poor_fit:
+        log.warning("%s", result.poor_fit)
     return result

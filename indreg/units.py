@@ -171,6 +171,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
         units.background = border_level(data) if background == "auto" else float(background)
         log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
                  background)
+    _check_nonzero(operator, units.apply(None, data)[1], "" if background is None else
+                   f"; {label('background')}={background!r} subtracted {units.background:.4g} from every value")
     if template is not None:   # None: unknown (reconstructed by the model), no units to compare
         units.projection_ratio, units.scale_fit = compare_units(template, units.apply(None, data)[1], operator)
         units.template_scale = _template_factor(template_scale, units, label("template_scale"))
@@ -185,12 +187,18 @@ def data_term_scale(operator, data: torch.Tensor) -> float:
     """``S = ||g||^2_data / L^2``: the data's squared norm in ``operator.inner_data`` over the squared largest side
     ``L`` of the box (physical units), the scale of the relative options (module docstring). Raises ValueError for
     all-zero data (nothing to register to)."""
+    return _check_nonzero(operator, data) / max(operator.domain.extent) ** 2
+
+
+def _check_nonzero(operator, data: torch.Tensor, why: str = "") -> float:
+    """``||g||^2`` in ``operator.inner_data``; all-zero (or non-finite) data are a one-line ``ValueError`` (``why``:
+    what the background did, appended)."""
     with torch.no_grad():
         gg = float(operator.inner_data(data, data).sum())
     if not (gg > 0 and math.isfinite(gg)):
         raise ValueError(f"data must not be all zero (||g||^2 = {gg:.4g}): there is nothing to register to; check the "
-                         "file, and background (subtracting it may have zeroed the data)")
-    return gg / max(operator.domain.extent) ** 2
+                         f"file{why or ', and background (subtracting it may have zeroed the data)'}")
+    return gg
 
 
 def noise_residual(data: torch.Tensor) -> float:

@@ -216,6 +216,16 @@ def test_all_zero_data_is_refused_in_one_line(tiny):
         indreg.register(template, 0 * data, T, max_iter=1)
 
 
+def test_a_target_too_small_for_ssim_is_refused_before_the_run(tiny):
+    domain = indreg.ImageDomain.paper(6)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 9))
+    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
+    with pytest.raises(ValueError, match=r"^target: SSIM needs at least 7 cells along every axis \(its window\), the "
+                                         r"image is \(6, 6\): leave target out$"):
+        indreg.register(template, T(target), T, target=target, callback=lambda *a: pytest.fail("the run started"))
+    assert indreg.register(template, T(target), T, max_iter=2).status == "completed"   # without a target: runs
+
+
 def test_a_step_that_overflows_the_working_dtype_is_refused_in_one_line(tiny):
     T, template, _, data = tiny
     with pytest.raises(ValueError, match=r"step_size must be representable in torch\.float32"):

@@ -170,6 +170,26 @@ def test_bad_background_is_one_line(value, match):
         indreg.register(template, data, T, background=value)
 
 
+def test_a_template_scale_that_overflows_the_dtype_is_one_line():
+    template, data, T, _ = tiny()
+    with pytest.raises(ValueError, match=r"^template_scale=1e\+300 makes the template non-finite in float32 \(scale "
+                                         r"factor 1e\+300\)$"):
+        indreg.register(template.float(), data.float(), T, template_scale=1e300)
+
+
+def test_a_background_that_zeroes_the_data_is_one_line_naming_it(caplog):
+    """Constant data with background='auto': one line naming the background and what it subtracted, before any
+    comparison of units (no warning about them first)."""
+    template, _, T, _ = tiny()
+    caplog.set_level(logging.WARNING, logger="indreg")
+    with pytest.raises(ValueError, match=r"^data must not be all zero \(\|\|g\|\|\^2 = 0\): .*; background='auto' "
+                                         r"subtracted 2\.5 from every value$"):
+        indreg.register(template, torch.full(T.range_shape, 2.5, dtype=torch.float64), T, background="auto")
+    with pytest.raises(ValueError, match="data must not be all zero"):
+        indreg.register(template, torch.zeros(T.range_shape, dtype=torch.float64), T)
+    assert warnings_of(caplog) == []
+
+
 # ---------------------------------------------------------------------------------------------------- reports
 def test_a_run_worse_than_a_zero_image_has_diverged(caplog):
     template, data, T, _ = tiny()
@@ -267,6 +287,35 @@ def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog):
     poor = [m for m in warnings_of(caplog) if "poor fit" in m]
     assert swapped.status == right.status == "completed" and len(poor) == 1
     assert swapped.residual > 2 * swapped.units.noise_residual + 0.1 > right.residual
+    assert poor[0] == swapped.poor_fit and "levelled off" in poor[0] and right.poor_fit == ""
+
+
+def test_an_offset_template_still_falling_far_above_the_noise_is_a_poor_fit(caplog):
+    """A template offset by +0.3 has not levelled off after 40 iterations but ends far above the noise: a poor-fit
+    warning that says the objective is still falling and names fit+offset; the right template gets none."""
+    domain = indreg.ImageDomain.paper(32)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(32, 32))
+    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
+    data, _ = indreg.noise.add_white_noise(T(target), snr_db=15, seed=0)
+    caplog.set_level(logging.WARNING, logger="indreg")
+    right = indreg.register(template, data, T, num_steps=5, max_iter=40)
+    offset = indreg.register(template + 0.3, data, T, num_steps=5, max_iter=40)
+    assert right.poor_fit == "" and offset.status == "completed" and not run.levelled_off(offset.history)
+    assert offset.residual > 2 * offset.units.noise_residual + 0.1
+    assert "still falling" in offset.poor_fit and "template_scale='fit+offset'" in offset.poor_fit
+    assert [m for m in warnings_of(caplog) if "poor fit" in m] == [offset.poor_fit]
+
+
+def test_poor_fit_counts_the_held_out_residual_and_needs_a_finished_run():
+    """The larger of the fitted and the held-out residual counts; short, failed or stopped runs get no verdict."""
+    levelled = [{"objective": 1.0}] * (run.STALL_WINDOW + 1)
+    assert run.poor_fit("completed", 0.1, 0.02, levelled) == ""                       # 0.1 < 2 * 0.02 + 0.1
+    held = run.poor_fit("completed", 0.1, 0.02, levelled, held_out=0.5)
+    assert held.startswith("poor fit: the objective levelled off at a relative data residual on the held-out "
+                           "angles 0.5, far above the 0.02")
+    assert "residual 0.5," in run.poor_fit("early_stopped", 0.5, 0.02, levelled, held_out=0.3)
+    assert run.poor_fit("stopped", 0.9, 0.02, levelled) == run.poor_fit("failed", 0.9, 0.02, levelled) == ""
+    assert run.poor_fit("completed", 0.9, 0.02, levelled[:run.STALL_WINDOW]) == ""
 
 
 def test_fit_intensity_solves_the_normal_equations():

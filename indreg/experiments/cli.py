@@ -44,7 +44,7 @@ def error_chain(exc: BaseException) -> str:
     parts, e = [], exc
     while e is not None:
         parts.append(" ".join(str(e).split()))
-        e = e.__cause__ or e.__context__
+        e = e.__cause__ or (None if e.__suppress_context__ else e.__context__)   # as Python's tracebacks
     return ": ".join(p for p in dict.fromkeys(parts) if p)
 
 

@@ -111,7 +111,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": r.warnings, "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        "warnings": r.warnings, "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
@@ -143,6 +143,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
+    done += " (poor fit: see the warning)" if r.poor_fit else ""
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
         sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""

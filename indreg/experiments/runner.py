@@ -14,6 +14,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from .._checks import StepOverflowError
 from ..callbacks import Callback
 from ..io import DataFileError
 from ..run import RegistrationLoop, initial_state
@@ -211,7 +212,11 @@ def run(cfg: DictConfig, output_dir) -> dict:
                             progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
                             validation=exp.validation, callbacks=StopAfter(cfg.stop_after) & TensorBoard(writer)
                             & Evaluation(exp, writer, cfg.logging.every) & checkpoints & signals)
-    status = loop.run()
+    try:
+        status = loop.run()
+    except StepOverflowError as e:   # found only in the run: one line naming the config key
+        writer.close()
+        raise ConfigError(f"invalid configuration: {e.message(_config_key)}") from None
     if status == "failed":  # keep the last checkpoint: its iterate is finite
         writer.close()
         return failed(out, loop.history)
@@ -223,6 +228,13 @@ def run(cfg: DictConfig, output_dir) -> dict:
     result = finish(cfg, exp, state, rec, loop.history, loop.seconds, out, writer, status)
     writer.close()
     return result
+
+
+def _config_key(option: str) -> str:
+    """The config key of the registration option ``option`` (``step_size`` -> ``solver.step_size``)."""
+    from .. import options
+
+    return next((o.config_key for o in options.all_options() if o.name == option), option)
 
 
 def _read_checkpoint(cfg: DictConfig, path: Path, problem_cfg: dict):

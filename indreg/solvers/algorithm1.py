@@ -7,7 +7,7 @@ import math
 import torch
 
 from .._checks import check_bool, check_int, check_positive
-from .._checks import check_nonnegative
+from .._checks import StepOverflowError, check_nonnegative
 from ..units import STEP_REL, data_term_scale
 from ..problems.problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
@@ -204,9 +204,7 @@ class Algorithm1(IterativeSolver):
                     raise
                 if self.control.halving:
                     return None, math.inf, math.nan
-                raise ValueError(f"step_size={steps[0]:.4g} makes the iterate non-finite in "
-                                 f"{str(x_new[0].dtype).replace('torch.', '')} ({e}): give a smaller step_size (or "
-                                 "step_rel)") from None
+                raise StepOverflowError(steps[0], x_new[0].dtype, str(e)) from None
             return (x_new, new, tuple(steps)), new[0]["objective"], self._min_jacobian(new[2], it + 1)
 
         rtol = rounding_tolerance(state.iterate[0].dtype)

@@ -260,3 +260,21 @@ def test_cli_errors_before_hydra_are_one_line_and_write_nothing(tmp_path):
         assert len(lines) == 1 and lines[0].startswith("indreg-register: error: "), lines
         assert proc.stdout == ""
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker", "confs"]
+
+
+def test_error_chain_follows_causes_and_honours_from_none():
+    """``raise ... from None`` hides the context, as in Python's tracebacks; causes are followed."""
+    try:
+        try:
+            raise KeyError("inner")
+        except KeyError:
+            raise ValueError("outer") from None
+    except ValueError as e:
+        assert cli.error_chain(e) == "outer"
+    try:
+        try:
+            raise KeyError("inner")
+        except KeyError as k:
+            raise ValueError("outer") from k
+    except ValueError as e:
+        assert cli.error_chain(e) == "outer: 'inner'"

@@ -1,5 +1,6 @@
 """Structured configs: the paper's presets, the packaged config dir, and errors naming the bad key."""
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -101,6 +102,22 @@ def test_invalid_values_name_the_key(override, key):
     cfg = compose([override])
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         validate(cfg)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["phantom.size=4"], "phantom.size=4: expected an integer >= 7 (the SSIM window)"),
+    (["phantom.size=6"], "phantom.size=6: expected an integer >= 7 (the SSIM window)"),
+    (["experiment=suite_et_3d", "geometry.tilt_axis_angle=1e300"],   # the range: tests/test_tilt_axis.py
+     "invalid config value geometry.tilt_axis_angle=1e+300: expected"),
+    (["experiment=suite_dynamic_2d", "geometry=tilt_series"],
+     "geometry='tilt_series': expected parallel (the dynamic source simulates 2D parallel-beam frames)"),
+])
+def test_issue_26_config_cases_are_one_line_before_the_run(overrides, message):
+    """Values that once ran (and failed after the run, or ran something else than recorded) are refused by the
+    config's validation, before any computing."""
+    with pytest.raises(ConfigError, match=re.escape(message)) as e:
+        validate(compose(overrides))
+    assert "\n" not in str(e.value)
 
 
 @pytest.mark.slow

@@ -80,6 +80,35 @@ def test_plugin_that_fails_to_import_is_one_line_and_not_registered(tmp_path, mo
     assert "broken_plugin:MODEL" not in indreg.options.MODELS
 
 
+def test_plugin_whose_build_raises_is_one_line_naming_the_model(tmp_path, monkeypatch):
+    """A plug-in's build that raises (a KeyError here) is one ValueError naming the model and the error, the original
+    chained; from the command line one line, no traceback; a syntax error's line is not repeated."""
+    (tmp_path / "raising_plugin.py").write_text(textwrap.dedent('''
+        from indreg.models import Model
+
+        def build(operator, template, data, kernel, o):
+            raise KeyError("no such option")
+
+        MODEL = Model("raising", build)
+    '''))
+    (tmp_path / "syntax_plugin.py").write_text("def build(:\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
+    template = phantoms.get("j", domain)
+    with pytest.raises(ValueError, match=r"^model 'raising': build raised KeyError: 'no such option'$") as e:
+        indreg.register(template, T(template), T, model="raising_plugin:MODEL", max_iter=1)
+    assert isinstance(e.value.__cause__, KeyError)
+    args = ["phantom.size=16", "solver.max_iter=1", "baseline.enabled=false", "logging.figure=false",
+            "logging.tensorboard=false", "device=cpu", f"hydra.run.dir={tmp_path / 'run'}"]
+    p = run_cli(["deformation.model=raising_plugin:MODEL", *args], cwd=tmp_path)
+    assert p.returncode == 1 and p.stderr.strip().splitlines() == [
+        "indreg-register: error: invalid configuration: model 'raising': build raised KeyError: 'no such option'"]
+    p = run_cli(["deformation.model=syntax_plugin:MODEL", *args], cwd=tmp_path)
+    assert p.returncode == 1 and len(p.stderr.strip().splitlines()) == 1
+    assert p.stderr.count("cannot be imported: SyntaxError") == 1
+
+
 SOURCE = textwrap.dedent('''
     """A plug-in data source with a key of its own: the paper's phantoms, template and data times ``my_gain``."""
     import dataclasses

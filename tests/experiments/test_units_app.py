@@ -92,6 +92,32 @@ def test_offset_data_with_auto_background(tmp_path):
     assert np.load(tmp_path / "fixed" / "data.npy") == pytest.approx(sino + 100.0 - m["background"])
 
 
+def test_a_step_that_overflows_in_the_run_is_one_line_naming_the_config_key(tmp_path):
+    """solver.step_size=1e38 without halving overflows float32 only in the run: one line naming solver.step_size,
+    no traceback."""
+    proc = run_cli(OWN + ["solver.max_iter=2", "solver.step_size=1e38", "solver.step_halving=false",
+                          f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "indreg-register: error: invalid configuration: solver.step_size=1e+38 makes the iterate non-finite in float32 "
+        "(velocity contains non-finite values (nan or inf)): give a smaller solver.step_size (or solver.step_rel)"]
+
+
+def test_poor_fit_in_metrics_and_the_last_line(tmp_path, caplog):
+    """The example's template offset by a third of its range: the run ends far above the noise (the preset's absolute
+    step stalls it); the warning, ``poor_fit`` in metrics.json and the last line say so; the example reports none."""
+    caplog.set_level(logging.INFO, logger="indreg")
+    grey = read_image(DATA_DIR / "own_data_template.png", integer_scale="raw")
+    np.save(tmp_path / "offset.npy", grey + grey.max() / 3)
+    m = run_app(OWN + ["solver.max_iter=30", f"data.template={tmp_path / 'offset.npy'}"], tmp_path / "offset")
+    ref = run_app(OWN + ["solver.max_iter=30"], tmp_path / "ref")
+    assert m["poor_fit"] is True and m["status"] in ("completed", "stalled") and ref["poor_fit"] is False
+    assert json.loads((tmp_path / "offset" / "metrics.json").read_text())["poor_fit"] is True
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum(line.startswith("poor fit: ") for line in lines) == 1
+    assert sum("iterations (poor fit: see the warning)" in line for line in lines) == 1
+
+
 @pytest.mark.parametrize("override,key", [("data.template_scale=0", "data.template_scale"),
                                           ("data.background=nan", "data.background"),
                                           ("data.template_scale=fitted", "data.template_scale")])
