@@ -202,15 +202,17 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
            "'kernel' (a Gaussian RKHS source of the velocity kernel's width), a width, or None (the paper's L2 "
            "source)", Optional[Any], models=_META),
     Option("source_mask", "deformation", "source_mask", "data", anything,
-           "'data' (the template's support dilated by 1 unit, and where the data show mass: data_support), "
-           "'template' (the template's support only), None or an array in [0, 1]", Optional[str], models=_META),
+           "'data' (the template's support dilated by 1 unit, and where the data show mass the template lacks, "
+           "data_support: there a uniform source from the first iteration), 'template' (the template's support "
+           "only), None or an array in [0, 1]", Optional[str], models=_META),
     Option("source_step_size", "solver", "source_step_size", None, optional(number(0.0, strict=True)),
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),
     Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
            "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
     Option("source_start", "solver", "source_start", None, optional(number(0, integer=True)),
-           "Algorithm 1: iterations with the source frozen; None: source_start_fraction of max_iter",
+           "Algorithm 1: iterations with the source frozen (its uniform part excepted); None: "
+           "source_start_fraction of max_iter",
            Optional[int], solvers=(ALGORITHM1,), models=_META),
     Option("source_start_fraction", "solver", "source_start_fraction", RELATIVE_DEFAULTS["source_start_fraction"],
            _fraction, "Algorithm 1, with source_start None: the fraction of max_iter with the source frozen", float,
