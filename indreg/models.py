@@ -66,23 +66,25 @@ def _coarse_velocity(kernel, o: dict) -> tuple:
     return W, GaussianKernel(velocity_domain, kernel.sigma, kernel.method)
 
 
-def _source_mask(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, width: float, label: str):
-    """``source_mask``: None, ``"template"`` (the template's support, ``template_support``), ``"data"`` (that and
-    where the data show mass the template lacks, ``_data_only_support``) or an array."""
+def _source_masks(mask, template: torch.Tensor, data: torch.Tensor, operator, domain, width: float, label: str):
+    """``(source_mask, uniform_region)``: ``source_mask`` None, ``"template"`` (the template's support,
+    ``template_support``), ``"data"`` (that and where the data show mass the template lacks, ``_data_only_support``:
+    the ``uniform_region`` when not empty, else None) or an array."""
     from .problems.metamorphosis import template_support
 
     if mask is None:
-        return None
+        return None, None
     if isinstance(mask, str):
         if mask not in SOURCE_MASKS:
             raise OptionError(label, mask, f"None, {' or '.join(map(repr, SOURCE_MASKS))} or an array "
                               f"{tuple(domain.shape)}")
         support = template_support(template, domain)
-        if mask == "data":
-            extra = _data_only_support(template, data.to(template.dtype), operator, domain, width)
-            support = torch.maximum(support, extra)
-        return support
-    return as_tensor(mask, label, domain.shape, template.dtype, template.device)
+        if mask == "template":
+            return support, None
+        extra = _data_only_support(template, data.to(template.dtype), operator, domain, width)
+        region = extra * (1 - support)
+        return torch.maximum(support, extra), region if bool(region.any()) else None
+    return as_tensor(mask, label, domain.shape, template.dtype, template.device), None
 
 
 def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, domain, width: float) -> torch.Tensor:
@@ -110,12 +112,16 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
                                  interpolation=o["interpolation"])
     source_sigma = kernel.sigma if o["source_sigma"] == "kernel" else o["source_sigma"]
     source_kernel = None if source_sigma is None else GaussianKernel(domain, source_sigma)
+    mask, uniform = _source_masks(o["source_mask"], template, data, operator, domain, source_sigma or kernel.sigma,
+                                  "source_mask")
+    start = _source_start(o)
+    staged = uniform is not None and solver_kind(o["solver"]) == ALGORITHM1   # the problem stages the source
     problem = MetamorphosisRegistration(operator, M, kernel, template, data, o["gamma"], o["tau"],
-                                        tv_weight=o["tv_weight"], source_kernel=source_kernel,
-                                        source_mask=_source_mask(o["source_mask"], template, data, operator, domain,
-                                                                 source_sigma or kernel.sigma, "source_mask"),
-                                        tau_rel=o["tau_rel"] if o["tau"] is None else None)
-    solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": _source_start(o)}},
+                                        tv_weight=o["tv_weight"], source_kernel=source_kernel, source_mask=mask,
+                                        tau_rel=o["tau_rel"] if o["tau"] is None else None, uniform_region=uniform,
+                                        source_start=start if staged else 0)
+    solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": 0 if staged else
+                                                                                           start}},
                       "torch": {"lrs": {"source": o["source_lr"]}}}
     return problem, solver_options
 
@@ -196,15 +202,17 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
            "'kernel' (a Gaussian RKHS source of the velocity kernel's width), a width, or None (the paper's L2 "
            "source)", Optional[Any], models=_META),
     Option("source_mask", "deformation", "source_mask", "data", anything,
-           "'data' (the template's support dilated by 1 unit, and where the data show mass: data_support), "
-           "'template' (the template's support only), None or an array in [0, 1]", Optional[str], models=_META),
+           "'data' (the template's support dilated by 1 unit, and where the data show mass the template lacks, "
+           "data_support: there a uniform source from the first iteration), 'template' (the template's support "
+           "only), None or an array in [0, 1]", Optional[str], models=_META),
     Option("source_step_size", "solver", "source_step_size", None, optional(number(0.0, strict=True)),
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),
     Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
            "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
     Option("source_start", "solver", "source_start", None, optional(number(0, integer=True)),
-           "Algorithm 1: iterations with the source frozen; None: source_start_fraction of max_iter",
+           "Algorithm 1: iterations with the source frozen (its uniform part excepted); None: "
+           "source_start_fraction of max_iter",
            Optional[int], solvers=(ALGORITHM1,), models=_META),
     Option("source_start_fraction", "solver", "source_start_fraction", RELATIVE_DEFAULTS["source_start_fraction"],
            _fraction, "Algorithm 1, with source_start None: the fraction of max_iter with the source frozen", float,

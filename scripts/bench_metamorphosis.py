@@ -18,7 +18,8 @@ ventricle the suite-4 template lacks, the background the template lacks; the who
 Metamorphosis runs once per ``--masks`` x ``--start-fractions`` x ``--tau-rels`` (and absolute ``--taus``). The
 background case (``on_background``): the suite-3 template on a zero background, the target the suite-3 target on
 a uniform background of ``BACKGROUND`` (0.3 of the skull's 1.0) filling the field of view outside the head (a
-specimen in resin or ice). ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and
+specimen in resin or ice); ``missing_background``: the suite-4 template that lacks a ventricle, the target on that
+background. ``cost`` times one objective + gradient evaluation (``l2_gradient``: forward and
 backward of the deformation and of T) of both models, interleaved, and the peak of live tensor memory
 (``tracemalloc`` on torch's CPU allocations is not available, so the run is repeated under ``torch.profiler``
 memory profiling).
@@ -44,6 +45,7 @@ CASES = {  # template, SNR (dB, code convention) of the suite
     "contrast": ("shepp_logan_template_contrast", 7.06),
     "extra": ("shepp_logan_template_extra", 6.46),
     "background": ("shepp_logan_template", 7.06),
+    "missing_background": ("shepp_logan_template_missing", 7.06),   # the missing ventricle, the target on background
     "limited": ("shepp_logan_template_contrast", None),   # 20 angles over [0, pi/4], noise std 0.25 (--gamma 1e-5)
 }
 BACKGROUND = 0.3   # the background case: the target on a uniform disc of this value (the skull's is 1.0)
@@ -59,7 +61,7 @@ def problem_data(case: str, size: int, dtype=torch.float64):
                      ParallelBeamGeometry.paper(10, bins))
     name, snr = CASES[case]
     template, target = phantoms.get(name, dom).to(dtype), phantoms.get("shepp_logan", dom).to(dtype)
-    if case == "background":
+    if case in ("background", "missing_background"):
         target = on_background(target, dom, BACKGROUND)
     data, _ = noise.add_white_noise(T(target), snr_db=snr, std=0.25 if snr is None else None, seed=0)
     return dom, T, template, target, data
@@ -111,8 +113,9 @@ def quality(args) -> list:
 
 def region_mask(case: str, domain, template: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Where template and target differ in kind (the error there is the "region error"): the ventricle the suite-4
-    template lacks (``missing``), the background outside the head (``background``), else the whole image."""
-    if case == "missing":
+    template lacks (``missing``, ``missing_background``), the background outside the head (``background``), else the
+    whole image."""
+    if case in ("missing", "missing_background"):
         return ventricle_mask(domain)
     if case == "background":
         return on_background(torch.zeros_like(target), domain, 1.0) > 0.5

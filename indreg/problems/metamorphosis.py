@@ -18,7 +18,10 @@ h_s``, i.e. ``zeta <- zeta - beta K_s h_s``). Without it (the paper's ``L2([0,1]
 A ``source_mask`` ``chi`` (values in [0, 1]) confines the intensity changes: ``zeta = chi K_s s`` (or ``chi s``),
 the penalty unchanged, ``h_s = tau s + chi (N / cell_volume) dL/dzeta`` (e.g. ``template_support``: no intensity
 is created where the template and its surroundings are empty; ``data_support``: the data's visual hull, where every
-ray through a point carries mass).
+ray through a point carries mass). A ``uniform_region`` ``U`` (0 / 1, where the data show mass the template lacks:
+a specimen's surroundings) holds a uniform source, its mean over ``U`` at each time: ``zeta = B K_s s`` with the
+projection ``B u = chi (1 - U) u + U mean_U(u)`` (self-adjoint, so ``h_s = tau s + B (N / cell_volume) dL/dzeta``);
+before ``source_start`` (Algorithm 1 calls ``at_iteration``) only its uniform part ``U mean_U(u)`` is on.
 
 ``tau`` relative to the data term (``tau_rel``, docs/metamorphosis.md "Relative tau"): ``tau = tau_rel * ||T||^2
 ||K_s||`` (``tau_scale``; ``||K_s|| = 1`` for the L2 source). At ``nu = 0`` the source update is ``zeta <- zeta -
@@ -39,7 +42,7 @@ import functools
 
 import torch
 
-from .._checks import check_same, check_tensor
+from .._checks import check_int, check_same, check_tensor
 from ..deform.metamorphosis import MetamorphosisDeformation
 from ..forward.operator import operator_norm
 from .lddmm import IndirectRegistration, check_nonnegative
@@ -62,6 +65,10 @@ class MetamorphosisRegistration(RegistrationProblem):
             source is multiplied by it (module docstring; ``template_support`` builds one).
         tau_rel: None (``tau`` given), or ``tau`` relative to the data term: ``tau = tau_rel * tau_scale`` (module
             docstring); exactly one of ``tau`` and ``tau_rel`` is given.
+        uniform_region: None or a 0 / 1 ``domain.shape`` tensor (the template's dtype / device), where the source is
+            uniform (its mean over the region at each time) and on from the first iteration (module docstring).
+        source_start: with ``uniform_region``, the iterations (Algorithm 1's, ``at_iteration``) during which only
+            the uniform part of the source is on; the rest of it stays 0 until then.
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
@@ -74,7 +81,8 @@ class MetamorphosisRegistration(RegistrationProblem):
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,
-                 tv_smoothing=1e-3, source_kernel=None, source_mask=None, tau_rel=None):
+                 tv_smoothing=1e-3, source_kernel=None, source_mask=None, tau_rel=None, uniform_region=None,
+                 source_start: int = 0):
         if not isinstance(deformation, MetamorphosisDeformation):
             raise TypeError(f"deformation must be a MetamorphosisDeformation, got {type(deformation).__name__}")
         self.lddmm = IndirectRegistration(ray_transform, deformation.lddmm, kernel, template, data, gamma,
@@ -97,6 +105,14 @@ class MetamorphosisRegistration(RegistrationProblem):
             if bool((source_mask < 0).any() | (source_mask > 1).any()):
                 raise ValueError("source_mask must have values in [0, 1]")
         self.source_mask = source_mask
+        if uniform_region is not None:
+            check_tensor(uniform_region, "uniform_region", tuple(self.domain.shape))
+            check_same(uniform_region, template, "uniform_region", "template")
+            if bool(((uniform_region != 0) & (uniform_region != 1)).any()) or not bool(uniform_region.any()):
+                raise ValueError("uniform_region must have values 0 or 1, some of them 1")
+        self.uniform_region = uniform_region
+        self.source_start = check_int(source_start, "source_start", 0)
+        self.early = False   # before source_start: only the uniform part of the source is on (at_iteration)
 
     def __repr__(self):
         return (f"MetamorphosisRegistration(domain={self.domain}, N={self.num_steps}, gamma={self.gamma}, "
@@ -106,7 +122,7 @@ class MetamorphosisRegistration(RegistrationProblem):
         """The same problem with another metamorphosis operator (e.g. ``backward="autograd"``)."""
         return MetamorphosisRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
                                          self.gamma, self.tau, self.tv_weight, self.tv_smoothing, self.source_kernel,
-                                         self.source_mask)
+                                         self.source_mask, None, self.uniform_region, self.source_start)
 
     @property
     def source_shape(self) -> tuple:
@@ -132,9 +148,27 @@ class MetamorphosisRegistration(RegistrationProblem):
         return s if self.source_kernel is None else self.source_kernel.apply(s)
 
     def source(self, s: torch.Tensor) -> torch.Tensor:
-        """``zeta = chi K_s s`` (``chi`` the ``source_mask``, ``K_s`` the source kernel; each 1 when not given)."""
-        u = self.unmasked_source(s)
-        return u if self.source_mask is None else u * self.source_mask
+        """``zeta = B K_s s`` (``B = chi``, the ``source_mask``, or the projection with a ``uniform_region``:
+        ``restricted``; ``K_s`` the source kernel; each the identity when not given)."""
+        return self.restricted(self.unmasked_source(s))
+
+    def restricted(self, u: torch.Tensor) -> torch.Tensor:
+        """``B u`` for fields ``u`` ``(N+1, *shape)``: ``chi u``, or with a ``uniform_region`` ``U``: ``chi (1 - U) u
+        + U mean_U(u_i)`` (before ``source_start`` the second term only); an orthogonal projection (0 / 1 masks)."""
+        if self.uniform_region is None:
+            return u if self.source_mask is None else u * self.source_mask
+        region, axes = self.uniform_region, tuple(range(1, u.ndim))
+        uniform = (u * region).sum(axes, keepdim=True) * (region / region.sum())
+        if self.early:
+            return uniform
+        return uniform + u * (1 - region) * (1 if self.source_mask is None else self.source_mask)
+
+    def at_iteration(self, iteration: int) -> bool:
+        """Algorithm 1 calls it before each step: before ``source_start`` (with a ``uniform_region``) only the
+        uniform part of the source is on. True when that changed (the objective did)."""
+        early = self.uniform_region is not None and iteration < self.source_start
+        changed, self.early = early != self.early, early
+        return changed
 
     def image(self, m: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """``f(1) = M(K m, zeta, I)``, ``(*shape)`` (``s``: the source iterate, ``zeta = source(s)``)."""
@@ -162,7 +196,7 @@ class MetamorphosisRegistration(RegistrationProblem):
         given): ``data_fit``, ``tv``, ``regulariser`` (velocity), ``source_regulariser`` and ``objective``."""
         nu = self.velocity(m) if nu is None else nu
         unmasked = self.unmasked_source(s) if unmasked is None else unmasked
-        zeta = unmasked if self.source_mask is None else unmasked * self.source_mask
+        zeta = self.restricted(unmasked)
         out = self.lddmm.matching(self.deformation(nu, zeta, self.template))
         out["regulariser"] = self.lddmm.regulariser(m, nu)
         out["source_regulariser"] = self.source_regulariser(s, unmasked)
@@ -184,15 +218,13 @@ class MetamorphosisRegistration(RegistrationProblem):
         """
         with torch.no_grad():
             nu, unmasked = self.velocity(m), self.unmasked_source(s)
-            zeta = unmasked if self.source_mask is None else unmasked * self.source_mask
+            zeta = self.restricted(unmasked)
         with torch.enable_grad():
             nu_leaf, zeta_leaf = nu.detach().requires_grad_(True), zeta.detach().requires_grad_(True)
             match = self.lddmm.matching(self.deformation(nu_leaf, zeta_leaf, self.template))
             dl_dnu, dl_dzeta = torch.autograd.grad(match["data_fit"] + match["tv"], (nu_leaf, zeta_leaf))
         h_nu = dl_dnu.div_(self.time_weight).add_(m, alpha=self.gamma)
-        if self.source_mask is not None:
-            dl_dzeta.mul_(self.source_mask)
-        h_zeta = dl_dzeta.div_(self.time_weight).add_(s, alpha=self.tau)
+        h_zeta = self.restricted(dl_dzeta).div_(self.time_weight).add_(s, alpha=self.tau)
         terms = {"data_fit": float(match["data_fit"].detach()), "tv": float(match["tv"].detach()),
                  "regulariser": float(self.lddmm.regulariser(m, nu)),
                  "source_regulariser": float(self.source_regulariser(s, unmasked))}

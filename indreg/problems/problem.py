@@ -25,8 +25,9 @@ Members a subclass implements:
   (``||T f - g|| / ||g||``; by default of ``reconstruction(x)``);
 - ``with_backward(backward)`` / ``for_line_search()``: the problem with another deformation backward (a line
   search needs the exact gradient of the discrete map);
-- optionally ``default_step(name)`` for entries after the momentum, and ``coarsened(shape, num_steps,
-  backward)`` (the same problem on a coarser grid, for ``MultilevelSolver``).
+- optionally ``default_step(name)`` for entries after the momentum, ``coarsened(shape, num_steps,
+  backward)`` (the same problem on a coarser grid, for ``MultilevelSolver``) and ``at_iteration(k)`` (Algorithm 1
+  calls it before each step; a problem whose objective is staged by the iteration switches there and returns True).
 
 Grids: ``domain`` is the momentum's and the velocity's (its ``cell_volume`` weighs the iterate's ``L2`` inner
 product: ``time_weight``, ``gradient_norm``, the torch.optim scale); the template, the operator and the images
@@ -102,6 +103,10 @@ class RegistrationProblem:
     def default_step(self, name: str) -> float:
         """Algorithm 1's step for the iterate's entry ``name`` when none is given (entries after the momentum)."""
         raise TypeError(f"{type(self).__name__} has no default step for {name!r}: give one")
+
+    def at_iteration(self, iteration: int) -> bool:
+        """Before Algorithm 1's step ``iteration``: True when the objective changed there (none does by default)."""
+        return False
 
     def for_line_search(self) -> "RegistrationProblem":
         """The problem with a deformation backward that is the exact gradient of the discrete map."""

@@ -131,6 +131,8 @@ class Algorithm1(IterativeSolver):
     def _at(self, state: SolverState):
         """Terms, L2 gradients and velocity at ``state.iterate`` (cached from the previous step)."""
         x = state.iterate
+        if self.problem.at_iteration(state.iteration):   # the objective changed (a staged problem)
+            self._current = None
         if self._current is None or not is_marked(x, self._current[0]):
             self.problem.check_iterate(x)
             self._current = (mark(x), *self._evaluate(x, counted=not self._recount))

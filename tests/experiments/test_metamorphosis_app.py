@@ -127,9 +127,10 @@ def on_background(domain, level=0.3):
 
 
 def test_defaults_explain_a_background_the_template_lacks():
-    """A specimen on a uniform background (48^2, 10 angles, suite-3 noise): the default data mask lets the source
-    create the background and beats LDDMM clearly; the template's mask forbids it there (measured: SSIM 0.331 /
-    0.219 / 0.308; RMS error in the background 0.134 / 0.184 / 0.205 with the defaults / LDDMM / template mask)."""
+    """A specimen on a uniform background (48^2, 10 angles, suite-3 noise): the default data mask lets a uniform
+    source create the background from the first iteration (the region where the data show mass the template lacks)
+    and beats LDDMM clearly; the template's mask forbids it there (measured: SSIM 0.468 / 0.213 / 0.304; RMS error
+    in the background 0.094 / 0.193 / 0.210 with the defaults / LDDMM / template mask)."""
     domain = indreg.ImageDomain.paper(48)
     T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(10, 68))
     template, target = phantoms.get("shepp_logan_template", domain), on_background(domain)
@@ -139,9 +140,14 @@ def test_defaults_explain_a_background_the_template_lacks():
     runs = {"lddmm": {}, "defaults": {"model": "metamorphosis"},
             "template": {"model": "metamorphosis", "source_mask": "template"}}
     r = {k: indreg.register(template, data, T, **options, **common) for k, options in runs.items()}
+    problem, support = r["defaults"].problem, template_support(template, domain)
+    extra = opened(data_support(data, T, domain) * (1 - data_support(T(template), T, domain, noise=noise_std(data))),
+                   domain, 4.0)
+    torch.testing.assert_close(problem.uniform_region, extra * (1 - support))
+    assert problem.source_start == 60 and r["template"].problem.uniform_region is None
     error = {k: float(((v.deformed - target)[background] ** 2).mean().sqrt()) for k, v in r.items()}
-    assert r["defaults"].ssim >= r["lddmm"].ssim + 0.08 and r["defaults"].ssim > r["template"].ssim, r
-    assert error["defaults"] <= 0.8 * min(error["lddmm"], error["template"]), error
+    assert r["defaults"].ssim >= r["lddmm"].ssim + 0.2 and r["defaults"].ssim >= r["template"].ssim + 0.1, r
+    assert error["defaults"] <= 0.6 * min(error["lddmm"], error["template"]), error
 
 
 def test_app_resume_equals_uninterrupted(tmp_path):

@@ -27,8 +27,15 @@ def make_problem(n=24, num_steps=4, gamma=1e-5, tau=1e-3, interpolation="reinter
     source_kernel = None if source_sigma is None else GaussianKernel(dom, source_sigma)
     template = phantoms.get("j", dom).double()
     return MetamorphosisRegistration(T, M, GaussianKernel(dom, 6.0), template, T(target), gamma, tau,
-                                     source_kernel=source_kernel,
-                                     source_mask=template_support(template, dom, 2.0) if mask else None), target
+                                     source_kernel=source_kernel, **masks(template, dom, mask)), target
+
+
+def masks(template, domain, mask) -> dict:
+    """``mask`` True: the template's support dilated by 2 units; ``"uniform"`` / ``"early"``: a uniform source
+    outside it (``"early"``: the problem is then put before the source's start)."""
+    support = template_support(template, domain, 2.0)
+    return {"source_mask": support if mask is True else None,
+            "uniform_region": 1 - support if mask in ("uniform", "early") else None}
 
 
 def blob(domain, centre, widths):
@@ -46,8 +53,7 @@ def make_problem_3d(n=8, num_steps=3, gamma=1e-5, tau=1e-3, interpolation="reint
     M = MetamorphosisDeformation(dom, num_steps, interpolation=interpolation)
     source_kernel = None if source_sigma is None else GaussianKernel(dom, source_sigma)
     return MetamorphosisRegistration(T, M, GaussianKernel(dom, 4.0), template, T(target), gamma, tau,
-                                     source_kernel=source_kernel,
-                                     source_mask=template_support(template, dom, 2.0) if mask else None), target
+                                     source_kernel=source_kernel, **masks(template, dom, mask)), target
 
 
 def random_point(problem, seed=0):
@@ -76,12 +82,17 @@ def test_terms_at_zero_are_lddmm_terms(ndim):
 @pytest.mark.parametrize("interpolation,source_sigma,mask,ndim", (
     ("reinterpolate", None, False, 2), ("compose", None, False, 2), ("reinterpolate", 2.0, False, 2),
     ("reinterpolate", None, True, 2), ("compose", 2.0, True, 2),
-    ("reinterpolate", None, False, 3), ("compose", None, False, 3), ("compose", 2.0, True, 3)))
+    ("reinterpolate", None, False, 3), ("compose", None, False, 3), ("compose", 2.0, True, 3),
+    ("reinterpolate", 2.0, "uniform", 2), ("compose", None, "uniform", 2), ("reinterpolate", 2.0, "uniform", 3),
+    ("reinterpolate", 2.0, "early", 2), ("compose", None, "early", 2), ("reinterpolate", 2.0, "early", 3)))
 def test_l2_gradients_match_finite_differences(interpolation, source_sigma, mask, ndim):
     """dE(m + e dm, s + e ds)/de = time_weight (<K h_nu, dm> + <K_s h_s, ds>) (E in m and s; nu = K m, zeta = K_s s;
-    K_s = identity for the L2 source)."""
+    K_s = identity for the L2 source); with a uniform region also before the source's start (its part only)."""
     problem, _ = make_problem(interpolation=interpolation, source_sigma=source_sigma, tau=0.1, mask=mask,
                               ndim=ndim)
+    problem.source_start = 1
+    early = mask == "early"
+    assert problem.at_iteration(0 if early else 1) == early and problem.early == early
     m, z = random_point(problem)
     _, h_nu, h_zeta, _ = problem.l2_gradient(m, z)
     dm, dz = random_point(problem, seed=1)
@@ -181,6 +192,48 @@ def test_source_mask_confines_the_intensity_change():
                                   problem.data, 1e-5, 0.1, source_mask=2 * mask)
 
 
+@pytest.mark.parametrize("early", (False, True))
+def test_uniform_region_is_an_orthogonal_projection(early):
+    """``restricted`` (B) with a uniform region U: B B u = B u, <B u, v> = <u, B v>; on U the mean of u over U at each
+    time, off U u itself (0 before the source's start)."""
+    problem, _ = make_problem(mask="uniform")
+    problem.early, region = early, problem.uniform_region.bool()
+    u, v = random_point(problem, seed=2)[1], random_point(problem, seed=3)[1]
+    b = problem.restricted(u)
+    torch.testing.assert_close(problem.restricted(b), b, rtol=1e-12, atol=1e-12)
+    assert float((b * v).sum()) == pytest.approx(float((u * problem.restricted(v)).sum()), rel=1e-12)
+    torch.testing.assert_close(b[:, region], u[:, region].mean(1, keepdim=True).expand(-1, int(region.sum())))
+    torch.testing.assert_close(b[:, ~region], 0 * u[:, ~region] if early else u[:, ~region])
+
+
+def test_staged_source_is_uniform_on_its_region_before_its_start():
+    """Algorithm 1 with a uniform region and source_start 3: in the first 3 iterations the source is nonzero only
+    on the region, uniform there; from then on elsewhere too. The objective reported after the switch is the full
+    problem's, and a run resumed across the switch equals the uninterrupted one."""
+    problem, _ = make_problem(mask="uniform", tau=0.1)
+    problem.source_start, region = 3, problem.uniform_region.bool()
+    state, zetas, infos = MetamorphosisState.zeros(problem), [], []
+    solver = MetamorphosisDescent(problem, step_size=0.02, max_iter=6)
+    solver.run(state, callback=lambda s, i: (zetas.append(problem.source(s.source)), infos.append(i)))
+    for k, zeta in enumerate(zetas, 1):
+        on = zeta[1:, region]
+        assert float(on.abs().min()) > 0 and float((on - on[:, :1]).abs().max()) <= 1e-12 * float(on.abs().max())
+        assert bool(zeta[:, ~region].eq(0).all()) == (k <= 3), k
+    assert not problem.early
+    assert infos[-1]["objective"] == pytest.approx(problem.evaluate(state.momentum, state.source)["objective"],
+                                                   rel=1e-12)
+    fresh, _ = make_problem(mask="uniform", tau=0.1)
+    fresh.source_start, resumed = 3, MetamorphosisState.zeros(fresh)
+    first = MetamorphosisDescent(fresh, step_size=0.02, max_iter=2)
+    first.run(resumed)
+    again, _ = make_problem(mask="uniform", tau=0.1)
+    again.source_start = 3
+    second = MetamorphosisDescent(again, step_size=0.02, max_iter=6)
+    second.load_state_dict(first.state_dict())
+    second.run(resumed)
+    torch.testing.assert_close(resumed.source, state.source, rtol=1e-12, atol=1e-14)
+
+
 def test_state_dict_round_trip():
     problem, _ = make_problem()
     state = MetamorphosisState.zeros(problem)
@@ -210,6 +263,13 @@ def test_bad_input():
         MetamorphosisDescent(problem, source_step_size=1.0).step(SolverState(problem.zero_momentum()))
     with pytest.raises(ValueError, match="source must have shape"):
         problem.evaluate(problem.zero_momentum(), problem.zero_source()[:2])
+    for region in (0.5 * torch.ones_like(problem.template), torch.zeros_like(problem.template)):
+        with pytest.raises(ValueError, match="uniform_region must have values 0 or 1, some of them 1"):
+            MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                      problem.data, 1e-5, 0.1, uniform_region=region)
+    with pytest.raises(ValueError, match="source_start must be an integer >= 0"):
+        MetamorphosisRegistration(problem.ray_transform, problem.deformation, problem.kernel, problem.template,
+                                  problem.data, 1e-5, 0.1, source_start=-1)
     with pytest.raises(ValueError, match="L-BFGS takes one parameter group"):
         MetamorphosisTorchOptim(problem, "lbfgs", source_lr=0.1)
     for tau, tau_rel in ((None, None), (1.0, 0.1)):
