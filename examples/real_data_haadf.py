@@ -12,10 +12,11 @@ how consistent the stack is), raw vs aligned stack; the background (the raw int1
 ``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
 earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
 programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
-are aligned first by ``indreg.alignment.projection_matching``, and the tilt axis' offset it finds is taken out of
-the stack); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
+are aligned first by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
 tilts between them held out for validation; registration with ``template_scale="auto"``, ``background="auto"``,
-``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align``; the estimated
+``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align`` with
+``align_gauge=--align-gauge`` (default ``none``: the template fixes the frame, the shifts carry the axis' offset
+and any translation of the data against it); the estimated
 shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
 shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
@@ -143,15 +144,11 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 # ------------------------------------------------------------------------------------------------ template
 def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int) -> tuple:
-    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle), then
-    reconstructed again from the tilts centred on the axis (its offset, :func:`axis_offset`, taken out) through
-    the shifts in register's gauge: the object where the data's gauge puts it. Returns ``(SIRT volume, (shifts
-    (px, with the offset), angle (deg), offset (px)))``."""
-    A, _, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
+    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle; the
+    shifts keep the axis' offset, so its SIRT volume sits on the axis, centred). Returns ``(SIRT volume, (shifts
+    (px, with the offset), angle (deg), offset (px, :func:`axis_offset`)))``."""
+    A, x, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
     shifts, offset = A.shifts.clone(), axis_offset(A.shifts.numpy(), angles)
-    A.keep_offset, A.shifts = False, alignment.gauge(A, A.shifts)
-    x, _ = sirt(A, torch.from_numpy(ndimage.shift(y.numpy(), (0, 0, -offset), order=1, mode="nearest")),
-                num_iter=iters, nonneg=True)
     say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
         f"; tilt-axis angle {math.degrees(float(A.angle)):.3f} deg, axis offset {offset:.3f} px")
     return x, (shifts.numpy(), math.degrees(float(A.angle)), offset)
@@ -197,6 +194,14 @@ def unwarped(T, y: torch.Tensor) -> tuple:
     return T.operator, T.warp(y, back, -T.angle)
 
 
+def bilinear(T):
+    """``T``, or for an ``AlignedOperator`` the same alignment with bilinear interpolation: SIRT needs a
+    nonnegative matrix, and the cubic kernel has negative lobes."""
+    if not isinstance(T, AlignedOperator):
+        return T
+    return AlignedOperator(T.operator, T.shifts, float(T.angle), "linear", T.edge)
+
+
 def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters=(10, 25, 50, 100, 200),
               tv_mus=(0.03, 0.1, 0.3, 1.0), tv_iters: int = 200) -> dict:
     """FBP (Hamming, 0.4, the app's), SIRT (nonnegative, iterations chosen by the validation tilts) and TV
@@ -205,7 +210,7 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
     out = {"FBP": (fbp(*unwarped(T_fit, y_fit)), {})}
     best, x, done = None, None, 0
     for n in sirt_iters:
-        x, _ = sirt(T_fit, y_fit, num_iter=n - done, x0=x, nonneg=True)
+        x, _ = sirt(bilinear(T_fit), y_fit, num_iter=n - done, x0=x, nonneg=True)
         done, r = n, residual(T_val, x, y_val)
         say(f"    SIRT {n:4d} iterations: validation residual {r:.4f}")
         if best is None or r < best[1]["validation_residual"]:
@@ -230,10 +235,11 @@ def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:
     return float(np.linalg.lstsq(basis, shifts[:, 0], rcond=None)[0][0])
 
 
-def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float) -> np.ndarray:
+def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str) -> np.ndarray:
     """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
-    ``indreg.alignment.estimate`` with the angle kept): for tilts no fit saw."""
+    ``indreg.alignment.estimate`` with the angle kept), in the registration's ``gauge``: for tilts no fit saw."""
     A = AlignedOperator(T, angle=angle)
+    A.gauge = gauge
     P = T(x)
     start = alignment.gauge(A, alignment.coarse_shifts(A, P, y))
     return alignment.estimate(A, P, y, start, A.angle)[0].numpy()
@@ -247,7 +253,7 @@ def aligned_operators(result, T: dict, Y: dict, rows: np.ndarray, tilts: dict) -
     say(f"  alignment: axis angle {a['axis_angle_deg']:.3f} deg, shifts RMS "
         f"{np.sqrt((shifts ** 2).mean(axis=0)).round(3).tolist()} px [across, along], {a['at_bound']} at their bound")
     fitted = {k: shifts[np.isin(rows, tilts[k])] for k in ("fit", "validation")}
-    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis)
+    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis, a["gauge"])
     return {k: AlignedOperator(T[k], torch.as_tensor(v), axis) for k, v in fitted.items()}
 
 
@@ -266,7 +272,8 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
-        stack: str = "raw", align: str = "shifts", align_rounds: int = 8, rescale: float = 1.0,
+        stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_rounds: int = 8,
+        rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
@@ -332,16 +339,12 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
             even[0], etspy_frame(recorded[tilts["template"]], factor), operator(domain, angles[tilts["template"]]),
             factor)
         say(f"  the even tilts' shifts against etspy's: {metrics['template_shifts_vs_etspy']}")
-    if even is not None:   # the axis' offset, measured over the template's full range, taken out of the stack
-        offset = even[2]
-        binned = ndimage.shift(binned, (0, -offset, 0), order=1, mode="nearest")
-        turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
-        metrics["axis_offset_raw_px"] = offset * factor
+    if even is not None:   # the axis' offset, measured over the template's full range
+        metrics["axis_offset_raw_px"] = even[2] * factor
         if recorded is not None:
             metrics["etspy_axis_offset_raw_px"] = factor * axis_offset(
                 etspy_frame(recorded[tilts["template"]], factor), angles[tilts["template"]])
-        say(f"  the tilt axis lies {offset * factor:.2f} raw px off the detector's middle (across): the stack moved "
-            f"back by it")
+        say(f"  the tilt axis lies {even[2] * factor:.2f} raw px off the detector's middle (across)")
 
     say("6. the data and the units")
     rows = np.sort(np.concatenate([tilts["fit"], tilts["validation"]]))
@@ -354,12 +357,13 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"after the background {units.background:.4g}); 1 / voxel side = {1 / cell:.4g} per nm")
 
     align = align if stack == "raw" else "none"
-    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out, align={align!r}")
+    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out, align={align!r}"
+        + (f", align_gauge={align_gauge!r}" if align != "none" else ""))
     sigma = sigma_cells * cell
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             template_scale="auto", background="auto", holdout=holdout, align=align, log_every=10,
-                             progress=True, **extra)
+                             template_scale="auto", background="auto", holdout=holdout, align=align,
+                             align_gauge=align_gauge, log_every=10, progress=True, **extra)
     reg_seconds = result.seconds
     halvings = count_halvings(result.history)
     say(f"  {result.status} after {result.iterations} iterations ({reg_seconds:.0f} s): template_scale "
@@ -421,6 +425,8 @@ def main(argv=None) -> None:
                    help="raw: HAADF.mrc, aligned in the fit; aligned: etspy's aligned stack")
     p.add_argument("--align", choices=("shifts", "shifts+axis"), default="shifts",
                    help="what the registration estimates (--stack raw)")
+    p.add_argument("--align-gauge", choices=alignment.ALIGN_GAUGES, default="none",
+                   help="what the shifts leave to the deformation (none: the template fixes the frame)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")
     p.add_argument("--iters", type=int, default=100)
@@ -437,7 +443,8 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     folder = a.data if a.data is not None else fetch(a.cache)
     run(folder, a.out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
-        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, rescale=a.rescale,
+        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, align_gauge=a.align_gauge,
+        rescale=a.rescale,
         gamma_rel=a.gamma_rel, baselines_too=not a.no_baselines)
 
 
