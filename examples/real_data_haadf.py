@@ -12,18 +12,19 @@ how consistent the stack is), raw vs aligned stack; the background (the raw int1
 ``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
 earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
 programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
-are aligned first by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
-tilts between them held out for validation; registration with ``template_scale="auto"``, ``background="auto"``,
-``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align`` with
-``align_gauge=--align-gauge`` (default ``none``: the template fixes the frame, the shifts carry the axis' offset
-and any translation of the data against it); the estimated
-shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
-shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
+are aligned first by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data:
+a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held
+out for validation; registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default
+(relative) ``gamma`` and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default
+``none``: the template fixes the frame, the shifts carry the axis' offset and the data's translation against it);
+the estimated shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the
+registration's shifts); all scored by the relative residual on the odd tilts that none of them used (there is no
+ground truth).
 
     python examples/real_data_haadf.py [--data DIR] [--out DIR] [--stack raw|aligned] [--size 64] [--iters 100]
 
-Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), the volumes as ``.npy`` and ``.mrc``
-(voxel size in Angstrom).
+Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), ``alignment.png`` (the shifts against
+etspy's; from the raw stack), the volumes as ``.npy`` and ``.mrc`` (voxel size in Angstrom).
 
 Convention: the stack as stored is ``(tilt, row, column)`` with the tilt axis along the columns' index (the
 image's X; the acquisition log says "Tilt Axis Angle: 90"); indreg's layout has it along the rows
@@ -55,9 +56,9 @@ from indreg.units import border_level, check_offset, prepare
 from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
-from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, bin_stack,  # noqa: E402, F401
-                         compare_shifts, etspy_frame, fetch, figure, read_aligned, read_etspy_shifts, read_raw, save,
-                         say, scale_bar_nm)
+from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, alignment_figure,  # noqa
+                         axis_offset, bin_stack, compare_shifts, etspy_frame, fetch, figure, read_aligned,
+                         read_etspy_shifts, read_raw, save, say, scale_bar_nm)
 
 log = logging.getLogger("indreg")
 
@@ -228,13 +229,6 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
 
 
 # ------------------------------------------------------------------------------------------------ alignment
-def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:
-    """The tilt axis' offset (px, across) in ``shifts`` ``(K, 2)``: the constant of their least-squares fit by
-    ``c + a cos(theta) + b sin(theta)`` (the rest is an object translation, docs/alignment.md)."""
-    basis = np.stack([np.ones_like(angles), np.cos(angles), np.sin(angles)], axis=1)
-    return float(np.linalg.lstsq(basis, shifts[:, 0], rcond=None)[0][0])
-
-
 def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str) -> np.ndarray:
     """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
     ``indreg.alignment.estimate`` with the angle kept), in the registration's ``gauge``: for tilts no fit saw."""
@@ -386,9 +380,9 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         metrics["alignment"] = result.alignment
         T = aligned_operators(result, T, Y, rows, tilts)
         if recorded is not None:
-            metrics["shifts_vs_etspy"] = compare_shifts(np.asarray(result.alignment["shifts_px"]),
-                                                        etspy_frame(recorded[rows], factor),
-                                                        operator(domain, angles[rows]), factor)
+            ours, theirs = np.asarray(result.alignment["shifts_px"]), etspy_frame(recorded[rows], factor)
+            metrics["shifts_vs_etspy"] = compare_shifts(ours, theirs, operator(domain, angles[rows]), factor)
+            alignment_figure(ours, theirs, operator(domain, angles[rows]), factor, out / "alignment.png")
             say(f"  the fitted tilts' shifts against etspy's: {metrics['shifts_vs_etspy']}")
 
     base = {}

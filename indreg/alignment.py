@@ -292,12 +292,14 @@ def find_aligned(operator) -> AlignedOperator | None:
 
 
 def summary(problem) -> dict:
-    """``result.alignment`` of a run on ``problem``: the mode, the gauge, shifts (px, per projection), tilt angles (deg), the
-    tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}`` without alignment."""
+    """``result.alignment`` of a run on ``problem``: the mode, the gauge, shifts (px, per projection), tilt angles
+    (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}`` without
+    alignment."""
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    return {"mode": op.mode, "gauge": op.gauge, "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
+    return {"mode": op.mode, "gauge": op.gauge,
+            "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
             "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
             "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
             "at_bound": op.at_bound}
