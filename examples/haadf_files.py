@@ -23,7 +23,7 @@ from indreg.forward.shift import AlignedOperator
 
 __all__ = ["WHEEL", "MEMBERS", "ALIGNED_KEY", "SHIFTS_KEY", "PIXEL_NM", "TILT_AXIS_ANGLE", "say", "fetch", "read_raw",
            "read_aligned", "read_etspy_shifts", "bin_stack", "scale_bar_nm", "figure", "save", "etspy_frame",
-           "axis_offset", "compare_shifts", "alignment_figure"]
+           "axis_offset", "bilinear", "compare_shifts", "alignment_figure"]
 
 WHEEL = "etspy==1.3.0"
 MEMBERS = "etspy/tests/test_data/HAADF"
@@ -138,6 +138,14 @@ def etspy_frame(shifts: np.ndarray, factor: int) -> np.ndarray:
     the ideal point ``q`` lies at ``q - s`` in the raw image, and the turn by ``tilt_axis_angle=90`` (``np.rot90``)
     takes the stored rows to indreg's columns (across) and the stored columns, reversed, to its rows (along)."""
     return np.stack([-shifts[:, 0], shifts[:, 1]], axis=1) / factor
+
+
+def bilinear(T):
+    """``T``, or for an ``AlignedOperator`` the same alignment with bilinear interpolation: SIRT needs a
+    nonnegative matrix, and the cubic kernel has negative lobes."""
+    if not isinstance(T, AlignedOperator):
+        return T
+    return AlignedOperator(T.operator, T.shifts, float(T.angle), "linear", T.edge)
 
 
 def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:

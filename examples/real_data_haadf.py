@@ -7,19 +7,19 @@ work, no copyright in the US; the licence text is in the wheel). Without ``--dat
 ``--cache`` (nothing is installed); with ``--data DIR`` (a folder holding ``HAADF.mrc``, ``HAADF.rawtlt`` and
 optionally ``HAADF_Aligned.hspy``) it runs offline.
 
-Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs,
-how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin
-``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
-earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
-programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
-are aligned first by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data:
-a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held
-out for validation; registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default
-(relative) ``gamma`` and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default
-``none``: the template fixes the frame, the shifts carry the axis' offset and the data's translation against it);
-the estimated shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the
-registration's shifts); all scored by the relative residual on the odd tilts that none of them used (there is no
-ground truth).
+Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs, how
+consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin ``--stack``
+(``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an earlier scan" (a
+smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other programs do, so
+not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts are aligned first
+by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of
+the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held out for validation;
+registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
+and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default ``none``: the template
+fixes the frame, the shifts carry the axis' offset and the data's translation against it) and
+``align_interpolation=--align-interpolation`` (default ``cubic``, also for projection matching); the estimated
+shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
+shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
     python examples/real_data_haadf.py [--data DIR] [--out DIR] [--stack raw|aligned] [--size 64] [--iters 100]
 
@@ -57,7 +57,7 @@ from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
 from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, alignment_figure,  # noqa
-                         axis_offset, bin_stack, compare_shifts, etspy_frame, fetch, figure, read_aligned,
+                         axis_offset, bilinear, bin_stack, compare_shifts, etspy_frame, fetch, figure, read_aligned,
                          read_etspy_shifts, read_raw, save, say, scale_bar_nm)
 
 log = logging.getLogger("indreg")
@@ -144,11 +144,11 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 
 # ------------------------------------------------------------------------------------------------ template
-def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int) -> tuple:
+def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int, interpolation: str) -> tuple:
     """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle; the
     shifts keep the axis' offset, so its SIRT volume sits on the axis, centred). Returns ``(SIRT volume, (shifts
     (px, with the offset), angle (deg), offset (px, :func:`axis_offset`)))``."""
-    A, x, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
+    A, x, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters, interpolation)
     shifts, offset = A.shifts.clone(), axis_offset(A.shifts.numpy(), angles)
     say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
         f"; tilt-axis angle {math.degrees(float(A.angle)):.3f} deg, axis offset {offset:.3f} px")
@@ -156,7 +156,7 @@ def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, ite
 
 
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0) -> tuple:
+                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic") -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
@@ -168,7 +168,7 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
     T, y, found = operator(unit, angles), torch.from_numpy(data), None
     if align_rounds:
-        x, found = align_template_scan(T, y, angles, align_rounds, iters)
+        x, found = align_template_scan(T, y, angles, align_rounds, iters, interpolation)
     else:
         x, _ = sirt(T, y, num_iter=iters, nonneg=True)
     v = ndimage.gaussian_filter(x.numpy(), smooth)
@@ -193,14 +193,6 @@ def unwarped(T, y: torch.Tensor) -> tuple:
     c, s = math.cos(float(T.angle)), math.sin(float(T.angle))
     back = -T.shifts @ torch.tensor([[c, -s], [s, c]], dtype=torch.float64)   # rows: -R(-alpha) s_k
     return T.operator, T.warp(y, back, -T.angle)
-
-
-def bilinear(T):
-    """``T``, or for an ``AlignedOperator`` the same alignment with bilinear interpolation: SIRT needs a
-    nonnegative matrix, and the cubic kernel has negative lobes."""
-    if not isinstance(T, AlignedOperator):
-        return T
-    return AlignedOperator(T.operator, T.shifts, float(T.angle), "linear", T.edge)
 
 
 def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters=(10, 25, 50, 100, 200),
@@ -229,10 +221,10 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
 
 
 # ------------------------------------------------------------------------------------------------ alignment
-def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str) -> np.ndarray:
+def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str, interpolation: str) -> np.ndarray:
     """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
     ``indreg.alignment.estimate`` with the angle kept), in the registration's ``gauge``: for tilts no fit saw."""
-    A = AlignedOperator(T, angle=angle)
+    A = AlignedOperator(T, angle=angle, interpolation=interpolation)
     A.gauge = gauge
     P = T(x)
     start = alignment.gauge(A, alignment.coarse_shifts(A, P, y))
@@ -247,8 +239,8 @@ def aligned_operators(result, T: dict, Y: dict, rows: np.ndarray, tilts: dict) -
     say(f"  alignment: axis angle {a['axis_angle_deg']:.3f} deg, shifts RMS "
         f"{np.sqrt((shifts ** 2).mean(axis=0)).round(3).tolist()} px [across, along], {a['at_bound']} at their bound")
     fitted = {k: shifts[np.isin(rows, tilts[k])] for k in ("fit", "validation")}
-    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis, a["gauge"])
-    return {k: AlignedOperator(T[k], torch.as_tensor(v), axis) for k, v in fitted.items()}
+    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis, a["gauge"], a["interpolation"])
+    return {k: AlignedOperator(T[k], torch.as_tensor(v), axis, a["interpolation"]) for k, v in fitted.items()}
 
 
 def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
@@ -266,7 +258,8 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
-        stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_rounds: int = 8,
+        stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_interpolation: str = "cubic",
+        align_rounds: int = 8,
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
@@ -324,7 +317,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         say(f"  {k:10s} {len(v):2d} tilts: {np.degrees(angles[v]).round(0).astype(int).tolist()}")
     template, sirt_even, even = make_template(
         turned[tilts["template"]] - level, angles[tilts["template"]], domain.shape, misalign,
-        iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0)
+        iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0,
+        interpolation=align_interpolation)
     recorded = read_etspy_shifts(folder)
     if even is not None:
         metrics["template_alignment"] = {"shifts_px": even[0].tolist(), "axis_angle_deg": even[1]}
@@ -357,7 +351,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
                              template_scale="auto", background="auto", holdout=holdout, align=align,
-                             align_gauge=align_gauge, log_every=10, progress=True, **extra)
+                             align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
+                             progress=True, **extra)
     reg_seconds = result.seconds
     halvings = count_halvings(result.history)
     say(f"  {result.status} after {result.iterations} iterations ({reg_seconds:.0f} s): template_scale "
@@ -421,6 +416,8 @@ def main(argv=None) -> None:
                    help="what the registration estimates (--stack raw)")
     p.add_argument("--align-gauge", choices=alignment.ALIGN_GAUGES, default="none",
                    help="what the shifts leave to the deformation (none: the template fixes the frame)")
+    p.add_argument("--align-interpolation", choices=("linear", "cubic"), default="cubic",
+                   help="how the shifts move a projection image (cubic: no blur at fractional shifts)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")
     p.add_argument("--iters", type=int, default=100)
@@ -438,6 +435,7 @@ def main(argv=None) -> None:
     folder = a.data if a.data is not None else fetch(a.cache)
     run(folder, a.out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
         max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, align_gauge=a.align_gauge,
+        align_interpolation=a.align_interpolation,
         rescale=a.rescale,
         gamma_rel=a.gamma_rel, baselines_too=not a.no_baselines)
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from .forward.shift import AlignedOperator, projection_frame
+from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
@@ -50,8 +50,8 @@ MAX_SHIFT_FRACTION = 0.25
 MAX_ANGLE_DEG = 10.0
 #: Fewest projections that can be aligned (the gauge removes three shifts across the axis).
 MIN_PROJECTIONS = 4
-#: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: linear
-#: interpolation is linear in ``s`` only within a cell).
+#: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: the
+#: interpolation is one polynomial in ``s`` only within a cell).
 GN_ITERATIONS = 15
 GN_MAX_STEP = 1.0
 #: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
@@ -59,14 +59,18 @@ GN_TOL = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------------- the model
-def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES[0]):
+def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES[0], interpolation: str = "linear"):
     """``operator`` wrapped in an ``AlignedOperator`` for ``mode`` (``"none"``: itself) whose shifts are kept in
-    ``gauge`` (:data:`ALIGN_GAUGES`); one-line errors for a bad mode or gauge, an operator that is not parallel-beam,
-    the angle without a tilt series, and too few projections."""
+    ``gauge`` (:data:`ALIGN_GAUGES`), with ``interpolation`` (``"linear"`` or ``"cubic"``, ``AlignedOperator``);
+    one-line errors for a bad mode, gauge or interpolation, an operator that is not parallel-beam, the angle
+    without a tilt series, and too few projections."""
     if mode not in ALIGN_MODES:
         raise ValueError(f"{label} must be one of {', '.join(map(repr, ALIGN_MODES))}, got {mode!r}")
     if gauge not in ALIGN_GAUGES:
         raise ValueError(f"{label}_gauge must be one of {', '.join(map(repr, ALIGN_GAUGES))}, got {gauge!r}")
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"{label}_interpolation must be one of {', '.join(map(repr, INTERPOLATIONS))}, got "
+                         f"{interpolation!r}")
     if mode == "none":
         return operator
     try:
@@ -78,7 +82,7 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
                          f"no tilt-axis angle; use {label}='shifts'")
     if count < MIN_PROJECTIONS:
         raise ValueError(f"{label}={mode!r} needs at least {MIN_PROJECTIONS} projections, the data have {count}")
-    op = AlignedOperator(operator)
+    op = AlignedOperator(operator, interpolation=interpolation)
     op.mode, op.gauge, op.records, op.at_bound = mode, gauge, [], 0   # records: the estimates, for summary()
     return op
 
@@ -108,7 +112,7 @@ def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
 def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
     """Shifts ``(K, c)`` at the peak of every projection's cross-correlation with ``data`` within the bound
     (zero-padded FFTs, so no wrap-around), refined by a parabola through the peak and its neighbours along each
-    axis (a start off the integers: there linear interpolation has its kinks)."""
+    axis (a start off the integers: there bilinear interpolation has its kinks)."""
     K, R, D = op.num_projections, op.rows, op.columns
     p, g = projection.reshape(K, R, D), data.reshape(K, R, D)
     size = (2 * R, 2 * D)
@@ -205,21 +209,22 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     return s.cpu(), a.cpu(), at_bound
 
 
-def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50) -> tuple:
+def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
+                        interpolation: str = "linear") -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
     reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
     projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
     shifts keep the tilt axis' offset (gauge ``"translation"``, :func:`gauge`): a constant shift is an object
     translation only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis
-    (docs/alignment.md). SIRT needs a nonnegative matrix: it runs through bilinear interpolation, the estimate
-    through ``op``'s own (cubic by default).
+    (docs/alignment.md). The estimates use ``interpolation``; SIRT needs a nonnegative matrix and runs through
+    bilinear interpolation.
     Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
     move in px)`` per round (the relative residual before the round's estimate)."""
     from .forward.sirt import sirt
 
     if mode == "none":
         raise ValueError("projection_matching needs mode 'shifts' or 'shifts+axis', got 'none'")
-    op, records = aligned(operator, mode, "projection_matching", "translation"), []
+    op, records = aligned(operator, mode, "projection_matching", "translation", interpolation), []
     for r in range(rounds):
         x, history = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
         P, before = operator(x), op.shifts.clone()
@@ -292,13 +297,13 @@ def find_aligned(operator) -> AlignedOperator | None:
 
 
 def summary(problem) -> dict:
-    """``result.alignment`` of a run on ``problem``: the mode, the gauge, shifts (px, per projection), tilt angles
-    (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}`` without
-    alignment."""
+    """``result.alignment`` of a run on ``problem``: the mode, gauge, interpolation, shifts (px, per projection),
+    tilt angles (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}``
+    without alignment."""
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    return {"mode": op.mode, "gauge": op.gauge,
+    return {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
             "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
             "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
             "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,

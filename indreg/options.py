@@ -220,6 +220,9 @@ INPUTS = (
            "what the shifts of align leave to the deformation: 'offset+translation' (a constant across the axis and "
            "an object translation), 'translation' (the axis' offset estimated too) or 'none' (the template fixes "
            "the frame; docs/alignment.md)", str),
+    Option("align_interpolation", "data", "align_interpolation", "linear", choice(("linear", "cubic")),
+           "how align moves a projection image: 'linear' (bilinear) or 'cubic' (Keys' cubic convolution: no blur "
+           "at fractional shifts; docs/alignment.md)", str),
 )
 
 RUN = (

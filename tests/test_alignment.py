@@ -74,7 +74,7 @@ def test_cubic_interpolation_is_exact_for_quadratics_and_sharper_than_linear():
     shifts a sinusoid of 6 pixels a period by half a pixel to within 3 % of its amplitude (bilinear: 13 %)."""
     domain = ImageDomain((8, 8, 8), (-4., -4., -4.), (4., 4., 4.))
     T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-30, 30, 30, det_count=16, det_min=-8., det_max=8.))
-    cubic, linear = AlignedOperator(T), AlignedOperator(T, interpolation="linear")
+    cubic, linear = AlignedOperator(T, interpolation="cubic"), AlignedOperator(T)
     col = torch.arange(16, dtype=F64)
     y = (0.3 * col ** 2 - 2 * col + 1).expand(T.range_shape).clone()
     s = torch.tensor([[0.37, 0.0], [-0.5, 0.0], [1.25, 0.0]], dtype=F64)
@@ -121,9 +121,10 @@ def test_gradcheck_in_image_shifts_and_angle(interpolation, edge):
     assert torch.autograd.gradcheck(lambda f, s: op2.apply(f, s, op2.angle), (f2, s2))
 
 
-def test_recovers_shifts_and_axis_angle_3d(series):
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_recovers_shifts_and_axis_angle_3d(series, interpolation):
     T, f = series
-    op = aligned(T, "shifts+axis")
+    op = aligned(T, "shifts+axis", interpolation=interpolation)
     true, angle = _random_shifts(T, 4.0, 0), torch.tensor(math.radians(2.0), dtype=F64)
     g = op.warp(T(f), true, angle)
     P = T(f)
@@ -168,6 +169,8 @@ def test_axis_offset_over_a_limited_range_recovered_in_its_gauge():
             assert float((s0 - true).abs().max()) > 0.2
     with pytest.raises(ValueError, match="align_gauge must be one of"):
         aligned(T, "shifts", gauge="offset")
+    with pytest.raises(ValueError, match="align_interpolation must be one of"):
+        aligned(T, "shifts", interpolation="spline")
 
 
 def test_projection_matching_recovers_shifts_without_a_template():
@@ -198,7 +201,7 @@ def test_register_with_shifts_recovers_them_and_the_unshifted_ssim(tmp_path):
     rms = float((shifts - true).pow(2).mean().sqrt())
     assert rms < 0.3, rms
     assert r.alignment["estimates"] == 10 and r.alignment["mode"] == "shifts"
-    assert r.alignment["gauge"] == "offset+translation"
+    assert r.alignment["gauge"] == "offset+translation" and r.alignment["interpolation"] == "linear"
     assert r.ssim > plain.ssim - 0.01, (r.ssim, plain.ssim)
     unaligned = indreg.register(template, data, T, **options)
     assert unaligned.ssim < r.ssim - 0.01
@@ -231,9 +234,10 @@ def test_app_writes_alignment_to_metrics_and_a_plot(tmp_path):
     from experiment_helpers import FAST, run_app
 
     out = tmp_path / "run"
-    m = run_app(FAST + ["data.align=shifts", "data.align_gauge=translation"], out)
+    m = run_app(FAST + ["data.align=shifts", "data.align_gauge=translation", "data.align_interpolation=cubic"], out)
     a = m["alignment"]
-    assert a["mode"] == "shifts" and a["gauge"] == "translation" and a["estimates"] == 1
+    assert a["mode"] == "shifts" and a["gauge"] == "translation" and a["interpolation"] == "cubic"
+    assert a["estimates"] == 1
     assert len(a["shifts_px"]) == len(a["tilt_angles_deg"]) == 10
     assert (out / "alignment.png").stat().st_size > 0
     assert "alignment" not in run_app(FAST, tmp_path / "plain")

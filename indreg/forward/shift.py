@@ -3,13 +3,13 @@ rotated in-plane by the tilt-axis angle.
 
 Measured tilt series drift: projection ``k`` is the ideal one moved by ``s_k`` on the detector, and the tilt axis
 lies at an angle ``alpha`` to the detector rows. :class:`AlignedOperator` models both as a linear map ``S`` of the
-data space after a parallel-beam operator ``T`` (a 2D ``RayTransform`` or a 3D ``TiltSeriesTransform``):
-``T_s f = S_{s, alpha} T f``, with ``S`` an interpolation of every projection image at moved points: cubic
-convolution (Keys' kernel, ``a = -1/2``, 4 x 4 neighbours; a fractional shift keeps the image's sharpness, where
-bilinear interpolation blurs it by up to half a pixel) or bilinear. ``S`` acts on the data space only, whose
-inner product is a constant times the plain sum, so the adjoint is ``T^* S^T`` with ``S^T`` the exact transpose of
-the interpolation (a scatter-add of the same weights). ``S`` is differentiable in the data, the shifts and the
-angle (its weights are; the cell indices are piecewise constant).
+data space after a parallel-beam operator ``T`` (a 2D ``RayTransform`` or a 3D ``TiltSeriesTransform``): ``T_s f =
+S_{s, alpha} T f``, with ``S`` an interpolation of every projection image at moved points: bilinear, or cubic
+convolution (Keys' kernel, ``a = -1/2``, 4 x 4 neighbours: a fractional shift keeps the image's sharpness, where
+bilinear interpolation blurs it by up to half a pixel; its weights are not all nonnegative). ``S`` acts on the data
+space only, whose inner product is a constant times the plain sum, so the adjoint is ``T^* S^T`` with ``S^T`` the
+exact transpose of the interpolation (a scatter-add of the same weights). ``S`` is differentiable in the data, the
+shifts and the angle (its weights are; the cell indices are piecewise constant).
 
 Convention:
     - A projection image has axes ``(rows, columns)``: rows along the tilt axis (a 2D sinogram has one row),
@@ -34,7 +34,7 @@ from .operator import check_data_pair, check_operator
 __all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "cubic_kernel", "projection_frame"]
 
 #: ``S``'s interpolation and what it takes beyond the detector (module Convention); the first are the defaults.
-INTERPOLATIONS = ("cubic", "linear")
+INTERPOLATIONS = ("linear", "cubic")
 EDGES = ("nearest", "zero")
 
 
@@ -75,11 +75,11 @@ class AlignedOperator(OperatorAlgebra):
 
     ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
     as float64 tensors and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
-    (differentiable in all three). ``interpolation``: ``"cubic"`` or ``"linear"``; ``edge``: ``"nearest"`` or
-    ``"zero"`` (module docstring). ``range_shape`` and ``inner_data`` are ``T``'s.
+    (differentiable in all three). ``interpolation``: ``"linear"`` (bilinear) or ``"cubic"``; ``edge``:
+    ``"nearest"`` or ``"zero"`` (module docstring). ``range_shape`` and ``inner_data`` are ``T``'s.
     """
 
-    def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "cubic", edge: str = "nearest"):
+    def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "linear", edge: str = "nearest"):
         check_operator(operator, "operator")
         for name, value, allowed in (("interpolation", interpolation, INTERPOLATIONS), ("edge", edge, EDGES)):
             if value not in allowed:
