@@ -237,7 +237,10 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
 
 
 def _bilinear(op: AlignedOperator) -> AlignedOperator:
-    """``op``'s alignment with bilinear interpolation (nonnegative weights, as SIRT needs)."""
+    """``op``'s alignment with bilinear interpolation (nonnegative weights, as SIRT needs): ``op`` itself if it has
+    it."""
+    if op.interpolation == "linear":
+        return op
     return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge)
 
 
