@@ -23,7 +23,7 @@ from indreg.forward.shift import AlignedOperator
 
 __all__ = ["WHEEL", "MEMBERS", "ALIGNED_KEY", "SHIFTS_KEY", "PIXEL_NM", "TILT_AXIS_ANGLE", "say", "fetch", "read_raw",
            "read_aligned", "read_etspy_shifts", "bin_stack", "scale_bar_nm", "figure", "save", "etspy_frame",
-           "compare_shifts"]
+           "axis_offset", "bilinear", "compare_shifts", "alignment_figure"]
 
 WHEEL = "etspy==1.3.0"
 MEMBERS = "etspy/tests/test_data/HAADF"
@@ -140,6 +140,21 @@ def etspy_frame(shifts: np.ndarray, factor: int) -> np.ndarray:
     return np.stack([-shifts[:, 0], shifts[:, 1]], axis=1) / factor
 
 
+def bilinear(T):
+    """``T``, or for an ``AlignedOperator`` the same alignment with bilinear interpolation: SIRT needs a
+    nonnegative matrix, and the cubic kernel has negative lobes."""
+    if not isinstance(T, AlignedOperator):
+        return T
+    return AlignedOperator(T.operator, T.shifts, float(T.angle), "linear", T.edge)
+
+
+def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:
+    """The tilt axis' offset (px, across) in ``shifts`` ``(K, 2)``: the constant of their least-squares fit by
+    ``c + a cos(theta) + b sin(theta)`` (the rest is an object translation, docs/alignment.md)."""
+    basis = np.stack([np.ones_like(angles), np.cos(angles), np.sin(angles)], axis=1)
+    return float(np.linalg.lstsq(basis, shifts[:, 0], rcond=None)[0][0])
+
+
 def compare_shifts(estimated: np.ndarray, reference: np.ndarray, T, factor: int) -> dict:
     """RMS differences ``[across, along]`` in raw pixels (``factor`` raw pixels per binned one) of two shift sets of
     the tilts of ``T`` in binned pixels, less a common offset, and in indreg's gauge (``indreg.alignment.gauge``);
@@ -148,3 +163,27 @@ def compare_shifts(estimated: np.ndarray, reference: np.ndarray, T, factor: int)
     gauge = partial(alignment.gauge, AlignedOperator(T))
     rms = {"offset_removed": d - d.mean(dim=0), "gauge_removed": gauge(d), "reference_in_gauge": gauge(ref)}
     return {f"rms_px_{k}": (factor * v.pow(2).mean(dim=0).sqrt()).tolist() for k, v in rms.items()}
+
+
+def alignment_figure(estimated: np.ndarray, reference: np.ndarray, T, factor: int, path: Path) -> None:
+    """The estimated shifts and etspy's (both ``(K, 2)`` binned px) against the tilt angle, in raw pixels, across
+    and along the axis; etspy's moved into the estimate's frame (the difference's offset and object translation,
+    ``indreg.alignment.gauge``, added to them), so what is left between the curves is the RMS in the gauge."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = torch.as_tensor(estimated - reference)
+    moved = reference + (d - alignment.gauge(AlignedOperator(T), d)).numpy()
+    angles = np.degrees(T.geometry.angles.double().numpy())
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4), sharex=True)
+    for i, name in enumerate(("across", "along")):
+        ax[i].plot(angles, factor * estimated[:, i], "o-", ms=4, label="indreg (in the fit)")
+        ax[i].plot(angles, factor * moved[:, i], "x--", ms=5, label="etspy (recorded), same frame")
+        ax[i].set_title(f"shift {name} the tilt axis")
+        ax[i].set_xlabel("tilt angle (deg)")
+    ax[0].set_ylabel("raw pixels (3.36 nm)")
+    ax[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -7,22 +7,24 @@ work, no copyright in the US; the licence text is in the wheel). Without ``--dat
 ``--cache`` (nothing is installed); with ``--data DIR`` (a folder holding ``HAADF.mrc``, ``HAADF.rawtlt`` and
 optionally ``HAADF_Aligned.hspy``) it runs offline.
 
-Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs,
-how consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin
-``--stack`` (``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an
-earlier scan" (a smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other
-programs do, so not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts
-are aligned first by ``indreg.alignment.projection_matching``, and the tilt axis' offset it finds is taken out of
-the stack); the data: a sparse subset of the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd
-tilts between them held out for validation; registration with ``template_scale="auto"``, ``background="auto"``,
-``holdout``, the default (relative) ``gamma`` and step, and from the raw stack ``align=--align``; the estimated
+Steps (each prints what it found): read the raw stack and its angles; check the tilt axis (which way it runs, how
+consistent the stack is), raw vs aligned stack; the background (the raw int16 stack's offset); bin ``--stack``
+(``raw``, the default, or etspy's ``aligned``) to ``--size`` detector pixels; a template "from an earlier scan" (a
+smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in voxel units as other programs do, so
+not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts are aligned first
+by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of
+the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held out for validation;
+registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
+and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default ``none``: the template
+fixes the frame, the shifts carry the axis' offset and the data's translation against it) and
+``align_interpolation=--align-interpolation`` (default ``cubic``, also for projection matching); the estimated
 shifts compared with etspy's recorded ones; FBP / SIRT / TV from the same sparse tilts (through the registration's
 shifts); all scored by the relative residual on the odd tilts that none of them used (there is no ground truth).
 
     python examples/real_data_haadf.py [--data DIR] [--out DIR] [--stack raw|aligned] [--size 64] [--iters 100]
 
-Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), the volumes as ``.npy`` and ``.mrc``
-(voxel size in Angstrom).
+Outputs in ``--out``: ``metrics.json``, ``figure.png`` (central slices), ``alignment.png`` (the shifts against
+etspy's; from the raw stack), the volumes as ``.npy`` and ``.mrc`` (voxel size in Angstrom).
 
 Convention: the stack as stored is ``(tilt, row, column)`` with the tilt axis along the columns' index (the
 image's X; the acquisition log says "Tilt Axis Angle: 90"); indreg's layout has it along the rows
@@ -54,9 +56,9 @@ from indreg.units import border_level, check_offset, prepare
 from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
-from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, bin_stack,  # noqa: E402, F401
-                         compare_shifts, etspy_frame, fetch, figure, read_aligned, read_etspy_shifts, read_raw, save,
-                         say, scale_bar_nm)
+from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, alignment_figure,  # noqa
+                         axis_offset, bilinear, bin_stack, compare_shifts, etspy_frame, fetch, figure, read_aligned,
+                         read_etspy_shifts, read_raw, save, say, scale_bar_nm)
 
 log = logging.getLogger("indreg")
 
@@ -142,23 +144,19 @@ def split_tilts(angles: np.ndarray, fit_every: int = 4, max_angle: float = 90.0)
 
 
 # ------------------------------------------------------------------------------------------------ template
-def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int) -> tuple:
-    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle), then
-    reconstructed again from the tilts centred on the axis (its offset, :func:`axis_offset`, taken out) through
-    the shifts in register's gauge: the object where the data's gauge puts it. Returns ``(SIRT volume, (shifts
-    (px, with the offset), angle (deg), offset (px)))``."""
-    A, _, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters)
+def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, iters: int, interpolation: str) -> tuple:
+    """The template's tilts aligned by ``indreg.alignment.projection_matching`` (shifts and tilt-axis angle; the
+    shifts keep the axis' offset, so its SIRT volume sits on the axis, centred). Returns ``(SIRT volume, (shifts
+    (px, with the offset), angle (deg), offset (px, :func:`axis_offset`)))``."""
+    A, x, records = alignment.projection_matching(T, y, "shifts+axis", rounds, iters, interpolation)
     shifts, offset = A.shifts.clone(), axis_offset(A.shifts.numpy(), angles)
-    A.keep_offset, A.shifts = False, alignment.gauge(A, A.shifts)
-    x, _ = sirt(A, torch.from_numpy(ndimage.shift(y.numpy(), (0, 0, -offset), order=1, mode="nearest")),
-                num_iter=iters, nonneg=True)
     say(f"  projection matching: SIRT residual, largest shift update (px) per round {np.round(records, 3).tolist()}"
         f"; tilt-axis angle {math.degrees(float(A.angle)):.3f} deg, axis offset {offset:.3f} px")
     return x, (shifts.numpy(), math.degrees(float(A.angle)), offset)
 
 
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0) -> tuple:
+                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic") -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
@@ -170,7 +168,7 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
     T, y, found = operator(unit, angles), torch.from_numpy(data), None
     if align_rounds:
-        x, found = align_template_scan(T, y, angles, align_rounds, iters)
+        x, found = align_template_scan(T, y, angles, align_rounds, iters, interpolation)
     else:
         x, _ = sirt(T, y, num_iter=iters, nonneg=True)
     v = ndimage.gaussian_filter(x.numpy(), smooth)
@@ -205,7 +203,7 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
     out = {"FBP": (fbp(*unwarped(T_fit, y_fit)), {})}
     best, x, done = None, None, 0
     for n in sirt_iters:
-        x, _ = sirt(T_fit, y_fit, num_iter=n - done, x0=x, nonneg=True)
+        x, _ = sirt(bilinear(T_fit), y_fit, num_iter=n - done, x0=x, nonneg=True)
         done, r = n, residual(T_val, x, y_val)
         say(f"    SIRT {n:4d} iterations: validation residual {r:.4f}")
         if best is None or r < best[1]["validation_residual"]:
@@ -223,17 +221,11 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
 
 
 # ------------------------------------------------------------------------------------------------ alignment
-def axis_offset(shifts: np.ndarray, angles: np.ndarray) -> float:
-    """The tilt axis' offset (px, across) in ``shifts`` ``(K, 2)``: the constant of their least-squares fit by
-    ``c + a cos(theta) + b sin(theta)`` (the rest is an object translation, docs/alignment.md)."""
-    basis = np.stack([np.ones_like(angles), np.cos(angles), np.sin(angles)], axis=1)
-    return float(np.linalg.lstsq(basis, shifts[:, 0], rcond=None)[0][0])
-
-
-def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float) -> np.ndarray:
+def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str, interpolation: str) -> np.ndarray:
     """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
-    ``indreg.alignment.estimate`` with the angle kept): for tilts no fit saw."""
-    A = AlignedOperator(T, angle=angle)
+    ``indreg.alignment.estimate`` with the angle kept), in the registration's ``gauge``: for tilts no fit saw."""
+    A = AlignedOperator(T, angle=angle, interpolation=interpolation)
+    A.gauge = gauge
     P = T(x)
     start = alignment.gauge(A, alignment.coarse_shifts(A, P, y))
     return alignment.estimate(A, P, y, start, A.angle)[0].numpy()
@@ -247,8 +239,8 @@ def aligned_operators(result, T: dict, Y: dict, rows: np.ndarray, tilts: dict) -
     say(f"  alignment: axis angle {a['axis_angle_deg']:.3f} deg, shifts RMS "
         f"{np.sqrt((shifts ** 2).mean(axis=0)).round(3).tolist()} px [across, along], {a['at_bound']} at their bound")
     fitted = {k: shifts[np.isin(rows, tilts[k])] for k in ("fit", "validation")}
-    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis)
-    return {k: AlignedOperator(T[k], torch.as_tensor(v), axis) for k, v in fitted.items()}
+    fitted["test"] = shifts_of(T["test"], result.deformed.double(), Y["test"], axis, a["gauge"], a["interpolation"])
+    return {k: AlignedOperator(T[k], torch.as_tensor(v), axis, a["interpolation"]) for k, v in fitted.items()}
 
 
 def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
@@ -266,7 +258,9 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 # ------------------------------------------------------------------------------------------------ pipeline
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
-        stack: str = "raw", align: str = "shifts", align_rounds: int = 8, rescale: float = 1.0,
+        stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_interpolation: str = "cubic",
+        align_rounds: int = 8,
+        rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
@@ -323,7 +317,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         say(f"  {k:10s} {len(v):2d} tilts: {np.degrees(angles[v]).round(0).astype(int).tolist()}")
     template, sirt_even, even = make_template(
         turned[tilts["template"]] - level, angles[tilts["template"]], domain.shape, misalign,
-        iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0)
+        iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0,
+        interpolation=align_interpolation)
     recorded = read_etspy_shifts(folder)
     if even is not None:
         metrics["template_alignment"] = {"shifts_px": even[0].tolist(), "axis_angle_deg": even[1]}
@@ -332,16 +327,12 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
             even[0], etspy_frame(recorded[tilts["template"]], factor), operator(domain, angles[tilts["template"]]),
             factor)
         say(f"  the even tilts' shifts against etspy's: {metrics['template_shifts_vs_etspy']}")
-    if even is not None:   # the axis' offset, measured over the template's full range, taken out of the stack
-        offset = even[2]
-        binned = ndimage.shift(binned, (0, -offset, 0), order=1, mode="nearest")
-        turned = align_tilt_axis(binned, TILT_AXIS_ANGLE)
-        metrics["axis_offset_raw_px"] = offset * factor
+    if even is not None:   # the axis' offset, measured over the template's full range
+        metrics["axis_offset_raw_px"] = even[2] * factor
         if recorded is not None:
             metrics["etspy_axis_offset_raw_px"] = factor * axis_offset(
                 etspy_frame(recorded[tilts["template"]], factor), angles[tilts["template"]])
-        say(f"  the tilt axis lies {offset * factor:.2f} raw px off the detector's middle (across): the stack moved "
-            f"back by it")
+        say(f"  the tilt axis lies {even[2] * factor:.2f} raw px off the detector's middle (across)")
 
     say("6. the data and the units")
     rows = np.sort(np.concatenate([tilts["fit"], tilts["validation"]]))
@@ -354,11 +345,13 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"after the background {units.background:.4g}); 1 / voxel side = {1 / cell:.4g} per nm")
 
     align = align if stack == "raw" else "none"
-    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out, align={align!r}")
+    say(f"7. registration: {len(tilts['fit'])} tilts fitted, {len(holdout)} held out, align={align!r}"
+        + (f", align_gauge={align_gauge!r}" if align != "none" else ""))
     sigma = sigma_cells * cell
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             template_scale="auto", background="auto", holdout=holdout, align=align, log_every=10,
+                             template_scale="auto", background="auto", holdout=holdout, align=align,
+                             align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
                              progress=True, **extra)
     reg_seconds = result.seconds
     halvings = count_halvings(result.history)
@@ -382,9 +375,9 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         metrics["alignment"] = result.alignment
         T = aligned_operators(result, T, Y, rows, tilts)
         if recorded is not None:
-            metrics["shifts_vs_etspy"] = compare_shifts(np.asarray(result.alignment["shifts_px"]),
-                                                        etspy_frame(recorded[rows], factor),
-                                                        operator(domain, angles[rows]), factor)
+            ours, theirs = np.asarray(result.alignment["shifts_px"]), etspy_frame(recorded[rows], factor)
+            metrics["shifts_vs_etspy"] = compare_shifts(ours, theirs, operator(domain, angles[rows]), factor)
+            alignment_figure(ours, theirs, operator(domain, angles[rows]), factor, out / "alignment.png")
             say(f"  the fitted tilts' shifts against etspy's: {metrics['shifts_vs_etspy']}")
 
     base = {}
@@ -421,6 +414,10 @@ def main(argv=None) -> None:
                    help="raw: HAADF.mrc, aligned in the fit; aligned: etspy's aligned stack")
     p.add_argument("--align", choices=("shifts", "shifts+axis"), default="shifts",
                    help="what the registration estimates (--stack raw)")
+    p.add_argument("--align-gauge", choices=alignment.ALIGN_GAUGES, default="none",
+                   help="what the shifts leave to the deformation (none: the template fixes the frame)")
+    p.add_argument("--align-interpolation", choices=("linear", "cubic"), default="cubic",
+                   help="how the shifts move a projection image (cubic: no blur at fractional shifts)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")
     p.add_argument("--iters", type=int, default=100)
@@ -437,7 +434,9 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     folder = a.data if a.data is not None else fetch(a.cache)
     run(folder, a.out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
-        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, rescale=a.rescale,
+        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, align_gauge=a.align_gauge,
+        align_interpolation=a.align_interpolation,
+        rescale=a.rescale,
         gamma_rel=a.gamma_rel, baselines_too=not a.no_baselines)
 
 

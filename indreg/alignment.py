@@ -12,10 +12,12 @@ Convention:
       across, along); the angle in radians here, in degrees in reports.
     - Gauge: a translation ``(a, b)`` of the object in the plane orthogonal to the axis moves projection ``k`` by
       ``a cos(theta_k) + b sin(theta_k)`` across the axis, one along it moves every projection alike along it; the
-      deformation carries such a translation (the template can move), so the shifts are kept orthogonal to them:
-      across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant too: an offset of the axis, at most
-      nearly a translation over a limited tilt range), along it to ``1`` (:func:`gauge`). The true shifts are
-      known only up to these.
+      deformation carries such a translation (the template can move), so by default (``"offset+translation"``)
+      the shifts are kept orthogonal to them: across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant
+      too: an offset of the axis, at most nearly a translation over a limited tilt range), along it to ``1``
+      (:func:`gauge`); the true shifts are known only up to these. ``"translation"`` keeps the constant across
+      the axis (the axis' offset is estimated), ``"none"`` keeps everything: the template fixes the frame, the
+      shifts move the data onto it and the deformation is left the change of shape (:data:`ALIGN_GAUGES`).
     - Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
       MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
 """
@@ -27,16 +29,18 @@ from pathlib import Path
 
 import torch
 
-from .forward.shift import AlignedOperator, projection_frame
+from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
-__all__ = ["ALIGN_MODES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
+__all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
            "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts",
            "projection_matching", "summary", "wrap"]
 
 log = logging.getLogger("indreg")
 
 ALIGN_MODES = ("none", "shifts", "shifts+axis")
+#: What the shifts are kept orthogonal to (module Convention); the first is the default.
+ALIGN_GAUGES = ("offset+translation", "translation", "none")
 #: Iterations between two estimates (docs/alignment.md: re-estimating more often did not recover the shifts
 #: better and costs a Gauss-Newton solve each time).
 ALIGN_EVERY = 10
@@ -46,8 +50,8 @@ MAX_SHIFT_FRACTION = 0.25
 MAX_ANGLE_DEG = 10.0
 #: Fewest projections that can be aligned (the gauge removes three shifts across the axis).
 MIN_PROJECTIONS = 4
-#: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: linear
-#: interpolation is linear in ``s`` only within a cell).
+#: Gauss-Newton iterations of one estimate, and the largest step of a shift per iteration (pixels: the
+#: interpolation is one polynomial in ``s`` only within a cell).
 GN_ITERATIONS = 15
 GN_MAX_STEP = 1.0
 #: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
@@ -55,11 +59,18 @@ GN_TOL = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------------- the model
-def aligned(operator, mode: str, label: str = "align"):
-    """``operator`` wrapped in an ``AlignedOperator`` for ``mode`` (``"none"``: itself); one-line errors for a bad
-    mode, an operator that is not parallel-beam, the angle without a tilt series, and too few projections."""
+def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES[0], interpolation: str = "linear"):
+    """``operator`` wrapped in an ``AlignedOperator`` for ``mode`` (``"none"``: itself) whose shifts are kept in
+    ``gauge`` (:data:`ALIGN_GAUGES`), with ``interpolation`` (``"linear"`` or ``"cubic"``, ``AlignedOperator``);
+    one-line errors for a bad mode, gauge or interpolation, an operator that is not parallel-beam, the angle
+    without a tilt series, and too few projections."""
     if mode not in ALIGN_MODES:
         raise ValueError(f"{label} must be one of {', '.join(map(repr, ALIGN_MODES))}, got {mode!r}")
+    if gauge not in ALIGN_GAUGES:
+        raise ValueError(f"{label}_gauge must be one of {', '.join(map(repr, ALIGN_GAUGES))}, got {gauge!r}")
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"{label}_interpolation must be one of {', '.join(map(repr, INTERPOLATIONS))}, got "
+                         f"{interpolation!r}")
     if mode == "none":
         return operator
     try:
@@ -71,8 +82,8 @@ def aligned(operator, mode: str, label: str = "align"):
                          f"no tilt-axis angle; use {label}='shifts'")
     if count < MIN_PROJECTIONS:
         raise ValueError(f"{label}={mode!r} needs at least {MIN_PROJECTIONS} projections, the data have {count}")
-    op = AlignedOperator(operator)
-    op.mode, op.records, op.at_bound = mode, [], 0   # the estimates (AlignmentSolver), for summary()
+    op = AlignedOperator(operator, interpolation=interpolation)
+    op.mode, op.gauge, op.records, op.at_bound = mode, gauge, [], 0   # records: the estimates, for summary()
     return op
 
 
@@ -83,11 +94,15 @@ def _bounds(op: AlignedOperator) -> torch.Tensor:
 
 
 def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
-    """``shifts`` with what a translation of the object explains removed (module Convention): across the axis the
-    least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``, along it the mean. With ``op.keep_offset`` (set
-    by :func:`projection_matching`) the constant ``c``, the tilt axis' offset from the detector's middle, stays."""
+    """``shifts`` with what a translation of the object explains removed (module Convention), by ``op.gauge``:
+    ``"offset+translation"`` (also an operator without one) across the axis the least-squares fit of ``c + a
+    cos(theta_k) + b sin(theta_k)``, along it the mean; ``"translation"`` keeps ``c``, the tilt axis' offset from
+    the detector's middle; ``"none"`` returns ``shifts`` as they are."""
+    kind = getattr(op, "gauge", ALIGN_GAUGES[0])
+    if kind == "none":
+        return shifts.clone()
     theta = op.operator.geometry.angles.to(shifts)
-    ones = [] if getattr(op, "keep_offset", False) else [torch.ones_like(theta)]
+    ones = [] if kind == "translation" else [torch.ones_like(theta)]
     basis = torch.stack(ones + [torch.cos(theta), torch.sin(theta)], dim=1)
     across = shifts[:, :1] - basis @ torch.linalg.lstsq(basis, shifts[:, :1]).solution
     return torch.cat([across, shifts[:, 1:] - shifts[:, 1:].mean(dim=0, keepdim=True)], dim=1)
@@ -97,7 +112,7 @@ def gauge(op: AlignedOperator, shifts: torch.Tensor) -> torch.Tensor:
 def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
     """Shifts ``(K, c)`` at the peak of every projection's cross-correlation with ``data`` within the bound
     (zero-padded FFTs, so no wrap-around), refined by a parabola through the peak and its neighbours along each
-    axis (a start off the integers: there linear interpolation has its kinks)."""
+    axis (a start off the integers: there bilinear interpolation has its kinks)."""
     K, R, D = op.num_projections, op.rows, op.columns
     p, g = projection.reshape(K, R, D), data.reshape(K, R, D)
     size = (2 * R, 2 * D)
@@ -194,29 +209,39 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     return s.cpu(), a.cpu(), at_bound
 
 
-def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50) -> tuple:
+def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
+                        interpolation: str = "linear") -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
     reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
     projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
-    shifts keep the tilt axis' offset (``keep_offset``, :func:`gauge`): a constant shift is an object translation
-    only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis (docs/alignment.md).
+    shifts keep the tilt axis' offset (gauge ``"translation"``, :func:`gauge`): a constant shift is an object
+    translation only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis
+    (docs/alignment.md). The estimates use ``interpolation``; SIRT needs a nonnegative matrix and runs through
+    bilinear interpolation.
     Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
     move in px)`` per round (the relative residual before the round's estimate)."""
     from .forward.sirt import sirt
 
     if mode == "none":
         raise ValueError("projection_matching needs mode 'shifts' or 'shifts+axis', got 'none'")
-    op, records = aligned(operator, mode, "projection_matching"), []
-    op.keep_offset = True
+    op, records = aligned(operator, mode, "projection_matching", "translation", interpolation), []
     for r in range(rounds):
-        x, history = sirt(op, data, num_iter=iters, nonneg=True)
+        x, history = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
         P, before = operator(x), op.shifts.clone()
         start = gauge(op, coarse_shifts(op, P.double(), data.double())) if r == 0 else op.shifts
         op.shifts, op.angle, op.at_bound = estimate(op, P, data, start, op.angle, mode == "shifts+axis")
         norm = op.inner_data(data, data).sqrt()
         records.append((float(history["data_residual"][-1] / norm), float((op.shifts - before).abs().max())))
-    x, _ = sirt(op, data, num_iter=iters, nonneg=True)
+    x, _ = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
     return op, x, records
+
+
+def _bilinear(op: AlignedOperator) -> AlignedOperator:
+    """``op``'s alignment with bilinear interpolation (nonnegative weights, as SIRT needs): ``op`` itself if it has
+    it."""
+    if op.interpolation == "linear":
+        return op
+    return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge)
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit
@@ -275,12 +300,14 @@ def find_aligned(operator) -> AlignedOperator | None:
 
 
 def summary(problem) -> dict:
-    """``result.alignment`` of a run on ``problem``: the mode, shifts (px, per projection), tilt angles (deg), the
-    tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}`` without alignment."""
+    """``result.alignment`` of a run on ``problem``: the mode, gauge, interpolation, shifts (px, per projection),
+    tilt angles (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}``
+    without alignment."""
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    return {"mode": op.mode, "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
+    return {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
+            "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
             "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
             "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
             "at_bound": op.at_bound}

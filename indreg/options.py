@@ -232,6 +232,14 @@ INPUTS = (
     Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
            "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "
            "angle of a tilt series), re-estimated against the reconstruction's projection (docs/alignment.md)", str),
+    Option("align_gauge", "data", "align_gauge", "offset+translation",
+           choice(("offset+translation", "translation", "none")),
+           "what the shifts of align leave to the deformation: 'offset+translation' (a constant across the axis and "
+           "an object translation), 'translation' (the axis' offset estimated too) or 'none' (the template fixes "
+           "the frame; docs/alignment.md)", str),
+    Option("align_interpolation", "data", "align_interpolation", "linear", choice(("linear", "cubic")),
+           "how align moves a projection image: 'linear' (bilinear) or 'cubic' (Keys' cubic convolution: no blur "
+           "at fractional shifts; docs/alignment.md)", str),
 )
 
 RUN = (

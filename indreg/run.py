@@ -136,7 +136,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
-    aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]))   # T_s (docs/alignment.md)
+    aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
+                                           o["align_gauge"], o["align_interpolation"])
     full_data, validation = data, None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))

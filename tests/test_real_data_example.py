@@ -120,6 +120,7 @@ def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
         assert drift[0] > 1.0 and max(rms) < 0.5, (key, rms, drift)
     assert set(m["scores"]) == {"template", "registered"}
     assert m["scores"]["registered"]["fit_residual"] < m["scores"]["template"]["fit_residual"]
+    assert m["alignment"]["gauge"] == "none" and (tmp_path / "raw" / "alignment.png").stat().st_size > 0
 
 
 def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):

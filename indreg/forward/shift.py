@@ -3,11 +3,13 @@ rotated in-plane by the tilt-axis angle.
 
 Measured tilt series drift: projection ``k`` is the ideal one moved by ``s_k`` on the detector, and the tilt axis
 lies at an angle ``alpha`` to the detector rows. :class:`AlignedOperator` models both as a linear map ``S`` of the
-data space after a parallel-beam operator ``T`` (a 2D ``RayTransform`` or a 3D ``TiltSeriesTransform``):
-``T_s f = S_{s, alpha} T f``, with ``S`` bilinear interpolation of every projection image at moved points. ``S``
-acts on the data space only, whose inner product is a constant times the plain sum, so the adjoint is
-``T^* S^T`` with ``S^T`` the exact transpose of the interpolation (a scatter-add of the same weights). ``S`` is
-differentiable in the data, the shifts and the angle (its weights are; the cell indices are piecewise constant).
+data space after a parallel-beam operator ``T`` (a 2D ``RayTransform`` or a 3D ``TiltSeriesTransform``): ``T_s f =
+S_{s, alpha} T f``, with ``S`` an interpolation of every projection image at moved points: bilinear, or cubic
+convolution (Keys' kernel, ``a = -1/2``, 4 x 4 neighbours: a fractional shift keeps the image's sharpness, where
+bilinear interpolation blurs it by up to half a pixel; its weights are not all nonnegative). ``S`` acts on the data
+space only, whose inner product is a constant times the plain sum, so the adjoint is ``T^* S^T`` with ``S^T`` the
+exact transpose of the interpolation (a scatter-add of the same weights). ``S`` is differentiable in the data, the
+shifts and the angle (its weights are; the cell indices are piecewise constant).
 
 Convention:
     - A projection image has axes ``(rows, columns)``: rows along the tilt axis (a 2D sinogram has one row),
@@ -17,8 +19,9 @@ Convention:
       series (``[:, 0]`` across, ``[:, 1]`` along the axis); ``angle`` ``alpha`` in radians (tilt series only).
     - A feature at the ideal detector point ``q = (s, t)`` (physical units; ``t = 0`` at the middle row, ``s``
       as ``det_points``) appears at ``p = R(alpha) q + (s_k det_cell, s_k' row_cell)``, ``R`` the counter-clockwise
-      rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``,
-      zero where that point leaves the detector.
+      rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
+    - Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
+      field of view, a rod along the axis, continues there) or zero (``edge="zero"``).
 """
 from __future__ import annotations
 
@@ -28,7 +31,25 @@ from .._checks import check_tensor
 from .algebra import OperatorAlgebra
 from .operator import check_data_pair, check_operator
 
-__all__ = ["AlignedOperator", "projection_frame"]
+__all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "cubic_kernel", "projection_frame"]
+
+#: ``S``'s interpolation and what it takes beyond the detector (module Convention); the first are the defaults.
+INTERPOLATIONS = ("linear", "cubic")
+EDGES = ("nearest", "zero")
+
+
+def cubic_kernel(x: torch.Tensor) -> torch.Tensor:
+    """Keys' cubic convolution kernel (``a = -1/2``): 1 at 0, 0 at the other integers, support ``|x| < 2``; it
+    reproduces quadratics and is continuously differentiable."""
+    x = x.abs()
+    near = (1.5 * x - 2.5) * x * x + 1
+    far = ((-0.5 * x + 2.5) * x - 4) * x + 2
+    return torch.where(x <= 1, near, torch.where(x < 2, far, torch.zeros_like(x)))
+
+
+def _linear_kernel(x: torch.Tensor) -> torch.Tensor:
+    """The hat ``1 - |x|``, its derivative at 0 taken from the right (as the cell index ``floor`` is)."""
+    return torch.where(x >= 0, 1 - x, 1 + x).clamp_min(0)
 
 
 def projection_frame(operator) -> tuple:
@@ -54,11 +75,16 @@ class AlignedOperator(OperatorAlgebra):
 
     ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
     as float64 tensors and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
-    (differentiable in all three). ``range_shape`` and ``inner_data`` are ``T``'s.
+    (differentiable in all three). ``interpolation``: ``"linear"`` (bilinear) or ``"cubic"``; ``edge``:
+    ``"nearest"`` or ``"zero"`` (module docstring). ``range_shape`` and ``inner_data`` are ``T``'s.
     """
 
-    def __init__(self, operator, shifts=None, angle=0.0):
+    def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "linear", edge: str = "nearest"):
         check_operator(operator, "operator")
+        for name, value, allowed in (("interpolation", interpolation, INTERPOLATIONS), ("edge", edge, EDGES)):
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        self.interpolation, self.edge = interpolation, edge
         frame = projection_frame(operator)
         self.operator, self.num_projections, self.rows, self.columns = frame[:4]
         self.det_points, self.det_cell, self.row_cell = frame[4].double(), float(frame[5]), float(frame[6])
@@ -87,18 +113,25 @@ class AlignedOperator(OperatorAlgebra):
         return qt / self.row_cell + (self.rows - 1) / 2, (qs - s[0, 0, 0]) / self.det_cell
 
     def _weights(self, shifts, angle, like) -> tuple:
-        """Flat neighbour indices and bilinear weights ``(4, K, rows * columns)`` (zero outside the detector)."""
+        """Flat neighbour indices and weights ``(n, K, rows * columns)``: ``n = 16`` (cubic) or 4 (linear)
+        neighbours, clamped to the detector (``edge="nearest"``) or weighted zero outside it."""
         row, col = self._points(shifts, angle, like)
         r0, c0 = torch.floor(row.detach()), torch.floor(col.detach())
         fr, fc = row - r0, col - c0
+        cubic = self.interpolation == "cubic"
+        kernel, taps = (cubic_kernel, (-1, 0, 1, 2)) if cubic else (_linear_kernel, (0, 1))
+        row_taps = (0,) if self.rows == 1 else taps   # a sinogram's one row: its points lie on it
         index, weight = [], []
-        for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-            r, c = r0 + dr, c0 + dc
-            inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns)
-            index.append((r.clamp(0, self.rows - 1) * self.columns + c.clamp(0, self.columns - 1)).long())
-            weight.append(w * inside)
+        for dr in row_taps:
+            wr, r = kernel(fr - dr), r0 + dr
+            for dc in taps:
+                w, c = wr * kernel(fc - dc), c0 + dc
+                if self.edge == "zero":
+                    w = w * ((r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns))
+                index.append((r.clamp(0, self.rows - 1) * self.columns + c.clamp(0, self.columns - 1)).long())
+                weight.append(w)
         K = self.num_projections
-        return torch.stack(index).reshape(4, K, -1), torch.stack(weight).reshape(4, K, -1)
+        return torch.stack(index).reshape(len(index), K, -1), torch.stack(weight).reshape(len(index), K, -1)
 
     def _flat(self, y: torch.Tensor) -> torch.Tensor:
         return y.reshape(*y.shape[:y.dim() - len(self.range_shape)], self.num_projections, -1)
