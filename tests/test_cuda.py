@@ -25,11 +25,8 @@ def _assert_same_run(cpu, gpu, tol=1e-8):
 
 @pytest.fixture(scope="module")
 def tiny2d():
-    domain = indreg.ImageDomain.paper(32)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 46))
-    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
-    data, _ = noise.add_white_noise(T(target), snr_db=15.0, seed=0)
-    return T, template, data
+    T = indreg.RayTransform(indreg.ImageDomain.paper(32), indreg.ParallelBeamGeometry.paper(8, 46))
+    return T, phantoms.get("j", T.domain), noise.add_white_noise(T(phantoms.get("v", T.domain)), 15.0, seed=0)[0]
 
 
 @pytest.mark.parametrize("options", [{}, {"model": "metamorphosis"}, {"solver": "lbfgs"}],

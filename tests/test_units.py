@@ -273,16 +273,21 @@ def test_tv_weight_at_the_data_scale():
     assert torch.allclose(b, 255 * a, rtol=1e-8, atol=1e-8 * float(b.abs().max()))
 
 
-def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog):
-    """A square sinogram with angles and bins swapped fits far worse than its noise: the run keeps its status and
-    warns; the same data the right way round do not."""
+@pytest.fixture(scope="module")
+def j_to_v_square():
+    """J to V on 32^2 with 32 angles x 32 bins (a square sinogram), 15 dB, and the run of the right layout."""
     domain = indreg.ImageDomain.paper(32)
     T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(32, 32))
     template, target = phantoms.get("j", domain), phantoms.get("v", domain)
     data, _ = indreg.noise.add_white_noise(T(target), snr_db=15, seed=0)
+    return T, template, data, indreg.register(template, data, T, num_steps=5, max_iter=40)
+
+
+def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog, j_to_v_square):
+    """A square sinogram with angles and bins swapped fits far worse than its noise: the run keeps its status and
+    warns; the same data the right way round do not."""
+    T, template, data, right = j_to_v_square
     caplog.set_level(logging.WARNING, logger="indreg")
-    right = indreg.register(template, data, T, num_steps=5, max_iter=40)
-    assert not [m for m in warnings_of(caplog) if "poor fit" in m]
     swapped = indreg.register(template, data.T.contiguous(), T, num_steps=5, max_iter=40)
     poor = [m for m in warnings_of(caplog) if "poor fit" in m]
     assert swapped.status == right.status == "completed" and len(poor) == 1
@@ -290,15 +295,11 @@ def test_a_layout_mistake_is_reported_as_a_poor_fit(caplog):
     assert poor[0] == swapped.poor_fit and "levelled off" in poor[0] and right.poor_fit == ""
 
 
-def test_an_offset_template_still_falling_far_above_the_noise_is_a_poor_fit(caplog):
+def test_an_offset_template_still_falling_far_above_the_noise_is_a_poor_fit(caplog, j_to_v_square):
     """A template offset by +0.3 has not levelled off after 40 iterations but ends far above the noise: a poor-fit
     warning that says the objective is still falling and names fit+offset; the right template gets none."""
-    domain = indreg.ImageDomain.paper(32)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(32, 32))
-    template, target = phantoms.get("j", domain), phantoms.get("v", domain)
-    data, _ = indreg.noise.add_white_noise(T(target), snr_db=15, seed=0)
+    T, template, data, right = j_to_v_square
     caplog.set_level(logging.WARNING, logger="indreg")
-    right = indreg.register(template, data, T, num_steps=5, max_iter=40)
     offset = indreg.register(template + 0.3, data, T, num_steps=5, max_iter=40)
     assert right.poor_fit == "" and offset.status == "completed" and not run.levelled_off(offset.history)
     assert offset.residual > 2 * offset.units.noise_residual + 0.1
