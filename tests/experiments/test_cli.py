@@ -145,7 +145,7 @@ def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("argv, message", [
     (["model.steps=3"], "has no key 'model.steps'; the keys of 'model' are name, width, levels"),
-    (["model=unet"], "model=unet"),
+    (["model=unet"], "Could not find 'model/unet' Available options in 'model': oneshot"),
     (["model=unrolled", "model.init=random"], "model.init must be one of oneshot, zero, got 'random'"),
     (["model=unrolled", "model.gradient=double"], "model.gradient must be one of detached, exact, got 'double'"),
 ])
