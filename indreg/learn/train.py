@@ -277,11 +277,12 @@ def replica_difference(model, world: int) -> float:
 
 
 # ------------------------------------------------------------------ training
-def log_validation(writer, parts, model, dataset, device, step: int, unrolled: bool) -> None:
+def log_validation(writer, parts, model, dataset, device, step: int, unrolled: bool) -> dict:
     """Scalars ``val/loss``, ``val/ssim`` and images of sample 0; while the updates train, also
-    ``val/ssim_update_<k>`` and ``val/update_<k>`` after ``k = 0..K`` updates."""
+    ``val/ssim_update_<k>`` and ``val/update_<k>`` after ``k = 0..K`` updates. Returns the scalars."""
     updates = None if unrolled else 0
-    for name, value in validation(parts, model, dataset, device, updates).items():
+    scores = validation(parts, model, dataset, device, updates)
+    for name, value in scores.items():
         writer.add_scalar(f"val/{name}", value, step)
     item = gather(dataset, torch.tensor([0]), device)
     images = {"template": item["template"][0], "fbp": item["fbp"][0], "target": item["target"][0],
@@ -293,6 +294,7 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
     for name, image in images.items():
         a = torch.rot90(image.detach().float().cpu(), 1, (0, 1)).clamp(0.0, 1.0)
         writer.add_image(f"val/{name}", a[None], step, dataformats="CHW")
+    return scores
 
 
 def training_terms(net, model, parts, batch, unrolled: bool) -> dict:
@@ -357,8 +359,9 @@ def train(cfg, run_dir) -> dict:
             print(f"step {done}/{steps} {prefix} loss {stats[0]:.4g} data_fit {stats[1]:.4g} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
         if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
-            log_validation(writer, parts, model, val_set, device, done,
-                           unrolled and isinstance(model, UnrolledMomentum))
+            scores = log_validation(writer, parts, model, val_set, device, done,
+                                    unrolled and isinstance(model, UnrolledMomentum))
+            print(f"step {done}/{steps} val loss {scores['loss']:.4g} ssim {scores['ssim']:.4f}", flush=True)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
             save_checkpoint(checkpoint, model, optimizer, done)
     metrics = {"model": str(cfg.model.name), "steps": steps, "resumed_from": start, "world_size": world,

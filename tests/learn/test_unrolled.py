@@ -5,7 +5,7 @@ import torch
 
 from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
 from indreg.deform.kernel import GaussianKernel
-from indreg.learn import MomentumUNet, UnrolledMomentum
+from indreg.learn import MomentumUNet, UnrolledMomentum, indirect_gradient
 
 
 def _problem(n=8, angles=3, num_steps=2, batch=2, seed=0):
@@ -131,14 +131,18 @@ def test_start_stop_and_calibration():
 
 
 def test_checkpointed_updates_keep_less_for_backward():
+    """Memory: a checkpointed update keeps its inputs only; a detached gradient keeps no graph at all."""
     loss, template, fbp, data = _problem(n=16, angles=4)
+    m = torch.zeros(2, 2, 16, 16, dtype=torch.float64, requires_grad=True)
+    grad, deformed = indirect_gradient(loss, m, template, data)
+    assert grad.grad_fn is None and deformed.grad_fn is None and loss.shooting.checkpoint
 
     def saved(checkpoint):
         torch.manual_seed(0)
         scheme = UnrolledMomentum(loss, num_updates=3, width=8, levels=2, checkpoint=checkpoint).double()
         total = []
         with torch.autograd.graph.saved_tensors_hooks(lambda t: total.append(t.numel()) or t, lambda t: t):
-            scheme(template, fbp, data)
+            scheme.update(0, m, grad, deformed, template, fbp)
         return sum(total)
 
     assert saved(True) * 4 < saved(False)
