@@ -6,7 +6,8 @@ TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``,
 CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
 ``model=unrolled``: ``UnrolledMomentum``, ``K`` learned updates through the indirect gradient from the one-shot
 network's ``m_0``; steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps
-``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr``, the one-shot network fixed,
+``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr`` with a cosine decay, the
+one-shot network fixed,
 ``gradient_scale`` calibrated on the first training samples when they start). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
@@ -123,6 +124,14 @@ def schedule(cfg) -> tuple:
         return steps, steps
     first = steps if str(cfg.model.init) == "oneshot" else 0
     return first, first + int(cfg.model.steps)
+
+
+def learning_rate(cfg, step: int, first: int, total: int) -> float:
+    """``train.lr`` for the one-shot steps; for the unrolled steps ``model.lr`` on a cosine decay to zero (a function
+    of the step only: exact resume)."""
+    if step < first or str(cfg.model.name) != "unrolled":
+        return float(cfg.train.lr)
+    return float(cfg.model.lr) * 0.5 * (1 + math.cos(math.pi * (step - first) / max(1, total - first)))
 
 
 def network_input(batch: dict) -> torch.Tensor:
@@ -338,7 +347,7 @@ def train(cfg, run_dir) -> dict:
             calibration = gather(train_set, torch.arange(min(size, len(train_set))), device)
             model.calibrate(calibration["template"], calibration["fbp"], calibration["data"])
         for group in optimizer.param_groups:
-            group["lr"] = float(cfg.model.lr if unrolled else cfg.train.lr)
+            group["lr"] = learning_rate(cfg, step, first, steps)
         idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
         batch = gather(train_set, idx, device)
         terms = training_terms(net, model, parts, batch, unrolled)
