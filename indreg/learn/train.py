@@ -1,14 +1,14 @@
 """Training of a learned initial momentum (rem:AltLDDMM): ``Lambda_Theta(template, FBP(g)) = m0``.
 
-``model=oneshot`` (default): the network (``MomentumUNet``) is trained with the indirect loss ``||T(W(m0, I)) - g||^2 + gamma <m0, K m0>``
-(``IndirectShootingLoss``) on a seeded synthetic data set (``SyntheticDeformationDataset``), logs to
-TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``, DDP: gloo on CPU, nccl on
-CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
+``model=oneshot`` (default): the network (``MomentumUNet``) is trained with the indirect loss
+``||T(W(m0, I)) - g||^2 + gamma <m0, K m0>`` (``IndirectShootingLoss``) on a seeded synthetic data set
+(``SyntheticDeformationDataset``), logs to TensorBoard, checkpoints and resumes, runs data parallel
+(``torch.distributed``, DDP: gloo on CPU, nccl on CUDA; start with ``torchrun``), and at the end compares with
+per-sample Algorithm 1 on held-out samples.
 ``model=unrolled``: ``UnrolledMomentum``, ``K`` learned updates through the indirect gradient from the one-shot
 network's ``m_0``; steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps
 ``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr`` with a cosine decay, the
-one-shot network fixed,
-``gradient_scale`` calibrated on the first training samples when they start). The benchmark
+one-shot network fixed, ``gradient_scale`` calibrated on the first training samples when they start). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
@@ -363,8 +363,8 @@ def train(cfg, run_dir) -> dict:
             prefix = "unrolled" if unrolled and isinstance(model, UnrolledMomentum) else "train"
             for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
                 writer.add_scalar(f"{prefix}/{name}", value, done)
-            writer.add_scalar(f"{prefix}/ssim", float(np.mean([ssim(d, t) for d, t in
-                                                               zip(terms["deformed"].detach(), batch["target"])])), done)
+            scores = [ssim(d, t) for d, t in zip(terms["deformed"].detach(), batch["target"])]
+            writer.add_scalar(f"{prefix}/ssim", float(np.mean(scores)), done)
             print(f"step {done}/{steps} {prefix} loss {stats[0]:.4g} data_fit {stats[1]:.4g} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
         if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
