@@ -17,6 +17,9 @@ TINY = ["domain.n=16", "geometry.num_angles=6", "geometry.det_count=24", "shooti
         "data.num_train=8", "data.num_val=2", "model.width=4", "model.levels=2", "train.batch_size=2",
         "train.log_every=1", "train.eval_every=2", "train.checkpoint_every=1", "eval.algorithm1.max_iter=2",
         "device=cpu"]
+UNROLLED = ["model=unrolled", "model.update_width=4", "model.update_levels=1", "model.updates=2", "train.steps=2"]
+METRICS = {"ssim", "psnr", "residual", "min_jacobian", "min_jacobian_worst", "seconds_per_sample", "num_samples",
+           "per_sample_ssim"}
 
 
 def run(run_dir, *overrides, launcher=(sys.executable,)):
@@ -67,14 +70,18 @@ def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
 
 
 @pytest.mark.slow
-def test_ddp_two_processes_keep_replicas_identical(tmp_path):
+@pytest.mark.parametrize("model", ["oneshot", "unrolled"])
+def test_ddp_two_processes_keep_replicas_identical(tmp_path, model):
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
-    metrics = run(tmp_path, "train.steps=3", "eval.algorithm1.num_samples=0", launcher=torchrun)
+    extra = (*UNROLLED, "model.steps=2", "eval.ood.num_angles=[]", "eval.ood.snr_db=[]",
+             "eval.ood.phantoms=[]") if model == "unrolled" else ("train.steps=3",)
+    metrics = run(tmp_path, *extra, "eval.algorithm1.num_samples=0", launcher=torchrun)
     assert metrics["world_size"] == 2
     assert metrics["replica_max_abs_diff"] == 0.0
-    assert parameters(tmp_path)["model"]["head.weight"].abs().sum() > 0
+    head = "updates.1.head.weight" if model == "unrolled" else "head.weight"
+    assert parameters(tmp_path)["model"][head].abs().sum() > 0
     _, steps = scalars(tmp_path, "train/loss")
-    assert steps == [1, 2, 3]
+    assert steps == ([1, 2] if model == "unrolled" else [1, 2, 3])
 
 
 @pytest.mark.slow
@@ -88,10 +95,6 @@ def test_damaged_checkpoint_ends_in_one_line(tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert lines[-1].startswith("indreg-train-momentum: error: checkpoint") and "Traceback" not in proc.stderr
 
-
-UNROLLED = ["model=unrolled", "model.update_width=4", "model.update_levels=1", "model.updates=2", "train.steps=2"]
-METRICS = {"ssim", "psnr", "residual", "min_jacobian", "min_jacobian_worst", "seconds_per_sample", "num_samples",
-           "per_sample_ssim"}
 
 
 def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path):
