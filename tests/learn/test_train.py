@@ -128,3 +128,22 @@ def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path):
     assert c["model"]["updates.1.head.weight"].abs().sum() > 0 and c["model"]["gradient_scale"] > 0
     first_phase = parameters(tmp_path / "a")["model"]            # the one-shot network is fixed while updates train
     assert torch.equal(first_phase["initial.head.weight"], c["model"]["initial.head.weight"])
+
+
+def test_schedule_and_learning_rate_of_the_two_phases():
+    from omegaconf import OmegaConf
+
+    from indreg.learn import train
+
+    cfg = train.base_config(["model=unrolled"])
+    cfg.train.steps, cfg.model.steps = 10, 4
+    assert train.schedule(cfg) == (10, 14)
+    lrs = [train.learning_rate(cfg, s, 10, 14) for s in range(14)]
+    assert lrs[:10] == [cfg.train.lr] * 10 and lrs[10] == cfg.model.lr
+    assert all(a > b > 0 for a, b in zip(lrs[10:], lrs[11:]))         # cosine decay over the unrolled steps
+    cfg.model.init = "zero"                                           # from m_0 = 0: no one-shot phase
+    assert train.schedule(cfg) == (0, 4)
+    oneshot = train.base_config()
+    oneshot.train.steps = 7
+    assert train.schedule(oneshot) == (7, 7) and train.learning_rate(oneshot, 5, 7, 7) == oneshot.train.lr
+    assert OmegaConf.to_container(oneshot.model) == {"name": "oneshot", "width": 16, "levels": 3}
