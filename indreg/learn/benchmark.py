@@ -21,11 +21,15 @@ import torch
 
 from ..deform.lddmm import LDDMMDeformation
 from ..forward.fbp import fbp
+from ..forward.geometry import ParallelBeamGeometry
+from ..forward.ray_transform import RayTransform
 from ..metrics import psnr, ssim
+from .dataset import SyntheticDeformationDataset
+from .loss import IndirectShootingLoss
 from .unrolled import UnrolledMomentum
 
-__all__ = ["algorithm1_scheme", "evaluate_schemes", "network_momentum", "network_scheme", "physics", "score",
-           "summarise"]
+__all__ = ["algorithm1_scheme", "evaluate", "evaluate_schemes", "network_momentum", "network_scheme", "ood_sets",
+           "physics", "score", "summarise"]
 
 
 def network_momentum(model, template: torch.Tensor, fbp_image: torch.Tensor, data, num_updates=None):
@@ -115,3 +119,58 @@ def evaluate_schemes(schemes: dict, parts: dict, dataset, device, ray=None, coun
         if rows:
             out[name] = summarise(rows, seconds)
     return out
+
+
+def ood_sets(cfg, parts: dict, dtype) -> dict:
+    """``{name: (dataset, ray transform)}``: the held-out set with one change each (``eval.ood``)."""
+    ood, common = cfg.eval.ood, dict(displacement=float(cfg.data.displacement),
+                                     smoothness=float(cfg.data.smoothness), dtype=dtype,
+                                     seed=2 * int(cfg.data.seed) + 1)
+    count, snr = int(cfg.data.num_val), float(cfg.data.snr_db)
+    variants = {f"angles_{a}": (int(a), snr, None) for a in ood.num_angles}
+    variants.update({f"snr_{s:g}": (int(cfg.geometry.num_angles), float(s), None) for s in ood.snr_db})
+    if len(ood.phantoms):
+        variants["phantoms"] = (int(cfg.geometry.num_angles), snr, list(ood.phantoms))
+    out = {}
+    for name, (angles, snr_db, templates) in variants.items():
+        ray = RayTransform(parts["domain"], ParallelBeamGeometry.paper(angles, int(cfg.geometry.det_count)))
+        out[name] = (SyntheticDeformationDataset(parts["shooting"], ray, count, snr_db=snr_db, templates=templates,
+                                                 **common), ray)
+    return out
+
+
+def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
+    """The benchmark: ``network`` (the trained model), ``schemes`` and ``ood`` (``indreg.learn.benchmark``)."""
+    name, shooting = str(cfg.model.name), parts["shooting"]
+    schemes = {}
+    if not isinstance(model, UnrolledMomentum) or model.initial is not None:
+        schemes["oneshot"] = network_scheme(model, shooting, 0)
+    if isinstance(model, UnrolledMomentum):
+        schemes["unrolled"] = network_scheme(model, shooting)
+    alg1 = int(cfg.eval.algorithm1.num_samples)
+    if alg1 > 0:
+        schemes["algorithm1"] = algorithm1_scheme(cfg, parts, int(cfg.eval.algorithm1.max_iter))
+    counts = {"algorithm1": alg1}
+    results = evaluate_schemes(schemes, parts, val_set, device, counts=counts)
+    if "oneshot" in schemes and "unrolled" in schemes:        # the cheap alternative: a warm-started Algorithm 1
+        iterations = {model.num_updates}
+        if alg1 > 0:
+            per_iteration = results["algorithm1"]["seconds_per_sample"] / int(cfg.eval.algorithm1.max_iter)
+            extra = results["unrolled"]["seconds_per_sample"] - results["oneshot"]["seconds_per_sample"]
+            iterations.add(max(1, round(extra / per_iteration)))
+        warm = {f"oneshot+algorithm1_{k}": algorithm1_scheme(cfg, parts, k, model) for k in sorted(iterations)}
+        results.update(evaluate_schemes(warm, parts, val_set, device))
+        schemes.update(warm)
+    ood = {}
+    for variant, (dataset, ray) in ood_sets(cfg, parts, dtype).items():
+        with physics(model, IndirectShootingLoss(shooting, ray, float(cfg.train.gamma))):
+            ood[variant] = evaluate_schemes(schemes, parts, dataset, device, ray, counts)
+    network = dict(results["unrolled" if name == "unrolled" else "oneshot"])
+    network["template_ssim"] = float(np.mean([ssim(t, f) for t, f in zip(val_set.tensors["template"],
+                                                                          val_set.tensors["target"])]))
+    metrics = {"network": network, "schemes": results, "ood": ood}
+    if alg1 > 0:
+        count = results["algorithm1"]["num_samples"]        # the network on the same samples, side by side
+        metrics["algorithm1"] = dict(results["algorithm1"], network_ssim_same_samples=float(
+            np.mean(network["per_sample_ssim"][:count])))
+    return metrics

@@ -33,20 +33,22 @@ import json
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.distributed as dist
 
+from .._checks import check_finite, check_int
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
 from ..experiments import checkpoint as ckpt
-from ..forward.fbp import fbp
 from ..forward.geometry import ParallelBeamGeometry
 from ..forward.ray_transform import RayTransform
 from ..metrics import ssim
+from ..phantoms import ndim as get_phantom_ndim
 from . import benchmark as bench
 from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
@@ -109,12 +111,28 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
     return train, val
 
 
-def check_model(cfg) -> None:
-    """The model's options that Hydra does not check (a ``ValueError`` naming the key)."""
+def check_config(cfg) -> None:
+    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
+    ``init`` and ``gradient`` and the lists of ``eval.ood``."""
     if str(cfg.model.name) == "unrolled":
         for key, allowed in (("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
+    ood = cfg.eval.ood
+    for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
+        if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
+            raise ValueError(f"eval.ood.{key} must be a list (e.g. {example}, or []), got {ood[key]!r}")
+    try:
+        for value in ood.num_angles:
+            check_int(value, "eval.ood.num_angles", 1)
+        for value in ood.snr_db:
+            check_finite(value, "eval.ood.snr_db")
+        for name in ood.phantoms:
+            if get_phantom_ndim(str(name)) != 2:
+                raise ValueError(f"{name!r} is a 3D phantom and the training is 2D")
+    except (TypeError, ValueError) as e:
+        message = str(e) if str(e).startswith("eval.ood") else f"eval.ood.phantoms: {e}"
+        raise ValueError(message) from None
 
 
 def schedule(cfg) -> tuple:
@@ -177,61 +195,6 @@ def predict(model, shooting, batch: dict, num_updates=None) -> torch.Tensor:
     with torch.no_grad():
         m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
         return shooting(m0, batch["template"])
-
-
-def ood_sets(cfg, parts: dict, dtype) -> dict:
-    """``{name: (dataset, ray transform)}``: the held-out set with one change each (``eval.ood``)."""
-    ood, common = cfg.eval.ood, dict(displacement=float(cfg.data.displacement),
-                                     smoothness=float(cfg.data.smoothness), dtype=dtype,
-                                     seed=2 * int(cfg.data.seed) + 1)
-    count, snr = int(cfg.data.num_val), float(cfg.data.snr_db)
-    variants = {f"angles_{a}": (int(a), snr, None) for a in ood.num_angles}
-    variants.update({f"snr_{s:g}": (int(cfg.geometry.num_angles), float(s), None) for s in ood.snr_db})
-    if len(ood.phantoms):
-        variants["phantoms"] = (int(cfg.geometry.num_angles), snr, list(ood.phantoms))
-    out = {}
-    for name, (angles, snr_db, templates) in variants.items():
-        ray = RayTransform(parts["domain"], ParallelBeamGeometry.paper(angles, int(cfg.geometry.det_count)))
-        out[name] = (SyntheticDeformationDataset(parts["shooting"], ray, count, snr_db=snr_db, templates=templates,
-                                                 **common), ray)
-    return out
-
-
-def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
-    """The benchmark: ``network`` (the trained model), ``schemes`` and ``ood`` (``indreg.learn.benchmark``)."""
-    name, shooting = str(cfg.model.name), parts["shooting"]
-    schemes = {}
-    if not isinstance(model, UnrolledMomentum) or model.initial is not None:
-        schemes["oneshot"] = bench.network_scheme(model, shooting, 0)
-    if isinstance(model, UnrolledMomentum):
-        schemes["unrolled"] = bench.network_scheme(model, shooting)
-    alg1 = int(cfg.eval.algorithm1.num_samples)
-    if alg1 > 0:
-        schemes["algorithm1"] = bench.algorithm1_scheme(cfg, parts, int(cfg.eval.algorithm1.max_iter))
-    counts = {"algorithm1": alg1}
-    results = bench.evaluate_schemes(schemes, parts, val_set, device, counts=counts)
-    if "oneshot" in schemes and "unrolled" in schemes:        # the cheap alternative: a warm-started Algorithm 1
-        iterations = {model.num_updates}
-        if alg1 > 0:
-            per_iteration = results["algorithm1"]["seconds_per_sample"] / int(cfg.eval.algorithm1.max_iter)
-            extra = results["unrolled"]["seconds_per_sample"] - results["oneshot"]["seconds_per_sample"]
-            iterations.add(max(1, round(extra / per_iteration)))
-        warm = {f"oneshot+algorithm1_{k}": bench.algorithm1_scheme(cfg, parts, k, model) for k in sorted(iterations)}
-        results.update(bench.evaluate_schemes(warm, parts, val_set, device))
-        schemes.update(warm)
-    ood = {}
-    for variant, (dataset, ray) in ood_sets(cfg, parts, dtype).items():
-        with bench.physics(model, IndirectShootingLoss(shooting, ray, float(cfg.train.gamma))):
-            ood[variant] = bench.evaluate_schemes(schemes, parts, dataset, device, ray, counts)
-    network = dict(results["unrolled" if name == "unrolled" else "oneshot"])
-    network["template_ssim"] = float(np.mean([ssim(t, f) for t, f in zip(val_set.tensors["template"],
-                                                                          val_set.tensors["target"])]))
-    metrics = {"network": network, "schemes": results, "ood": ood}
-    if alg1 > 0:
-        count = results["algorithm1"]["num_samples"]        # the network on the same samples, side by side
-        metrics["algorithm1"] = dict(results["algorithm1"], network_ssim_same_samples=float(
-            np.mean(network["per_sample_ssim"][:count])))
-    return metrics
 
 
 def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: str = ""):
@@ -378,7 +341,7 @@ def train(cfg, run_dir) -> dict:
                "replica_max_abs_diff": replica_difference(model, world)}
     if rank == 0:
         t1 = time.perf_counter()
-        metrics.update(evaluate(cfg, parts, model, val_set, device, dtype))
+        metrics.update(bench.evaluate(cfg, parts, model, val_set, device, dtype))
         metrics["eval_seconds"] = time.perf_counter() - t1
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
         heldout_figure(model, parts, val_set, device, title=f"held-out examples after {steps} steps: mean SSIM "
@@ -436,7 +399,7 @@ def main() -> None:
     from ..experiments import cli
     from ..experiments.config import CONFIG_DIR
 
-    cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_model, base=base_config(sys.argv[1:]))
+    cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 
 

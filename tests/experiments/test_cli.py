@@ -40,7 +40,7 @@ def _register_error(capsys, argv) -> str:
 
 def _train_error(capsys, argv) -> str:
     line = _preflight_error(capsys, cli.preflight, argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME,
-                            train.check_model, train.base_config(argv))
+                            train.check_config, train.base_config(argv))
     assert line.startswith("indreg-train-momentum: error: ")
     return line
 
@@ -137,7 +137,7 @@ def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for argv in (["train.steps=3", "domain.n=16"], ["model=unrolled", "model.steps=3", "model.gradient=exact"]):
         argv = [*argv, f"hydra.run.dir={tmp_path / 'run'}"]
-        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_model,
+        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
                       train.base_config(argv))
     assert not any(tmp_path.iterdir())
     assert cli.compose(register.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 3
@@ -148,9 +148,16 @@ def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
     (["model=unet"], "Could not find 'model/unet' Available options in 'model': oneshot"),
     (["model=unrolled", "model.init=random"], "model.init must be one of oneshot, zero, got 'random'"),
     (["model=unrolled", "model.gradient=double"], "model.gradient must be one of detached, exact, got 'double'"),
+    (["eval.ood.num_angles=[6,0]"], "eval.ood.num_angles must be an integer >= 1, got 0"),
+    (["eval.ood.num_angles=[6.5]"], "eval.ood.num_angles must be an integer >= 1, got 6.5"),
+    (["eval.ood.num_angles=6"], "eval.ood.num_angles must be a list (e.g. [6, 20], or []), got 6"),
+    (["eval.ood.snr_db=[inf]"], "eval.ood.snr_db must be a finite number"),
+    (["eval.ood.phantoms=[j,w]"], "eval.ood.phantoms: unknown phantom 'w'; valid names: j, v,"),
+    (["eval.ood.phantoms=[shepp_logan_3d]"], "eval.ood.phantoms: 'shepp_logan_3d' is a 3D phantom"),
 ])
 def test_train_momentum_models(capsys, argv, message):
-    """model=oneshot | unrolled: the keys of the chosen model only, an unknown model or option in one line."""
+    """model=oneshot | unrolled: the keys of the chosen model only; an unknown model, a bad option of the model or
+    of eval.ood: one line, before anything runs."""
     line = _train_error(capsys, argv)
     assert message in line
 
