@@ -1,9 +1,15 @@
 """Training of a learned initial momentum (rem:AltLDDMM): ``Lambda_Theta(template, FBP(g)) = m0``.
 
-The network (``MomentumUNet``) is trained with the indirect loss ``||T(W(m0, I)) - g||^2 + gamma <m0, K m0>``
-(``IndirectShootingLoss``) on a seeded synthetic data set (``SyntheticDeformationDataset``), logs to
-TensorBoard, checkpoints and resumes, runs data parallel (``torch.distributed``, DDP: gloo on CPU, nccl on
-CUDA; start with ``torchrun``), and at the end compares with per-sample Algorithm 1 on held-out samples.
+``model=oneshot`` (default): the network (``MomentumUNet``) is trained with the indirect loss
+``||T(W(m0, I)) - g||^2 + gamma <m0, K m0>`` (``IndirectShootingLoss``) on a seeded synthetic data set
+(``SyntheticDeformationDataset``), logs to TensorBoard, checkpoints and resumes, runs data parallel
+(``torch.distributed``, DDP: gloo on CPU, nccl on CUDA; start with ``torchrun``), and at the end compares with
+per-sample Algorithm 1 on held-out samples.
+``model=unrolled``: ``UnrolledMomentum``, ``K`` learned updates through the indirect gradient from the one-shot
+network's ``m_0``; steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps
+``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr`` with a cosine decay, the
+one-shot network fixed, ``gradient_scale`` calibrated on the first training samples when they start). The benchmark
+(``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
 ``torchrun --standalone --nproc_per_node=2 -m indreg.learn.train ...`` for DDP.
@@ -15,7 +21,10 @@ replicas stay identical (checked at the end: ``replica_max_abs_diff`` in ``metri
 
 Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/data_fit``,
 ``train/regulariser``, ``train/ssim``, ``val/ssim``, ``val/loss``, images ``val/template``, ``val/fbp``,
-``val/target``, ``val/prediction``), ``checkpoint.pt`` (model, optimizer, step, RNG), ``metrics.json``,
+``val/target``, ``val/prediction``; while the unrolled updates train, ``unrolled/loss``, ``unrolled/data_fit``,
+``unrolled/regulariser``, ``unrolled/ssim`` instead of ``train/*``, and ``val/ssim_update_<k>``, images
+``val/update_<k>``, the deformed template after ``k`` updates), ``checkpoint.pt`` (model, optimizer, step, RNG),
+``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``: out of distribution),
 ``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in the domain's units).
 """
 from __future__ import annotations
@@ -24,27 +33,32 @@ import json
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.distributed as dist
 
+from .._checks import check_finite, check_int
 from ..deform.kernel import GaussianKernel
-from ..deform.lddmm import LDDMMDeformation
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
 from ..experiments import checkpoint as ckpt
-from ..forward.fbp import fbp
 from ..forward.geometry import ParallelBeamGeometry
 from ..forward.ray_transform import RayTransform
 from ..metrics import ssim
+from ..phantoms import ndim as get_phantom_ndim
+from . import benchmark as bench
 from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
+from .unrolled import GRADIENTS, UnrolledMomentum
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 RESUME_HINT = "delete it or run without train.resume=true"
+INITS = ("oneshot", "zero")
+MODEL_DIR = Path(__file__).resolve().parent / "conf" / "model"      # the options of model=<name>
 
 
 # ------------------------------------------------------------------ set-up
@@ -78,6 +92,10 @@ def build(cfg, device, dtype) -> dict:
     scale = float(cfg.data.displacement) / (2 * math.pi * float(cfg.kernel.sigma) ** 2)
     torch.manual_seed(int(cfg.seed))      # same initial weights on every rank (DDP also broadcasts rank 0's)
     model = MomentumUNet(2, int(cfg.model.width), int(cfg.model.levels), momentum_scale=scale)
+    if str(cfg.model.name) == "unrolled":
+        m = cfg.model
+        model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
+                                 model if str(m.init) == "oneshot" else None, scale, str(m.gradient))
     return {"domain": domain, "kernel": kernel, "shooting": shooting, "ray": ray, "loss": loss,
             "model": model.to(device=device, dtype=dtype)}
 
@@ -91,6 +109,47 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
     val = SyntheticDeformationDataset(parts["shooting"], parts["ray"], int(cfg.data.num_val),
                                       seed=2 * int(cfg.data.seed) + 1, **common)
     return train, val
+
+
+def check_config(cfg) -> None:
+    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
+    ``init`` and ``gradient`` and the lists of ``eval.ood``."""
+    if str(cfg.model.name) == "unrolled":
+        for key, allowed in (("init", INITS), ("gradient", GRADIENTS)):
+            if str(cfg.model[key]) not in allowed:
+                raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
+    ood = cfg.eval.ood
+    for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
+        if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
+            raise ValueError(f"eval.ood.{key} must be a list (e.g. {example}, or []), got {ood[key]!r}")
+    try:
+        for value in ood.num_angles:
+            check_int(value, "eval.ood.num_angles", 1)
+        for value in ood.snr_db:
+            check_finite(value, "eval.ood.snr_db")
+        for name in ood.phantoms:
+            if get_phantom_ndim(str(name)) != 2:
+                raise ValueError(f"{name!r} is a 3D phantom and the training is 2D")
+    except (TypeError, ValueError) as e:
+        message = str(e) if str(e).startswith("eval.ood") else f"eval.ood.phantoms: {e}"
+        raise ValueError(message) from None
+
+
+def schedule(cfg) -> tuple:
+    """``(first, total)``: steps ``[0, first)`` train the one-shot network, ``[first, total)`` the unrolled updates."""
+    steps = int(cfg.train.steps)
+    if str(cfg.model.name) != "unrolled":
+        return steps, steps
+    first = steps if str(cfg.model.init) == "oneshot" else 0
+    return first, first + int(cfg.model.steps)
+
+
+def learning_rate(cfg, step: int, first: int, total: int) -> float:
+    """``train.lr`` for the one-shot steps; for the unrolled steps ``model.lr`` on a cosine decay to zero (a function
+    of the step only: exact resume)."""
+    if step < first or str(cfg.model.name) != "unrolled":
+        return float(cfg.train.lr)
+    return float(cfg.model.lr) * 0.5 * (1 + math.cos(math.pi * (step - first) / max(1, total - first)))
 
 
 def network_input(batch: dict) -> torch.Tensor:
@@ -131,50 +190,11 @@ def load_checkpoint(path: Path, model, optimizer) -> int:
 
 
 # ------------------------------------------------------------------ evaluation
-def predict(model, shooting, batch: dict) -> torch.Tensor:
-    """Deformed templates ``W(Lambda(template, fbp), template)``, ``(B, nx, ny)``, no gradient."""
+def predict(model, shooting, batch: dict, num_updates=None) -> torch.Tensor:
+    """Deformed templates ``W(m0, template)`` of the network's ``m0`` (``bench.network_momentum``), no gradient."""
     with torch.no_grad():
-        return shooting(model(network_input(batch)), batch["template"])
-
-
-def evaluate_network(model, parts: dict, dataset, device) -> dict:
-    """SSIM of the shot template against the ground truth and seconds per sample (FBP + net + shooting)."""
-    scores, seconds = [], 0.0
-    for i in range(len(dataset)):
-        item = gather(dataset, torch.tensor([i]), device)
-        start = time.perf_counter()
-        with torch.no_grad():
-            item["fbp"] = fbp(parts["ray"], item["data"])
-            deformed = predict(model, parts["shooting"], item)
-        seconds += time.perf_counter() - start
-        scores.append(ssim(deformed[0], item["target"][0]))
-    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / len(dataset), "per_sample_ssim": scores,
-            "template_ssim": float(np.mean([ssim(dataset.tensors["template"][i], dataset.tensors["target"][i])
-                                            for i in range(len(dataset))]))}
-
-
-def evaluate_algorithm1(cfg, parts: dict, dataset, device, dtype) -> dict:
-    """Per-sample Algorithm 1 (``indreg.solvers``) from zero momentum: mean SSIM and seconds per sample."""
-    from ..solvers import Algorithm1, IndirectRegistration, SolverState
-
-    count = min(int(cfg.eval.algorithm1.num_samples), len(dataset))
-    deformation = LDDMMDeformation(parts["domain"], int(cfg.shooting.num_steps), str(cfg.shooting.action))
-    scores, seconds = [], 0.0
-    for i in range(count):
-        template = dataset.tensors["template"][i].to(device, dtype)
-        data = dataset.tensors["data"][i].to(device, dtype)
-        problem = IndirectRegistration(parts["ray"], deformation, parts["kernel"], template, data,
-                                       gamma=float(cfg.eval.algorithm1.gamma))
-        state = SolverState(momentum=problem.zero_momentum(), iteration=0)
-        solver = Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size),
-                            max_iter=int(cfg.eval.algorithm1.max_iter))
-        start = time.perf_counter()
-        solver.run(state)
-        result = problem.deformed(state.momentum)
-        seconds += time.perf_counter() - start
-        scores.append(ssim(result, dataset.tensors["target"][i]))
-    return {"ssim": float(np.mean(scores)), "seconds_per_sample": seconds / count, "num_samples": count,
-            "per_sample_ssim": scores}
+        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
+        return shooting(m0, batch["template"])
 
 
 def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: str = ""):
@@ -206,10 +226,14 @@ def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: s
     return fig
 
 
-def validation_loss(loss_fn, model, dataset, device) -> float:
+def validation(parts: dict, model, dataset, device, num_updates=None) -> dict:
+    """Held-out ``loss`` and mean ``ssim`` of the network stopped after ``num_updates`` updates (batched)."""
     batch = gather(dataset, torch.arange(len(dataset)), device)
     with torch.no_grad():
-        return float(loss_fn(model(network_input(batch)), batch["template"], batch["data"]))
+        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
+        terms = parts["loss"].terms(m0, batch["template"], batch["data"])
+    return {"loss": float(terms["loss"].mean()), "ssim": float(np.mean([ssim(d, t) for d, t in zip(
+        terms["deformed"], batch["target"])]))}
 
 
 def replica_difference(model, world: int) -> float:
@@ -225,13 +249,33 @@ def replica_difference(model, world: int) -> float:
 
 
 # ------------------------------------------------------------------ training
-def log_images(writer, dataset, model, parts, device, step: int) -> None:
+def log_validation(writer, parts, model, dataset, device, step: int, unrolled: bool) -> dict:
+    """Scalars ``val/loss``, ``val/ssim`` and images of sample 0; while the updates train, also
+    ``val/ssim_update_<k>`` and ``val/update_<k>`` after ``k = 0..K`` updates. Returns the scalars."""
+    updates = None if unrolled else 0
+    scores = validation(parts, model, dataset, device, updates)
+    for name, value in scores.items():
+        writer.add_scalar(f"val/{name}", value, step)
     item = gather(dataset, torch.tensor([0]), device)
     images = {"template": item["template"][0], "fbp": item["fbp"][0], "target": item["target"][0],
-              "prediction": predict(model, parts["shooting"], item)[0]}
+              "prediction": predict(model, parts["shooting"], item, updates)[0]}
+    if unrolled:
+        for k in range(model.num_updates + 1):
+            writer.add_scalar(f"val/ssim_update_{k}", validation(parts, model, dataset, device, k)["ssim"], step)
+            images[f"update_{k}"] = predict(model, parts["shooting"], item, k)[0]
     for name, image in images.items():
         a = torch.rot90(image.detach().float().cpu(), 1, (0, 1)).clamp(0.0, 1.0)
         writer.add_image(f"val/{name}", a[None], step, dataformats="CHW")
+    return scores
+
+
+def training_terms(net, model, parts, batch, unrolled: bool) -> dict:
+    """The loss terms of a batch: the one-shot network's ``m0``, or the unrolled scheme's ``m_K``."""
+    if isinstance(model, UnrolledMomentum):
+        m0 = net(batch["template"], batch["fbp"], batch["data"], None if unrolled else 0)
+    else:
+        m0 = net(network_input(batch))
+    return parts["loss"].terms(m0, batch["template"], batch["data"])
 
 
 def train(cfg, run_dir) -> dict:
@@ -250,18 +294,26 @@ def train(cfg, run_dir) -> dict:
     checkpoint = run_dir / "checkpoint.pt"
     start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
-    if world > 1:
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
+    if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
+                                                        find_unused_parameters=isinstance(model, UnrolledMomentum))
     writer = None
     if rank == 0:
         from torch.utils.tensorboard import SummaryWriter
         writer = SummaryWriter(str(run_dir / "tensorboard"), purge_step=start + 1)  # drop stale events
-    steps, size = int(cfg.train.steps), int(cfg.train.batch_size)
+    first, steps = schedule(cfg)
+    size = int(cfg.train.batch_size)
     t0 = time.perf_counter()
     for step in range(start, steps):
+        unrolled = step >= first
+        if unrolled and step == first and isinstance(model, UnrolledMomentum):
+            calibration = gather(train_set, torch.arange(min(size, len(train_set))), device)
+            model.calibrate(calibration["template"], calibration["fbp"], calibration["data"])
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(cfg, step, first, steps)
         idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
         batch = gather(train_set, idx, device)
-        terms = parts["loss"].terms(net(network_input(batch)), batch["template"], batch["data"])
+        terms = training_terms(net, model, parts, batch, unrolled)
         optimizer.zero_grad(set_to_none=True)
         terms["loss"].mean().backward()
         optimizer.step()
@@ -271,35 +323,33 @@ def train(cfg, run_dir) -> dict:
             dist.all_reduce(stats)
             stats /= world
         if rank == 0 and (done % int(cfg.train.log_every) == 0 or done == steps):
+            prefix = "unrolled" if unrolled and isinstance(model, UnrolledMomentum) else "train"
             for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
-                writer.add_scalar(f"train/{name}", value, done)
-            writer.add_scalar("train/ssim", float(np.mean([ssim(d, t) for d, t in
-                                                           zip(terms["deformed"].detach(), batch["target"])])), done)
-            print(f"step {done}/{steps} loss {stats[0]:.4g} data_fit {stats[1]:.4g} "
+                writer.add_scalar(f"{prefix}/{name}", value, done)
+            scores = [ssim(d, t) for d, t in zip(terms["deformed"].detach(), batch["target"])]
+            writer.add_scalar(f"{prefix}/ssim", float(np.mean(scores)), done)
+            print(f"step {done}/{steps} {prefix} loss {stats[0]:.4g} data_fit {stats[1]:.4g} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
         if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
-            writer.add_scalar("val/loss", validation_loss(parts["loss"], model, val_set, device), done)
-            writer.add_scalar("val/ssim", evaluate_network(model, parts, val_set, device)["ssim"], done)
-            log_images(writer, val_set, model, parts, device, done)
+            scores = log_validation(writer, parts, model, val_set, device, done,
+                                    unrolled and isinstance(model, UnrolledMomentum))
+            print(f"step {done}/{steps} val loss {scores['loss']:.4g} ssim {scores['ssim']:.4f}", flush=True)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
             save_checkpoint(checkpoint, model, optimizer, done)
-    metrics = {"steps": steps, "resumed_from": start, "world_size": world,
+    metrics = {"model": str(cfg.model.name), "steps": steps, "resumed_from": start, "world_size": world,
                "train_seconds": time.perf_counter() - t0,
                "replica_max_abs_diff": replica_difference(model, world)}
     if rank == 0:
-        metrics["network"] = evaluate_network(model, parts, val_set, device)
-        if int(cfg.eval.algorithm1.num_samples) > 0:
-            metrics["algorithm1"] = evaluate_algorithm1(cfg, parts, val_set, device, dtype)
-            count = metrics["algorithm1"]["num_samples"]      # the network on the same samples, side by side
-            metrics["algorithm1"]["network_ssim_same_samples"] = float(
-                np.mean(metrics["network"]["per_sample_ssim"][:count]))
+        t1 = time.perf_counter()
+        metrics.update(bench.evaluate(cfg, parts, model, val_set, device, dtype))
+        metrics["eval_seconds"] = time.perf_counter() - t1
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
         heldout_figure(model, parts, val_set, device, title=f"held-out examples after {steps} steps: mean SSIM "
                        f"{metrics['network']['ssim']:.3f} (template {metrics['network']['template_ssim']:.3f})"
                        ).savefig(run_dir / "figure.png", dpi=100)
         writer.close()
         (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        print(json.dumps(metrics, indent=2), flush=True)
+        print(json.dumps({k: v for k, v in metrics.items() if k != "ood"}, indent=2), flush=True)
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()
@@ -322,14 +372,20 @@ def _task(cfg) -> None:
         cli.exit_error(PROG, str(e))
 
 
-def base_config():
-    """``train_momentum.yaml`` without Hydra's section: every key this app reads (it has no config groups)."""
+def base_config(overrides=()):
+    """``train_momentum.yaml`` without Hydra's sections, the model chosen by ``model=<name>`` in ``overrides``
+    (default ``oneshot``, ``indreg/learn/conf/model/``) under ``model``: every key this app reads. An unknown model
+    gets no keys (the composition then names the options)."""
     from omegaconf import OmegaConf
 
     from ..experiments.config import CONFIG_DIR
 
     cfg = OmegaConf.load(CONFIG_DIR / f"{CONFIG_NAME}.yaml")
     cfg.pop("hydra")
+    cfg.pop("defaults")
+    name = next((o.split("=", 1)[1] for o in overrides if o.startswith("model=")), "oneshot")
+    path = MODEL_DIR / f"{name}.yaml"
+    cfg.model = OmegaConf.load(path) if path.is_file() else {}
     return cfg
 
 
@@ -343,7 +399,7 @@ def main() -> None:
     from ..experiments import cli
     from ..experiments.config import CONFIG_DIR
 
-    cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, base=base_config())
+    cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 
 

@@ -40,7 +40,7 @@ def _register_error(capsys, argv) -> str:
 
 def _train_error(capsys, argv) -> str:
     line = _preflight_error(capsys, cli.preflight, argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME,
-                            None, train.base_config())
+                            train.check_config, train.base_config(argv))
     assert line.startswith("indreg-train-momentum: error: ")
     return line
 
@@ -135,9 +135,31 @@ def test_train_momentum_refuses_keys_it_does_not_have(capsys, override, message)
 
 def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    cli.preflight(["train.steps=3", "domain.n=16", f"hydra.run.dir={tmp_path / 'run'}"], train.PROG,
-                  register.CONFIG_DIR, train.CONFIG_NAME, base=train.base_config())
+    for argv in (["train.steps=3", "domain.n=16"], ["model=unrolled", "model.steps=3", "model.gradient=exact"]):
+        argv = [*argv, f"hydra.run.dir={tmp_path / 'run'}"]
+        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
+                      train.base_config(argv))
     assert not any(tmp_path.iterdir())
+    assert cli.compose(register.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 3
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["model.steps=3"], "has no key 'model.steps'; the keys of 'model' are name, width, levels"),
+    (["model=unet"], "Could not find 'model/unet' Available options in 'model': oneshot"),
+    (["model=unrolled", "model.init=random"], "model.init must be one of oneshot, zero, got 'random'"),
+    (["model=unrolled", "model.gradient=double"], "model.gradient must be one of detached, exact, got 'double'"),
+    (["eval.ood.num_angles=[6,0]"], "eval.ood.num_angles must be an integer >= 1, got 0"),
+    (["eval.ood.num_angles=[6.5]"], "eval.ood.num_angles must be an integer >= 1, got 6.5"),
+    (["eval.ood.num_angles=6"], "eval.ood.num_angles must be a list (e.g. [6, 20], or []), got 6"),
+    (["eval.ood.snr_db=[inf]"], "eval.ood.snr_db must be a finite number"),
+    (["eval.ood.phantoms=[j,w]"], "eval.ood.phantoms: unknown phantom 'w'; valid names: j, v,"),
+    (["eval.ood.phantoms=[shepp_logan_3d]"], "eval.ood.phantoms: 'shepp_logan_3d' is a 3D phantom"),
+])
+def test_train_momentum_models(capsys, argv, message):
+    """model=oneshot | unrolled: the keys of the chosen model only; an unknown model, a bad option of the model or
+    of eval.ood: one line, before anything runs."""
+    line = _train_error(capsys, argv)
+    assert message in line
 
 
 # ---------------------------------------------------------------- indreg-sweep-table

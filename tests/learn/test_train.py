@@ -17,6 +17,9 @@ TINY = ["domain.n=16", "geometry.num_angles=6", "geometry.det_count=24", "shooti
         "data.num_train=8", "data.num_val=2", "model.width=4", "model.levels=2", "train.batch_size=2",
         "train.log_every=1", "train.eval_every=2", "train.checkpoint_every=1", "eval.algorithm1.max_iter=2",
         "device=cpu"]
+UNROLLED = ["model=unrolled", "model.update_width=4", "model.update_levels=1", "model.updates=2", "train.steps=2"]
+METRICS = {"ssim", "psnr", "residual", "min_jacobian", "min_jacobian_worst", "seconds_per_sample", "num_samples",
+           "per_sample_ssim"}
 
 
 def run(run_dir, *overrides, launcher=(sys.executable,)):
@@ -67,14 +70,18 @@ def test_run_logs_checkpoints_and_resumes_exactly(tmp_path):
 
 
 @pytest.mark.slow
-def test_ddp_two_processes_keep_replicas_identical(tmp_path):
+@pytest.mark.parametrize("model", ["oneshot", "unrolled"])
+def test_ddp_two_processes_keep_replicas_identical(tmp_path, model):
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
-    metrics = run(tmp_path, "train.steps=3", "eval.algorithm1.num_samples=0", launcher=torchrun)
+    extra = (*UNROLLED, "model.steps=2", "eval.ood.num_angles=[]", "eval.ood.snr_db=[]",
+             "eval.ood.phantoms=[]") if model == "unrolled" else ("train.steps=3",)
+    metrics = run(tmp_path, *extra, "eval.algorithm1.num_samples=0", launcher=torchrun)
     assert metrics["world_size"] == 2
     assert metrics["replica_max_abs_diff"] == 0.0
-    assert parameters(tmp_path)["model"]["head.weight"].abs().sum() > 0
+    head = "updates.1.head.weight" if model == "unrolled" else "head.weight"
+    assert parameters(tmp_path)["model"][head].abs().sum() > 0
     _, steps = scalars(tmp_path, "train/loss")
-    assert steps == [1, 2, 3]
+    assert steps == ([1, 2] if model == "unrolled" else [1, 2, 3])
 
 
 @pytest.mark.slow
@@ -87,3 +94,56 @@ def test_damaged_checkpoint_ends_in_one_line(tmp_path):
     assert proc.returncode == 1
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert lines[-1].startswith("indreg-train-momentum: error: checkpoint") and "Traceback" not in proc.stderr
+
+
+
+def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path):
+    """model=unrolled: the one-shot steps, then the updates (own scalars and images), every scheme in metrics.json
+    in and out of distribution, and a resume inside the unrolled phase gives the uninterrupted run's weights."""
+    first = run(tmp_path / "a", *UNROLLED, "model.steps=1", "eval.algorithm1.num_samples=1")
+    assert first["model"] == "unrolled" and first["steps"] == 3
+    schemes = first["schemes"]
+    assert {"oneshot", "unrolled", "algorithm1", "oneshot+algorithm1_2"} <= set(schemes)
+    assert all(METRICS <= set(m) and 0 <= m["ssim"] <= 1 and m["seconds_per_sample"] > 0 for m in schemes.values())
+    assert schemes["algorithm1"]["num_samples"] == 1 and schemes["unrolled"]["num_samples"] == 2
+    assert first["network"]["per_sample_ssim"] == schemes["unrolled"]["per_sample_ssim"]
+    assert set(first["ood"]) == {"angles_6", "angles_20", "snr_5", "phantoms"}
+    assert all(set(schemes) == set(variant) for variant in first["ood"].values())
+    acc, steps = scalars(tmp_path / "a", "train/loss")
+    assert steps == [1, 2] and [e.step for e in acc.Scalars("unrolled/loss")] == [3]
+    assert {"val/update_0", "val/update_2"} <= set(acc.Tags()["images"])
+    assert [e.step for e in acc.Scalars("val/ssim_update_2")] == [3]
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+
+    quick = ("eval.algorithm1.num_samples=0", "eval.ood.num_angles=[]", "eval.ood.snr_db=[]", "eval.ood.phantoms=[]")
+    resumed = run(tmp_path / "b", *UNROLLED, "model.steps=3", *quick)
+    assert resumed["resumed_from"] == 3 and resumed["ood"] == {} and "algorithm1" not in resumed
+    acc, _ = scalars(tmp_path / "b", "train/loss")
+    assert [e.step for e in acc.Scalars("unrolled/loss")] == [3, 4, 5]
+    run(tmp_path / "c", *UNROLLED, "model.steps=3", *quick)
+    b, c = parameters(tmp_path / "b"), parameters(tmp_path / "c")
+    assert b["step"] == c["step"] == 5
+    for name, value in c["model"].items():
+        torch.testing.assert_close(b["model"][name], value, rtol=1e-6, atol=1e-7)
+    assert c["model"]["updates.1.head.weight"].abs().sum() > 0 and c["model"]["gradient_scale"] > 0
+    first_phase = parameters(tmp_path / "a")["model"]            # the one-shot network is fixed while updates train
+    assert torch.equal(first_phase["initial.head.weight"], c["model"]["initial.head.weight"])
+
+
+def test_schedule_and_learning_rate_of_the_two_phases():
+    from omegaconf import OmegaConf
+
+    from indreg.learn import train
+
+    cfg = train.base_config(["model=unrolled"])
+    cfg.train.steps, cfg.model.steps = 10, 4
+    assert train.schedule(cfg) == (10, 14)
+    lrs = [train.learning_rate(cfg, s, 10, 14) for s in range(14)]
+    assert lrs[:10] == [cfg.train.lr] * 10 and lrs[10] == cfg.model.lr
+    assert all(a > b > 0 for a, b in zip(lrs[10:], lrs[11:]))         # cosine decay over the unrolled steps
+    cfg.model.init = "zero"                                           # from m_0 = 0: no one-shot phase
+    assert train.schedule(cfg) == (0, 4)
+    oneshot = train.base_config()
+    oneshot.train.steps = 7
+    assert train.schedule(oneshot) == (7, 7) and train.learning_rate(oneshot, 5, 7, 7) == oneshot.train.lr
+    assert OmegaConf.to_container(oneshot.model) == {"name": "oneshot", "width": 16, "levels": 3}

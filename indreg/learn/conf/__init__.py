@@ -1,0 +1,1 @@
+"""Config groups of indreg-train-momentum (``model=oneshot`` | ``model=unrolled``), on its Hydra search path."""
