@@ -16,6 +16,7 @@ Built in:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
@@ -72,7 +73,7 @@ def _slabwise(problem, o: dict):
         return problem
     axis = T.geometry.axis
     slab_size = o["slab_size"] or choose_slab_size(problem.image_domain.shape, axis, template.element_size(),
-                                                   o["max_memory"], template.device)
+                                                   o["max_memory"], template.device, math.prod(problem.momentum_shape))
     if group is None and slab_size >= problem.image_domain.shape[axis]:
         return problem
     return SlabwiseRegistration(T, W, problem.kernel, template, problem.data, problem.gamma, problem.tv_weight,

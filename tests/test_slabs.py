@@ -59,6 +59,7 @@ def test_slabwise_gradient_equals_the_whole_volume_one(action, tilt_axis, slab_s
     assert float((h_s - h_w).norm() / h_w.norm()) < 1e-12
     assert slabs.evaluate(m)["objective"] == pytest.approx(whole.evaluate(m)["objective"], rel=1e-12)
     torch.testing.assert_close(slabs.deformed(m), whole.deformed(m), rtol=0, atol=1e-12)
+    torch.testing.assert_close(slabs.trajectory(m), whole.trajectory(m), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("threads", [1, 2])

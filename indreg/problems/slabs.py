@@ -85,17 +85,19 @@ def available_memory(device) -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def choose_slab_size(shape: tuple, axis: int, itemsize: int, max_memory: int | None = None, device="cpu") -> int:
+def choose_slab_size(shape: tuple, axis: int, itemsize: int, max_memory: int | None = None, device="cpu",
+                     velocity_numel: int = 0) -> int:
     """Fine slices per slab: all of them (the whole-volume path) when a whole gradient
     (``WHOLE_BYTES_PER_VOXEL``) fits in ``max_memory``, else as many as a slab's working set
-    (``SLAB_BYTES_PER_VOXEL``) allows in what the template and data leave (at least 1). ``max_memory`` None:
-    half of ``available_memory(device)``."""
+    (``SLAB_BYTES_PER_VOXEL``) allows in what the template, the run's volume and 8 velocity-sized coarse arrays
+    (``velocity_numel`` values each: momentum, velocity, record, gradient, the solver's trial and the kernel's
+    buffers) leave (at least 1). ``max_memory`` None: half of ``available_memory(device)``."""
     budget = available_memory(device) // 2 if max_memory is None else int(max_memory)
     voxels = math.prod(shape)
-    if WHOLE_BYTES_PER_VOXEL * itemsize * voxels <= budget:
+    fixed = (2 * voxels + 8 * velocity_numel) * itemsize
+    if WHOLE_BYTES_PER_VOXEL * itemsize * voxels + fixed <= budget:
         return shape[axis]
     per_slice = SLAB_BYTES_PER_VOXEL * itemsize * voxels // shape[axis]
-    fixed = 2 * itemsize * voxels          # the template and what the run loop keeps of the volume
     return max(1, min(shape[axis], (budget - fixed) // per_slice))
 
 
@@ -171,7 +173,7 @@ class SlabwiseRegistration(IndirectRegistration):
         n = self.image_domain.shape[self.axis]
         if slab_size is None:
             slab_size = choose_slab_size(self.image_domain.shape, self.axis, template.element_size(), max_memory,
-                                         template.device)
+                                         template.device, math.prod(self.momentum_shape))
         if isinstance(slab_size, bool) or not isinstance(slab_size, int) or slab_size < 1:
             raise ValueError(f"slab_size must be an integer >= 1 (fine slices per slab), got {slab_size!r}")
         self.slab_size = min(slab_size, -(-n // self.world))
@@ -273,14 +275,25 @@ class SlabwiseRegistration(IndirectRegistration):
         out["objective"] = out["data_fit"] + out["regulariser"]
         return out
 
+    def _assemble(self, out: torch.Tensor, u: torch.Tensor, jac) -> torch.Tensor:
+        """``out`` filled slab by slab with ``I o (Id + P u)`` (times ``P J``): every slab, no communication."""
+        for start, stop in self.slab_ranges:
+            out.narrow(self.axis, start, stop - start).copy_(self._slab(u, jac, start, stop, None)[1])
+        return out
+
     def deformed(self, m: torch.Tensor) -> torch.Tensor:
-        """``W(K m, I)``, assembled slab by slab (every rank computes all slabs: no communication)."""
+        """``W(K m, I)``, assembled slab by slab."""
         with torch.no_grad():
             slots, jac, _ = self._flow(self.velocity(m))
-            out = torch.empty_like(self.template)
-            for start, stop in self.slab_ranges:
-                f = self._slab(slots[-1], None if jac is None else jac[-1], start, stop, None)[1]
-                out.narrow(self.axis, start, stop - start).copy_(f)
+            return self._assemble(torch.empty_like(self.template), slots[-1], None if jac is None else jac[-1])
+
+    def trajectory(self, m: torch.Tensor) -> torch.Tensor:
+        """``W(K m, I)(t_i)`` for i = 0..N, ``(N+1, *shape)``, each assembled slab by slab."""
+        with torch.no_grad():
+            slots, jac, _ = self._flow(self.velocity(m))
+            out = self.template.new_empty(slots.shape[0], *self.template.shape)
+            for i in range(slots.shape[0]):
+                self._assemble(out[i], slots[i], None if jac is None else jac[i])
             return out
 
     def l2_gradient(self, m: torch.Tensor) -> tuple:
