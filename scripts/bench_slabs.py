@@ -207,8 +207,7 @@ def table_whole(a) -> dict:
         for variant in rows:
             cmd = [__file__, "--child", "gradient", "--n", str(a.n), "--factor", str(a.factor), "--steps",
                    str(a.steps), "--reps", str(a.reps), "--device", a.device]
-            if variant == "slab":
-                cmd += ["--slab-size", str(a.slab_size)]
+            cmd += ["--slab-size", str(a.slab_size if variant == "slab" else 0)]     # 0: whole volume
             rows[variant].append(_json(_spawn(cmd, a.threads)))
     w, s = ({k: statistics.median(r[k] for r in rows[v]) for k in ("seconds", "peak_gib")} for v in rows)
     slab = rows["slab"][-1]
