@@ -254,9 +254,9 @@ def _distributed(cfg: DictConfig, output_dir) -> tuple:
 
 def _check_split(problem) -> None:
     """One line when several processes run a registration that is not split between them."""
-    from ..problems.slabs import SlabwiseRegistration, _default_group
+    from ..problems.slabs import SlabwiseRegistration, default_group
 
-    group = _default_group()
+    group = default_group()
     if group is not None and not isinstance(problem, SlabwiseRegistration):
         import torch.distributed as dist
         raise ConfigError(f"{dist.get_world_size(group)} processes (torchrun) need a registration that splits into "

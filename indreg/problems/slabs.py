@@ -39,7 +39,7 @@ from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
 
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
-           "process_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL", "WHOLE_BYTES_PER_VOXEL"]
+           "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL", "WHOLE_BYTES_PER_VOXEL"]
 
 #: Working set of a slab per fine voxel, in scalars of the run's dtype (displacement, grid, warped image, its
 #: gradient, the grid's slope and its planar copy: ``docs/3d.md``, "Slab-wise").
@@ -168,7 +168,7 @@ class SlabwiseRegistration(IndirectRegistration):
         if reason is not None:
             raise ValueError(f"the data term cannot be evaluated slab-wise: {reason}")
         self.axis = ray_transform.geometry.axis
-        self.group = _default_group() if group is None else (None if group is False else group)
+        self.group = default_group() if group is None else (None if group is False else group)
         self.rank, self.world = _rank_world(self.group)
         n = self.image_domain.shape[self.axis]
         if slab_size is None:
@@ -331,7 +331,7 @@ class SlabwiseRegistration(IndirectRegistration):
         return t
 
 
-def _default_group():
+def default_group():
     """The default process group when ``torch.distributed`` is initialised with more than one rank, else None."""
     import torch.distributed as dist
     if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
