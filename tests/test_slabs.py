@@ -144,3 +144,23 @@ def test_refusals_and_bad_slab_size():
         SlabwiseRegistration(*args, slab_size=0)
     with pytest.raises(ValueError, match="cannot be evaluated slab-wise: tv_weight > 0"):
         SlabwiseRegistration(*args, tv_weight=0.1, slab_size=2)
+
+
+def test_one_process_has_no_group(monkeypatch):
+    """``distributed`` None or True without torchrun (``WORLD_SIZE`` unset or 1): one process, no group."""
+    from indreg.problems.slabs import process_group
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    assert process_group(None, "cpu") is None and process_group(True, "cpu") is None
+    assert process_group(False, "cpu") is None
+    args, _ = _parts()
+    p = SlabwiseRegistration(*args, slab_size=5)
+    assert (p.rank, p.world, list(p.own)) == (0, 1, [0, 1, 2]) and p.slab_ranges == [(0, 5), (5, 10), (10, 12)]
+    assert p.allreduce_bytes == (3 * 8 * 6 * 4 + 1) * 8
+
+
+def test_ranks_own_contiguous_balanced_shares():
+    from indreg.problems.slabs import _share
+    for count, world in ((7, 3), (8, 2), (5, 5), (64, 8)):
+        shares = [_share(count, r, world) for r in range(world)]
+        assert [i for s in shares for i in s] == list(range(count))
+        assert max(map(len, shares)) - min(map(len, shares)) <= 1
