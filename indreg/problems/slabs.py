@@ -33,7 +33,7 @@ from ..deform.coarse import CoarseVelocityDeformation
 from ..deform.functional.backward import ExactRecord, _displacement_sweep, _displacements_into
 from ..deform.functional.coarse import upsample, upsample_adjoint
 from ..deform.functional.flows import _Steps, jacobian_trajectory
-from ..deform.functional.sampling import _sample_adjoint, sample
+from ..deform.functional.sampling import _planewise_applies, _planewise_sample, _sample_adjoint, sample
 from ..forward.ray_transform import _matmul
 from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
@@ -89,12 +89,12 @@ def choose_slab_size(shape: tuple, axis: int, itemsize: int, max_memory: int | N
                      velocity_numel: int = 0) -> int:
     """Fine slices per slab: all of them (the whole-volume path) when a whole gradient
     (``WHOLE_BYTES_PER_VOXEL``) fits in ``max_memory``, else as many as a slab's working set
-    (``SLAB_BYTES_PER_VOXEL``) allows in what the template, the run's volume and 8 velocity-sized coarse arrays
-    (``velocity_numel`` values each: momentum, velocity, record, gradient, the solver's trial and the kernel's
-    buffers) leave (at least 1). ``max_memory`` None: half of ``available_memory(device)``."""
+    (``SLAB_BYTES_PER_VOXEL``) allows in what the template (twice: the plane-wise sampler's padded copy), the run's
+    volume and 8 velocity-sized coarse arrays (``velocity_numel`` values each: momentum, velocity, record, gradient,
+    the solver's trial and the kernel's buffers) leave (at least 1). ``max_memory`` None: half of ``available_memory(device)``."""
     budget = available_memory(device) // 2 if max_memory is None else int(max_memory)
     voxels = math.prod(shape)
-    fixed = (2 * voxels + 8 * velocity_numel) * itemsize
+    fixed = (3 * voxels + 8 * velocity_numel) * itemsize
     if WHOLE_BYTES_PER_VOXEL * itemsize * voxels + fixed <= budget:
         return shape[axis]
     per_slice = SLAB_BYTES_PER_VOXEL * itemsize * voxels // shape[axis]
@@ -186,6 +186,7 @@ class SlabwiseRegistration(IndirectRegistration):
             * template.element_size()
         self._coords = [(2.0 * (x - a) / e - 1.0) for x, a, e in zip(self.image_domain.axes(template.dtype,
                         template.device), self.image_domain.min_pt, self.image_domain.extent)]
+        self._padded = None   # the template with a zero plane either side along x, for the plane-wise sampler
 
     def __repr__(self):
         return (super().__repr__()[:-1] + f", slab_size={self.slab_size}, slabs={len(self.slab_ranges)}, "
@@ -211,6 +212,18 @@ class SlabwiseRegistration(IndirectRegistration):
             torch.add(w[k], coord.view([-1 if j == k else 1 for j in range(d)]), out=grid[..., d - 1 - k])
         return grid
 
+    def _sample(self, grid: torch.Tensor) -> torch.Tensor:
+        """``I`` at the slab's points ``grid (*slab, d)``: plane by plane where ``sample`` would be (one CPU
+        thread, a slab across y or z), from one padded copy of the template kept for all slabs, else ``sample``."""
+        f = self.template[None, None]
+        if _planewise_applies(f, grid[None]):
+            if self._padded is None:
+                self._padded = torch.nn.functional.pad(f, (0, 0, 0, 0, 1, 1))
+            out = _planewise_sample(f, grid[None], "zeros", self._padded)
+            if out is not None:
+                return out[0, 0]
+        return sample(self.template.unsqueeze(0), grid, "zeros").squeeze(0)
+
     def _project(self, f: torch.Tensor) -> torch.Tensor:
         """``A`` slice by slice: ``f (*slab)`` -> ``(n, num_tilts, det_cols)``."""
         slices = f.movedim(self.axis, 0)
@@ -228,7 +241,7 @@ class SlabwiseRegistration(IndirectRegistration):
         ``dL/du_N``, ``dL/dJ_N`` or None) its share of the gradient added into them."""
         fine, coarse = self.image_domain.shape, self.domain.shape
         grid = self._grid(upsample_rows(u_n, fine, self.axis, start, stop), start, stop)
-        image = sample(self.template.unsqueeze(0), grid, "zeros").squeeze(0)
+        image = self._sample(grid)
         pj = None if jac_n is None else upsample_rows(jac_n.unsqueeze(0), fine, self.axis, start, stop).squeeze(0)
         f = image if pj is None else pj * image
         residual = self._project(f).sub_(self.data.narrow(1, start, stop - start).movedim(1, 0))

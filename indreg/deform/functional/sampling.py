@@ -161,7 +161,8 @@ def _planewise_applies(f: torch.Tensor, grid: torch.Tensor) -> bool:
         and torch.get_num_threads() == 1
 
 
-def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> torch.Tensor | None:
+def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str,
+                      padded: torch.Tensor | None = None) -> torch.Tensor | None:
     """``grid_sample(f, grid, "bilinear", padding_mode, align_corners=False)`` for ``f (B, C, nx, ny, nz)`` and
     ``grid (B, nx, my, mz, 3)``, or None when some point lies more than a cell along x from its own plane.
 
@@ -172,7 +173,9 @@ def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) ->
     stencil applied to the bilinear interpolations, at the point's ``(y, z)``, of the planes ``i-1, i, i+1``
     (zero planes beyond the domain; ``"border"`` never weights them). Those are one batched 2D
     ``grid_sample`` (vectorised on a CPU): batch ``i``, channels the three planes (a strided view, no copy
-    but the x padding). The same values as the 3D ``grid_sample`` up to rounding.
+    but the x padding). The same values as the 3D ``grid_sample`` up to rounding. ``padded``: ``f`` with a zero
+    plane before and after along x, ``(B, C, nx+2, ny, nz)``, where the caller keeps one (no copy per call: the
+    slabs of ``indreg.problems.slabs`` sample one template many times).
     """
     _, c, nx, ny, nz = f.shape
     g = grid[..., 2]
@@ -188,8 +191,9 @@ def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) ->
     weights = (behind, torch.rsub(behind, 1).sub_(ahead), ahead)  # (B, nx, 1, ny, nz)
     out = f.new_empty((*f.shape[:-2], *grid.shape[-3:-1]))
     for b in range(f.shape[0]):
-        padded = F.pad(f[b], (0, 0, 0, 0, 1, 1)).movedim(0, 1).contiguous()  # (nx+2, C, ny, nz)
-        planes = padded.as_strided((nx, 3 * c, ny, nz), (c * ny * nz, ny * nz, nz, 1))
+        fb = F.pad(f[b], (0, 0, 0, 0, 1, 1)) if padded is None else padded[b]
+        fb = fb.movedim(0, 1).contiguous()  # (nx+2, C, ny, nz): no copy for C = 1
+        planes = fb.as_strided((nx, 3 * c, ny, nz), (c * ny * nz, ny * nz, nz, 1))
         bilinear = F.grid_sample(planes, grid[b, ..., :2], mode="bilinear", padding_mode=padding_mode,
                                  align_corners=False).unflatten(1, (3, c))  # (nx, 3, C, ny, nz)
         target = out[b].movedim(0, 1)
