@@ -39,11 +39,15 @@ from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
 
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
-           "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL", "WHOLE_BYTES_PER_VOXEL"]
+           "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL",
+           "WHOLE_BYTES_PER_VOXEL", "SLABS_PER_RANK"]
 
 #: Working set of a slab per fine voxel, in scalars of the run's dtype (displacement, grid, warped image, its
 #: gradient, the grid's slope and its planar copy: ``docs/3d.md``, "Slab-wise").
 SLAB_BYTES_PER_VOXEL = 20
+#: Slabs a rank gets at least when the slab size is automatic (smaller slabs cost no time: 8 slabs of 32 slices at
+#: 256^3 ran as fast as the whole volume, ``scripts/bench_slabs.py``).
+SLABS_PER_RANK = 4
 #: Peak of a whole-volume gradient per fine voxel, in scalars (190 bytes per voxel measured in float32 at 256^3).
 WHOLE_BYTES_PER_VOXEL = 48
 
@@ -91,7 +95,8 @@ def choose_slab_size(shape: tuple, axis: int, itemsize: int, max_memory: int | N
     (``WHOLE_BYTES_PER_VOXEL``) fits in ``max_memory``, else as many as a slab's working set
     (``SLAB_BYTES_PER_VOXEL``) allows in what the template (twice: the plane-wise sampler's padded copy), the run's
     volume and 8 velocity-sized coarse arrays (``velocity_numel`` values each: momentum, velocity, record, gradient,
-    the solver's trial and the kernel's buffers) leave (at least 1). ``max_memory`` None: half of ``available_memory(device)``."""
+    the solver's trial and the kernel's buffers) leave (at least 1). ``max_memory`` None: half of
+    ``available_memory(device)``."""
     budget = available_memory(device) // 2 if max_memory is None else int(max_memory)
     voxels = math.prod(shape)
     fixed = (3 * voxels + 8 * velocity_numel) * itemsize
@@ -153,8 +158,9 @@ class SlabwiseRegistration(IndirectRegistration):
             ``IndirectRegistration``; ``ray_transform`` a ``TiltSeriesTransform``, ``deformation`` a
             ``CoarseVelocityDeformation`` with ``backward="exact"``, ``tv_weight`` 0 (``slab_refusal``: a
             ``ValueError`` with its reason otherwise).
-        slab_size: fine slices per slab (None: ``choose_slab_size`` from ``max_memory``; in a group of ``k``
-            ranks at most ``ceil(n / k)``, so that every rank has slabs).
+        slab_size: fine slices per slab (None: ``choose_slab_size`` from ``max_memory``, and at least
+            ``SLABS_PER_RANK`` slabs a rank; in a group of ``k`` ranks at most ``ceil(n / k)``, so that every rank has
+            slabs).
         max_memory: bytes for a gradient's working set (None: half the free memory of the template's device).
 
     ``slab_ranges`` / ``own``: all slabs and the indices of this rank's (contiguous, balanced); ``allreduce_bytes``:
@@ -171,9 +177,10 @@ class SlabwiseRegistration(IndirectRegistration):
         self.group = default_group() if group is None else (None if group is False else group)
         self.rank, self.world = _rank_world(self.group)
         n = self.image_domain.shape[self.axis]
-        if slab_size is None:
-            slab_size = choose_slab_size(self.image_domain.shape, self.axis, template.element_size(), max_memory,
-                                         template.device, math.prod(self.momentum_shape))
+        if slab_size is None:   # automatic: at least SLABS_PER_RANK slabs a rank
+            slab_size = min(choose_slab_size(self.image_domain.shape, self.axis, template.element_size(),
+                                             max_memory, template.device, math.prod(self.momentum_shape)),
+                            -(-n // (SLABS_PER_RANK * self.world)))
         if isinstance(slab_size, bool) or not isinstance(slab_size, int) or slab_size < 1:
             raise ValueError(f"slab_size must be an integer >= 1 (fine slices per slab), got {slab_size!r}")
         self.slab_size = min(slab_size, -(-n // self.world))
