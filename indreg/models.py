@@ -77,7 +77,8 @@ def _slabwise(problem, o: dict):
     if group is None and slab_size >= problem.image_domain.shape[axis]:
         return problem
     return SlabwiseRegistration(T, W, problem.kernel, template, problem.data, problem.gamma, problem.tv_weight,
-                                problem.tv_smoothing, slab_size, group=group if group is not None else False)
+                                problem.tv_smoothing, o["slab_size"], o["max_memory"],
+                                group=group if group is not None else False)
 
 
 def _coarse_velocity(kernel, o: dict) -> tuple:

@@ -180,6 +180,16 @@ def child_cli(overrides) -> None:
                                         "wall_s": time.perf_counter() - t0}), file=sys.stderr, flush=True)
 
     atexit.register(report)
+    from indreg.experiments import runner
+    finish = runner.finish
+
+    def finish_after_the_loop(*args, **kwargs):   # the peak of the registration, before the outputs
+        with open("/proc/self/status") as f:
+            loop = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 2 ** 20
+        print("LOOPSTAT " + json.dumps({"loop_peak_gib": loop}), file=sys.stderr, flush=True)
+        return finish(*args, **kwargs)
+
+    runner.finish = finish_after_the_loop
     from indreg.experiments.register import main
     sys.argv = ["indreg-register", *overrides]
     main()
@@ -238,38 +248,50 @@ def table_big(a) -> None:
           f"{r['dtype']} |")
 
 
+def _cli(name, threads, launcher, overrides, tmp) -> tuple:
+    """One ``indreg-register`` run: ``(metrics, per-rank stats, slabs per rank x slices)``."""
+    out = Path(tmp) / re.sub(r"\W+", "_", name)
+    proc = _spawn([__file__, "--child", "cli", "--", *overrides, f"hydra.run.dir={out}"], threads, launcher=launcher)
+    if proc.returncode != 0:
+        raise SystemExit(f"{name} failed:\n{proc.stderr[-3000:]}")
+    stats = [json.loads(line.split("RANKSTAT ", 1)[1]) for line in proc.stderr.splitlines() if "RANKSTAT " in line]
+    loop = [json.loads(line.split("LOOPSTAT ", 1)[1]) for line in proc.stderr.splitlines() if "LOOPSTAT " in line]
+    stats = sorted(stats, key=lambda s: s["rank"])
+    stats[0].update(loop[0])     # rank 0 writes the outputs; the others' peak is their loop's
+    split = re.search(r"slab_size=(\d+), slabs=(\d+)", proc.stderr + proc.stdout)
+    slabs = "whole" if split is None else f"{int(split[2]) // len(stats)} x {split[1]}"
+    return json.loads((out / "metrics.json").read_text()), stats, slabs
+
+
 def table_ranks(a, slab) -> None:
     base = ["experiment=suite_et_3d_256", f"solver.max_iter={a.ranks_iters}", "baseline=none",
             "logging.figure=false", "logging.tensorboard=false", "logging.progress=false", "device=cpu"]
-    runs = {}
+    torchrun = (sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2")
     with tempfile.TemporaryDirectory() as tmp:
-        for name, threads, launcher in (
-                ("1 process, 2 threads", 2, (sys.executable,)),
-                ("2 ranks, 1 thread each", 1, (sys.executable, "-m", "torch.distributed.run", "--standalone",
-                                               "--nproc_per_node=2"))):
-            out = Path(tmp) / name.replace(" ", "_").replace(",", "")
-            proc = _spawn([__file__, "--child", "cli", "--", *base, f"hydra.run.dir={out}"], threads,
-                          launcher=launcher)
-            if proc.returncode != 0:
-                raise SystemExit(f"{name} failed:\n{proc.stderr[-3000:]}")
-            stats = [json.loads(line.split("RANKSTAT ", 1)[1]) for line in proc.stderr.splitlines()
-                     if "RANKSTAT " in line]
-            split = re.search(r"slab_size=(\d+), slabs=(\d+)", proc.stderr + proc.stdout)
-            runs[name] = (json.loads((out / "metrics.json").read_text()), sorted(stats, key=lambda s: s["rank"]),
-                          "whole" if split is None else f"{int(split[2]) // len(stats)} x {split[1]}")  # slabs x size
-    (one, one_stats, _), (two, two_stats, _) = runs.values()
+        runs = {name: _cli(name, threads, launcher, base + extra, tmp) for name, threads, launcher, extra in (
+            ("1 process, 2 threads", 2, (sys.executable,), []),
+            ("2 ranks, 1 thread each", 1, torchrun, []),
+            ("1 process, 2 threads, slab-wise", 2, (sys.executable,), ["deformation.slab_size=32"]))}
+    one, one_stats, _ = runs["1 process, 2 threads"]
+    two, two_stats, _ = runs["2 ranks, 1 thread each"]
     print(f"\nsuite_et_3d_256, {a.ranks_iters} iterations, no baselines; load {_load()}\n")
-    print("| run | ranks | slabs per rank | all-reduce / gradient | s / it | per-rank peak GiB | per-rank wall s "
-          "| objective | SSIM |\n|---|---|---|---|---|---|---|---|---|")
+    print("| run | ranks | slabs per rank x slices | all-reduce / gradient | s / it | per-rank peak GiB (rank 0: loop "
+          "/ with the outputs) | per-rank wall s | objective | SSIM |\n|---|---|---|---|---|---|---|---|---|")
     for name, (m, stats, slabs) in runs.items():
         ar = 0 if len(stats) == 1 else (3 * 64 ** 3 + 1) * 4     # dL/du_N on the 64^3 velocity grid, and the fit
+        peaks = [f"{stats[0]['loop_peak_gib']:.2f} / {stats[0]['peak_gib']:.2f}"] + \
+            [f"{s['peak_gib']:.2f}" for s in stats[1:]]
         print(f"| {name} | {len(stats)} | {slabs} | {ar / 2 ** 20:.1f} MiB | {m['seconds_per_iteration']:.2f} | "
-              + ", ".join(f"{s['peak_gib']:.2f}" for s in stats) + " | "
-              + ", ".join(f"{s['wall_s']:.0f}" for s in stats) + f" | {m['objective']:.8g} | {m['ssim']:.4f} |")
-    print(f"\nobjective difference {abs(two['objective'] / one['objective'] - 1):.1e} (relative); peak ratio "
-          f"{max(s['peak_gib'] for s in two_stats) / one_stats[0]['peak_gib']:.2f}; s / it ratio "
+              + ", ".join(peaks) + " | " + ", ".join(f"{s['wall_s']:.0f}" for s in stats)
+              + f" | {m['objective']:.8g} | {m['ssim']:.4f} |")
+    slabwise = runs["1 process, 2 threads, slab-wise"][0]
+    loop_peak = max([two_stats[0]["loop_peak_gib"]] + [s["peak_gib"] for s in two_stats[1:]])
+    print(f"\nobjective: 2 ranks vs 1 process {abs(two['objective'] / one['objective'] - 1):.1e}, vs 1 process "
+          f"slab-wise {abs(two['objective'] / slabwise['objective'] - 1):.1e} (relative, float32); loop peak ratio "
+          f"{loop_peak / one_stats[0]['loop_peak_gib']:.2f}; s / it ratio "
           f"{two['seconds_per_iteration'] / one['seconds_per_iteration']:.2f}")
-    predict(slab, a)
+    if slab is not None:
+        predict(slab, a)
 
 
 def predict(slab, a) -> None:
@@ -310,7 +332,7 @@ def main() -> None:
     if a.child:
         print(json.dumps({"gradient": child_gradient, "big": child_big}[a.child](a)))
         return
-    slab = table_whole(a) if "whole" in a.tables or "ranks" in a.tables else None
+    slab = table_whole(a) if "whole" in a.tables else None
     if "big" in a.tables:
         table_big(a)
     if "ranks" in a.tables:
