@@ -201,7 +201,7 @@ def run(cfg: DictConfig, output_dir) -> dict:
     # a resumed run drops the events an interrupted one logged after its checkpoint
     writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None,
                        float(shown.min()), float(shown.max()), enabled=cfg.logging.tensorboard and rank == 0)
-    if state.iteration == 0:
+    if state.iteration == 0 and writer.enabled:   # rank 0 alone; its SSIM of volumes costs ~1 GiB at 256^3
         writer.image("images/template", exp.template_64, 0)
         if exp.target_64 is not None:
             writer.image("images/target", exp.target_64, 0)
