@@ -151,6 +151,17 @@ class Checkpoints(Callback):
 
 
 def run(cfg: DictConfig, output_dir) -> dict:
+    """:func:`_run`, then the process group (under ``torchrun``) closed on every rank, so that no communication
+    thread outlives the run (gloo's would abort the process at exit)."""
+    try:
+        return _run(cfg, output_dir)
+    finally:
+        import torch.distributed as dist
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def _run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
     The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
