@@ -16,13 +16,14 @@ Built in:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 import torch
 
 from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, choice,  # noqa: F401
+from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
                       is_torch_optim, model, number, optional, register_model)
 
 def get(name: str) -> Model:
@@ -47,7 +48,37 @@ def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
     else:
         W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                              backward=o["backward"] or "paper", interpolation=o["interpolation"])
-    return IndirectRegistration(operator, W, kernel, template, data, o["gamma"], tv_weight=o["tv_weight"]), {}
+    return _slabwise(IndirectRegistration(operator, W, kernel, template, data, o["gamma"], tv_weight=o["tv_weight"]),
+                     o), {}
+
+
+def _slabwise(problem, o: dict):
+    """The problem slab-wise (``SlabwiseRegistration``) when it is split over processes (``distributed``), or when
+    ``slab_size`` / ``max_memory`` (automatic: half the free memory) leave a whole-volume gradient no room; else
+    ``problem`` itself. A split that cannot be made is an ``OptionError`` naming why (whole-volume where the
+    memory bound alone asked for it)."""
+    from .problems.slabs import SlabwiseRegistration, choose_slab_size, process_group, slab_refusal
+
+    T, W, template = problem.ray_transform, problem.deformation, problem.template
+    group = process_group(o["distributed"], template.device)
+    reason = slab_refusal(T, W, problem.tv_weight)
+    if reason is None and o["solver"] != ALGORITHM1:
+        reason = f"solver {o['solver']!r} differentiates by autograd (slab-wise: solver 'algorithm1')"
+    name = "distributed" if group is not None else "slab_size" if o["slab_size"] is not None else None
+    if reason is not None:
+        if name is not None:
+            unset = "None" if name == "slab_size" else "False (one process)"
+            raise OptionError(name, o[name] if name == "slab_size" else True, f"{unset} here: the registration does "
+                              f"not split into slabs along the tilt axis ({reason})")
+        return problem
+    axis = T.geometry.axis
+    slab_size = o["slab_size"] or choose_slab_size(problem.image_domain.shape, axis, template.element_size(),
+                                                   o["max_memory"], template.device, math.prod(problem.momentum_shape))
+    if group is None and slab_size >= problem.image_domain.shape[axis]:
+        return problem
+    return SlabwiseRegistration(T, W, problem.kernel, template, problem.data, problem.gamma, problem.tv_weight,
+                                problem.tv_smoothing, o["slab_size"], o["max_memory"],
+                                group=group if group is not None else False)
 
 
 def _coarse_velocity(kernel, o: dict) -> tuple:
@@ -168,6 +199,17 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
            "the momentum, velocity, kernel and flow on the grid coarsened this many times per axis (it must divide "
            "every axis), phi_{1,0} interpolated to the image's grid (CoarseVelocityDeformation: interpolation "
            "compose, the exact gradient); 1: the image's grid", int, models=("lddmm",)),
+    Option("slab_size", "deformation", "slab_size", None, optional(number(1, integer=True)),
+           "a tilt series with velocity_factor > 1: the data term and its gradient slab by slab, this many slices "
+           "along the tilt axis each (docs/3d.md); None: from max_memory (whole-volume where it fits)",
+           Optional[int], models=("lddmm",)),
+    Option("max_memory", "deformation", "max_memory", None, optional(number(1.0)),
+           "bytes a gradient may take, which sets slab_size when that is None; None: half the free memory",
+           Optional[float], models=("lddmm",)),
+    Option("distributed", "deformation", "distributed", None, optional(boolean),
+           "one registration over the processes of torchrun (torch.distributed: gloo on CPUs, NCCL on GPUs), each "
+           "with its slabs; None: when launched so (WORLD_SIZE > 1); docs/distributed.md", Optional[bool],
+           models=("lddmm",)),
 )))
 #: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults relative to the data term":
 #: measured on the suite-4 missing / extra, suite-3 contrast and limited-angle cases).

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -43,17 +44,21 @@ def resolve_dtype(dtype, template) -> torch.dtype:
 
 
 def resolve_device(device, template=None) -> torch.device:
-    """``None``: the template's device (the CPU for arrays); ``"auto"``: CUDA when available, else the CPU."""
+    """``None``: the template's device (the CPU for arrays); ``"auto"``: CUDA when available, else the CPU. Under
+    ``torchrun`` (``WORLD_SIZE > 1``) ``"cuda"`` / ``"auto"`` is the GPU ``LOCAL_RANK``."""
     if device is None:
         return template.device if isinstance(template, torch.Tensor) else torch.device("cpu")
     if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     try:
         d = torch.device(device)
     except (RuntimeError, TypeError):
         raise ValueError(f"device must be None, 'auto', 'cpu', 'cuda' or 'cuda:<index>', got {device!r}") from None
     if d.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device={device!r} was requested but CUDA is not available")
+    if d.type == "cuda" and d.index is None and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        d = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(d)
     return d
 
 

@@ -30,6 +30,8 @@ log = logging.getLogger("indreg.experiments.register")
 
 # Config keys that may change between an interrupted run and its resumption.
 _RESUMABLE = ("name", "device", "resume", "stop_after", "logging", "baseline")
+# Deformation keys that only split the work (slabs, processes): a run resumes with others.
+_SPLIT = ("slab_size", "max_memory", "distributed")
 
 
 class StopRequest:
@@ -66,6 +68,7 @@ def _problem_config(plain: dict) -> dict:
     """The config keys that define the iterates (all but ``_RESUMABLE`` and ``solver.max_iter``)."""
     out = {k: v for k, v in plain.items() if k not in _RESUMABLE}
     out["solver"] = {k: v for k, v in out["solver"].items() if k != "max_iter"}
+    out["deformation"] = {k: v for k, v in out["deformation"].items() if k not in _SPLIT}
     return out
 
 
@@ -149,6 +152,17 @@ class Checkpoints(Callback):
 
 
 def run(cfg: DictConfig, output_dir) -> dict:
+    """:func:`_run`, then the process group (under ``torchrun``) closed on every rank, so that no communication
+    thread outlives the run (gloo's would abort the process at exit)."""
+    try:
+        return _run(cfg, output_dir)
+    finally:
+        import torch.distributed as dist
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def _run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
     The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
@@ -164,6 +178,7 @@ def run(cfg: DictConfig, output_dir) -> dict:
     from .tblog import RunWriter
 
     validate(cfg, registration=False)   # the registration options: resolved once, by build's setup
+    rank, output_dir = _distributed(cfg, output_dir)
     out = Path(output_dir)
     path = out / "checkpoint.pt"
     ckpt.check_location(path, cfg.resume)
@@ -177,8 +192,9 @@ def run(cfg: DictConfig, output_dir) -> dict:
     except (ValueError, TypeError) as e:  # the operators' input validation
         raise ConfigError(f"invalid configuration: {e}") from e
     problem = exp.problem
+    _check_split(problem)
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
-    rec = baselines(cfg, exp, out)
+    rec = baselines(cfg, exp, out) if rank == 0 else {}
 
     state = initial_state(problem)
     history, seconds = [], 0.0
@@ -196,8 +212,8 @@ def run(cfg: DictConfig, output_dir) -> dict:
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
     # a resumed run drops the events an interrupted one logged after its checkpoint
     writer = RunWriter(out / "tensorboard", state.iteration + 1 if state.iteration > 0 else None,
-                       float(shown.min()), float(shown.max()), enabled=cfg.logging.tensorboard)
-    if state.iteration == 0:
+                       float(shown.min()), float(shown.max()), enabled=cfg.logging.tensorboard and rank == 0)
+    if state.iteration == 0 and writer.enabled:   # rank 0 alone; its SSIM of volumes costs ~1 GiB at 256^3
         writer.image("images/template", exp.template_64, 0)
         if exp.target_64 is not None:
             writer.image("images/target", exp.target_64, 0)
@@ -208,15 +224,21 @@ def run(cfg: DictConfig, output_dir) -> dict:
             writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper), 0)
 
     checkpoints, signals = Checkpoints(path, problem_cfg, cfg.logging.checkpoint_every), Signals()
+    callbacks = StopAfter(cfg.stop_after) & signals
+    if rank == 0:   # outputs and checkpoints once (the iterates are the same on every rank)
+        callbacks = callbacks & TensorBoard(writer) & Evaluation(exp, writer, cfg.logging.every) & checkpoints
     loop = RegistrationLoop(exp.problem, exp.solver, state, cfg.solver.max_iter, every=cfg.logging.every,
-                            progress=cfg.logging.progress, desc=cfg.name, history=history, seconds=seconds,
-                            validation=exp.validation, callbacks=StopAfter(cfg.stop_after) & TensorBoard(writer)
-                            & Evaluation(exp, writer, cfg.logging.every) & checkpoints & signals)
+                            progress=cfg.logging.progress and rank == 0, desc=cfg.name, history=history,
+                            seconds=seconds, validation=exp.validation, callbacks=callbacks)
     try:
         status = loop.run()
     except StepOverflowError as e:   # found only in the run: one line naming the config key
         writer.close()
         raise ConfigError(f"invalid configuration: {e.message(_config_key)}") from None
+    if rank != 0:   # the final evaluation's sum over the ranks, then rank 0 writes
+        if status not in ("failed", "stopped", "interrupted"):
+            problem.evaluate_iterate(state.iterate)
+        return {"status": status, "iteration": state.iteration, "rank": rank}
     if status == "failed":  # keep the last checkpoint: its iterate is finite
         writer.close()
         return failed(out, loop.history)
@@ -235,6 +257,34 @@ def _config_key(option: str) -> str:
     from .. import options
 
     return next((o.config_key for o in options.all_options() if o.name == option), option)
+
+
+def _distributed(cfg: DictConfig, output_dir) -> tuple:
+    """``(rank, output_dir)``: under ``torchrun`` (``WORLD_SIZE > 1``, or ``deformation.distributed``) the process
+    group is started and every rank writes where rank 0 does (Hydra's dated dirs may differ between ranks)."""
+    from ..problems.slabs import process_group
+    from ..run import resolve_device
+
+    group = process_group(cfg.deformation.get("distributed"), resolve_device(cfg.device))
+    if group is None:
+        return 0, output_dir
+    import torch.distributed as dist
+
+    holder = [str(output_dir)]
+    dist.broadcast_object_list(holder, src=0, group=group)
+    return dist.get_rank(group), holder[0]
+
+
+def _check_split(problem) -> None:
+    """One line when several processes run a registration that is not split between them."""
+    from ..problems.slabs import SlabwiseRegistration, default_group
+
+    group = default_group()
+    if group is not None and not isinstance(problem, SlabwiseRegistration):
+        import torch.distributed as dist
+        raise ConfigError(f"{dist.get_world_size(group)} processes (torchrun) need a registration that splits into "
+                          f"slabs (model lddmm, a tilt series, deformation.velocity_factor > 1, solver algorithm1, no "
+                          f"TV): run {type(problem).__name__} in one process")
 
 
 def _read_checkpoint(cfg: DictConfig, path: Path, problem_cfg: dict):

@@ -41,6 +41,17 @@ def test_planewise_equals_grid_sample(padding_mode, dtype, tol):
 
 
 @pytest.mark.parametrize("padding_mode", ("zeros", "border"))
+def test_planewise_samples_a_slab_of_another_grid(padding_mode, one_thread):
+    """The output's x planes those of the input, y and z another range (a slab's points in the whole image)."""
+    f = torch.randn(1, 2, *SHAPE, dtype=torch.float64)
+    grid = grid_of(SHAPE, 1, (0.999, 3.0, 3.0), torch.float64)[:, :, 2:5]
+    assert S._planewise_applies(f, grid)
+    out = S._planewise_sample(f, grid, padding_mode)
+    assert out.shape == (1, 2, 6, 3, 5)
+    torch.testing.assert_close(out, reference(f, grid, padding_mode), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("padding_mode", ("zeros", "border"))
 def test_planewise_at_nodes_and_cell_edges(padding_mode):
     """On the nodes the values themselves; one cell away along x (``s = +-1`` up to rounding: the stencil's edge
     or, past it, the fallback) the neighbour plane (at the domain's edge 0 or the border value)."""

@@ -119,7 +119,8 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
     ``(S^T grad, d<grad, S(f)>/d grid)``, i.e. the scatter of ``grad`` with the interpolation weights
     ``(..., C, *shape)`` and the grid gradient ``(..., *shape, d)`` (reversed order: ``[..., 0]`` = y,
     ``[..., 1]`` = x in 2D, ``[..., 0]`` = z, ``[..., 1]`` = y, ``[..., 2]`` = x in 3D; grid units: the one-sided
-    slope of ``f`` across the cell each point falls in). Either is None when not needed.
+    slope of ``f`` across the cell each point falls in). Either is None when not needed. ``f (..., C, *in_shape)``
+    may be on another grid than ``grad`` (e.g. the whole template for a slab's points).
     ``grid_sampler_2d_backward`` / ``grid_sampler_3d_backward`` parallelise over the batch only: a single
     image on a CPU with ``k`` threads is done as ``k`` bands of rows (as ``sample``), whose ``k`` scatters are
     summed (the same values up to the order of the sums)."""
@@ -127,16 +128,17 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
     batch, (c, *shape) = grad.shape[:-d - 1], grad.shape[-d - 1:]
     if not (need_input or need_grid):
         return None, None
-    grad, f = grad.reshape(-1, c, *shape), f.expand(*batch, c, *shape).reshape(-1, c, *shape)
+    f_shape = f.shape[-d:]
+    grad, f = grad.reshape(-1, c, *shape), f.expand(*batch, c, *f_shape).reshape(-1, c, *f_shape)
     grid, bands = grid.expand(*batch, *shape, d).reshape(-1, *shape, d), _bands(grad, *shape)
     if bands > 1:
-        grad, f, grid = grad.reshape(bands, c, shape[0] // bands, *shape[1:]), f.expand(bands, c, *shape), \
+        grad, f, grid = grad.reshape(bands, c, shape[0] // bands, *shape[1:]), f.expand(bands, c, *f_shape), \
             grid.reshape(bands, shape[0] // bands, *shape[1:], d)
     backward = torch.ops.aten.grid_sampler_2d_backward if d == 2 else torch.ops.aten.grid_sampler_3d_backward
     gi, gg = backward(grad, f, grid, 0, _PADDING[padding_mode], False, [need_input, need_grid])
     if need_input and bands > 1:
         gi = gi.sum(0)
-    return (gi.reshape(*batch, c, *shape) if need_input else None), \
+    return (gi.reshape(*batch, c, *f_shape) if need_input else None), \
         (gg.reshape(*batch, *shape, d) if need_grid else None)
 
 
@@ -144,8 +146,9 @@ def _sample_adjoint(grad: torch.Tensor, f: torch.Tensor, grid: torch.Tensor, pad
 # ----------------------------------------------------------------------------------------------------------
 # trilinear interpolation plane by plane: linear along x of bilinear interpolations in the (y, z) planes
 def _planewise_applies(f: torch.Tensor, grid: torch.Tensor) -> bool:
-    """Whether ``sample`` tries ``_planewise_sample``: 3D on a CPU with one thread, the output on the input's
-    grid (``grid (B, *shape, 3)`` for ``f (B, C, *shape)``).
+    """Whether ``sample`` tries ``_planewise_sample``: 3D on a CPU with one thread, the output's planes along x
+    those of the input (``grid (B, nx, *out, 3)`` for ``f (B, C, nx, ny, nz)``: the whole grid, or a slab across
+    y or z, ``indreg.problems.slabs``).
 
     Measured (``scripts/bench_sampler.py``, median CPU ms, float32, one channel, points up to 0.75 cells away):
     1 thread, 64^3 8.3 (3D ``grid_sample``, a scalar loop) vs 6.0 (plane-wise: its 2D kernel is vectorised),
@@ -154,13 +157,14 @@ def _planewise_applies(f: torch.Tensor, grid: torch.Tensor) -> bool:
     on a GPU its kernels are parallel (not measured here): both keep ``grid_sample``. Where a point moves more
     than a cell along x (large velocity steps: the 3D tilt-series benchmark reaches 3 cells per step at
     N = 10) the check costs one pass (``aminmax``) and ``grid_sample`` runs."""
-    return grid.shape[-1] == 3 and f.device.type == "cpu" and f.shape[-3:] == grid.shape[-4:-1] \
+    return grid.shape[-1] == 3 and f.device.type == "cpu" and f.shape[-3] == grid.shape[-4] \
         and torch.get_num_threads() == 1
 
 
-def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) -> torch.Tensor | None:
+def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str,
+                      padded: torch.Tensor | None = None) -> torch.Tensor | None:
     """``grid_sample(f, grid, "bilinear", padding_mode, align_corners=False)`` for ``f (B, C, nx, ny, nz)`` and
-    ``grid (B, nx, ny, nz, 3)``, or None when some point lies more than a cell along x from its own plane.
+    ``grid (B, nx, my, mz, 3)``, or None when some point lies more than a cell along x from its own plane.
 
     The point of output node ``(i, j, k)`` has the pixel coordinate ``x = ((g_x + 1) nx - 1) / 2`` along x
     (``"border"``: clamped to ``[0, nx-1]``, ``grid_sample``'s clipping). If ``s = x - i`` lies in ``[-1, 1]``,
@@ -169,7 +173,9 @@ def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) ->
     stencil applied to the bilinear interpolations, at the point's ``(y, z)``, of the planes ``i-1, i, i+1``
     (zero planes beyond the domain; ``"border"`` never weights them). Those are one batched 2D
     ``grid_sample`` (vectorised on a CPU): batch ``i``, channels the three planes (a strided view, no copy
-    but the x padding). The same values as the 3D ``grid_sample`` up to rounding.
+    but the x padding). The same values as the 3D ``grid_sample`` up to rounding. ``padded``: ``f`` with a zero
+    plane before and after along x, ``(B, C, nx+2, ny, nz)``, where the caller keeps one (no copy per call: the
+    slabs of ``indreg.problems.slabs`` sample one template many times).
     """
     _, c, nx, ny, nz = f.shape
     g = grid[..., 2]
@@ -183,10 +189,11 @@ def _planewise_sample(f: torch.Tensor, grid: torch.Tensor, padding_mode: str) ->
         return None
     behind, ahead = s.clamp(max=0).neg_().unsqueeze(-3), s.clamp(min=0).unsqueeze(-3)
     weights = (behind, torch.rsub(behind, 1).sub_(ahead), ahead)  # (B, nx, 1, ny, nz)
-    out = f.new_empty(f.shape)
+    out = f.new_empty((*f.shape[:-2], *grid.shape[-3:-1]))
     for b in range(f.shape[0]):
-        padded = F.pad(f[b], (0, 0, 0, 0, 1, 1)).movedim(0, 1).contiguous()  # (nx+2, C, ny, nz)
-        planes = padded.as_strided((nx, 3 * c, ny, nz), (c * ny * nz, ny * nz, nz, 1))
+        fb = F.pad(f[b], (0, 0, 0, 0, 1, 1)) if padded is None else padded[b]
+        fb = fb.movedim(0, 1).contiguous()  # (nx+2, C, ny, nz): no copy for C = 1
+        planes = fb.as_strided((nx, 3 * c, ny, nz), (c * ny * nz, ny * nz, nz, 1))
         bilinear = F.grid_sample(planes, grid[b, ..., :2], mode="bilinear", padding_mode=padding_mode,
                                  align_corners=False).unflatten(1, (3, c))  # (nx, 3, C, ny, nz)
         target = out[b].movedim(0, 1)
