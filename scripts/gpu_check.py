@@ -10,8 +10,8 @@ Steps:
                 GPU equal to the CPU in float64; the operators', deformations' and losses' CUDA tests)
     register    ``scripts/bench_coarse_velocity.py`` at 256^3 (``velocity_factor`` 4, the ``suite_et_3d_256``
                 settings), CPU and CUDA rows: seconds per iteration, peak memory
-    slabs       ``scripts/bench_slabs.py --device cuda`` (slab-wise data term against the whole volume), where
-                present
+    slabs       ``scripts/bench_slabs.py --device cuda --tables whole big``: the slab-wise data term against the
+                whole volume at 256^3, and one iteration at 1024 x 1024 x 256
 """
 from __future__ import annotations
 
@@ -35,8 +35,10 @@ def steps(quick: bool) -> list:
            ("register", [py, "scripts/bench_coarse_velocity.py", "--sizes", size, "--factors", "4", "--rounds", "1",
                          "--iters", "2", "--warmup", "1", "--threads", "8"], 200, r"^\|.*\| (cpu|cuda) \|")]
     if (ROOT / "scripts" / "bench_slabs.py").exists():
-        out.append(("slabs", [py, "scripts/bench_slabs.py", "--device", "cuda"] + (["--quick"] if quick else []), 150,
-                    r"^\|.*cuda"))
+        tables = ["--tables", "whole", "--n", "64", "--reps", "1", "--rounds", "1"] if quick else \
+            ["--tables", "whole", "big", "--rounds", "1"]
+        out.append(("slabs", [py, "scripts/bench_slabs.py", "--device", "cuda" if not quick else "cpu", *tables], 240,
+                    r"^\|.*(cuda|cpu|slab|whole)"))
     return out
 
 
