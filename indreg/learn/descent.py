@@ -87,7 +87,8 @@ class UnrolledDescent(nn.Module):
     """``K`` learned Algorithm 1 steps on the time-dependent momentum (see the module docstring).
 
     ``initial`` maps ``(B, 2, nx, ny)`` (template, FBP) to the initial momentum whose geodesic starts the descent;
-    ``None`` starts from zero. ``forward(template, fbp, data)`` returns ``m_K`` ``(B, N+1, 2, nx, ny)``;
+    ``None`` starts from zero. ``forward(template, fbp, data)`` returns ``m_K`` ``(B, N+1, 2, nx, ny)``, whose
+    deformed template is ``deformation(K m_K, I)`` (``deformation``: Algorithm 1's ``LDDMMDeformation``);
     ``num_updates=j`` stops after ``j`` steps, ``trajectory`` returns ``[m_0, ..., m_K]``, ``oneshot`` the initial
     network's ``(B, 2, nx, ny)`` prediction. ``step_size`` is Algorithm 1's step ``alpha`` (``step_sizes``: the learned
     ``alpha_k``); ``correction=False`` learns the step sizes only; ``shared``: one ``U`` for all steps. The
@@ -124,6 +125,7 @@ class UnrolledDescent(nn.Module):
         self.updates = nn.ModuleList(MomentumUNet(3, width, levels, momentum_scale=self.momentum_scale)
                                      for _ in range(count))
         self.register_buffer("residual_scale", torch.ones(()))
+        self.deformation = _deformation(loss)
 
     def extra_repr(self) -> str:
         return f"num_updates={self.num_updates}, step_size={self.step_size}, shared={self.shared}, " \
@@ -171,12 +173,16 @@ class UnrolledDescent(nn.Module):
         steps = self.num_updates if num_updates is None else num_updates
         if not isinstance(steps, int) or not 0 <= steps <= self.num_updates:
             raise ValueError(f"num_updates must be an integer in [0, {self.num_updates}], got {steps!r}")
-        deformation = _deformation(self.loss)
         momenta = [self.start(template, fbp)]
         for k in range(steps):
-            h, deformed, residual = descent_gradient(self.loss, momenta[-1], template, data, deformation)
+            h, deformed, residual = descent_gradient(self.loss, momenta[-1], template, data, self.deformation)
             momenta.append(self.update(k, momenta[-1], h, deformed, residual, template))
         return momenta
 
-    def forward(self, template: torch.Tensor, fbp: torch.Tensor, data, num_updates: int | None = None) -> torch.Tensor:
+    def forward(self, template: torch.Tensor, fbp: torch.Tensor, data, num_updates: int | None = None,
+                oneshot: bool = False) -> torch.Tensor:
+        """``m_j`` for ``j = num_updates`` (default ``K``); with ``oneshot`` the initial network's prediction with its
+        graph (its own training phase, through a DDP wrapper)."""
+        if oneshot:
+            return self.oneshot(template, fbp)
         return self.trajectory(template, fbp, data, num_updates)[-1]

@@ -53,11 +53,13 @@ from . import benchmark as bench
 from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
+from .descent import UnrolledDescent
 from .unrolled import GRADIENTS, UnrolledMomentum
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 RESUME_HINT = "delete it or run without train.resume=true"
 INITS = ("oneshot", "zero")
+SPACES = ("velocity", "initial")     # model=unrolled: UnrolledDescent | UnrolledMomentum
 MODEL_DIR = Path(__file__).resolve().parent / "conf" / "model"      # the options of model=<name>
 
 
@@ -94,8 +96,13 @@ def build(cfg, device, dtype) -> dict:
     model = MomentumUNet(2, int(cfg.model.width), int(cfg.model.levels), momentum_scale=scale)
     if str(cfg.model.name) == "unrolled":
         m = cfg.model
-        model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
-                                 model if str(m.init) == "oneshot" else None, scale, str(m.gradient))
+        initial = model if str(m.init) == "oneshot" else None
+        if str(m.space) == "velocity":
+            model = UnrolledDescent(loss, int(m.updates), float(m.step_size), int(m.update_width),
+                                    int(m.update_levels), bool(m.shared), bool(m.correction), initial, scale)
+        else:
+            model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
+                                     initial, scale, str(m.gradient))
     return {"domain": domain, "kernel": kernel, "shooting": shooting, "ray": ray, "loss": loss,
             "model": model.to(device=device, dtype=dtype)}
 
@@ -113,9 +120,9 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 def check_config(cfg) -> None:
     """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``init`` and ``gradient`` and the lists of ``eval.ood``."""
+    ``space``, ``init`` and ``gradient`` and the lists of ``eval.ood``."""
     if str(cfg.model.name) == "unrolled":
-        for key, allowed in (("init", INITS), ("gradient", GRADIENTS)):
+        for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
     ood = cfg.eval.ood
@@ -190,11 +197,10 @@ def load_checkpoint(path: Path, model, optimizer) -> int:
 
 
 # ------------------------------------------------------------------ evaluation
-def predict(model, shooting, batch: dict, num_updates=None) -> torch.Tensor:
-    """Deformed templates ``W(m0, template)`` of the network's ``m0`` (``bench.network_momentum``), no gradient."""
+def predict(model, loss, batch: dict, num_updates=None) -> torch.Tensor:
+    """Deformed templates of the network's momentum (``bench.network_terms``), no gradient."""
     with torch.no_grad():
-        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
-        return shooting(m0, batch["template"])
+        return bench.network_terms(model, model, loss, batch, num_updates)["deformed"]
 
 
 def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: str = ""):
@@ -207,7 +213,7 @@ def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: s
 
     k = min(count, len(dataset))
     batch = gather(dataset, torch.arange(k), device)
-    prediction = predict(model, parts["shooting"], batch)
+    prediction = predict(model, parts["loss"], batch)
     d = parts["domain"]
     extent = (d.min_pt[0], d.max_pt[0], d.min_pt[1], d.max_pt[1])
     fig = Figure(figsize=(11.5, 2.7 * k + 0.5), layout="constrained")
@@ -230,8 +236,7 @@ def validation(parts: dict, model, dataset, device, num_updates=None) -> dict:
     """Held-out ``loss`` and mean ``ssim`` of the network stopped after ``num_updates`` updates (batched)."""
     batch = gather(dataset, torch.arange(len(dataset)), device)
     with torch.no_grad():
-        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
-        terms = parts["loss"].terms(m0, batch["template"], batch["data"])
+        terms = bench.network_terms(model, model, parts["loss"], batch, num_updates)
     return {"loss": float(terms["loss"].mean()), "ssim": float(np.mean([ssim(d, t) for d, t in zip(
         terms["deformed"], batch["target"])]))}
 
@@ -258,11 +263,11 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
         writer.add_scalar(f"val/{name}", value, step)
     item = gather(dataset, torch.tensor([0]), device)
     images = {"template": item["template"][0], "fbp": item["fbp"][0], "target": item["target"][0],
-              "prediction": predict(model, parts["shooting"], item, updates)[0]}
+              "prediction": predict(model, parts["loss"], item, updates)[0]}
     if unrolled:
         for k in range(model.num_updates + 1):
             writer.add_scalar(f"val/ssim_update_{k}", validation(parts, model, dataset, device, k)["ssim"], step)
-            images[f"update_{k}"] = predict(model, parts["shooting"], item, k)[0]
+            images[f"update_{k}"] = predict(model, parts["loss"], item, k)[0]
     for name, image in images.items():
         a = torch.rot90(image.detach().float().cpu(), 1, (0, 1)).clamp(0.0, 1.0)
         writer.add_image(f"val/{name}", a[None], step, dataformats="CHW")
@@ -271,11 +276,7 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
 
 def training_terms(net, model, parts, batch, unrolled: bool) -> dict:
     """The loss terms of a batch: the one-shot network's ``m0``, or the unrolled scheme's ``m_K``."""
-    if isinstance(model, UnrolledMomentum):
-        m0 = net(batch["template"], batch["fbp"], batch["data"], None if unrolled else 0)
-    else:
-        m0 = net(network_input(batch))
-    return parts["loss"].terms(m0, batch["template"], batch["data"])
+    return bench.network_terms(net, model, parts["loss"], batch, None if unrolled else 0)
 
 
 def train(cfg, run_dir) -> dict:
@@ -296,7 +297,7 @@ def train(cfg, run_dir) -> dict:
     net = model
     if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
-                                                        find_unused_parameters=isinstance(model, UnrolledMomentum))
+                                                        find_unused_parameters=isinstance(model, bench.UNROLLED))
     writer = None
     if rank == 0:
         from torch.utils.tensorboard import SummaryWriter
@@ -306,7 +307,7 @@ def train(cfg, run_dir) -> dict:
     t0 = time.perf_counter()
     for step in range(start, steps):
         unrolled = step >= first
-        if unrolled and step == first and isinstance(model, UnrolledMomentum):
+        if unrolled and step == first and isinstance(model, bench.UNROLLED):
             calibration = gather(train_set, torch.arange(min(size, len(train_set))), device)
             model.calibrate(calibration["template"], calibration["fbp"], calibration["data"])
         for group in optimizer.param_groups:
@@ -323,7 +324,7 @@ def train(cfg, run_dir) -> dict:
             dist.all_reduce(stats)
             stats /= world
         if rank == 0 and (done % int(cfg.train.log_every) == 0 or done == steps):
-            prefix = "unrolled" if unrolled and isinstance(model, UnrolledMomentum) else "train"
+            prefix = "unrolled" if unrolled and isinstance(model, bench.UNROLLED) else "train"
             for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
                 writer.add_scalar(f"{prefix}/{name}", value, done)
             scores = [ssim(d, t) for d, t in zip(terms["deformed"].detach(), batch["target"])]
@@ -332,7 +333,7 @@ def train(cfg, run_dir) -> dict:
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
         if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
             scores = log_validation(writer, parts, model, val_set, device, done,
-                                    unrolled and isinstance(model, UnrolledMomentum))
+                                    unrolled and isinstance(model, bench.UNROLLED))
             print(f"step {done}/{steps} val loss {scores['loss']:.4g} ssim {scores['ssim']:.4f}", flush=True)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
             save_checkpoint(checkpoint, model, optimizer, done)
