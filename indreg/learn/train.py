@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .._checks import check_finite, check_int
+from .._checks import check_finite, check_int, check_positive
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -120,11 +120,12 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 def check_config(cfg) -> None:
     """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``space``, ``init`` and ``gradient`` and the lists of ``eval.ood``."""
+    ``space``, ``init``, ``gradient`` and ``step_size`` and the lists of ``eval.ood``."""
     if str(cfg.model.name) == "unrolled":
         for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
+        check_positive(cfg.model.step_size, "model.step_size")
     ood = cfg.eval.ood
     for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
         if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
