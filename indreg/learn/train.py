@@ -5,10 +5,14 @@
 (``SyntheticDeformationDataset``), logs to TensorBoard, checkpoints and resumes, runs data parallel
 (``torch.distributed``, DDP: gloo on CPU, nccl on CUDA; start with ``torchrun``), and at the end compares with
 per-sample Algorithm 1 on held-out samples.
-``model=unrolled``: ``UnrolledMomentum``, ``K`` learned updates through the indirect gradient from the one-shot
-network's ``m_0``; steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps
-``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr`` with a cosine decay, the
-one-shot network fixed, ``gradient_scale`` calibrated on the first training samples when they start). The benchmark
+``model=unrolled``: ``K`` learned steps from the one-shot network's prediction: ``model.space=velocity`` (default)
+``UnrolledDescent``, Algorithm 1's steps on the time-dependent momentum with learned step sizes and a correction
+network; ``model.space=initial`` ``UnrolledMomentum``, updates of the initial momentum through the indirect
+gradient. Steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps ``[train.steps,
+train.steps + model.steps)`` the unrolled scheme (learning rate ``model.lr`` with a cosine decay, the one-shot
+network fixed, its input scale, ``residual_scale`` or ``gradient_scale``, calibrated on the first training samples
+when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K``, or the indirect loss at the initial
+momentum). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
