@@ -164,6 +164,17 @@ def learning_rate(cfg, step: int, first: int, total: int) -> float:
     return float(cfg.model.lr) * 0.5 * (1 + math.cos(math.pi * (step - first) / max(1, total - first)))
 
 
+def parameter_groups(cfg, model) -> list:
+    """The optimizer's groups, each with its ``scale`` of the learning rate: an ``UnrolledDescent``'s step-size
+    logits ``a_k`` learn at ``model.step_lr`` (instead of ``model.lr``; an O(1) change of ``a_k`` is a large change of
+    ``alpha_k``, which ``model.lr`` would take thousands of steps to make), everything else at 1."""
+    if not isinstance(model, UnrolledDescent):
+        return [{"params": list(model.parameters()), "scale": 1.0}]
+    rest = [p for name, p in model.named_parameters() if name != "step_logits"]
+    return [{"params": rest, "scale": 1.0},
+            {"params": [model.step_logits], "scale": float(cfg.model.step_lr) / float(cfg.model.lr)}]
+
+
 def network_input(batch: dict) -> torch.Tensor:
     """``(B, 2, nx, ny)``: channel 0 the template, channel 1 the FBP of the data."""
     return torch.stack([batch["template"], batch["fbp"]], dim=1)
@@ -296,7 +307,7 @@ def train(cfg, run_dir) -> dict:
     parts = build(cfg, device, dtype)
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
-    optimizer = torch.optim.Adam(model.parameters(), lr=float(cfg.train.lr))
+    optimizer = torch.optim.Adam(parameter_groups(cfg, model), lr=float(cfg.train.lr))
     checkpoint = run_dir / "checkpoint.pt"
     start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
@@ -316,7 +327,7 @@ def train(cfg, run_dir) -> dict:
             calibration = gather(train_set, torch.arange(min(size, len(train_set))), device)
             model.calibrate(calibration["template"], calibration["fbp"], calibration["data"])
         for group in optimizer.param_groups:
-            group["lr"] = learning_rate(cfg, step, first, steps)
+            group["lr"] = learning_rate(cfg, step, first, steps) * group["scale"]
         idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
         batch = gather(train_set, idx, device)
         terms = training_terms(net, model, parts, batch, unrolled)
