@@ -175,11 +175,6 @@ def parameter_groups(cfg, model) -> list:
             {"params": [model.step_logits], "scale": float(cfg.model.step_lr) / float(cfg.model.lr)}]
 
 
-def network_input(batch: dict) -> torch.Tensor:
-    """``(B, 2, nx, ny)``: channel 0 the template, channel 1 the FBP of the data."""
-    return torch.stack([batch["template"], batch["fbp"]], dim=1)
-
-
 def batch_indices(step: int, seed: int, size: int, num_samples: int, rank: int, world: int) -> torch.Tensor:
     """This rank's slice of the global batch of step ``step`` (a function of ``(seed, step)`` only)."""
     gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + step)

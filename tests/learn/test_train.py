@@ -152,3 +152,19 @@ def test_schedule_and_learning_rate_of_the_two_phases():
     oneshot.train.steps = 7
     assert train.schedule(oneshot) == (7, 7) and train.learning_rate(oneshot, 5, 7, 7) == oneshot.train.lr
     assert OmegaConf.to_container(oneshot.model) == {"name": "oneshot", "width": 16, "levels": 3}
+
+
+def test_step_sizes_learn_at_their_own_rate():
+    from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
+    from indreg.deform.kernel import GaussianKernel
+    from indreg.learn import UnrolledDescent, train
+
+    cfg = train.base_config(["model=unrolled"])
+    dom = ImageDomain.paper(8)
+    loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 2),
+                                RayTransform(dom, ParallelBeamGeometry.paper(3, 12)), gamma=1e-3)
+    model = UnrolledDescent(loss, num_updates=2, width=2, levels=1)
+    optimizer = torch.optim.Adam(train.parameter_groups(cfg, model), lr=1.0)
+    rest, steps = optimizer.param_groups
+    assert steps["params"] == [model.step_logits] and len(rest["params"]) == len(list(model.parameters())) - 1
+    assert steps["scale"] * cfg.model.lr == pytest.approx(cfg.model.step_lr) and rest["scale"] == 1.0
