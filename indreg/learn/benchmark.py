@@ -2,14 +2,16 @@
 distribution.
 
 Schemes (keys of ``metrics.json``): ``oneshot`` (the U-Net ``Lambda(template, FBP)``), ``unrolled`` (``K``
-learned updates through the indirect gradient, ``UnrolledMomentum``), ``oneshot+algorithm1_<k>`` (Algorithm 1 warm
+learned steps: ``UnrolledDescent`` on Algorithm 1's time-dependent momentum, or ``UnrolledMomentum`` on the initial
+momentum through the indirect gradient), ``oneshot+algorithm1_<k>`` (Algorithm 1 warm
 started from the one-shot geodesic, ``k`` iterations: ``k = K``, and ``k`` such that its time per sample matches the
 unrolled scheme's) and ``algorithm1`` (per sample from zero, ``eval.algorithm1.max_iter`` iterations).
 
 Convention: every scheme runs per sample (batch 1) and is timed from the sinogram to the deformed template (the FBP
 included); metrics are means over the samples: ``ssim``, ``psnr`` (dB, range of the target), ``residual``
 (``||T f - g|| / ||g||``, Euclidean), ``min_jacobian`` (mean over samples of the minimum of ``det D phi_{1,0}``;
-``min_jacobian_worst`` the smallest), ``seconds_per_sample``; ``per_sample_ssim`` lists the SSIMs.
+``min_jacobian_worst`` the smallest), ``seconds_per_sample``; ``per_sample_ssim`` lists the SSIMs. An
+``UnrolledDescent``'s learned step sizes ``alpha_k`` are reported as ``step_sizes``.
 """
 from __future__ import annotations
 
@@ -25,25 +27,31 @@ from ..forward.geometry import ParallelBeamGeometry
 from ..forward.ray_transform import RayTransform
 from ..metrics import psnr, ssim
 from .dataset import SyntheticDeformationDataset
+from .descent import UnrolledDescent, descent_terms
 from .loss import IndirectShootingLoss
 from .unrolled import UnrolledMomentum
 
-__all__ = ["algorithm1_scheme", "evaluate", "evaluate_schemes", "network_momentum", "network_scheme", "ood_sets",
-           "physics", "score", "summarise"]
+__all__ = ["algorithm1_scheme", "evaluate", "evaluate_schemes", "network_momentum", "network_scheme", "network_terms",
+           "ood_sets", "physics", "score", "summarise"]
+
+UNROLLED = (UnrolledMomentum, UnrolledDescent)
 
 
 def network_momentum(model, template: torch.Tensor, fbp_image: torch.Tensor, data, num_updates=None):
     """``m0 (B, 2, nx, ny)`` of a ``MomentumUNet`` (input: template and FBP) or an ``UnrolledMomentum`` stopped
-    after ``num_updates`` updates (``None``: all, ``0``: its initial network)."""
-    if isinstance(model, UnrolledMomentum):
+    after ``num_updates`` updates (``None``: all, ``0``: its initial network); of an ``UnrolledDescent`` its
+    initial network's (``num_updates=0``) or ``m_j`` ``(B, N+1, 2, nx, ny)`` after ``j = num_updates`` steps."""
+    if isinstance(model, UnrolledDescent) and num_updates == 0:
+        return model.oneshot(template, fbp_image)
+    if isinstance(model, UNROLLED):
         return model(template, fbp_image, data, num_updates)
     return model(torch.stack([template, fbp_image], dim=1))
 
 
 @contextmanager
 def physics(model, loss):
-    """Run an ``UnrolledMomentum`` with another ``IndirectShootingLoss`` (another geometry) inside the block."""
-    if not isinstance(model, UnrolledMomentum):
+    """Run an unrolled scheme with another ``IndirectShootingLoss`` (another geometry) inside the block."""
+    if not isinstance(model, UNROLLED):
         yield model
         return
     saved, model.loss = model.loss, loss
@@ -61,12 +69,30 @@ def score(deformed, velocity, deformation: LDDMMDeformation, ray, target, data) 
             "min_jacobian": float(deformation.min_jacobian(velocity))}
 
 
+def network_terms(net, model, loss: IndirectShootingLoss, batch: dict, num_updates=None) -> dict:
+    """The per-sample terms of ``loss`` (``loss``, ``data_fit``, ``regulariser``, ``deformed``) at the momentum of
+    ``net`` (``model``, or its DDP wrapper) stopped after ``num_updates`` steps: the initial momentum shot, or an
+    ``UnrolledDescent``'s time-dependent momentum deformed (``descent_terms``)."""
+    template, fbp_image, data = batch["template"], batch["fbp"], batch["data"]
+    if isinstance(model, UnrolledDescent):
+        if num_updates == 0:
+            return loss.terms(net(template, fbp_image, data, oneshot=True), template, data)
+        return descent_terms(loss, net(template, fbp_image, data, num_updates), template, data, model.deformation)
+    if isinstance(model, UnrolledMomentum):
+        return loss.terms(net(template, fbp_image, data, num_updates), template, data)
+    return loss.terms(net(torch.stack([template, fbp_image], dim=1)), template, data)
+
+
 def network_scheme(model, shooting, num_updates=None):
-    """A scheme ``run(item, ray) -> (deformed, velocity)`` (batch-1 item): FBP, the network, one shot."""
+    """A scheme ``run(item, ray) -> (deformed, velocity)`` (batch-1 item): FBP, the network, one shot (or an
+    ``UnrolledDescent``'s steps and the deformation of their momentum)."""
     @torch.no_grad()
     def run(item, ray):
         fbp_image = fbp(ray, item["data"])
         m0 = network_momentum(model, item["template"], fbp_image, item["data"], num_updates)
+        if m0.dim() == 5:
+            velocity = shooting.kernel.apply(m0)
+            return model.deformation(velocity, item["template"])[0], velocity[0]
         result = shooting(m0, item["template"], return_all=True)
         return result.deformed[0], result.velocity[0]
     return run
@@ -143,9 +169,9 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
     """The benchmark: ``network`` (the trained model), ``schemes`` and ``ood`` (``indreg.learn.benchmark``)."""
     name, shooting = str(cfg.model.name), parts["shooting"]
     schemes = {}
-    if not isinstance(model, UnrolledMomentum) or model.initial is not None:
+    if not isinstance(model, UNROLLED) or model.initial is not None:
         schemes["oneshot"] = network_scheme(model, shooting, 0)
-    if isinstance(model, UnrolledMomentum):
+    if isinstance(model, UNROLLED):
         schemes["unrolled"] = network_scheme(model, shooting)
     alg1 = int(cfg.eval.algorithm1.num_samples)
     if alg1 > 0:
@@ -169,6 +195,8 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
     network["template_ssim"] = float(np.mean([ssim(t, f) for t, f in zip(val_set.tensors["template"],
                                                                           val_set.tensors["target"])]))
     metrics = {"network": network, "schemes": results, "ood": ood}
+    if isinstance(model, UnrolledDescent):
+        metrics["step_sizes"] = model.step_sizes.tolist()       # the learned alpha_k
     if alg1 > 0:
         count = results["algorithm1"]["num_samples"]        # the network on the same samples, side by side
         metrics["algorithm1"] = dict(results["algorithm1"], network_ssim_same_samples=float(

@@ -5,10 +5,14 @@
 (``SyntheticDeformationDataset``), logs to TensorBoard, checkpoints and resumes, runs data parallel
 (``torch.distributed``, DDP: gloo on CPU, nccl on CUDA; start with ``torchrun``), and at the end compares with
 per-sample Algorithm 1 on held-out samples.
-``model=unrolled``: ``UnrolledMomentum``, ``K`` learned updates through the indirect gradient from the one-shot
-network's ``m_0``; steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps
-``[train.steps, train.steps + model.steps)`` the updates (learning rate ``model.lr`` with a cosine decay, the
-one-shot network fixed, ``gradient_scale`` calibrated on the first training samples when they start). The benchmark
+``model=unrolled``: ``K`` learned steps from the one-shot network's prediction: ``model.space=velocity`` (default)
+``UnrolledDescent``, Algorithm 1's steps on the time-dependent momentum with learned step sizes and a correction
+network; ``model.space=initial`` ``UnrolledMomentum``, updates of the initial momentum through the indirect
+gradient. Steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps ``[train.steps,
+train.steps + model.steps)`` the unrolled scheme (learning rate ``model.lr`` with a cosine decay, the one-shot
+network fixed, its input scale, ``residual_scale`` or ``gradient_scale``, calibrated on the first training samples
+when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K``, or the indirect loss at the initial
+momentum). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
@@ -40,7 +44,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .._checks import check_finite, check_int
+from .._checks import check_finite, check_int, check_positive
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -53,11 +57,13 @@ from . import benchmark as bench
 from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
+from .descent import UnrolledDescent
 from .unrolled import GRADIENTS, UnrolledMomentum
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 RESUME_HINT = "delete it or run without train.resume=true"
 INITS = ("oneshot", "zero")
+SPACES = ("velocity", "initial")     # model=unrolled: UnrolledDescent | UnrolledMomentum
 MODEL_DIR = Path(__file__).resolve().parent / "conf" / "model"      # the options of model=<name>
 
 
@@ -94,8 +100,13 @@ def build(cfg, device, dtype) -> dict:
     model = MomentumUNet(2, int(cfg.model.width), int(cfg.model.levels), momentum_scale=scale)
     if str(cfg.model.name) == "unrolled":
         m = cfg.model
-        model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
-                                 model if str(m.init) == "oneshot" else None, scale, str(m.gradient))
+        initial = model if str(m.init) == "oneshot" else None
+        if str(m.space) == "velocity":
+            model = UnrolledDescent(loss, int(m.updates), float(m.step_size), int(m.update_width),
+                                    int(m.update_levels), bool(m.shared), bool(m.correction), initial, scale)
+        else:
+            model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
+                                     initial, scale, str(m.gradient))
     return {"domain": domain, "kernel": kernel, "shooting": shooting, "ray": ray, "loss": loss,
             "model": model.to(device=device, dtype=dtype)}
 
@@ -113,11 +124,12 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 def check_config(cfg) -> None:
     """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``init`` and ``gradient`` and the lists of ``eval.ood``."""
+    ``space``, ``init``, ``gradient`` and ``step_size`` and the lists of ``eval.ood``."""
     if str(cfg.model.name) == "unrolled":
-        for key, allowed in (("init", INITS), ("gradient", GRADIENTS)):
+        for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
+        check_positive(cfg.model.step_size, "model.step_size")
     ood = cfg.eval.ood
     for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
         if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
@@ -152,9 +164,15 @@ def learning_rate(cfg, step: int, first: int, total: int) -> float:
     return float(cfg.model.lr) * 0.5 * (1 + math.cos(math.pi * (step - first) / max(1, total - first)))
 
 
-def network_input(batch: dict) -> torch.Tensor:
-    """``(B, 2, nx, ny)``: channel 0 the template, channel 1 the FBP of the data."""
-    return torch.stack([batch["template"], batch["fbp"]], dim=1)
+def parameter_groups(cfg, model) -> list:
+    """The optimizer's groups, each with its ``scale`` of the learning rate: an ``UnrolledDescent``'s step-size
+    logits ``a_k`` learn at ``model.step_lr`` (instead of ``model.lr``; an O(1) change of ``a_k`` is a large change of
+    ``alpha_k``, which ``model.lr`` would take thousands of steps to make), everything else at 1."""
+    if not isinstance(model, UnrolledDescent):
+        return [{"params": list(model.parameters()), "scale": 1.0}]
+    rest = [p for name, p in model.named_parameters() if name != "step_logits"]
+    return [{"params": rest, "scale": 1.0},
+            {"params": [model.step_logits], "scale": float(cfg.model.step_lr) / float(cfg.model.lr)}]
 
 
 def batch_indices(step: int, seed: int, size: int, num_samples: int, rank: int, world: int) -> torch.Tensor:
@@ -190,11 +208,10 @@ def load_checkpoint(path: Path, model, optimizer) -> int:
 
 
 # ------------------------------------------------------------------ evaluation
-def predict(model, shooting, batch: dict, num_updates=None) -> torch.Tensor:
-    """Deformed templates ``W(m0, template)`` of the network's ``m0`` (``bench.network_momentum``), no gradient."""
+def predict(model, loss, batch: dict, num_updates=None) -> torch.Tensor:
+    """Deformed templates of the network's momentum (``bench.network_terms``), no gradient."""
     with torch.no_grad():
-        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
-        return shooting(m0, batch["template"])
+        return bench.network_terms(model, model, loss, batch, num_updates)["deformed"]
 
 
 def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: str = ""):
@@ -207,7 +224,7 @@ def heldout_figure(model, parts: dict, dataset, device, count: int = 4, title: s
 
     k = min(count, len(dataset))
     batch = gather(dataset, torch.arange(k), device)
-    prediction = predict(model, parts["shooting"], batch)
+    prediction = predict(model, parts["loss"], batch)
     d = parts["domain"]
     extent = (d.min_pt[0], d.max_pt[0], d.min_pt[1], d.max_pt[1])
     fig = Figure(figsize=(11.5, 2.7 * k + 0.5), layout="constrained")
@@ -230,8 +247,7 @@ def validation(parts: dict, model, dataset, device, num_updates=None) -> dict:
     """Held-out ``loss`` and mean ``ssim`` of the network stopped after ``num_updates`` updates (batched)."""
     batch = gather(dataset, torch.arange(len(dataset)), device)
     with torch.no_grad():
-        m0 = bench.network_momentum(model, batch["template"], batch["fbp"], batch["data"], num_updates)
-        terms = parts["loss"].terms(m0, batch["template"], batch["data"])
+        terms = bench.network_terms(model, model, parts["loss"], batch, num_updates)
     return {"loss": float(terms["loss"].mean()), "ssim": float(np.mean([ssim(d, t) for d, t in zip(
         terms["deformed"], batch["target"])]))}
 
@@ -258,11 +274,11 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
         writer.add_scalar(f"val/{name}", value, step)
     item = gather(dataset, torch.tensor([0]), device)
     images = {"template": item["template"][0], "fbp": item["fbp"][0], "target": item["target"][0],
-              "prediction": predict(model, parts["shooting"], item, updates)[0]}
+              "prediction": predict(model, parts["loss"], item, updates)[0]}
     if unrolled:
         for k in range(model.num_updates + 1):
             writer.add_scalar(f"val/ssim_update_{k}", validation(parts, model, dataset, device, k)["ssim"], step)
-            images[f"update_{k}"] = predict(model, parts["shooting"], item, k)[0]
+            images[f"update_{k}"] = predict(model, parts["loss"], item, k)[0]
     for name, image in images.items():
         a = torch.rot90(image.detach().float().cpu(), 1, (0, 1)).clamp(0.0, 1.0)
         writer.add_image(f"val/{name}", a[None], step, dataformats="CHW")
@@ -271,11 +287,7 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
 
 def training_terms(net, model, parts, batch, unrolled: bool) -> dict:
     """The loss terms of a batch: the one-shot network's ``m0``, or the unrolled scheme's ``m_K``."""
-    if isinstance(model, UnrolledMomentum):
-        m0 = net(batch["template"], batch["fbp"], batch["data"], None if unrolled else 0)
-    else:
-        m0 = net(network_input(batch))
-    return parts["loss"].terms(m0, batch["template"], batch["data"])
+    return bench.network_terms(net, model, parts["loss"], batch, None if unrolled else 0)
 
 
 def train(cfg, run_dir) -> dict:
@@ -290,13 +302,13 @@ def train(cfg, run_dir) -> dict:
     parts = build(cfg, device, dtype)
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
-    optimizer = torch.optim.Adam(model.parameters(), lr=float(cfg.train.lr))
+    optimizer = torch.optim.Adam(parameter_groups(cfg, model), lr=float(cfg.train.lr))
     checkpoint = run_dir / "checkpoint.pt"
     start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
     if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
-                                                        find_unused_parameters=isinstance(model, UnrolledMomentum))
+                                                        find_unused_parameters=isinstance(model, bench.UNROLLED))
     writer = None
     if rank == 0:
         from torch.utils.tensorboard import SummaryWriter
@@ -306,11 +318,11 @@ def train(cfg, run_dir) -> dict:
     t0 = time.perf_counter()
     for step in range(start, steps):
         unrolled = step >= first
-        if unrolled and step == first and isinstance(model, UnrolledMomentum):
+        if unrolled and step == first and isinstance(model, bench.UNROLLED):
             calibration = gather(train_set, torch.arange(min(size, len(train_set))), device)
             model.calibrate(calibration["template"], calibration["fbp"], calibration["data"])
         for group in optimizer.param_groups:
-            group["lr"] = learning_rate(cfg, step, first, steps)
+            group["lr"] = learning_rate(cfg, step, first, steps) * group["scale"]
         idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
         batch = gather(train_set, idx, device)
         terms = training_terms(net, model, parts, batch, unrolled)
@@ -323,7 +335,7 @@ def train(cfg, run_dir) -> dict:
             dist.all_reduce(stats)
             stats /= world
         if rank == 0 and (done % int(cfg.train.log_every) == 0 or done == steps):
-            prefix = "unrolled" if unrolled and isinstance(model, UnrolledMomentum) else "train"
+            prefix = "unrolled" if unrolled and isinstance(model, bench.UNROLLED) else "train"
             for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
                 writer.add_scalar(f"{prefix}/{name}", value, done)
             scores = [ssim(d, t) for d, t in zip(terms["deformed"].detach(), batch["target"])]
@@ -332,7 +344,7 @@ def train(cfg, run_dir) -> dict:
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
         if rank == 0 and (done % int(cfg.train.eval_every) == 0 or done == steps):
             scores = log_validation(writer, parts, model, val_set, device, done,
-                                    unrolled and isinstance(model, UnrolledMomentum))
+                                    unrolled and isinstance(model, bench.UNROLLED))
             print(f"step {done}/{steps} val loss {scores['loss']:.4g} ssim {scores['ssim']:.4f}", flush=True)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
             save_checkpoint(checkpoint, model, optimizer, done)

@@ -78,7 +78,7 @@ def test_ddp_two_processes_keep_replicas_identical(tmp_path, model):
     metrics = run(tmp_path, *extra, "eval.algorithm1.num_samples=0", launcher=torchrun)
     assert metrics["world_size"] == 2
     assert metrics["replica_max_abs_diff"] == 0.0
-    head = "updates.1.head.weight" if model == "unrolled" else "head.weight"
+    head = "updates.0.head.weight" if model == "unrolled" else "head.weight"
     assert parameters(tmp_path)["model"][head].abs().sum() > 0
     _, steps = scalars(tmp_path, "train/loss")
     assert steps == ([1, 2] if model == "unrolled" else [1, 2, 3])
@@ -97,10 +97,12 @@ def test_damaged_checkpoint_ends_in_one_line(tmp_path):
 
 
 
-def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path):
+@pytest.mark.parametrize("space", ["velocity", "initial"])
+def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path, space):
     """model=unrolled: the one-shot steps, then the updates (own scalars and images), every scheme in metrics.json
     in and out of distribution, and a resume inside the unrolled phase gives the uninterrupted run's weights."""
-    first = run(tmp_path / "a", *UNROLLED, "model.steps=1", "eval.algorithm1.num_samples=1")
+    unrolled = (*UNROLLED, f"model.space={space}")
+    first = run(tmp_path / "a", *unrolled, "model.steps=1", "eval.algorithm1.num_samples=1")
     assert first["model"] == "unrolled" and first["steps"] == 3
     schemes = first["schemes"]
     assert {"oneshot", "unrolled", "algorithm1", "oneshot+algorithm1_2"} <= set(schemes)
@@ -116,16 +118,19 @@ def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path):
     shutil.copytree(tmp_path / "a", tmp_path / "b")
 
     quick = ("eval.algorithm1.num_samples=0", "eval.ood.num_angles=[]", "eval.ood.snr_db=[]", "eval.ood.phantoms=[]")
-    resumed = run(tmp_path / "b", *UNROLLED, "model.steps=3", *quick)
+    resumed = run(tmp_path / "b", *unrolled, "model.steps=3", *quick)
     assert resumed["resumed_from"] == 3 and resumed["ood"] == {} and "algorithm1" not in resumed
     acc, _ = scalars(tmp_path / "b", "train/loss")
     assert [e.step for e in acc.Scalars("unrolled/loss")] == [3, 4, 5]
-    run(tmp_path / "c", *UNROLLED, "model.steps=3", *quick)
+    run(tmp_path / "c", *unrolled, "model.steps=3", *quick)
     b, c = parameters(tmp_path / "b"), parameters(tmp_path / "c")
     assert b["step"] == c["step"] == 5
     for name, value in c["model"].items():
         torch.testing.assert_close(b["model"][name], value, rtol=1e-6, atol=1e-7)
-    assert c["model"]["updates.1.head.weight"].abs().sum() > 0 and c["model"]["gradient_scale"] > 0
+    assert c["model"]["updates.0.head.weight"].abs().sum() > 0
+    assert c["model"]["residual_scale" if space == "velocity" else "gradient_scale"] > 0
+    if space == "velocity":                                      # the learned step sizes moved, and are reported
+        assert c["model"]["step_logits"].abs().min() > 0 and len(first["step_sizes"]) == 2
     first_phase = parameters(tmp_path / "a")["model"]            # the one-shot network is fixed while updates train
     assert torch.equal(first_phase["initial.head.weight"], c["model"]["initial.head.weight"])
 
@@ -147,3 +152,19 @@ def test_schedule_and_learning_rate_of_the_two_phases():
     oneshot.train.steps = 7
     assert train.schedule(oneshot) == (7, 7) and train.learning_rate(oneshot, 5, 7, 7) == oneshot.train.lr
     assert OmegaConf.to_container(oneshot.model) == {"name": "oneshot", "width": 16, "levels": 3}
+
+
+def test_step_sizes_learn_at_their_own_rate():
+    from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
+    from indreg.deform.kernel import GaussianKernel
+    from indreg.learn import UnrolledDescent, train
+
+    cfg = train.base_config(["model=unrolled"])
+    dom = ImageDomain.paper(8)
+    loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 2),
+                                RayTransform(dom, ParallelBeamGeometry.paper(3, 12)), gamma=1e-3)
+    model = UnrolledDescent(loss, num_updates=2, width=2, levels=1)
+    optimizer = torch.optim.Adam(train.parameter_groups(cfg, model), lr=1.0)
+    rest, steps = optimizer.param_groups
+    assert steps["params"] == [model.step_logits] and len(rest["params"]) == len(list(model.parameters())) - 1
+    assert steps["scale"] * cfg.model.lr == pytest.approx(cfg.model.step_lr) and rest["scale"] == 1.0
