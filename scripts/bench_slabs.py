@@ -15,6 +15,9 @@ Three tables (Markdown), each row from a fresh subprocess (its peak memory its o
   ``torchrun --nproc_per_node=2`` with one thread a rank, against one process with two threads: objective, each
   rank's peak and wall time, slabs per rank, all-reduce bytes per iteration, and the time per iteration that the
   measured per-slice and replicated costs predict for ``1024 x 1024 x 256`` on 8 and 64 ranks.
+- ``stages`` (not in the default set): milliseconds per slice of each stage of a slab's gradient at
+  ``1024 x 1024 x 256`` (``big``'s problem at the first iterate: the upsampling ``P_s u_N``, the grid, the warp, the
+  projector, its transpose, the warp's adjoint and ``P_s^T``), ``--stage-slabs`` slabs after a warm-up one.
 
 Memory: the process's peak resident set (``VmHWM``, reset after the set-up: the template, the data and what the
 gradients or iterations add, Python and torch included; CUDA: the device's peak allocation). Timings on a shared
@@ -168,6 +171,53 @@ def child_big(a) -> dict:
             "dtype": str(problem.template.dtype)}
 
 
+STAGES = ("upsample_rows", "_grid", "_sample", "_project", "_backproject", "_sample_adjoint", "upsample_rows_adjoint")
+
+
+def child_stages(a) -> dict:
+    """Milliseconds per fine slice of each stage of ``SlabwiseRegistration._slab`` (with its gradient) at
+    1024 x 1024 x 256 (``child_big``'s problem) for ``--stage-slabs`` slabs at the middle of the tilt axis, at the
+    momentum ``-0.1 h`` (``h`` the gradient at 0: the first iterate's displacements), after one warm-up slab."""
+    import collections
+
+    import torch
+    from indreg.problems import slabs
+    device = torch.device(a.device)
+    problem, m = _problem((1024, 1024, 256), (16.0, 16.0, 4.0), 4, 10, device, None, a.max_memory, 4)
+    _, h, _ = problem.l2_gradient(m)
+    m = m.sub_(h, alpha=0.1)
+    del h
+    with torch.no_grad():
+        slots, _, _ = problem._flow(problem.velocity(m))
+        u = slots[-1].clone()
+        del slots
+    spent = collections.defaultdict(float)
+
+    def timed(name, fn):
+        def run(*args, **kwargs):
+            t = time.perf_counter()
+            out = fn(*args, **kwargs)
+            spent[name] += time.perf_counter() - t
+            return out
+        return run
+
+    for name in STAGES:
+        owner = slabs.SlabwiseRegistration if name in ("_grid", "_sample", "_project", "_backproject") else slabs
+        setattr(owner, name, timed(name, getattr(owner, name)))
+    kappa = torch.zeros(3, *problem.domain.shape, device=device)
+    mid = len(problem.slab_ranges) // 2
+    with torch.no_grad():
+        for k, s in enumerate(range(mid - 1, mid + a.stage_slabs)):
+            if k == 1:
+                spent.clear()
+                t = time.perf_counter()
+            problem._slab(u, None, *problem.slab_ranges[s], (kappa, None))
+    slices = a.stage_slabs * problem.slab_size
+    out = {name: spent[name] / slices * 1e3 for name in STAGES}
+    out["total"] = (time.perf_counter() - t) / slices * 1e3
+    return {"ms_per_slice": out, "slab_size": problem.slab_size}
+
+
 def child_cli(overrides) -> None:
     """``indreg-register`` with ``overrides``; at exit one JSON line with this rank's peak and wall time."""
     import atexit
@@ -248,6 +298,17 @@ def table_big(a) -> None:
           f"{r['dtype']} |")
 
 
+def table_stages(a) -> None:
+    cmd = [__file__, "--child", "stages", "--stage-slabs", str(a.stage_slabs), "--device", a.device]
+    if a.max_memory:
+        cmd += ["--max-memory", str(a.max_memory)]
+    r = _json(_spawn(cmd, a.threads))
+    print(f"\n1024 x 1024 x 256, slabs of {r['slab_size']} slices, ms per 1024 x 256 slice; load {_load()}\n")
+    print("| stage | ms / slice |\n|---|---|")
+    for name, ms in r["ms_per_slice"].items():
+        print(f"| {name} | {ms:.1f} |")
+
+
 def _cli(name, threads, launcher, overrides, tmp) -> tuple:
     """One ``indreg-register`` run: ``(metrics, per-rank stats, slabs per rank x slices)``."""
     out = Path(tmp) / re.sub(r"\W+", "_", name)
@@ -313,7 +374,8 @@ def predict(slab, a) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--tables", nargs="+", default=["whole", "big", "ranks"], choices=["whole", "big", "ranks"])
+    p.add_argument("--tables", nargs="+", default=["whole", "big", "ranks"],
+                   choices=["whole", "big", "ranks", "stages"])
     p.add_argument("--n", type=int, default=256)
     p.add_argument("--factor", type=int, default=4)
     p.add_argument("--steps", type=int, default=10)
@@ -324,19 +386,22 @@ def main() -> None:
     p.add_argument("--big-iters", type=int, default=2)
     p.add_argument("--ranks-iters", type=int, default=5)
     p.add_argument("--max-memory", type=float, default=None)
+    p.add_argument("--stage-slabs", type=int, default=8)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--child", choices=["gradient", "big", "cli"])
+    p.add_argument("--child", choices=["gradient", "big", "cli", "stages"])
     a, rest = p.parse_known_args()
     if a.child == "cli":
         return child_cli([x for x in rest if x != "--"])
     if a.child:
-        print(json.dumps({"gradient": child_gradient, "big": child_big}[a.child](a)))
+        print(json.dumps({"gradient": child_gradient, "big": child_big, "stages": child_stages}[a.child](a)))
         return
     slab = table_whole(a) if "whole" in a.tables else None
     if "big" in a.tables:
         table_big(a)
     if "ranks" in a.tables:
         table_ranks(a, slab)
+    if "stages" in a.tables:
+        table_stages(a)
 
 
 if __name__ == "__main__":

@@ -47,11 +47,14 @@ COMMON = ["baseline.enabled=false", "logging.tensorboard=false", "logging.figure
           "device=cpu"]
 DEFAULT_MAX_ITER = 3                       # 256^2 and 438^2 presets: 0.3-1 s per iteration
 MAX_ITER = {"suite1_jv": 10, "own_data_example": 10, "suite_et_3d": 2, "suite_et_3d_128": 2, "suite_et_3d_256": 2,
-            "suite_et_3d_slab": 2}
+            "suite_et_3d_slab": 2, "suite_et_3d_1024_slab": 2}
 # same [-16, 16]^3, 1-unit voxels / columns (the 128^3 / 256^3 variants: their config path at a testable size)
 SHRINK = {name: ["phantom.size=32", "geometry.det_count=32"] for name in ("suite_et_3d", "suite_et_3d_128",
                                                                           "suite_et_3d_256")}
 SHRINK["suite_et_3d_slab"] = ["phantom.size=32", "phantom.thickness=12", "geometry.det_count=32"]
+# 0.5-unit voxels as the shrunk cubes, the preset's aspect (x : z = 4 : 1, 8 rows), slab-wise in 2 slabs
+SHRINK["suite_et_3d_1024_slab"] = ["phantom.size=64", "phantom.rows=8", "phantom.thickness=16", "geometry.det_count=64",
+                                   "deformation.slab_size=4"]
 VARIANTS = {
     # float64: L-BFGS's line search in float32 amplifies rounding (1 vs 2 threads: 1e-3 apart after 3 iterations)
     "suite1_jv-lbfgs": ["experiment=suite1_jv", "solver=lbfgs", "solver.max_iter=10", "dtype=float64"],

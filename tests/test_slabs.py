@@ -7,6 +7,7 @@ from indreg import ImageDomain
 from indreg.deform import CoarseVelocityDeformation, GaussianKernel, LDDMMDeformation, coarse_domain
 from indreg.deform.functional import upsample, upsample_adjoint
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+from indreg.forward.ray_transform import matmul_columns
 from indreg.problems import IndirectRegistration
 from indreg.problems.slabs import (SlabwiseRegistration, choose_slab_size, slab_ranges, slab_refusal,
                                    upsample_rows, upsample_rows_adjoint)
@@ -60,6 +61,24 @@ def test_slabwise_gradient_equals_the_whole_volume_one(action, tilt_axis, slab_s
     assert slabs.evaluate(m)["objective"] == pytest.approx(whole.evaluate(m)["objective"], rel=1e-12)
     torch.testing.assert_close(slabs.deformed(m), whole.deformed(m), rtol=0, atol=1e-12)
     torch.testing.assert_close(slabs.trajectory(m), whole.trajectory(m), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("block_bytes", [8, 200])
+def test_slabwise_gradient_with_the_projector_in_column_blocks(monkeypatch, block_bytes):
+    """With the slab's slices outgrowing ``COLUMN_BLOCK_BYTES`` the projector runs by blocks of columns (1 and 5
+    pixels a block for 5 slices of 16 x 8 in float64): the whole-volume gradient still, to 1e-12."""
+    from indreg.problems import slabs as module
+
+    monkeypatch.setattr(module, "COLUMN_BLOCK_BYTES", block_bytes)
+    args, m = _parts()
+    calls = []
+    monkeypatch.setattr(module, "matmul_columns", lambda blocks, x: calls.append(len(blocks))
+                        or matmul_columns(blocks, x))
+    terms_w, h_w, _ = IndirectRegistration(*args).l2_gradient(m)
+    terms_s, h_s, _ = SlabwiseRegistration(*args, slab_size=5).l2_gradient(m)
+    assert calls and set(calls) == {-(-16 * 8 // max(1, block_bytes // 40))}
+    assert terms_s["objective"] == pytest.approx(terms_w["objective"], rel=1e-12)
+    assert float((h_s - h_w).norm() / h_w.norm()) < 1e-12
 
 
 @pytest.mark.parametrize("threads", [1, 2])

@@ -91,8 +91,8 @@ def phantom_data(cfg: DictConfig) -> Data:
     """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
     (noise drawn with the run's seed), so the same config gives the same data on every device."""
     p, g = cfg.phantom, cfg.geometry
-    domain = (square_domain(p.size, p.half_width, p.ndim) if p.thickness is None
-              else box_domain((p.size, p.size, p.thickness), p.half_width))
+    domain = (square_domain(p.size, p.half_width, p.ndim) if p.thickness is None and p.rows is None
+              else box_domain((p.size, p.rows or p.size, p.thickness or p.size), p.half_width))
     T = make_operator(domain, make_geometry(g.kind.value, g.det_count, angles=_angles(g), **geometry_options(g)))
     target = phantoms.get(p.target.value, domain)
     template = phantoms.get(p.template.value, domain)

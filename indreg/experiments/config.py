@@ -135,6 +135,9 @@ def validate(cfg: DictConfig, registration: bool = True) -> None:
     _require(c.phantom.thickness is None or (c.phantom.ndim == 3 and 7 <= c.phantom.thickness <= c.phantom.size),
              "phantom.thickness", "null or, for volumes (phantom.ndim=3), an integer in [7, phantom.size] (7: the "
              "SSIM window)", c.phantom.thickness)
+    _require(c.phantom.rows is None or (c.phantom.ndim == 3 and 7 <= c.phantom.rows <= c.phantom.size),
+             "phantom.rows", "null or, for volumes (phantom.ndim=3), an integer in [7, phantom.size] (7: the SSIM "
+             "window)", c.phantom.rows)
     _require(is_finite_number(c.phantom.half_width) and c.phantom.half_width > 0, "phantom.half_width", "a number > 0",
              c.phantom.half_width)
     _validate_data(c)

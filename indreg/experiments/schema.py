@@ -61,13 +61,16 @@ class PhantomConfig:
     """Template I and target f_true (``indreg.phantoms``), digitised on ``size`` cells per axis of
     ``[-half_width, half_width]^ndim`` (``ndim`` 2: images, 3: volumes). ``thickness`` (3D only; null: ``size``):
     a slab of ``size x size x thickness`` cubic cells, ``[-h, h]^2 x [-h t / n, h t / n]``; the 3D phantoms are
-    defined on the box's normalised coordinates, so they flatten with it (electron tomography's thin specimen)."""
+    defined on the box's normalised coordinates, so they flatten with it (electron tomography's thin specimen).
+    ``rows`` (3D only; null: ``size``): cells along y (the tilt axis of ``geometry=tilt_series``), a slab of
+    ``size x rows x thickness`` cells, the phantoms squeezed along y with the box."""
     template: Phantom = Phantom["j"]
     target: Phantom = Phantom["v"]
     size: int = 64
     half_width: float = 16.0
     ndim: int = 2
     thickness: Optional[int] = None
+    rows: Optional[int] = None
 
 
 _DATA_DOC = """Where template and data come from: ``source`` is a built-in source, an ``indreg.sources`` entry point or

@@ -189,6 +189,25 @@ class _SystemMatrix:
                     for (crow, col, val), shape in zip(self.master, (self.shape, self.shape[::-1])))
         return self._cache[key]
 
+    def column_blocks(self, dtype: torch.dtype, device: torch.device, width: int) -> tuple:
+        """``A``'s columns (pixels) in blocks of ``width``: ``((start, stop, A[:, start:stop]), ...)`` as CSR,
+        cached per (dtype, device, width) (one more copy of the nonzeros), for ``matmul_columns``."""
+        key = (dtype, torch.device(device), int(width))
+        if key not in self._cache:
+            crow, col, val = (t.to(device) for t in self.master[1])   # A^T's rows are A's columns
+            blocks = []
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+                for a in range(0, self.shape[1], width):
+                    b = min(a + width, self.shape[1])
+                    lo, hi = int(crow[a]), int(crow[b])
+                    rows = torch.sparse_csr_tensor((crow[a:b + 1] - lo).to(self.index_dtype),
+                                                   col[lo:hi].to(self.index_dtype), val[lo:hi].to(dtype),
+                                                   (b - a, self.shape[0]), check_invariants=False)
+                    blocks.append((a, b, rows.t().to_sparse_csr()))
+            self._cache[key] = tuple(blocks)
+        return self._cache[key]
+
     def __deepcopy__(self, memo):
         """Copies share the immutable master arrays and start with an empty cache (sparse CSR tensors cannot be
         deep-copied; the cached copies are rebuilt on first use)."""
@@ -223,6 +242,18 @@ def _matmul(mat: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         return torch.mm(mat, x.t()).t()
     block = max(1, CPU_BLOCK_BYTES // row)
     return torch.cat([torch.mm(mat, x[i:i + block].t()).t() for i in range(0, x.shape[0], block)])
+
+
+def matmul_columns(blocks: tuple, x: torch.Tensor) -> torch.Tensor:
+    """``x @ A^T`` for ``x (B, n)`` from ``A``'s column blocks (``_SystemMatrix.column_blocks``): the sum over
+    blocks of ``x[:, block] @ A[:, block]^T``, so that the dense rows a block reads stay in the cache (the same
+    sums as ``_matmul`` in another order). A 1024 x 256 slice, 61 tilts, 16 slices at a time, float32, one thread:
+    26 -> 7.2 ms a slice with blocks of 32768 pixels (the 16 MiB operand read per nonzero missed the cache)."""
+    out = None
+    for a, b, mat in blocks:
+        part = torch.mm(mat, x[:, a:b].t())
+        out = part if out is None else out.add_(part)
+    return out.t()
 
 
 class _Project(torch.autograd.Function):

@@ -121,6 +121,9 @@ def test_tilt_series_files_resume_like_uninterrupted(tmp_path):
     (["experiment=suite_et_3d_slab", "phantom.thickness=300"], r"phantom\.thickness.*\[7, phantom\.size\]"),
     (["experiment=suite_et_3d_slab", "phantom.thickness=6"], r"phantom\.thickness"),
     (["phantom.thickness=8"], r"phantom\.thickness.*for volumes"),
+    (["experiment=suite_et_3d_1024_slab", "phantom.rows=2000"], r"phantom\.rows.*\[7, phantom\.size\]"),
+    (["experiment=suite_et_3d_1024_slab", "phantom.rows=6"], r"phantom\.rows"),
+    (["phantom.rows=8"], r"phantom\.rows.*for volumes"),
 ])
 def test_3d_config_errors(overrides, match):
     from indreg.experiments.config import ConfigError, validate
@@ -148,6 +151,24 @@ def test_slab_preset_through_the_app(tmp_path):
     m = run_app(args, tmp_path)
     assert m["status"] == "completed" and m["iterations"] == 2 and np.isfinite(m["ssim"])
     assert np.load(tmp_path / "final.npy").shape == (16, 16, 8)
+
+
+def test_full_width_slab_preset_through_the_app(tmp_path):
+    """suite_et_3d_1024_slab shrunk to 32 x 8 x 8 (phantom.rows: a slab of rows along the tilt axis y): cubic cells,
+    the detector as wide as x, the data term slab-wise (slabs of 4 slices here), a completed run."""
+    from indreg.experiments.build import build
+    from indreg.problems.slabs import SlabwiseRegistration
+
+    args = ["experiment=suite_et_3d_1024_slab", "phantom.size=32", "phantom.rows=8", "phantom.thickness=8",
+            "geometry.det_count=32", "deformation.slab_size=4", "solver.max_iter=2", "baseline.enabled=false",
+            "logging.figure=false", "logging.tensorboard=false", "logging.progress=false"]
+    exp = build(compose(args))
+    assert exp.domain.shape == (32, 8, 8) and exp.domain.cell_sides == (1.0, 1.0, 1.0)
+    assert exp.domain.min_pt == (-16.0, -4.0, -4.0) and exp.ray_transform.range_shape == (61, 8, 32)
+    assert isinstance(exp.problem, SlabwiseRegistration) and len(exp.problem.slab_ranges) == 2
+    m = run_app(args, tmp_path)
+    assert m["status"] == "completed" and m["iterations"] == 2 and np.isfinite(m["ssim"])
+    assert np.load(tmp_path / "final.npy").shape == (32, 8, 8)
 
 
 def test_velocity_factor_through_the_app(tmp_path):

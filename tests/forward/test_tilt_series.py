@@ -129,6 +129,22 @@ def test_blocked_cpu_products_are_bit_for_bit(monkeypatch, dtype):
     assert torch.equal(whole[0], blocked[0]) and torch.equal(whole[1], blocked[1])
 
 
+@pytest.mark.parametrize("width", [1, 7, 40, 10 ** 6])
+def test_column_blocks_give_the_projection(width):
+    """``matmul_columns`` over ``A``'s column blocks (the slabs' projector on a CPU) equals ``A`` applied whole, to
+    float64 rounding, for blocks that do not divide the slice (7, 40), single pixels (1) and one block."""
+    from indreg.forward.ray_transform import _matmul, matmul_columns
+
+    T = transform("y")
+    x = torch.randn(5, DOMAIN.shape[0] * DOMAIN.shape[2], dtype=torch.float64)
+    A = T.system.get(torch.float64, torch.device("cpu"))[0]
+    blocks = T.system.column_blocks(torch.float64, torch.device("cpu"), width)
+    assert [b[0] for b in blocks] == list(range(0, x.shape[1], width)) and blocks[-1][1] == x.shape[1]
+    assert sum(b[2]._nnz() for b in blocks) == A._nnz()
+    torch.testing.assert_close(matmul_columns(blocks, x), _matmul(A, x), rtol=1e-13, atol=1e-13)
+    assert T.system.column_blocks(torch.float64, torch.device("cpu"), width) is blocks   # cached
+
+
 def test_protocol_and_geometry():
     T = transform("y")
     assert check_operator(T) is T and isinstance(T, LinearOperator)
