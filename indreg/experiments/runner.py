@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -193,6 +194,8 @@ def _run(cfg: DictConfig, output_dir) -> dict:
         raise ConfigError(f"invalid configuration: {e}") from e
     problem = exp.problem
     _check_split(problem)
+    if rank != 0:   # it writes nothing: it keeps the template and data its slabs read, no ground truths
+        exp.data = replace(exp.data, target_64=None, clean_64=None, targets={})
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
     rec = baselines(cfg, exp, out) if rank == 0 else {}
 
