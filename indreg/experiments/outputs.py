@@ -27,7 +27,7 @@ from .config import to_plain
 from .run_figures import to_numpy, write_figures
 
 __all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality", "save_array",
-           "save_frames"]
+           "save_frames", "save_rows"]
 
 log = logging.getLogger("indreg.experiments.register")
 
@@ -73,34 +73,46 @@ def _json_float(v):
     return v
 
 
+def _npy(path: Path, shape: tuple):
+    """``path`` opened for a float64 ``.npy`` of ``shape``, its header written (``np.save``'s): the values follow
+    in C order. Written, not memory-mapped: a mapped file's pages would count in the process's resident memory."""
+    f = open(path, "wb")
+    np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": tuple(shape)})
+    return f
+
+
 def save_array(path: Path, a) -> None:
     """``a`` (a tensor, any dtype / device) as a float64 ``.npy`` at ``path``, converted :data:`SAVE_CHUNK` values
     at a time (the file ``np.save`` of the float64 array writes, without that array)."""
-    a = a.detach()
-    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float64, shape=tuple(a.shape))
-    flat, dest = a.reshape(-1), out.reshape(-1)
-    for i in range(0, flat.numel(), SAVE_CHUNK):
-        dest[i:i + SAVE_CHUNK] = to_numpy(flat[i:i + SAVE_CHUNK])
-    out.flush()
-    del out
+    with _npy(path, a.shape) as f:
+        save_rows(f, a)
 
 
 def save_frames(path: Path, frames, count: int, keep=()) -> dict:
     """The ``count`` frames of the iterator ``frames`` (tensors of one shape) as one float64 ``.npy`` ``(count,
     *shape)`` at ``path``, written as they come; returns the frames of the indices ``keep`` (in their dtype)."""
-    kept, out = {}, None
-    for i, frame in enumerate(frames):
-        if i >= count:
-            raise ValueError(f"save_frames: expected {count} frames, got more")
-        if out is None:
-            out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float64, shape=(count, *frame.shape))
-        out[i] = to_numpy(frame)
-        if i in keep:
-            kept[i] = frame
-    if out is None or i + 1 != count:
-        raise ValueError(f"save_frames: expected {count} frames, got {0 if out is None else i + 1}")
-    out.flush()
+    kept, f, i = {}, None, -1
+    try:
+        for i, frame in enumerate(frames):
+            if i >= count:
+                raise ValueError(f"save_frames: expected {count} frames, got more")
+            f = f or _npy(path, (count, *frame.shape))
+            save_rows(f, frame)
+            if i in keep:
+                kept[i] = frame
+    finally:
+        if f is not None:
+            f.close()
+    if i + 1 != count:
+        raise ValueError(f"save_frames: expected {count} frames, got {i + 1}")
     return kept
+
+
+def save_rows(f, a) -> None:
+    """``a``'s values in float64 (C order) written to the open file ``f``, :data:`SAVE_CHUNK` at a time."""
+    flat = a.detach().reshape(-1)
+    for i in range(0, flat.numel(), SAVE_CHUNK):
+        f.write(to_numpy(flat[i:i + SAVE_CHUNK]).tobytes())
 
 
 def failed(out: Path, history: list) -> dict:
