@@ -16,6 +16,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from .._checks import StepOverflowError
+from .._malloc import system_allocator
 from ..callbacks import Callback
 from ..io import DataFileError
 from ..run import RegistrationLoop, initial_state
@@ -187,7 +188,8 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     saved = _read_checkpoint(cfg, path, problem_cfg)
     seed_everything(cfg.seed)
     try:
-        exp = build(cfg)  # reads and checks the data (files) before any computing
+        with system_allocator():   # the data's float64 temporaries go back to the system (indreg._malloc)
+            exp = build(cfg)  # reads and checks the data (files) before any computing
     except DataFileError:
         raise
     except (ValueError, TypeError) as e:  # the operators' input validation
