@@ -12,7 +12,9 @@ Convention:
       authors passed the result first and the ground truths are nonnegative, so "either image" is the same.)
       Other SSIM settings are the defaults then and now: 7 x 7 uniform window, sample covariance.
     - 3D SSIM is the same statistic with a 7 x 7 x 7 window (scikit-image's n-dimensional SSIM), averaged over
-      the volume.
+      the volume. Volumes are read in float64 chunks of :data:`CHUNK` slices along axis 0 (SSIM's with a halo of
+      3 slices), never as whole float64 copies: the same numbers as whole volumes to float rounding (the sums'
+      order).
 """
 from __future__ import annotations
 
@@ -24,6 +26,8 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 #: Side of scikit-image's default SSIM window (cells).
 SSIM_WINDOW = 7
+#: Slices along axis 0 of a volume read at once (in float64) by the figures of merit.
+CHUNK = 16
 
 
 def _real_array(a, name: str) -> np.ndarray:
@@ -40,31 +44,68 @@ def _real_array(a, name: str) -> np.ndarray:
 
 
 def _pair(x, gt) -> tuple:
+    """``(x, gt)`` checked: images as float64 arrays; volumes as given (read in float64 chunks, :func:`_rows`)."""
     arrays = []
     for a, name in ((x, "x"), (gt, "gt")):
-        a = _real_array(a, name)
-        if a.ndim not in (2, 3) or a.size == 0:
+        volume = getattr(a, "ndim", None) == 3
+        head = _real_array(a[:1] if volume else a, name)   # the type and dtype checked
+        if not volume and (head.ndim != 2 or head.size == 0) or volume and 0 in a.shape:
             raise ValueError(f"{name} must be a non-empty 2D image (nx, ny) or 3D volume (nx, ny, nz), "
-                             f"got shape {a.shape}")
-        if not np.isfinite(a).all():
+                             f"got shape {tuple(getattr(a, 'shape', head.shape))}")
+        finite = bool(torch.isfinite(a).all()) if isinstance(a, torch.Tensor) else np.isfinite(a).all()
+        if not finite:
             raise ValueError(f"{name} contains non-finite values (nan or inf)")
-        arrays.append(a)
-    if arrays[0].shape != arrays[1].shape:
-        raise ValueError(f"x and gt must have the same shape, got {arrays[0].shape} and {arrays[1].shape}")
+        arrays.append(a if volume else head)
+    if tuple(arrays[0].shape) != tuple(arrays[1].shape):
+        raise ValueError(f"x and gt must have the same shape, got {tuple(arrays[0].shape)} and "
+                         f"{tuple(arrays[1].shape)}")
     return tuple(arrays)
 
 
-def _gt_range(gt: np.ndarray) -> float:
-    r = float(gt.max() - gt.min())
+def _rows(a, start: int, stop: int) -> np.ndarray:
+    """Slices ``start:stop`` (axis 0) of a volume as a float64 array."""
+    return _real_array(a[start:stop], "x")
+
+
+def _chunks(start: int, stop: int):
+    """``(a, b)`` ranges of at most :data:`CHUNK` slices covering ``start:stop``."""
+    return ((a, min(a + CHUNK, stop)) for a in range(start, stop, CHUNK))
+
+
+def _gt_range(gt) -> float:
+    r = float(gt.max()) - float(gt.min())
     if r <= 0:
         raise ValueError("gt is constant: data_range = gt.max() - gt.min() is 0")
     return r
 
 
-def _psnr(x: np.ndarray, gt: np.ndarray, data_range: float) -> float:
-    if np.array_equal(x, gt):
-        return math.inf
-    return float(peak_signal_noise_ratio(gt, x, data_range=data_range))
+def _psnr(x, gt, data_range: float) -> float:
+    if x.ndim == 2:
+        if np.array_equal(x, gt):
+            return math.inf
+        return float(peak_signal_noise_ratio(gt, x, data_range=data_range))
+    squares, equal = 0.0, True
+    for a, b in _chunks(0, x.shape[0]):   # a volume: the mean square error in float64 chunks
+        xs, gs = _rows(x, a, b), _rows(gt, a, b)
+        equal = equal and np.array_equal(xs, gs)
+        squares += float(np.sum((gs - xs) ** 2, dtype=np.float64))
+    return math.inf if equal else float(10 * np.log10(data_range ** 2 / (squares / math.prod(x.shape))))
+
+
+def _ssim(x, gt, data_range: float) -> float:
+    """scikit-image's SSIM; a volume's by chunks of slices with a halo of the window's half width ``p``, each
+    chunk's SSIM map kept where its window lies inside the chunk (scikit-image averages the cells ``p`` or more
+    from every edge)."""
+    if x.ndim == 2:
+        return float(structural_similarity(x, gt, data_range=data_range))
+    p, n = (SSIM_WINDOW - 1) // 2, x.shape[0]
+    total, count = 0.0, 0
+    for a, b in _chunks(p, n - p):
+        _, s = structural_similarity(_rows(x, a - p, b + p), _rows(gt, a - p, b + p), data_range=data_range,
+                                     full=True)
+        inner = s[p:p + b - a, p:-p, p:-p]
+        total, count = total + float(inner.sum(dtype=np.float64)), count + inner.size
+    return total / count
 
 
 def _ssim_pair(x, gt) -> tuple:
@@ -72,14 +113,14 @@ def _ssim_pair(x, gt) -> tuple:
     x, gt = _pair(x, gt)
     if min(x.shape) < SSIM_WINDOW:
         raise ValueError(f"x and gt must be at least {SSIM_WINDOW} cells along every axis for SSIM (its "
-                         f"{SSIM_WINDOW}-cell window), got shape {x.shape}")
+                         f"{SSIM_WINDOW}-cell window), got shape {tuple(x.shape)}")
     return x, gt
 
 
 def ssim(x, gt) -> float:
     """Structural similarity, ``data_range = gt.max() - gt.min()`` (1 for identical images)."""
     x, gt = _ssim_pair(x, gt)
-    return float(structural_similarity(x, gt, data_range=_gt_range(gt)))
+    return _ssim(x, gt, _gt_range(gt))
 
 
 def psnr(x, gt) -> float:
@@ -91,20 +132,25 @@ def psnr(x, gt) -> float:
 def ssim_paper(x, gt) -> float:
     """Structural similarity as the paper computed it (2017 ``compare_ssim`` on floats: data range 2)."""
     x, gt = _ssim_pair(x, gt)
-    return float(structural_similarity(x, gt, data_range=2.0))
+    return _ssim(x, gt, 2.0)
 
 
 def psnr_paper(x, gt) -> float:
     """PSNR as the paper computed it (2017 ``compare_psnr`` on floats): data range 2 if ``x`` or ``gt`` has
     negative values, else 1; ``inf`` for identical images."""
     x, gt = _pair(x, gt)
-    return _psnr(x, gt, 2.0 if min(x.min(), gt.min()) < 0 else 1.0)
+    return _psnr(x, gt, 2.0 if min(float(x.min()), float(gt.min())) < 0 else 1.0)
 
 
 def relative_error(x, gt) -> float:
     """``||x - gt|| / ||gt||`` (Frobenius norms; a cell-volume weight cancels)."""
     x, gt = _pair(x, gt)
-    ref = np.linalg.norm(gt)
+    if x.ndim == 2:
+        error, ref = float(np.linalg.norm(x - gt)), float(np.linalg.norm(gt))
+    else:   # a volume: the sums of squares in float64 chunks
+        parts = [(np.sum((_rows(x, a, b) - _rows(gt, a, b)) ** 2), np.sum(_rows(gt, a, b) ** 2))
+                 for a, b in _chunks(0, x.shape[0])]
+        error, ref = (math.sqrt(sum(float(v[i]) for v in parts)) for i in (0, 1))
     if ref == 0:
         raise ValueError("gt is zero: the relative error is undefined")
-    return float(np.linalg.norm(x - gt) / ref)
+    return error / ref

@@ -345,7 +345,7 @@ class RegistrationResult:
     momentum: torch.Tensor
     velocity: torch.Tensor
     deformation: torch.Tensor
-    trajectory: torch.Tensor
+    trajectory: Optional[torch.Tensor]
     history: list
     iterations: int
     objective: float
@@ -419,11 +419,11 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
-                 units: Optional[Units] = None, validation=None) -> RegistrationResult:
-    """The result at ``state``: reconstruction, trajectory, velocity, phi_{1,0}, terms, min Jacobian, residual
-    (on the fitted data), the model's outputs, SSIM / PSNR of the reconstruction against ``target`` (float64, CPU)
-    if given, and the held-out residuals of ``validation`` if given; ``status`` becomes ``diverged`` if the
-    residual is ``>= 1`` (:func:`final_status`); ``units``: what :func:`prepare` did to the inputs."""
+                 units: Optional[Units] = None, validation=None, trajectory: bool = True) -> RegistrationResult:
+    """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
+    one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
+    data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
+    ``validation`` if given; ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`)."""
     from . import alignment
 
     units = units or Units()
@@ -435,7 +435,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     residual = problem.relative_residual(x)
     result = RegistrationResult(
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
-        trajectory=problem.image_trajectory(x), history=history, iterations=state.iteration,
+        trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
         problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))

@@ -104,3 +104,25 @@ def test_ssim_needs_its_window():
                                              r"got shape \(6, 32\)"):
             metric(x[8:14], gt[8:14])
     assert psnr(x[8:14], gt[8:14]) > 0  # PSNR has no window
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 16])
+@pytest.mark.parametrize("shape", [(23, 9, 11), (7, 8, 9), (40, 7, 12)])
+def test_volumes_in_chunks_equal_whole_volumes(monkeypatch, chunk, shape):
+    """A volume's SSIM, PSNR and relative error read in float64 chunks of slices (any chunk size, a float32
+    tensor as it is) equal scikit-image's / numpy's on the whole float64 arrays to rounding."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from indreg import metrics
+    monkeypatch.setattr(metrics, "CHUNK", chunk)
+    rng = np.random.default_rng(0)
+    gt = torch.from_numpy(rng.random(shape)).float()
+    x = gt + 0.1 * torch.from_numpy(rng.standard_normal(shape)).float()
+    a, b = x.double().numpy(), gt.double().numpy()
+    r = float(b.max() - b.min())
+    assert ssim(x, gt) == pytest.approx(structural_similarity(a, b, data_range=r), rel=1e-13)
+    assert ssim_paper(x, gt) == pytest.approx(structural_similarity(a, b, data_range=2.0), rel=1e-13)
+    assert psnr(x, gt) == pytest.approx(peak_signal_noise_ratio(b, a, data_range=r), rel=1e-13)
+    assert psnr_paper(x, gt) == pytest.approx(peak_signal_noise_ratio(b, a, data_range=2.0), rel=1e-13)
+    assert relative_error(x, gt) == pytest.approx(np.linalg.norm(a - b) / np.linalg.norm(b), rel=1e-13)
+    assert psnr(gt, gt) == math.inf and ssim(gt.numpy(), gt.numpy()) == pytest.approx(1.0, rel=1e-13)

@@ -45,3 +45,26 @@ def test_heap_allocator_policy_in_a_fresh_process():
     assert runs["system"][0] == "False" and runs[""][1] == runs["system"][1]
     if sys.platform.startswith("linux") and os.path.exists("/lib/x86_64-linux-gnu/libc.so.6"):
         assert runs[""][0] == "True"
+
+
+def test_system_allocator_inside_the_block_only():
+    """Inside ``system_allocator()`` a freed large array goes back to the system (glibc's policy); after it the
+    heap policy keeps freed arrays again (Linux, glibc)."""
+    import os
+    import subprocess
+    import sys
+
+    if not (sys.platform.startswith("linux") and os.path.exists("/lib/x86_64-linux-gnu/libc.so.6")):
+        pytest.skip("glibc only")
+    code = ("import torch, indreg._malloc as m\n"
+            "def rss(): return next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmRSS'))\n"
+            "assert m.use_heap_allocator()\n"
+            "r0 = rss()\n"
+            "with m.system_allocator():\n"
+            "    x = torch.ones(2 ** 26); del x\n"
+            "r1 = rss(); x = torch.ones(2 ** 26); del x\n"
+            "print((r1 - r0) // 1024, (rss() - r0) // 1024)")
+    env = dict(os.environ, INDREG_MALLOC="")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    inside, after = map(int, out.stdout.split())   # MiB kept after freeing a 256 MiB array
+    assert inside < 64 and after > 200

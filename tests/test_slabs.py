@@ -61,6 +61,9 @@ def test_slabwise_gradient_equals_the_whole_volume_one(action, tilt_axis, slab_s
     assert slabs.evaluate(m)["objective"] == pytest.approx(whole.evaluate(m)["objective"], rel=1e-12)
     torch.testing.assert_close(slabs.deformed(m), whole.deformed(m), rtol=0, atol=1e-12)
     torch.testing.assert_close(slabs.trajectory(m), whole.trajectory(m), rtol=0, atol=1e-12)
+    frames = list(slabs.image_frames((m,)))   # one frame at a time: the trajectory's frames, bit for bit
+    assert len(frames) == m.shape[0] and torch.equal(torch.stack(frames), slabs.trajectory(m))
+    assert torch.is_grad_enabled()
 
 
 @pytest.mark.parametrize("block_bytes", [8, 200])

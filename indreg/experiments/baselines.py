@@ -1,6 +1,7 @@
 """The baselines of a run: FBP and TV (and SIRT for volumes) from the run's noisy data, cached in the run dir.
 
-Convention: reconstructions are returned on the CPU as float64 tensors of the domain's shape ``(nx, ny[, nz])``,
+Convention: reconstructions are returned on the CPU as tensors of the domain's shape ``(nx, ny[, nz])`` (images
+float64, volumes the run's dtype),
 keyed ``fbp``, ``tv`` (and ``sirt``); TV's weight is absolute, ``baseline.tv_mu`` times the data's intensity unit.
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ def tv_mu(cfg: DictConfig, exp) -> float:
 
 def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     """FBP and TV reconstructions from the noisy data (images: float64, volumes: the run's dtype, on the run's
-    device, returned on the CPU as float64); cached in ``baselines.npz`` so that a resumed run does not recompute
+    device, returned on the CPU in that dtype: no float64 copy of a volume); cached in ``baselines.npz`` so that a resumed run does not recompute
     them. FBP and SIRT are linear in the data; TV's weight scales with them (:func:`tv_mu`). Volumes take the run's
     dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a float32 one."""
     if not cfg.baseline.enabled:
@@ -53,7 +54,7 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     if volume:  # electron tomography's iterative baseline
         rec["sirt"] = sirt(T, g, num_iter=b.sirt_iterations, nonneg=True)[0]
     rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations)[0]
-    rec = {k: v.detach().to("cpu", torch.float64) for k, v in rec.items()}
+    rec = {k: v.detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
     log.info("baselines (%s) in %.1f s", ", ".join(rec).upper().replace(
         "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the data's intensity unit"),
         time.perf_counter() - t0)

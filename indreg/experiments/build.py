@@ -1,7 +1,10 @@
 """Build one indirect registration experiment (domain, data, operators, problem, solver) from its config.
 
 The data come from the config's data source (:mod:`indreg.experiments.sources`: simulated phantoms or files), in
-float64 on the CPU; only then are template and data cast to ``cfg.dtype`` / ``cfg.device``. Simulated data are
+float64 on the CPU; only then are template and data cast to ``cfg.dtype`` / ``cfg.device``. A volume's run keeps
+no float64 copy of a fine array: its source's arrays (template, data, target, noise-free data, the model's ground
+truths) are cast to the run's dtype on the CPU once loaded, so that the figures of merit, baselines and figures
+read them there (``indreg.metrics`` compares volumes in float64 chunks). Simulated data are
 generated device- and dtype-independently (noise drawn on the CPU with the run's seed), so the same config gives
 the same data everywhere. Kernel, deformation, objective and solver are built by :func:`indreg.run.setup`, the
 same code as ``indreg.register`` (``indreg.run.setup``).
@@ -9,7 +12,7 @@ same code as ``indreg.register`` (``indreg.run.setup``).
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -23,10 +26,11 @@ from .config import ConfigError, registration_values
 
 @dataclass
 class Experiment:
-    """Everything a run needs: the source's ``data`` (:class:`sources.Data`, float64 on the CPU), the ``setup``
+    """Everything a run needs: the source's ``data`` (:class:`sources.Data`, on the CPU), the ``setup``
     (``indreg.run.Setup``: problem, solver, resolved options, units, validation) and the inputs as the run uses
-    them: ``template`` in the run's dtype / device, ``template_64`` / ``noisy_data_64`` in float64 on the CPU for
-    metrics, baselines and figures (both through ``setup.units.apply``, the one transformation of the inputs).
+    them: ``template`` in the run's dtype / device, ``template_64`` / ``noisy_data_64`` on the CPU for metrics,
+    baselines and figures (both through ``setup.units.apply``, the one transformation of the inputs). Images:
+    ``data`` and the ``_64`` arrays in float64; volumes: in the run's dtype (:func:`fine_arrays_in`).
     The source's and the setup's fields read through (``exp.domain``, ``exp.problem``, ...)."""
     data: sources.Data
     setup: run.Setup
@@ -64,6 +68,8 @@ def build(cfg: DictConfig) -> Experiment:
     dtype = getattr(torch, cfg.dtype.value)
     device = run.resolve_device(cfg.device)
     data = sources.load(cfg)
+    if data.domain.ndim == 3:
+        data = fine_arrays_in(data, dtype)
     template = data.template_64.to(dtype=dtype, device=device)
     g = data.data_64.to(dtype=dtype, device=device)
     try:
@@ -74,3 +80,15 @@ def build(cfg: DictConfig) -> Experiment:
     template_64, data_64 = s.units.apply(data.template_64, data.data_64)
     return Experiment(data=data, setup=s, template=s.units.apply(template, g)[0], template_64=template_64,
                       noisy_data_64=data_64)
+
+
+def fine_arrays_in(data: sources.Data, dtype: torch.dtype) -> sources.Data:
+    """``data`` with its arrays (template, data, target, noise-free data, ``targets``) in ``dtype`` on the CPU: a
+    volume's run holds no float64 copy of a fine array (at 256^3 each float64 volume is 128 MiB; the float32 ones
+    are what the run computes with, and float32 to float64 is exact for the figures of merit)."""
+    def cast(t):
+        return None if t is None else t.to("cpu", dtype)
+
+    return replace(data, template_64=cast(data.template_64), data_64=cast(data.data_64),
+                   target_64=cast(data.target_64), clean_64=cast(data.clean_64),
+                   targets={k: cast(v) for k, v in data.targets.items()})

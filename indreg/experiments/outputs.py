@@ -4,6 +4,11 @@ log's headline (``finish``); a failed run's record (``failed``).
 Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.run.build_result`` (images ``(nx, ny)``,
 volumes ``(nx, ny, nz)``, a model's stacks with a leading axis, e.g. frames ``(K, nx, ny)``); SSIM / PSNR use the
 target's data range; a stack's figures of merit are the means over its first axis.
+
+Memory: a volume's outputs are written without a float64 copy of a whole array (:func:`save_array` converts in
+chunks), its trajectory frame by frame (``problem.image_frames``: slab-wise, one fine volume at a time; only the
+frames the figures show are kept, and only when figures or TensorBoard are on), its figures of merit in float64
+chunks (``indreg.metrics``).
 """
 from __future__ import annotations
 
@@ -21,9 +26,13 @@ from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
 
-__all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality"]
+__all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality", "save_array",
+           "save_frames", "save_rows"]
 
 log = logging.getLogger("indreg.experiments.register")
+
+#: Values converted to float64 at a time when an array is written (32 MiB).
+SAVE_CHUNK = 2 ** 22
 
 
 def figures_of_merit(image, target_64, paper: bool = True) -> dict:
@@ -32,7 +41,7 @@ def figures_of_merit(image, target_64, paper: bool = True) -> dict:
     that means nothing for other units; docs/paper_notes.md)."""
     from .. import metrics
 
-    x = image.detach().to("cpu", torch.float64)
+    x = image.detach() if image.dim() == 3 else image.detach().to("cpu", torch.float64)   # volumes: in chunks
     out = {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64)}
     if paper:
         out.update(ssim_paper=metrics.ssim_paper(x, target_64), psnr_paper=metrics.psnr_paper(x, target_64))
@@ -64,6 +73,48 @@ def _json_float(v):
     return v
 
 
+def _npy(path: Path, shape: tuple):
+    """``path`` opened for a float64 ``.npy`` of ``shape``, its header written (``np.save``'s): the values follow
+    in C order. Written, not memory-mapped: a mapped file's pages would count in the process's resident memory."""
+    f = open(path, "wb")
+    np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": tuple(shape)})
+    return f
+
+
+def save_array(path: Path, a) -> None:
+    """``a`` (a tensor, any dtype / device) as a float64 ``.npy`` at ``path``, converted :data:`SAVE_CHUNK` values
+    at a time (the file ``np.save`` of the float64 array writes, without that array)."""
+    with _npy(path, a.shape) as f:
+        save_rows(f, a)
+
+
+def save_frames(path: Path, frames, count: int, keep=()) -> dict:
+    """The ``count`` frames of the iterator ``frames`` (tensors of one shape) as one float64 ``.npy`` ``(count,
+    *shape)`` at ``path``, written as they come; returns the frames of the indices ``keep`` (in their dtype)."""
+    kept, f, i = {}, None, -1
+    try:
+        for i, frame in enumerate(frames):
+            if i >= count:
+                raise ValueError(f"save_frames: expected {count} frames, got more")
+            f = f or _npy(path, (count, *frame.shape))
+            save_rows(f, frame)
+            if i in keep:
+                kept[i] = frame
+    finally:
+        if f is not None:
+            f.close()
+    if i + 1 != count:
+        raise ValueError(f"save_frames: expected {count} frames, got {i + 1}")
+    return kept
+
+
+def save_rows(f, a) -> None:
+    """``a``'s values in float64 (C order) written to the open file ``f``, :data:`SAVE_CHUNK` at a time."""
+    flat = a.detach().reshape(-1)
+    for i in range(0, flat.numel(), SAVE_CHUNK):
+        f.write(to_numpy(flat[i:i + SAVE_CHUNK]).tobytes())
+
+
 def failed(out: Path, history: list) -> dict:
     """A run whose objective or gradient became non-finite: ``metrics.json`` and ``history.json`` say so."""
     last = history[-1]
@@ -89,7 +140,9 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
-    r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation)
+    volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
+    r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
+                     trajectory=not volume)
     target = exp.target_64
     result = {}
     if target is not None:
@@ -122,23 +175,28 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
-    arrays = {"final": r.deformed, "trajectory": r.trajectory, "velocity": r.velocity, "momentum": r.momentum,
-              "deformation": r.deformation, "template": exp.template_64, "data": exp.noisy_data_64, **rec,
-              **r.outputs}
+    arrays = {"final": r.deformed, "velocity": r.velocity, "momentum": r.momentum, "deformation": r.deformation,
+              "template": exp.template_64, "data": exp.noisy_data_64, **rec, **r.outputs}
+    arrays.update({} if volume else {"trajectory": r.trajectory})
     if target is not None:
         arrays["target"] = target
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
     for name, a in arrays.items():
-        np.save(out / f"{name}.npy", to_numpy(a))
-    if exp.domain.ndim == 3:  # the registered volume for IMOD / ChimeraX too (voxel size in the header)
+        save_array(out / f"{name}.npy", a)
+    frames = None
+    if volume:   # the registered volume for IMOD / ChimeraX too (voxel size in the header)
         from ..io import write_volume
-        write_volume(out / "final.mrc", to_numpy(r.deformed), exp.domain)
+        from .run_figures import shown_frames
+        write_volume(out / "final.mrc", r.deformed.detach().cpu().numpy(), exp.domain)
+        shown = shown_frames(r.velocity.shape[0] - 1) if cfg.logging.figure or writer.enabled else ()
+        frames = save_frames(out / "trajectory.npy", problem.image_frames(state.iterate), r.velocity.shape[0],
+                             shown)
     with open(out / "history.json", "w") as f:
         json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
     with open(out / "metrics.json", "w") as f:
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
-    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})

@@ -14,7 +14,7 @@ import torch
 
 from . import figures
 
-__all__ = ["write_figures", "domain_extent", "to_numpy"]
+__all__ = ["write_figures", "shown_frames", "domain_extent", "to_numpy"]
 
 
 def to_numpy(x) -> np.ndarray:
@@ -22,28 +22,38 @@ def to_numpy(x) -> np.ndarray:
     return x.detach().to("cpu", torch.float64).numpy()
 
 
-def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int) -> None:
+def shown_frames(n: int) -> set:
+    """The indices of the trajectory's frames (of ``n + 1``) that the figures and TensorBoard show."""
+    return {0, n // 2, n, *figures.time_indices(n)}
+
+
+def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int, kept=None) -> None:
     """figure.png (the paper's layout for images, orthogonal slices for volumes), parts.png when the model
     splits its reconstruction (two outputs of kind ``"parts"``, ``problem.output_kinds``), frames.png and
     frames.gif when it has an output of kind ``"frames"``, and TensorBoard's final images; ``quality``: the
-    figures of merit in the titles."""
-    traj = to_numpy(r.trajectory)
+    figures of merit in the titles. ``kept``: the trajectory's frames :func:`shown_frames` by index, when
+    ``r.trajectory`` is None (a volume's run: its trajectory is written frame by frame)."""
+    if kept is None:
+        traj = to_numpy(r.trajectory)
+        n, frame = traj.shape[0] - 1, traj.__getitem__
+    else:
+        n, frame = max(kept, default=0), lambda i: _host(kept[i])
     volume = exp.domain.ndim == 3
     kinds = exp.problem.output_kinds
     part_names = [n for n, kind in kinds.items() if kind == "parts" and n in r.outputs]
     parts = tuple(r.outputs[n] for n in part_names) if len(part_names) == 2 else None   # the summands of f(1)
     frames_name = next((n for n, kind in kinds.items() if kind == "frames" and n in r.outputs), None)
     if cfg.logging.figure:
-        figure = _ortho_figure if volume else _paper_figure
-        figures.save(figure(exp, traj, rec, title=f"{cfg.name}: {quality}"), out / "figure.png")
+        figure = _ortho_figure(exp, frame, n, rec, f"{cfg.name}: {quality}") if volume else \
+            _paper_figure(exp, traj, rec, title=f"{cfg.name}: {quality}")
+        figures.save(figure, out / "figure.png")
         if parts is not None:
             figures.save(_parts_figure(exp, r.deformed, parts, title=f"{cfg.name}: {quality}"), out / "parts.png")
-    n = traj.shape[0] - 1
-    writer.strip("images/trajectory", [traj[0]] + [traj[i] for i in figures.time_indices(n)], it)
+    if writer.enabled:
+        writer.strip("images/trajectory", [frame(0)] + [frame(i) for i in figures.time_indices(n)], it)
     writer.image("images/deformed_template", r.deformed, it)
-    grid = to_numpy(r.deformation)
-    if volume:  # the xy plane through the centre: (x, y) of phi on the central z slice
-        grid = grid[:2, :, :, grid.shape[-1] // 2]
+    phi = r.deformation   # a volume's: the xy plane through the centre, (x, y) of phi on the central z slice
+    grid = to_numpy(phi[:2, :, :, phi.shape[-1] // 2] if volume else phi)
     writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
     if frames_name is not None:   # several time points: the frames in a row, one image each, and a movie
         frames = to_numpy(r.outputs[frames_name])
@@ -79,12 +89,12 @@ def _paper_figure(exp, traj, rec: dict, title: str):
                                 title=title, angle_deg=0.0 if angles is None else float(angles[0]) * 180 / math.pi)
 
 
-def _ortho_figure(exp, traj, rec: dict, title: str = ""):
-    """A volume's run: orthogonal slices of the template, W(nu, I) at t = 0.5 and 1, target and baselines."""
-    n = traj.shape[0] - 1
-    panels = [("template", exp.template_64.numpy()), ("t = 0.5", traj[n // 2]), ("t = 1", traj[n])]
+def _ortho_figure(exp, frame, n: int, rec: dict, title: str = ""):
+    """A volume's run: orthogonal slices of the template, W(nu, I) at t = 0.5 and 1 (``frame(i)``, of ``n + 1``),
+    target and baselines."""
+    panels = [("template", exp.template_64.numpy()), ("t = 0.5", frame(n // 2)), ("t = 1", frame(n))]
     panels += [("target", None if exp.target_64 is None else exp.target_64.numpy())]
-    panels += [(k.upper(), to_numpy(v)) for k, v in rec.items()]
+    panels += [(k.upper(), _host(v)) for k, v in rec.items()]
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
     return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title,
                                 box=(exp.domain.min_pt, exp.domain.max_pt))
@@ -99,6 +109,11 @@ def _parts_figure(exp, final, parts, title: str = ""):
                                           box=(exp.domain.min_pt, exp.domain.max_pt))
     return figures.parts_figure(to_numpy(final), to_numpy(parts[0]), to_numpy(parts[1]), target,
                                 extent=domain_extent(exp.domain), title=title)
+
+
+def _host(x) -> np.ndarray:
+    """A tensor as a numpy array on the CPU in its own dtype (a volume's panels: no float64 copy)."""
+    return x.detach().cpu().numpy()
 
 
 def domain_extent(domain) -> tuple:

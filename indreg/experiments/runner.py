@@ -10,11 +10,13 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from .._checks import StepOverflowError
+from .._malloc import system_allocator
 from ..callbacks import Callback
 from ..io import DataFileError
 from ..run import RegistrationLoop, initial_state
@@ -186,13 +188,16 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     saved = _read_checkpoint(cfg, path, problem_cfg)
     seed_everything(cfg.seed)
     try:
-        exp = build(cfg)  # reads and checks the data (files) before any computing
+        with system_allocator():   # the data's float64 temporaries go back to the system (indreg._malloc)
+            exp = build(cfg)  # reads and checks the data (files) before any computing
     except DataFileError:
         raise
     except (ValueError, TypeError) as e:  # the operators' input validation
         raise ConfigError(f"invalid configuration: {e}") from e
     problem = exp.problem
     _check_split(problem)
+    if rank != 0:   # it writes nothing: it keeps the template and data its slabs read, no ground truths
+        exp.data = replace(exp.data, target_64=None, clean_64=None, targets={})
     log.info("%s | %s | %s", cfg.name, problem, exp.solver)
     rec = baselines(cfg, exp, out) if rank == 0 else {}
 

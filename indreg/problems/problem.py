@@ -20,6 +20,8 @@ Members a subclass implements:
   (Algorithm 1 descends ``x_k <- x_k - alpha_k h_k``) and ``nu = K m``: by default autograd through
   ``differentiable``; LDDMM and metamorphosis hand-write it (one forward / backward, in place);
 - ``reconstruction(x)`` (the image the iterate implies, ``f(1)``), ``image_trajectory(x)`` (``f(t_i)``),
+  ``image_frames(x)`` (the same ``f(t_i)`` one at a time: by default from ``image_trajectory``; the slab-wise
+  problem computes each frame alone),
   ``evaluate_iterate(x)`` (the terms, python floats), ``outputs(x)`` (model-specific results by name),
   ``scored`` (which of those are images to score against a target), ``hparams()``, ``relative_residual(x)``
   (``||T f - g|| / ||g||``; by default of ``reconstruction(x)``);
@@ -119,6 +121,11 @@ class RegistrationProblem:
     def frame_times(self) -> Optional[list]:
         """The times of the ``"frames"`` outputs (None: no frames)."""
         return None
+
+    def image_frames(self, x: tuple):
+        """``f(t_i)`` for ``i = 0..N``, one frame at a time (an iterator of ``image_trajectory(x)[i]``); a problem
+        that can evaluate a frame alone overrides it, so that a caller holds one frame, not ``N + 1``."""
+        yield from self.image_trajectory(x)
 
     def outputs(self, x: tuple) -> dict:
         """Model-specific results at ``x`` by name (tensors), besides the reconstruction and the deformation."""

@@ -330,6 +330,15 @@ class SlabwiseRegistration(IndirectRegistration):
                 self._assemble(out[i], slots[i], None if jac is None else jac[i])
             return out
 
+    def image_frames(self, x: tuple):
+        """``W(K m, I)(t_i)`` for i = 0..N one at a time, each assembled slab by slab (one fine volume held)."""
+        with torch.no_grad():   # not held across a yield: the caller's grad mode stays its own
+            slots, jac, _ = self._flow(self.velocity(x[0]))
+        for i in range(slots.shape[0]):
+            with torch.no_grad():
+                frame = self._assemble(torch.empty_like(self.template), slots[i], None if jac is None else jac[i])
+            yield frame
+
     def l2_gradient(self, m: torch.Tensor) -> tuple:
         """``IndirectRegistration.l2_gradient`` slab-wise: this rank's slabs, one ``all_reduce`` of the coarse
         ``dL/du_N`` (``dL/dJ_N``) and the fit, then the coarse reverse sweep on every rank."""
