@@ -5,22 +5,11 @@ import math
 import pytest
 import torch
 
-from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
-from indreg.deform.kernel import GaussianKernel
 from indreg.deform.lddmm import LDDMMDeformation
 from indreg.learn import MomentumUNet, UnrolledDescent, descent_gradient, descent_terms
 from indreg.solvers import Algorithm1, IndirectRegistration, SolverState
 
-
-def _problem(n=8, angles=3, num_steps=2, batch=2, seed=0):
-    dom = ImageDomain.paper(n)
-    T = RayTransform(dom, ParallelBeamGeometry.paper(angles, 12 if n == 8 else 24))
-    loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), num_steps), T, gamma=1e-2)
-    gen = torch.Generator().manual_seed(seed)
-    template = torch.rand(batch, n, n, generator=gen, dtype=torch.float64)
-    fbp = torch.rand(batch, n, n, generator=gen, dtype=torch.float64)
-    data = T(torch.rand(batch, n, n, generator=gen, dtype=torch.float64))
-    return loss, template, fbp, data
+from unrolled_problems import small_problem
 
 
 def _registration(loss, template, data):
@@ -40,7 +29,7 @@ def _scheme(loss, shared=True, correction=True, num_updates=3, seed=1, std=0.3):
 
 
 def test_batched_gradient_is_the_problems_l2_gradient():
-    loss, template, fbp, data = _problem(n=16, angles=4, num_steps=3)
+    loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3)
     m = 0.01 * torch.randn(2, 4, 2, 16, 16, dtype=torch.float64)
     h, deformed, residual = descent_gradient(loss, m, template, data)
     terms = descent_terms(loss, m, template, data)
@@ -57,7 +46,7 @@ def test_batched_gradient_is_the_problems_l2_gradient():
 
 def test_untrained_scheme_is_algorithm1_from_the_oneshot_geodesic():
     """Zero correction heads and a_k = 0: K steps are K Algorithm 1 iterations from the shot one-shot momentum."""
-    loss, template, fbp, data = _problem(n=16, angles=4, num_steps=3)
+    loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3)
     torch.manual_seed(0)
     scheme = UnrolledDescent(loss, num_updates=4, step_size=0.05, width=4, levels=2,
                              initial=MomentumUNet(2, 4, 2, momentum_scale=0.01), momentum_scale=0.01).double()
@@ -99,7 +88,7 @@ def _explicit(scheme, template, fbp, data, frozen=None):
 
 @pytest.mark.parametrize("shared", [True, False])
 def test_trained_scheme_equals_explicit_updates(shared):
-    loss, template, fbp, data = _problem(n=16, angles=4, num_steps=3, batch=3)
+    loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3, batch=3)
     scheme = _scheme(loss, shared=shared)
     assert len(scheme.updates) == (1 if shared else 3)
     scheme.calibrate(template, fbp, data)
@@ -118,7 +107,7 @@ def test_trained_scheme_equals_explicit_updates(shared):
 def test_gradcheck_of_the_map_as_trained():
     """Detached h_k, W(K m_k, I), r_k: the backward is the derivative of the K updates with those held at their
     values; gradcheck of that map in the step logits and the correction's head, and the scheme's gradient equals it."""
-    loss, template, fbp, data = _problem()
+    loss, template, fbp, data = small_problem()
     scheme = _scheme(loss)
     scheme.calibrate(template, fbp, data)
     with torch.no_grad():
@@ -141,7 +130,7 @@ def test_gradcheck_of_the_map_as_trained():
 
 
 def test_step_sizes_only_and_start_from_zero():
-    loss, template, fbp, data = _problem(n=16, angles=4)
+    loss, template, fbp, data = small_problem(n=16, angles=4)
     scheme = UnrolledDescent(loss, num_updates=2, step_size=0.05, correction=False).double()
     assert len(scheme.updates) == 0 and torch.allclose(scheme.step_sizes, torch.full((2,), 0.05, dtype=torch.float64))
     m = scheme.trajectory(template, fbp, data)
@@ -152,7 +141,7 @@ def test_step_sizes_only_and_start_from_zero():
 
 
 def test_errors():
-    loss, template, fbp, data = _problem()
+    loss, template, fbp, data = small_problem()
     with pytest.raises(TypeError, match="loss must be an IndirectShootingLoss"):
         UnrolledDescent(loss.shooting)
     with pytest.raises(ValueError, match="num_updates"):

@@ -3,20 +3,9 @@ module, memory, errors."""
 import pytest
 import torch
 
-from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
-from indreg.deform.kernel import GaussianKernel
 from indreg.learn import MomentumUNet, UnrolledMomentum, indirect_gradient
 
-
-def _problem(n=8, angles=3, num_steps=2, batch=2, seed=0):
-    dom = ImageDomain.paper(n)
-    T = RayTransform(dom, ParallelBeamGeometry.paper(angles, 12 if n == 8 else 24))
-    loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), num_steps), T, gamma=1e-2)
-    gen = torch.Generator().manual_seed(seed)
-    template = torch.rand(batch, n, n, generator=gen, dtype=torch.float64)
-    fbp = torch.rand(batch, n, n, generator=gen, dtype=torch.float64)
-    data = T(torch.rand(batch, n, n, generator=gen, dtype=torch.float64))
-    return loss, template, fbp, data
+from unrolled_problems import small_problem
 
 
 def _scheme(loss, gradient="detached", shared=False, initial=True, seed=1):
@@ -57,7 +46,7 @@ def _explicit(scheme, template, fbp, data, loss, frozen=None):
 
 def test_gradcheck_of_the_exact_scheme():
     """gradient="exact": the derivative of the whole map (double backward through shooting and projector)."""
-    loss, template, fbp, data = _problem()
+    loss, template, fbp, data = small_problem()
     scheme = _scheme(loss, "exact")
     scheme.train_initial = True                 # the template's path through m_0 too
     heads = [p.detach().clone().requires_grad_(True) for p in _heads(scheme)]
@@ -71,7 +60,7 @@ def test_gradcheck_of_the_exact_scheme():
 def test_detached_scheme_is_the_map_with_frozen_gradients():
     """gradient="detached" (as trained): its backward is the derivative of the K updates with grad_k and
     W(m_k, I) held at their values, a map gradcheck verifies."""
-    loss, template, fbp, data = _problem()
+    loss, template, fbp, data = small_problem()
     scheme = _scheme(loss)
     with torch.no_grad():
         momenta = scheme.trajectory(template, fbp, data)
@@ -100,7 +89,7 @@ def test_detached_scheme_is_the_map_with_frozen_gradients():
 
 
 def test_trained_scheme_equals_explicit_updates():
-    loss, template, fbp, data = _problem(n=16, angles=4, num_steps=3, batch=3)
+    loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3, batch=3)
     scheme = _scheme(loss)
     scheme.calibrate(template, fbp, data)
     optimizer = torch.optim.Adam(scheme.parameters(), lr=1e-2)
@@ -117,7 +106,7 @@ def test_trained_scheme_equals_explicit_updates():
 
 
 def test_start_stop_and_calibration():
-    loss, template, fbp, data = _problem(n=16, angles=4)
+    loss, template, fbp, data = small_problem(n=16, angles=4)
     scheme = UnrolledMomentum(loss, num_updates=3, width=4, levels=2).double()
     m = scheme.trajectory(template, fbp, data)
     assert len(m) == 4 and not any(x.any() for x in m)     # from zero, zero-initialised heads: m_k = 0
@@ -125,14 +114,14 @@ def test_start_stop_and_calibration():
     grad, = torch.autograd.grad(loss.terms(x, template, data)["loss"].sum(), x)
     assert scheme.calibrate(template, fbp, data) == pytest.approx(float(grad.square().mean((1, 2, 3)).sqrt().mean()))
     assert "gradient_scale" in scheme.state_dict()
-    small, t8, f8, d8 = _problem()
+    small, t8, f8, d8 = small_problem()
     one_shot = _scheme(small)
     torch.testing.assert_close(one_shot(t8, f8, d8, num_updates=0), one_shot.initial(torch.stack([t8, f8], 1)))
 
 
 def test_checkpointed_updates_keep_less_for_backward():
     """Memory: a checkpointed update keeps its inputs only; a detached gradient keeps no graph at all."""
-    loss, template, fbp, data = _problem(n=16, angles=4)
+    loss, template, fbp, data = small_problem(n=16, angles=4)
     m = torch.zeros(2, 2, 16, 16, dtype=torch.float64, requires_grad=True)
     grad, deformed = indirect_gradient(loss, m, template, data)
     assert grad.grad_fn is None and deformed.grad_fn is None and loss.shooting.checkpoint
@@ -149,7 +138,7 @@ def test_checkpointed_updates_keep_less_for_backward():
 
 
 def test_errors():
-    loss, template, fbp, data = _problem()
+    loss, template, fbp, data = small_problem()
     with pytest.raises(TypeError, match="loss must be an IndirectShootingLoss"):
         UnrolledMomentum(loss.shooting)
     with pytest.raises(ValueError, match="gradient must be one of detached, exact, got 'double'"):
