@@ -35,7 +35,7 @@ from torch import nn
 
 from .._checks import check_bool, check_int, check_positive
 from ..deform.lddmm import LDDMMDeformation
-from .loss import IndirectShootingLoss
+from .loss import IndirectShootingLoss, check_scheme
 from .unet import MomentumUNet
 
 __all__ = ["UnrolledDescent", "descent_gradient", "descent_terms"]
@@ -95,13 +95,15 @@ class UnrolledDescent(nn.Module):
     initial network gets no gradient (it is trained on its own first).
 
     Example:
-        >>> from indreg import GaussianKernel, GeodesicShooting, ImageDomain, ParallelBeamGeometry, RayTransform
-        >>> dom = ImageDomain.paper(16)
-        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(4, 24))
-        >>> loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 3), T, gamma=1e-3)
+        >>> import indreg
+        >>> dom = indreg.ImageDomain.paper(16)
+        >>> shooting = indreg.GeodesicShooting(dom, indreg.GaussianKernel(dom, 5.0), num_steps=3)
+        >>> loss = IndirectShootingLoss(shooting, indreg.RayTransform(dom, indreg.ParallelBeamGeometry.paper(4, 24)),
+        ...                             gamma=1e-3)
         >>> scheme = UnrolledDescent(loss, num_updates=4, width=4, levels=2).double()
-        >>> template = torch.rand(2, 16, 16, dtype=torch.float64)
-        >>> scheme(template, template, T(template)).shape
+        >>> images = torch.rand(2, 16, 16, dtype=torch.float64)      # templates, and FBPs here too
+        >>> m = scheme(images, images, loss.transforms[0](images))  # Algorithm 1's momentum: (B, N+1, 2, nx, ny)
+        >>> m.shape
         torch.Size([2, 4, 2, 16, 16])
     """
 
@@ -109,10 +111,7 @@ class UnrolledDescent(nn.Module):
                  levels: int = 2, shared: bool = True, correction: bool = True, initial: nn.Module | None = None,
                  momentum_scale: float = 1.0):
         super().__init__()
-        if not isinstance(loss, IndirectShootingLoss):
-            raise TypeError(f"loss must be an IndirectShootingLoss, got {type(loss).__name__}")
-        if initial is not None and not isinstance(initial, nn.Module):
-            raise TypeError(f"initial must be an nn.Module (template, FBP) -> m0 or None, got {type(initial).__name__}")
+        check_scheme(loss, initial)
         self.loss = loss
         self.initial = initial
         self.num_updates = check_int(num_updates, "num_updates", 1)

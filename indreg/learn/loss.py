@@ -154,3 +154,12 @@ class IndirectShootingLoss(nn.Module):
         """The loss, reduced over the batch as ``reduction`` says."""
         loss = self.terms(momentum, template, data, index)["loss"]
         return {"mean": loss.mean, "sum": loss.sum, "none": lambda: loss}[self.reduction]()
+
+
+def check_scheme(loss, initial) -> None:
+    """The arguments every unrolled scheme takes (``UnrolledMomentum``, ``UnrolledDescent``): an
+    ``IndirectShootingLoss`` and an initial network (an ``nn.Module`` (template, FBP) -> m0) or None."""
+    if not isinstance(loss, IndirectShootingLoss):
+        raise TypeError(f"loss must be an IndirectShootingLoss, got {type(loss).__name__}")
+    if initial is not None and not isinstance(initial, torch.nn.Module):
+        raise TypeError(f"initial must be an nn.Module (template, FBP) -> m0 or None, got {type(initial).__name__}")

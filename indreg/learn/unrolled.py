@@ -31,7 +31,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
 from .._checks import check_bool, check_int, check_positive
-from .loss import IndirectShootingLoss
+from .loss import IndirectShootingLoss, check_scheme
 from .unet import MomentumUNet
 
 __all__ = ["UnrolledMomentum", "indirect_gradient"]
@@ -88,10 +88,7 @@ class UnrolledMomentum(nn.Module):
                  shared: bool = False, initial: nn.Module | None = None, momentum_scale: float = 1.0,
                  gradient: str = "detached", checkpoint: bool = True, train_initial: bool = False):
         super().__init__()
-        if not isinstance(loss, IndirectShootingLoss):
-            raise TypeError(f"loss must be an IndirectShootingLoss, got {type(loss).__name__}")
-        if initial is not None and not isinstance(initial, nn.Module):
-            raise TypeError(f"initial must be an nn.Module (template, FBP) -> m0 or None, got {type(initial).__name__}")
+        check_scheme(loss, initial)
         if gradient not in GRADIENTS:
             raise ValueError(f"gradient must be one of {', '.join(GRADIENTS)}, got {gradient!r}")
         self.loss = loss

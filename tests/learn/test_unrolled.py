@@ -3,7 +3,7 @@ module, memory, errors."""
 import pytest
 import torch
 
-from indreg.learn import MomentumUNet, UnrolledMomentum, indirect_gradient
+from indreg.learn import MomentumUNet, UnrolledDescent, UnrolledMomentum, indirect_gradient
 
 from unrolled_problems import small_problem
 
@@ -137,18 +137,23 @@ def test_checkpointed_updates_keep_less_for_backward():
     assert saved(True) * 4 < saved(False)
 
 
-def test_errors():
+@pytest.mark.parametrize("scheme_class", [UnrolledMomentum, UnrolledDescent])
+def test_errors(scheme_class):
+    """The input errors both unrolled schemes share (the descent's own: test_descent.py)."""
     loss, template, fbp, data = small_problem()
     with pytest.raises(TypeError, match="loss must be an IndirectShootingLoss"):
-        UnrolledMomentum(loss.shooting)
-    with pytest.raises(ValueError, match="gradient must be one of detached, exact, got 'double'"):
-        UnrolledMomentum(loss, gradient="double")
+        scheme_class(loss.shooting)
     with pytest.raises(ValueError, match="num_updates"):
-        UnrolledMomentum(loss, num_updates=0)
+        scheme_class(loss, num_updates=0)
     with pytest.raises(TypeError, match="initial must be an nn.Module"):
-        UnrolledMomentum(loss, initial=lambda x: x)
-    scheme = UnrolledMomentum(loss, num_updates=2, width=2, levels=1).double()
+        scheme_class(loss, initial=lambda x: x)
+    scheme = scheme_class(loss, num_updates=2, width=2, levels=1).double()
     with pytest.raises(ValueError, match=r"num_updates must be an integer in \[0, 2\], got 3"):
         scheme(template, fbp, data, num_updates=3)
     with pytest.raises(ValueError, match=r"data must have shape \(B=2, 3, 12\)"):
         scheme(template, fbp, data[:, :2])
+
+
+def test_gradient_mode_error():
+    with pytest.raises(ValueError, match="gradient must be one of detached, exact, got 'double'"):
+        UnrolledMomentum(small_problem()[0], gradient="double")
