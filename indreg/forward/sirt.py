@@ -10,6 +10,10 @@ transforms in 2D and 3D and for any user operator whose matrix is nonnegative. R
 get a zero weight. It is gradient descent on ``(1/2) ||A x - y||_R^2`` in the metric ``C^{-1}`` with step 1,
 and ``||R^{1/2} A C^{1/2}|| <= 1`` for a nonnegative ``A`` (Schur's test), so the weighted residual
 ``||A x_k - y||_R^2`` decreases monotonically, with or without ``nonneg``.
+
+Over ranks (``indreg.forward.split``): ``T`` a ``SlabTransform``, ``y`` its rows. For a tilt series ``A 1`` and
+``A^T 1`` are per slice, so the iteration is exact slab by slab; the one global quantity, the largest sum (the
+threshold of a zero sum), and the residuals are reduced over the ranks.
 """
 from __future__ import annotations
 
@@ -17,11 +21,13 @@ import torch
 
 from .._checks import check_bool, check_int, check_tensor
 from .operator import check_operator
+from .split import maximum, total
 
 
-def _inverse_sums(sums: torch.Tensor, what: str) -> torch.Tensor:
-    """``1 / sums`` where ``sums > 0``, 0 where ``sums == 0``; error if a sum is negative."""
-    scale = float(sums.abs().max()) if sums.numel() else 0.0
+def _inverse_sums(sums: torch.Tensor, what: str, domain) -> torch.Tensor:
+    """``1 / sums`` where ``sums > 0``, 0 where ``sums == 0``; error if a sum is negative. The threshold is relative
+    to the largest sum (over the ranks of a ``SlabDomain``)."""
+    scale = float(maximum(sums.abs().max(), domain)) if sums.numel() else 0.0
     if bool((sums < -1e-12 * scale).any()):
         raise ValueError(f"sirt needs an operator with a nonnegative matrix, but {what} has negative entries")
     positive = sums > 1e-12 * scale
@@ -62,9 +68,9 @@ def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None
     dom = T.domain
     batch = y.shape[:y.dim() - len(T.range_shape)]
     x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else start_image(x0, batch, dom, y)
-    row = _inverse_sums(T(dom.zeros(dtype=y.dtype, device=y.device) + 1.0), "T(1) (ray sums)")
+    row = _inverse_sums(T(dom.zeros(dtype=y.dtype, device=y.device) + 1.0), "T(1) (ray sums)", dom)
     col = _inverse_sums(T.adjoint(torch.ones(T.range_shape, dtype=y.dtype, device=y.device)),
-                        "T^*(1) (cell sums)")
+                        "T^*(1) (cell sums)", dom)
     data_dims = tuple(range(-len(T.range_shape), 0))
     residual = torch.empty((num_iter,) + tuple(batch), dtype=torch.float64)
     data_residual = torch.empty_like(residual)
@@ -74,7 +80,7 @@ def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None
         if nonneg:
             x = x.clamp(min=0.0)
         r = y - T(x)
-        residual[i] = (row * r * r).sum(dim=data_dims).cpu()
+        residual[i] = total((row * r * r).sum(dim=data_dims), dom).cpu()
         data_residual[i] = T.inner_data(r, r).sqrt().cpu()
         if callback is not None:
             callback(i, x)

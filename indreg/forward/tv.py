@@ -20,6 +20,10 @@ Convention:
       ``f[nx] = 0``. ``div = -grad^*`` (L2 adjoint; the cell volumes cancel, so it is the matrix transpose):
       ``(div p)[i] = (p_x[i] - p_x[i-1]) / hx + (same in y[, z])`` with ``p_x[-1] = 0``. In 3D the same
       with a third component (z); the vector field is ``(..., d, *shape)``.
+    - Over ranks (``indreg.forward.split``): ``T`` a ``SlabTransform``, ``y`` its rows; its domain's inner products,
+      the data's and the objective are summed over the ranks, the differences read the neighbours' slices across
+      the split (``beyond``), and the power iteration starts from the rows of the whole volume's random draw, so
+      that every rank's rows equal one process's to rounding.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ from .._checks import check_bool, check_int, check_nonnegative, check_positive, 
 from ..domain import ImageDomain
 from .operator import check_operator
 from .sirt import start_image
+from .split import beyond, own_rows, total, whole_domain
 
 
 def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
@@ -38,8 +43,7 @@ def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     of the d-dimensional domain (d = 2 or 3)."""
     parts = []
     for dim, h in zip(domain.dims, domain.cell_sides):
-        pad = torch.zeros_like(f.narrow(dim, 0, 1))
-        parts.append(torch.diff(f, dim=dim, append=pad) / h)
+        parts.append(torch.diff(f, dim=dim, append=beyond(f, domain, dim, 1)) / h)
     return torch.stack(parts, dim=-domain.ndim - 1)
 
 
@@ -50,7 +54,7 @@ def divergence(p: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     out = None
     for a, (dim, h) in enumerate(zip(domain.dims, domain.cell_sides)):
         pa = p.select(-domain.ndim - 1, a)
-        term = torch.diff(pa, dim=dim, prepend=torch.zeros_like(pa.narrow(dim, 0, 1))) / h
+        term = torch.diff(pa, dim=dim, prepend=beyond(pa, domain, dim, -1)) / h
         out = term if out is None else out + term
     return out
 
@@ -77,12 +81,12 @@ def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0
     return domain.cell_volume * mag.sum(dim=domain.dims)
 
 
-def _normal_operator_norm(T, shape, dtype, device, num_iter: int) -> float:
+def _normal_operator_norm(T, dtype, device, num_iter: int) -> float:
     """``||K||`` for ``K = [T; grad]`` by power iteration on ``K^* K = T^* T - div grad`` (weighted L2 norms;
     needs only ``T``, ``T.adjoint`` and ``T.domain``, so it works for any protocol operator)."""
     dom = T.domain
-    x = torch.randn(shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype=dtype,
-                                                                                                 device=device)
+    x = own_rows(torch.randn(whole_domain(dom).shape, generator=torch.Generator().manual_seed(0),
+                             dtype=torch.float64), dom).to(dtype=dtype, device=device)
     x = x / dom.norm(x)
     lam = torch.zeros((), dtype=dtype, device=device)
     for _ in range(num_iter):
@@ -146,13 +150,13 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     dom = T.domain
     batch = y.shape[:y.dim() - len(T.range_shape)]
     x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else start_image(x0, batch, dom, y)
-    opnorm = _normal_operator_norm(T, dom.shape, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1))
+    opnorm = _normal_operator_norm(T, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1))
     tau = sigma = 1.0 / (1.1 * opnorm)
     vec = -dom.ndim - 1                               # the axis of the gradient's components
 
     def energy(tx, gx):
         r = tx - y
-        return T.inner_data(r, r) + mu * dom.cell_volume * _magnitude(gx, vec).sum(dim=dom.dims)
+        return T.inner_data(r, r) + mu * dom.cell_volume * total(_magnitude(gx, vec).sum(dim=dom.dims), dom)
 
     tx, gx = T(x), gradient(x, dom)
     p, q = torch.zeros_like(tx), torch.zeros_like(gx)
