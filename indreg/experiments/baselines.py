@@ -3,6 +3,11 @@
 Convention: reconstructions are returned on the CPU as tensors of the domain's shape ``(nx, ny[, nz])`` (images
 float64, volumes the run's dtype),
 keyed ``fbp``, ``tv`` (and ``sirt``); TV's weight is absolute, ``baseline.tv_mu`` times the data's intensity unit.
+A tilt series whose registration is split (``indreg.problems.slabs``) splits its baselines along the tilt axis too
+(``indreg.forward.split``): over the ranks of ``torchrun`` every rank reconstructs its rows (TV with a one-slice
+halo) and rank 0 gathers them (the other ranks get ``{}``); in one process, slab-wise registrations run FBP and SIRT
+slab by slab with the registration's ``slab_size`` (TV whole: its differences couple the slabs). Each is the
+whole-volume reconstruction to float rounding.
 """
 from __future__ import annotations
 
@@ -31,7 +36,8 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     """FBP and TV reconstructions from the noisy data (images: float64, volumes: the run's dtype, on the run's
     device, returned on the CPU in that dtype: no float64 copy of a volume); cached in ``baselines.npz`` so that a resumed run does not recompute
     them. FBP and SIRT are linear in the data; TV's weight scales with them (:func:`tv_mu`). Volumes take the run's
-    dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a float32 one."""
+    dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a float32 one. Under ``torchrun`` every rank
+    calls it: the split is in the module docstring; rank 0 alone reads and writes the cache."""
     if not cfg.baseline.enabled:
         return {}
     b = cfg.baseline
@@ -39,24 +45,83 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     mu = tv_mu(cfg, exp)
     key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, repr(mu), b.tv_iterations,
                     b.sirt_iterations if volume else 0], dtype=str)
+    group, rank = _group()
     cache = out / "baselines.npz"
+    rec = _cached(cache, key) if rank == 0 else None
+    if _broadcast(rec is not None, group):
+        return rec or {}
+    t0 = time.perf_counter()
+    T, g = exp.ray_transform, exp.noisy_data_64.to(exp.template.device, exp.template.dtype if volume else None)
+    how, rec = _split(cfg, exp, T, g, mu, group, rank)
+    if rank != 0:
+        return {}
+    rec = {k: v.detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
+    log.info("baselines (%s) in %.1f s%s", ", ".join(rec).upper().replace(
+        "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the data's intensity unit"),
+        time.perf_counter() - t0, how)
+    np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
+    return rec
+
+
+def _reconstruct(cfg: DictConfig, T, g: torch.Tensor, mu: float, fbp_and_sirt=None) -> dict:
+    """FBP, SIRT (volumes) and TV of ``T`` and ``g``; ``fbp_and_sirt(method, T, g)`` runs the two slab-wise ones
+    (default: ``method(T, g)``)."""
+    from ..forward import fbp, sirt
+    from ..forward.tv import tv_reconstruction
+
+    b = cfg.baseline
+    run = fbp_and_sirt or (lambda method, op, data: method(op, data))
+    rec = {"fbp": run(lambda op, data: fbp(op, data, filter=b.fbp_filter.value,
+                                           frequency_scaling=b.fbp_frequency_scaling, padding=b.fbp_padding), T, g)}
+    if T.domain.ndim == 3:  # electron tomography's iterative baseline
+        rec["sirt"] = run(lambda op, data: sirt(op, data, num_iter=b.sirt_iterations, nonneg=True)[0], T, g)
+    rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations)[0]
+    return rec
+
+
+def _split(cfg: DictConfig, exp, T, g: torch.Tensor, mu: float, group, rank: int) -> tuple:
+    """``(how, reconstructions)``: over the ranks of ``group`` (rank 0 gets the gathered volumes, the others
+    ``{}``), slab by slab in one process for a slab-wise registration, or whole."""
+    from ..forward.split import by_slabs, gather_rows, split_rows
+    from ..forward.tilt_series import TiltSeriesTransform
+    from ..problems.slabs import SlabwiseRegistration
+
+    if type(T) is not TiltSeriesTransform or not isinstance(exp.problem, SlabwiseRegistration):
+        return "", _reconstruct(cfg, T, g, mu) if rank == 0 else {}   # whole, on rank 0
+    if group is not None:
+        Ts = split_rows(T, group)
+        rec = {k: gather_rows(v, Ts) for k, v in _reconstruct(cfg, Ts, Ts.data_rows(g), mu).items()}
+        return f" over {Ts.split.world} ranks", rec
+    size = exp.problem.slab_size
+    return f" (FBP, SIRT by slabs of {size} slices)", _reconstruct(
+        cfg, T, g, mu, lambda method, op, data: by_slabs(method, op, data, size))
+
+
+def _group() -> tuple:
+    """``(group, rank)``: ``torch.distributed``'s group of several ranks, or ``(None, 0)``."""
+    from ..problems.slabs import default_group
+
+    group = default_group()
+    if group is None:
+        return None, 0
+    import torch.distributed as dist
+    return group, dist.get_rank(group)
+
+
+def _cached(cache: Path, key: np.ndarray) -> dict | None:
+    """The reconstructions of ``cache`` when its key is ``key``, else None."""
     if cache.is_file():
         with np.load(cache) as z:
             if np.array_equal(z["key"], key):
                 return {k: torch.from_numpy(z[k]) for k in z.files if k != "key"}
-    from ..forward import fbp, sirt
-    from ..forward.tv import tv_reconstruction
+    return None
 
-    t0 = time.perf_counter()
-    T, g = exp.ray_transform, exp.noisy_data_64.to(exp.template.device, exp.template.dtype if volume else None)
-    rec = {"fbp": fbp(T, g, filter=b.fbp_filter.value, frequency_scaling=b.fbp_frequency_scaling,
-                      padding=b.fbp_padding)}
-    if volume:  # electron tomography's iterative baseline
-        rec["sirt"] = sirt(T, g, num_iter=b.sirt_iterations, nonneg=True)[0]
-    rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations)[0]
-    rec = {k: v.detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
-    log.info("baselines (%s) in %.1f s", ", ".join(rec).upper().replace(
-        "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the data's intensity unit"),
-        time.perf_counter() - t0)
-    np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
-    return rec
+
+def _broadcast(flag: bool, group) -> bool:
+    """Rank 0's ``flag`` on every rank of ``group`` (``flag`` itself without one)."""
+    if group is None:
+        return flag
+    import torch.distributed as dist
+    holder = [flag]
+    dist.broadcast_object_list(holder, src=0, group=group)
+    return bool(holder[0])

@@ -47,6 +47,23 @@ def test_two_ranks_equal_one_process(tmp_path):
     assert "rank=0/2" in proc.stderr + proc.stdout and "slabs=4" in proc.stderr + proc.stdout
 
 
+def test_two_ranks_split_the_baselines(tmp_path):
+    """FBP, SIRT and TV over two ranks (each its rows, TV with a halo) equal the one process's (FBP and SIRT slab by
+    slab: its registration is slab-wise), written once, with the same figures of merit."""
+    baseline = ("baseline=fbp_tv", "baseline.tv_iterations=20", "baseline.sirt_iterations=10", "solver.max_iter=1")
+    _ok(_run(tmp_path / "one", *baseline))
+    proc = _run(tmp_path / "two", *baseline, ranks=2)
+    _ok(proc)
+    assert "over 2 ranks" in proc.stderr + proc.stdout
+    with np.load(tmp_path / "one" / "baselines.npz") as a, np.load(tmp_path / "two" / "baselines.npz") as b:
+        assert sorted(b.files) == ["fbp", "key", "sirt", "tv"]
+        for name in ("fbp", "sirt", "tv"):
+            np.testing.assert_allclose(b[name], a[name], rtol=0, atol=1e-9 * np.abs(a[name]).max())
+    ma, mb = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("one", "two"))
+    for name in ("fbp_ssim", "sirt_ssim", "tv_ssim"):
+        assert mb[name] == pytest.approx(ma[name], rel=1e-9)
+
+
 @pytest.mark.slow
 def test_resume_with_another_number_of_ranks(tmp_path):
     _ok(_run(tmp_path / "one", "solver.max_iter=4"))
