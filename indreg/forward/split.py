@@ -70,7 +70,7 @@ class SlabSplit:
     def halo(self, f: torch.Tensor, dim: int, side: int) -> torch.Tensor:
         """The neighbour's boundary slice along ``dim`` (the split axis of ``f``): the next rank's first slice
         (``side = 1``) or the previous rank's last (``side = -1``); zero past the volume's ends."""
-        out = torch.zeros_like(f.narrow(dim, 0, 1))
+        out = torch.zeros_like(f.narrow(dim, 0, 1), memory_format=torch.contiguous_format)   # irecv's buffer
         if self.group is None:
             return out
         import torch.distributed as dist
@@ -168,8 +168,9 @@ class SlabTransform(TiltSeriesTransform):
         return self.split.all_reduce(super().inner_data(y1, y2))
 
     def data_rows(self, y: torch.Tensor) -> torch.Tensor:
-        """Whole data ``(..., num_tilts, det_rows, det_cols)`` cut to this slab's rows."""
-        return y.narrow(-2, self.split.start, self.split.stop - self.split.start)
+        """Whole data ``(..., num_tilts, det_rows, det_cols)`` cut to this slab's rows (a contiguous copy: the
+        solvers read them every iteration)."""
+        return y.narrow(-2, self.split.start, self.split.stop - self.split.start).contiguous()
 
 
 def _check_tilt_series(T) -> None:

@@ -33,7 +33,7 @@ from .._checks import check_bool, check_int, check_nonnegative, check_positive, 
 from ..domain import ImageDomain
 from .operator import check_operator
 from .sirt import start_image
-from .split import beyond, own_rows, total, whole_domain
+from .split import beyond, maximum, own_rows, total, whole_domain
 
 
 def gradient(f: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
@@ -106,8 +106,8 @@ def intensity_scale(T, y: torch.Tensor) -> float:
     check_tensor(y, "y", tuple(T.range_shape))
     with torch.no_grad():
         ones = torch.ones(T.domain.shape, dtype=y.dtype, device=y.device)
-        peak = float(T.adjoint(T(ones)).abs().max())
-        return float(T.adjoint(y).abs().max()) / peak
+        peak = float(maximum(T.adjoint(T(ones)).abs().max(), T.domain))   # maxima over the ranks of a split
+        return float(maximum(T.adjoint(y).abs().max(), T.domain)) / peak
 
 
 def _magnitude(v: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:

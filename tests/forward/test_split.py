@@ -11,7 +11,7 @@ from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
 from indreg.forward.split import (SlabSplit, SlabTransform, by_slabs, gather_rows, own_rows, rank_rows,
                                   slab_transforms, split_rows)
-from indreg.forward.tv import divergence, gradient
+from indreg.forward.tv import divergence, gradient, intensity_scale
 
 TV = dict(mu=0.05, num_iter=30, opnorm_iter=20, nonneg=True)
 
@@ -87,6 +87,7 @@ def _ranks(rank, world, store, out):
         res = {"rows": (Ts.split.start, Ts.split.stop), "fbp": gather_rows(fbp(Ts, ys), Ts),
                "sirt": gather_rows(x_sirt, Ts), "sirt_history": h_sirt, "tv": gather_rows(x_tv, Ts),
                "tv_history": h_tv, "gradient": gather_rows(g, Ts), "divergence": gather_rows(d, Ts),
+               "intensity_scale": intensity_scale(Ts, ys),
                "adjoint": (Ts.domain.inner(g, own_rows(p, Ts.domain)).sum(),
                            Ts.domain.inner(own_rows(f, Ts.domain), d))}
         torch.save(res, os.path.join(out, f"rank{rank}.pt"))
@@ -117,6 +118,7 @@ def test_two_ranks_fbp_sirt_tv_equal_one_process(two_ranks):
     _close(zero["tv_history"]["objective"], hist["objective"])
     assert zero["tv_history"]["opnorm"] == pytest.approx(hist["opnorm"], rel=1e-12)
     assert torch.equal(one["tv_history"]["objective"], zero["tv_history"]["objective"])
+    assert zero["intensity_scale"] == one["intensity_scale"] == pytest.approx(intensity_scale(T, y), rel=1e-12)
 
 
 def test_two_ranks_gradient_and_divergence_across_the_split(two_ranks):
