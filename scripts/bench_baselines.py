@@ -127,7 +127,8 @@ def main() -> None:
     load = " / ".join(f"{x:.2f}" for x in load0) + " before, " + " / ".join(f"{x:.2f}" for x in os.getloadavg())
     counts = "" if a.scale == 1 else f" (measured at 1/{a.scale} of the iterations, times x {a.scale})"
     print(f"\n{a.size}^3, 61 tilts, float32, SIRT 100 and TV 200 iterations{counts}; load {load} after\n")
-    print("| run | FBP s | SIRT s | TV s | baselines s | peak GiB per rank | process wall s |\n|---|---|---|---|---|---|---|")
+    print("| run | FBP s | SIRT s | TV s | baselines s | peak GiB per rank | process wall s |\n"
+          "|---|---|---|---|---|---|---|")
     for name, r in runs.items():
         s = {k: r["seconds"][k] * factor[k] for k in NAMES}
         print(f"| {name} | " + " | ".join(f"{s[k]:.1f}" for k in NAMES) + f" | {sum(s.values()):.1f} | "

@@ -34,10 +34,11 @@ def tv_mu(cfg: DictConfig, exp) -> float:
 
 def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     """FBP and TV reconstructions from the noisy data (images: float64, volumes: the run's dtype, on the run's
-    device, returned on the CPU in that dtype: no float64 copy of a volume); cached in ``baselines.npz`` so that a resumed run does not recompute
-    them. FBP and SIRT are linear in the data; TV's weight scales with them (:func:`tv_mu`). Volumes take the run's
-    dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a float32 one. Under ``torchrun`` every rank
-    calls it: the split is in the module docstring; rank 0 alone reads and writes the cache."""
+    device, returned on the CPU in that dtype: no float64 copy of a volume); cached in ``baselines.npz`` so that a
+    resumed run does not recompute them. FBP and SIRT are linear in the data; TV's weight scales with them
+    (:func:`tv_mu`). Volumes take the run's dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a
+    float32 one. Under ``torchrun`` every rank calls it: the split is in the module docstring; rank 0 alone reads
+    and writes the cache."""
     if not cfg.baseline.enabled:
         return {}
     b = cfg.baseline
