@@ -95,15 +95,26 @@ def _power_norm(normal, domain: ImageDomain, dtype, device, num_iter: int) -> fl
 def intensity_scale(T, y: torch.Tensor) -> float:
     """The data's intensity unit: ``max |T^* y| / max T^* T 1``, the intensity of a uniform image on the domain
     whose backprojection peaks as high as the data's (``1`` image of ones). It scales with the data (``y -> c y``
-    gives ``c`` times it) and not with the geometry's sampling, so a TV weight ``mu = mu_rel * intensity_scale``
-    means the same for data in any units (the app's ``baseline.tv_mu``). Convention: ``y``
-    ``T.range_shape``."""
+    gives ``c`` times it) and not with the geometry's sampling; times a length squared it is the unit of a TV weight
+    (``tv_weight_unit``, the app's ``baseline.tv_mu``). Convention: ``y`` ``T.range_shape``."""
     check_operator(T, "T")
     check_tensor(y, "y", tuple(T.range_shape))
     with torch.no_grad():
         ones = torch.ones(T.domain.shape, dtype=y.dtype, device=y.device)
         peak = float(T.adjoint(T(ones)).abs().max())
         return float(T.adjoint(y).abs().max()) / peak
+
+
+def tv_weight_unit(T, y: torch.Tensor) -> float:
+    """The unit of a TV weight: ``intensity_scale(T, y) * L^2``, ``L`` the largest side of ``T.domain``'s box
+    (physical units), so that ``mu = mu_rel * tv_weight_unit(T, y)`` means the same in any intensity and length unit.
+
+    Why ``L^2``: with lengths times ``s`` (the box, the detector) an image of intensity ``u`` gives line integrals
+    times ``s`` on a detector measure times ``s^(d-1)``, so ``||T x - y||^2`` grows by ``s^(d+1)``, while ``TV(x) = int
+    |grad x| dx`` grows by ``s^(d-1)``: the two balance when ``mu`` grows by ``s^2`` times the intensity's factor, that
+    is ``mu / u`` is a length squared in 2D and 3D. The box side ``L`` (not the cell side) keeps ``mu_rel`` for the
+    same object sampled finer. ``y`` ``T.range_shape``."""
+    return intensity_scale(T, y) * max(T.domain.extent) ** 2
 
 
 def _magnitude(v: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:

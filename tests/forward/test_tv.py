@@ -334,3 +334,19 @@ def test_tv_reconstruction_is_the_same_in_any_units(ndim):
         x_s = tv_reconstruction(T_s, a * y_s, mu * a * 1e-3, num_iter=60, balanced=balanced)[0]
         err = float((x_s * 1e-3 / a - x).norm() / x.norm())
         assert err < 1e-4 if balanced else err > 1e-2, (balanced, err)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_relative_weight_gives_the_same_image_in_nm_and_um(ndim):
+    """``mu = mu_rel * tv_weight_unit(T, y)``: the same data (counts) on a box and detector in nm and in um give the
+    same image, 1000 times larger per um; ``mu_rel * intensity_scale`` (no length^2) does not."""
+    from indreg.forward import intensity_scale, tv_weight_unit
+
+    (T, y), (T_um, y_um) = _units_case(ndim, 1.0), _units_case(ndim, 1e-3)
+    assert tv_weight_unit(T_um, y_um) == pytest.approx(1e-3 * tv_weight_unit(T, y), rel=1e-9)
+    for unit, same in ((tv_weight_unit, True), (intensity_scale, False)):
+        mu_rel = 0.3 / unit(T, y)                 # mu = 0.3 in nm for both rules
+        x = tv_reconstruction(T, y, mu_rel * unit(T, y), num_iter=60)[0]
+        x_um = tv_reconstruction(T_um, y_um, mu_rel * unit(T_um, y_um), num_iter=60)[0]
+        err = float((1e-3 * x_um - x).norm() / x.norm())
+        assert err < 1e-4 if same else err > 1e-2, (unit.__name__, err)
