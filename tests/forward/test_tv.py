@@ -12,7 +12,7 @@ import torch
 
 from indreg import phantoms
 from indreg.domain import ImageDomain
-from indreg.forward.tv import divergence, gradient, total_variation, tv_reconstruction
+from indreg.forward.tv import DATA_DUAL_STEP, divergence, gradient, total_variation, tv_reconstruction
 
 
 class DenseOperator:
@@ -234,7 +234,7 @@ def test_suite1_tv_beats_fbp(suite1):
 
     T, gt, y, x, _ = suite1
     xf = fbp_mod.fbp(T, y, filter="hamming", frequency_scaling=0.4)
-    assert ssim(x, gt) > ssim(xf, gt) + 0.2        # measured: 0.62 vs 0.39
+    assert ssim(x, gt) > ssim(xf, gt) + 0.2        # measured: 0.61 vs 0.39
     assert ssim_paper(x, gt) > ssim_paper(xf, gt) + 0.1
 
 
@@ -277,14 +277,14 @@ def _blocks_problem(scale):
 
 def test_balanced_steps_reach_the_minimiser_of_a_long_equal_steps_run():
     """Well scaled (||T|| ~ ||grad||): 2000 balanced iterations land on the minimiser of 20000 equal-step ones
-    (measured: 3e-6 relative in the image, 4e-10 in the objective)."""
+    (measured: 4e-16 relative in the image and in the objective)."""
     T, y, mu = _blocks_problem(1.0)
     x_long, h_long = tv_reconstruction(T, y, mu, num_iter=20000, balanced=False)
     x, hist = tv_reconstruction(T, y, mu, num_iter=2000)
-    assert float((x - x_long).norm() / x_long.norm()) < 1e-5
+    assert float((x - x_long).norm() / x_long.norm()) < 1e-10
     assert float(hist["objective"][-1]) == pytest.approx(float(h_long["objective"][-1]), rel=1e-8)
     tau, (sigma_p, sigma_q) = hist["step"], hist["dual_steps"]
-    assert sigma_p == 1.0 and tau * 2 * sigma_p * hist["opnorm"] ** 2 == pytest.approx(1 / 1.1)
+    assert sigma_p == DATA_DUAL_STEP and tau * 2 * sigma_p * hist["opnorm"] ** 2 == pytest.approx(1 / 1.1)
     grad_norm = math.sqrt(8 / 0.5 ** 2)                # ||grad|| < sqrt(sum_a 4 / h_a^2), close on 8 x 6 cells
     assert 0.8 * grad_norm < hist["opnorm"] * math.sqrt(sigma_p / sigma_q) < grad_norm
 
@@ -292,8 +292,8 @@ def test_balanced_steps_reach_the_minimiser_of_a_long_equal_steps_run():
 @pytest.mark.parametrize("num_iter", [50, 200, 2000])
 def test_balanced_steps_beat_equal_steps_on_a_badly_scaled_case(num_iter):
     """``T`` and ``y`` times 100 (``mu`` times 1e4): the same minimiser, ``||T||`` 100 times ``||grad||``. The balanced
-    steps reach the scaled objective of the well-scaled case; the equal steps lag (measured at 2000 iterations: 2.8 %
-    above, the image 4 % away)."""
+    steps reach the scaled objective of the well-scaled case (measured: 1.5 % above it after 50 iterations, 2.5e-10
+    after 200); the equal steps lag (69 % and 6.4 % above; after 2000 iterations 2.8 %, the image 4 % away)."""
     T, y, mu = _blocks_problem(100.0)
     x_eq, h_eq = tv_reconstruction(T, y, mu, num_iter=num_iter, balanced=False)
     x, hist = tv_reconstruction(T, y, mu, num_iter=num_iter)
