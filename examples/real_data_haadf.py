@@ -199,8 +199,8 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
               tv_mus=(1.0, 10.0, 100.0, 1000.0), tv_iters: int = 200) -> dict:
     """FBP (Hamming, 0.4, the app's), SIRT (nonnegative, iterations chosen by the validation tilts) and TV
     (nonnegative, ``mu`` relative to the data's intensity unit chosen by the validation tilts) from the fit
-    tilts. The default ``tv_mus`` bracket the validation residual's minimum on both stacks (100 x u; 0.0304 raw,
-    0.0295 aligned, against 0.0344 / 0.0312 at 1 x u and 0.0369 / 0.0399 at 1000 x u: docs/real_data.md, section
+    tilts. The default ``tv_mus`` bracket the validation residual's minimum on both stacks (100 x u; 0.0312 raw,
+    0.0300 aligned, against 0.0336 / 0.0313 at 1 x u and 0.0370 / 0.0396 at 1000 x u: docs/real_data.md, section
     8). Returns ``{name: (volume, info)}``."""
     out = {"FBP": (fbp(*unwarped(T_fit, y_fit)), {})}
     best, x, done = None, None, 0

@@ -234,7 +234,7 @@ def test_suite1_tv_beats_fbp(suite1):
 
     T, gt, y, x, _ = suite1
     xf = fbp_mod.fbp(T, y, filter="hamming", frequency_scaling=0.4)
-    assert ssim(x, gt) > ssim(xf, gt) + 0.2        # measured: 0.61 vs 0.39
+    assert ssim(x, gt) > ssim(xf, gt) + 0.2        # measured: 0.62 vs 0.39
     assert ssim_paper(x, gt) > ssim_paper(xf, gt) + 0.1
 
 
@@ -292,7 +292,7 @@ def test_balanced_steps_reach_the_minimiser_of_a_long_equal_steps_run():
 @pytest.mark.parametrize("num_iter", [50, 200, 2000])
 def test_balanced_steps_beat_equal_steps_on_a_badly_scaled_case(num_iter):
     """``T`` and ``y`` times 100 (``mu`` times 1e4): the same minimiser, ``||T||`` 100 times ``||grad||``. The balanced
-    steps reach the scaled objective of the well-scaled case (measured: 1.5 % above it after 50 iterations, 2.5e-10
+    steps reach the scaled objective of the well-scaled case (measured: 0.3 % above it after 50 iterations, 4e-12
     after 200); the equal steps lag (69 % and 6.4 % above; after 2000 iterations 2.8 %, the image 4 % away)."""
     T, y, mu = _blocks_problem(100.0)
     x_eq, h_eq = tv_reconstruction(T, y, mu, num_iter=num_iter, balanced=False)
