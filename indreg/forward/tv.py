@@ -25,6 +25,8 @@ Convention:
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .._checks import check_bool, check_int, check_nonnegative, check_positive, check_tensor
@@ -89,7 +91,7 @@ def _power_norm(normal, domain: ImageDomain, dtype, device, num_iter: int) -> fl
     for _ in range(num_iter):
         ax = normal(x)
         lam = domain.inner(x, ax)
-        x = ax / domain.norm(ax)
+        x = ax / domain.norm(ax).clamp_min(torch.finfo(dtype).tiny)   # A = 0: x = 0, ||A|| = 0 (not nan)
     return float(lam.sqrt())
 
 
@@ -147,6 +149,9 @@ def _steps(T, dtype, device, num_iter: int, balanced: bool) -> tuple:
         step = 1.0 / (STEP_MARGIN * opnorm)
         return step, step, step, opnorm
     t_norm = _power_norm(lambda x: T.adjoint(T(x)), dom, dtype, device, num_iter)
+    if not (t_norm > 0 and math.isfinite(t_norm)):
+        raise ValueError(f"T must not map every image to 0 (||T|| = {t_norm:.4g} by power iteration): the balanced "
+                         "steps are 1 / ||T||^2; check the operator")
     g_norm = _power_norm(laplacian, dom, dtype, device, num_iter)
     sigma_p = DATA_DUAL_STEP
     tau = 1.0 / (2.0 * STEP_MARGIN * sigma_p * t_norm ** 2)

@@ -200,6 +200,9 @@ def test_tv_reconstruction_errors():
         tv_reconstruction(T, torch.zeros(7, 9, dtype=torch.float64), mu=1.0)
     with pytest.raises(TypeError, match="T must be a linear operator.*lacks domain, range_shape, adjoint, inner_data$"):
         tv_reconstruction(lambda x: x, y, mu=1.0)
+    zero = DenseOperator(DOM, (9, 7), scale=0.0)
+    with pytest.raises(ValueError, match=r"^T must not map every image to 0 \(\|\|T\|\| = 0 by power iteration\)"):
+        tv_reconstruction(zero, y, mu=1.0)
 
 
 @pytest.fixture(scope="module")
