@@ -187,8 +187,8 @@ CORE = (
     Option("tv_weight", "solver", "tv_weight", 0.0, _nonneg,
            "weight of a TV term on the reconstruction (absolute; 0: none, unless tv_rel is given)", float),
     Option("tv_rel", "solver", "tv_rel", None, optional(_nonneg),
-           "the TV weight relative to the data's intensity unit: tv_weight = tv_rel x indreg.forward.intensity_scale "
-           "(the TV baseline's convention; with tv_weight 0)", Optional[float]),
+           "the TV weight relative to the TV weight unit: tv_weight = tv_rel x indreg.forward.tv_weight_unit (the "
+           "intensity unit x the box side squared: the TV baseline's convention; with tv_weight 0)", Optional[float]),
     Option("solver", "solver", "name", ALGORITHM1, solver_name,
            "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
     Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
@@ -270,7 +270,8 @@ def defaults() -> dict:
 def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
     """``gamma`` and ``step_size`` left None take their relative form at the data-term scale ``S`` (``scale``,
     ``indreg.units.data_term_scale``): ``gamma = gamma_rel S``, ``step_size = step_rel / S``; ``tv_rel`` given (and
-    ``tv_weight`` 0) gives ``tv_weight = tv_rel * intensity()`` (the data's intensity unit). Returns ``o``."""
+    ``tv_weight`` 0) gives ``tv_weight = tv_rel * intensity()`` (the TV weight unit,
+    ``indreg.forward.tv_weight_unit``). Returns ``o``."""
     if o["gamma"] is None:
         o["gamma"] = o["gamma_rel"] * scale
     if o["step_size"] is None and o["solver"] == ALGORITHM1:

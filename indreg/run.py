@@ -112,7 +112,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     from .deform import GaussianKernel
     from .forward.operator import check_operator
     from .forward.time_series import as_time_series
-    from .forward.tv import intensity_scale
+    from .forward.tv import tv_weight_unit
     from .validation import split
 
     o = opts.resolve(options, label, strict)
@@ -148,7 +148,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     units.data_scale = data_term_scale(operator, data)
     units.noise_residual = noise_residual(data)
-    opts.relative(o, units.data_scale, lambda: intensity_scale(operator, data))   # relative weights and step
+    opts.relative(o, units.data_scale, lambda: tv_weight_unit(operator, data))   # relative weights and step
     for name in ("step_size", "lr"):     # a step must stay finite (and nonzero) in the run's dtype
         if o[name] is not None:
             check_finite_in(o[name], label(names[name]), dtype)

@@ -178,9 +178,9 @@ def test_default_run_is_invariant_to_the_intensity_unit(tiny, scale):
 
 def test_relative_tv_weight_is_invariant_to_the_intensity_unit(tiny):
     """tv_rel: the TV weight scales with the data's intensity unit, so the run is the same in any units (up to the
-    smoothed TV's eps = 1e-3, which is absolute)."""
+    smoothed TV's eps = 1e-3, which is absolute). tv_rel = 3 / 32^2: 3 times the intensity unit on the paper's box."""
     T, template, target, data = tiny
-    options = dict(num_steps=4, max_iter=8, tv_rel=3.0)
+    options = dict(num_steps=4, max_iter=8, tv_rel=3.0 / 32 ** 2)
     ref = indreg.register(template, data, T, target=target, **options)
     r = indreg.register(1e3 * template, 1e3 * data, T, target=1e3 * target, **options)
     absolute = indreg.register(1e3 * template, 1e3 * data, T, target=1e3 * target, tv_weight=ref.problem.tv_weight,
@@ -208,6 +208,27 @@ def test_default_run_is_invariant_to_the_length_unit():
     ref, r = results
     assert r.problem.gamma != pytest.approx(ref.problem.gamma)
     torch.testing.assert_close(r.deformed, ref.deformed, rtol=1e-6, atol=1e-8)
+
+
+def test_relative_tv_weight_is_invariant_to_the_length_unit():
+    """tv_rel: the TV weight scales with the box's side squared too (``tv_weight_unit``), so the same object in a box
+    13.44 times larger gives the same reconstruction (up to the smoothed TV's absolute eps); the TV weight of the
+    paper's box, taken as absolute, does not carry over."""
+    def run(lam, **tv):
+        domain = indreg.ImageDomain(shape=(24, 24), min_pt=(-16 * lam, -16 * lam), max_pt=(16 * lam, 16 * lam))
+        geometry = indreg.ParallelBeamGeometry(angles=torch.linspace(0, 3, 6, dtype=torch.float64), det_count=36,
+                                               det_min=-24 * lam, det_max=24 * lam)
+        T = indreg.RayTransform(domain, geometry)
+        template = phantoms.get("j", indreg.ImageDomain.paper(24)).double()   # the same pixels in either box
+        target = phantoms.get("v", indreg.ImageDomain.paper(24)).double()
+        data, _ = noise.add_white_noise(T(target), snr_db=15.0, seed=0)
+        return indreg.register(template, data, T, sigma=6.0 * lam, num_steps=4, max_iter=8, target=target, **tv)
+
+    ref, r = run(1.0, tv_rel=0.01), run(13.44, tv_rel=0.01)
+    absolute = run(13.44, tv_weight=ref.problem.tv_weight)
+    assert r.problem.tv_weight == pytest.approx(13.44 ** 2 * ref.problem.tv_weight, rel=1e-9)
+    assert abs(r.ssim - ref.ssim) < 2e-3 and r.residual == pytest.approx(ref.residual, rel=1e-2)
+    assert abs(absolute.ssim - ref.ssim) > 10 * abs(r.ssim - ref.ssim)
 
 
 def test_all_zero_data_is_refused_in_one_line(tiny):

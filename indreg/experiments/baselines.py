@@ -2,7 +2,8 @@
 
 Convention: reconstructions are returned on the CPU as tensors of the domain's shape ``(nx, ny[, nz])`` (images
 float64, volumes the run's dtype),
-keyed ``fbp``, ``tv`` (and ``sirt``); TV's weight is absolute, ``baseline.tv_mu`` times the data's intensity unit.
+keyed ``fbp``, ``tv`` (and ``sirt``); TV's weight is absolute, ``baseline.tv_mu`` times the TV weight unit
+(``indreg.forward.tv_weight_unit``: the data's intensity unit times the box's largest side squared).
 A tilt series whose registration is split (``indreg.problems.slabs``) splits its baselines along the tilt axis too
 (``indreg.forward.split``): over the ranks of ``torchrun`` every rank reconstructs its rows (TV with a one-slice
 halo) and rank 0 gathers them (the other ranks get ``{}``); in one process, slab-wise registrations run FBP and SIRT
@@ -25,11 +26,11 @@ log = logging.getLogger(__name__)
 
 
 def tv_mu(cfg: DictConfig, exp) -> float:
-    """The TV baseline's absolute weight: ``baseline.tv_mu`` times the data's intensity unit
-    (``indreg.forward.intensity_scale``), so that the baseline is the same for data in any units."""
-    from ..forward import intensity_scale
+    """The TV baseline's absolute weight: ``baseline.tv_mu`` times the TV weight unit
+    (``indreg.forward.tv_weight_unit``), so that the baseline is the same in any intensity and length units."""
+    from ..forward import tv_weight_unit
 
-    return float(cfg.baseline.tv_mu) * intensity_scale(exp.ray_transform, exp.noisy_data_64)
+    return float(cfg.baseline.tv_mu) * tv_weight_unit(exp.ray_transform, exp.noisy_data_64)
 
 
 def baselines(cfg: DictConfig, exp, out: Path) -> dict:
@@ -58,7 +59,7 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
         return {}
     rec = {k: v.detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
     log.info("baselines (%s) in %.1f s%s", ", ".join(rec).upper().replace(
-        "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the data's intensity unit"),
+        "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the TV weight unit"),
         time.perf_counter() - t0, how)
     np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
     return rec

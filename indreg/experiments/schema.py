@@ -128,14 +128,15 @@ class NoiseConfig:
 @dataclass
 class BaselineConfig:
     """Direct reconstructions from the same data: FBP (Hamming, 0.4) and TV (Chambolle-Pock); for volumes also
-    SIRT (``sirt_iterations``, nonnegative). ``tv_mu`` is relative to the data's intensity unit
-    (``indreg.forward.intensity_scale``: TV's weight is ``tv_mu`` times it, so the baseline does not depend on
-    the data's units; suite 1's 9.096 is the paper's mu = 3.0 on its data)."""
+    SIRT (``sirt_iterations``, nonnegative). ``tv_mu`` is relative to the TV weight unit
+    (``indreg.forward.tv_weight_unit``, the data's intensity unit times the box's largest side squared: TV's weight
+    is ``tv_mu`` times it, so the baseline does not depend on the intensity or length units; suite 1's 0.0088828125
+    is the paper's mu = 3.0 on its data)."""
     enabled: bool = True
     fbp_filter: FBPFilter = FBPFilter.hamming
     fbp_frequency_scaling: float = 0.4
     fbp_padding: bool = True
-    tv_mu: float = 9.096
+    tv_mu: float = 0.0088828125
     tv_iterations: int = 1000
     sirt_iterations: int = 100
 

@@ -16,7 +16,7 @@ from .tilt_series import TiltSeriesGeometry, TiltSeriesTransform
 from .time_series import TimeSeriesOperator
 from .fbp import fbp
 from .sirt import sirt
-from .tv import intensity_scale, tv_reconstruction
+from .tv import intensity_scale, tv_reconstruction, tv_weight_unit
 
 #: The forward operator of each geometry type (``operator_for``); a new geometry adds its entry here.
 OPERATORS = {ParallelBeamGeometry: RayTransform, FanBeamGeometry: RayTransform, TiltSeriesGeometry: TiltSeriesTransform}
@@ -36,4 +36,4 @@ __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_
            "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "intensity_scale", "TiltSeriesGeometry",
            "TiltSeriesTransform", "TimeSeriesOperator", "OPERATORS", "operator_for", "OperatorAlgebra", "ImageOperator",
            "ComposedOperator", "SumOperator", "ScaledOperator", "StackedOperator", "RestrictedOperator", "compose",
-           "add", "scale", "stack", "restrict"]
+           "add", "scale", "stack", "restrict", "tv_weight_unit"]

@@ -45,12 +45,12 @@ def test_presets_have_the_papers_parameters(name):
     assert got == PAPER[name]
     assert cfg.name == name and cfg.noise.convention.value == "code" and cfg.geometry.partition.value == "paper"
     assert cfg.baseline.fbp_filter.value == "hamming" and cfg.baseline.fbp_frequency_scaling == 0.4
-    # baseline.tv_mu is relative to the data's intensity unit: on the preset's data it is the paper's mu
+    # baseline.tv_mu is relative to the TV weight unit: on the preset's data it is the paper's mu
     from indreg.experiments import sources
-    from indreg.forward import intensity_scale
+    from indreg.forward import tv_weight_unit
 
     data = sources.load(cfg)
-    mu = cfg.baseline.tv_mu * intensity_scale(data.operator, data.data_64)
+    mu = cfg.baseline.tv_mu * tv_weight_unit(data.operator, data.data_64)
     assert mu == pytest.approx({"suite1_jv": 3.0}.get(name, 1.0), rel=1e-3)
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from indreg import metrics
 from indreg.experiments.config import DATA_DIR, ConfigError
-from indreg.forward import intensity_scale
+from indreg.forward import tv_weight_unit
 from indreg.io import read_image
 
 from experiment_helpers import FAST, TINY, compose, run_app, run_cli
@@ -133,7 +133,7 @@ def test_tv_weight_scales_with_the_data_and_paper_scores_stay(tmp_path):
     from indreg.experiments import sources
     T = sources.load(cfg).operator
     import torch
-    assert m["tv_mu_absolute"] == pytest.approx(cfg.baseline.tv_mu * intensity_scale(T, torch.from_numpy(data)))
+    assert m["tv_mu_absolute"] == pytest.approx(cfg.baseline.tv_mu * tv_weight_unit(T, torch.from_numpy(data)))
     assert {"ssim_paper", "psnr_paper", "tv_ssim"} <= set(m) and m["template_scale"] == 1.0 and m["background"] == 0
 
 
