@@ -15,6 +15,7 @@ included); metrics are means over the samples: ``ssim``, ``psnr`` (dB, range of 
 """
 from __future__ import annotations
 
+import math
 import time
 from contextlib import contextmanager
 
@@ -116,7 +117,8 @@ def algorithm1_scheme(cfg, parts: dict, iterations: int, warm_start=None):
                 m0 = network_momentum(warm_start, item["template"], fbp_image, item["data"], 0)
                 momentum = shooting(m0, item["template"], return_all=True).momentum[0]
         state = SolverState(momentum=momentum, iteration=0)
-        Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size), max_iter=iterations).run(state)
+        Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size), max_iter=iterations,
+                   jacobian_every=iterations).run(state)       # no Jacobian per iteration: only the steps timed
         return problem.deformed(state.momentum), problem.velocity(state.momentum)
     return run
 
@@ -183,7 +185,7 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
         if alg1 > 0:
             per_iteration = results["algorithm1"]["seconds_per_sample"] / int(cfg.eval.algorithm1.max_iter)
             extra = results["unrolled"]["seconds_per_sample"] - results["oneshot"]["seconds_per_sample"]
-            iterations.add(max(1, round(extra / per_iteration)))
+            iterations.add(max(1, math.ceil(extra / per_iteration)))
         warm = {f"oneshot+algorithm1_{k}": algorithm1_scheme(cfg, parts, k, model) for k in sorted(iterations)}
         results.update(evaluate_schemes(warm, parts, val_set, device))
         schemes.update(warm)
@@ -196,7 +198,9 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
                                                                           val_set.tensors["target"])]))
     metrics = {"network": network, "schemes": results, "ood": ood}
     if isinstance(model, UnrolledDescent):
-        metrics["step_sizes"] = model.step_sizes.tolist()       # the learned alpha_k
+        metrics["step_sizes"] = model.step_sizes.tolist()       # the learned alpha_k (and beta_k)
+        if model.heavy_ball:
+            metrics["inertias"] = model.inertias.tolist()
     if alg1 > 0:
         count = results["algorithm1"]["num_samples"]        # the network on the same samples, side by side
         metrics["algorithm1"] = dict(results["algorithm1"], network_ssim_same_samples=float(
