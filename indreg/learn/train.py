@@ -11,8 +11,8 @@ network; ``model.space=initial`` ``UnrolledMomentum``, updates of the initial mo
 gradient. Steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps ``[train.steps,
 train.steps + model.steps)`` the unrolled scheme (learning rate ``model.lr`` with a cosine decay, the one-shot
 network fixed, its input scale, ``residual_scale`` or ``gradient_scale``, calibrated on the first training samples
-when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K``, or the indirect loss at the initial
-momentum). The benchmark
+when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K`` plus ``model.supervised`` times the
+squared distance of the deformed template to the target, or the indirect loss at the initial momentum). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
@@ -26,10 +26,11 @@ replicas stay identical (checked at the end: ``replica_max_abs_diff`` in ``metri
 Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/data_fit``,
 ``train/regulariser``, ``train/ssim``, ``val/ssim``, ``val/loss``, images ``val/template``, ``val/fbp``,
 ``val/target``, ``val/prediction``; while the unrolled updates train, ``unrolled/loss``, ``unrolled/data_fit``,
-``unrolled/regulariser``, ``unrolled/ssim`` instead of ``train/*``, and ``val/ssim_update_<k>``, images
-``val/update_<k>``, the deformed template after ``k`` updates), ``checkpoint.pt`` (model, optimizer, step, RNG),
-``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``: out of distribution),
-``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in the domain's units).
+``unrolled/regulariser``, ``unrolled/supervised``, ``unrolled/ssim`` instead of ``train/*``, and
+``val/ssim_update_<k>``, images ``val/update_<k>``, the deformed template after ``k`` updates), ``checkpoint.pt``
+(model, optimizer, step, RNG), ``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``:
+out of distribution), ``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in
+the domain's units).
 """
 from __future__ import annotations
 
