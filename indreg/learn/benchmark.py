@@ -4,17 +4,21 @@ distribution.
 Schemes (keys of ``metrics.json``): ``oneshot`` (the U-Net ``Lambda(template, FBP)``), ``unrolled`` (``K``
 learned steps: ``UnrolledDescent`` on Algorithm 1's time-dependent momentum, or ``UnrolledMomentum`` on the initial
 momentum through the indirect gradient), ``oneshot+algorithm1_<k>`` (Algorithm 1 warm
-started from the one-shot geodesic, ``k`` iterations: ``k = K``, and ``k`` such that its time per sample matches the
-unrolled scheme's) and ``algorithm1`` (per sample from zero, ``eval.algorithm1.max_iter`` iterations).
+started from the one-shot geodesic, ``k`` iterations: ``k = K``, and the smallest ``k`` whose estimated time per
+sample (Algorithm 1's time per iteration) is at least the unrolled scheme's) and ``algorithm1`` (per sample from
+zero, ``eval.algorithm1.max_iter`` iterations).
 
 Convention: every scheme runs per sample (batch 1) and is timed from the sinogram to the deformed template (the FBP
 included); metrics are means over the samples: ``ssim``, ``psnr`` (dB, range of the target), ``residual``
 (``||T f - g|| / ||g||``, Euclidean), ``min_jacobian`` (mean over samples of the minimum of ``det D phi_{1,0}``;
 ``min_jacobian_worst`` the smallest), ``seconds_per_sample``; ``per_sample_ssim`` lists the SSIMs. An
-``UnrolledDescent``'s learned step sizes ``alpha_k`` are reported as ``step_sizes``.
+``UnrolledDescent``'s learned step sizes ``alpha_k`` are reported as ``step_sizes``, its heavy-ball coefficients
+``beta_k`` as ``inertias``. Algorithm 1 computes the Jacobian only after its last iteration (the unrolled schemes
+not at all): the times compare the steps.
 """
 from __future__ import annotations
 
+import math
 import time
 from contextlib import contextmanager
 
@@ -116,7 +120,8 @@ def algorithm1_scheme(cfg, parts: dict, iterations: int, warm_start=None):
                 m0 = network_momentum(warm_start, item["template"], fbp_image, item["data"], 0)
                 momentum = shooting(m0, item["template"], return_all=True).momentum[0]
         state = SolverState(momentum=momentum, iteration=0)
-        Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size), max_iter=iterations).run(state)
+        Algorithm1(problem, step_size=float(cfg.eval.algorithm1.step_size), max_iter=iterations,
+                   jacobian_every=iterations).run(state)       # no Jacobian per iteration: only the steps timed
         return problem.deformed(state.momentum), problem.velocity(state.momentum)
     return run
 
@@ -183,7 +188,7 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
         if alg1 > 0:
             per_iteration = results["algorithm1"]["seconds_per_sample"] / int(cfg.eval.algorithm1.max_iter)
             extra = results["unrolled"]["seconds_per_sample"] - results["oneshot"]["seconds_per_sample"]
-            iterations.add(max(1, round(extra / per_iteration)))
+            iterations.add(max(1, math.ceil(extra / per_iteration)))
         warm = {f"oneshot+algorithm1_{k}": algorithm1_scheme(cfg, parts, k, model) for k in sorted(iterations)}
         results.update(evaluate_schemes(warm, parts, val_set, device))
         schemes.update(warm)
@@ -197,6 +202,8 @@ def evaluate(cfg, parts: dict, model, val_set, device, dtype) -> dict:
     metrics = {"network": network, "schemes": results, "ood": ood}
     if isinstance(model, UnrolledDescent):
         metrics["step_sizes"] = model.step_sizes.tolist()       # the learned alpha_k
+        if model.heavy_ball:
+            metrics["inertias"] = model.inertias.tolist()       # the learned beta_k
     if alg1 > 0:
         count = results["algorithm1"]["num_samples"]        # the network on the same samples, side by side
         metrics["algorithm1"] = dict(results["algorithm1"], network_ssim_same_samples=float(

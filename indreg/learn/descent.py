@@ -1,24 +1,28 @@
-"""Unrolled Algorithm 1: learned gradient descent on the time-dependent momentum, with learned step sizes and a
-small correction network.
+"""Unrolled Algorithm 1: learned gradient descent on the time-dependent momentum, with learned step sizes, learned
+heavy-ball coefficients and an optional small correction network.
 
 ``K`` cheap steps in Algorithm 1's space (the iterate is the momentum ``m = (m_0, ..., m_N)`` of the velocity
 ``nu = K m`` on the N+1 time points; ``K`` below is the kernel only where it multiplies)::
 
-    m_{k+1} = m_k - alpha_k h_k + U_k(W(K m_k, I), r_k, I),     alpha_k = alpha * softplus(a_k) / softplus(0)
+    m_{k+1} = m_k - alpha_k h_k + beta_k (m_k - m_{k-1}) + U_k(W(K m_k, I), r_k, I),
+    alpha_k = alpha * softplus(a_k) / softplus(0),     beta_k = tanh(b_k)  (beta_0 = 0)
 
 ``h_k`` is the L2 gradient of Algorithm 1's objective ``E(nu) = (gamma/2) sum_i (1/N)||nu_i||_V^2 + (1/2)||T W(nu,
 I) - g||^2_data`` at ``m_k`` (``IndirectRegistration.l2_gradient``: one forward and the paper's backward of the
 deformation, no shooting), ``r_k = T^*(T W(K m_k, I) - g)`` the back-projected residual (a by-product of that
-backward), ``alpha`` Algorithm 1's step (``a_k = 0`` reproduces it) and ``U_k`` a ``MomentumUNet`` on three images
-whose output, one field ``(B, 2, nx, ny)``, is added at every time point. On the velocity the step reads
-``nu_{k+1} = nu_k - alpha_k K h_k + K U_k``. The start ``m_0`` is the one-shot network's geodesic: its prediction
-``Lambda(I, FBP(g))`` shot (``GeodesicShooting``), the transported momenta ``m_{t_i}`` taken as the N+1 fields, as
-the benchmark's "one-shot + k Algorithm 1 steps" starts (or zero without ``initial``). With zero correction heads
-(an untrained scheme) the ``K`` steps are exactly ``K`` Algorithm 1 iterations from that start.
+backward), ``alpha`` Algorithm 1's step (``a_k = 0`` reproduces it), ``beta_k`` Polyak's heavy-ball coefficient
+(``heavy_ball``; the last step's direction carried on, at no extra cost) and ``U_k`` (``correction``) a
+``MomentumUNet`` on three images whose output, one field ``(B, 2, nx, ny)``, is added at every time point. On the
+velocity the step reads ``nu_{k+1} = nu_k - alpha_k K h_k + beta_k (nu_k - nu_{k-1}) + K U_k``. The start ``m_0``
+is the one-shot network's geodesic: its prediction ``Lambda(I, FBP(g))`` shot (``GeodesicShooting``), the
+transported momenta ``m_{t_i}`` taken as the N+1 fields, as the benchmark's "one-shot + k Algorithm 1 steps"
+starts (or zero without ``initial``). Untrained (``a_k = b_k = 0``, zero correction heads) the ``K`` steps are
+exactly ``K`` Algorithm 1 iterations from that start.
 
 Gradient of the scheme: ``h_k`` and the correction's inputs are computed without a graph (stop-gradient), so
-``m_K = m_0 - sum_k alpha_k h_k + sum_k U_k(x_k)`` with constant ``h_k``, ``x_k``: the training loss reaches
-``a_k`` and ``U_k`` directly, and the backward costs one pass through each ``U_k`` (no double backward).
+``m_K`` is a linear recursion in the constant ``h_k``, ``x_k`` with coefficients ``alpha_k``, ``beta_k`` plus the
+``U_k(x_k)``: the training loss reaches ``a_k``, ``b_k`` and ``U_k`` directly, and the backward costs one pass
+through each ``U_k`` (no double backward).
 
 Convention: template, FBP, deformed templates and residuals ``(B, nx, ny)``; momenta and gradients ``(B, N+1, 2,
 nx, ny)`` (component 0 = x, 1 = y; N = the shooting layer's ``num_steps``); data ``(B, *range_shape)`` of the loss's
@@ -91,8 +95,8 @@ class UnrolledDescent(nn.Module):
     deformed template is ``deformation(K m_K, I)`` (``deformation``: Algorithm 1's ``LDDMMDeformation``);
     ``num_updates=j`` stops after ``j`` steps, ``trajectory`` returns ``[m_0, ..., m_K]``, ``oneshot`` the initial
     network's ``(B, 2, nx, ny)`` prediction. ``step_size`` is Algorithm 1's step ``alpha`` (``step_sizes``: the learned
-    ``alpha_k``); ``correction=False`` learns the step sizes only; ``shared``: one ``U`` for all steps. The
-    initial network gets no gradient (it is trained on its own first).
+    ``alpha_k``); ``heavy_ball`` adds the learned ``beta_k`` (``inertias``); ``correction`` adds the network ``U``
+    (``shared``: one ``U`` for all steps). The initial network gets no gradient (it is trained on its own first).
 
     Example:
         >>> import indreg
@@ -107,9 +111,9 @@ class UnrolledDescent(nn.Module):
         torch.Size([2, 4, 2, 16, 16])
     """
 
-    def __init__(self, loss: IndirectShootingLoss, num_updates: int = 20, step_size: float = 0.02, width: int = 8,
+    def __init__(self, loss: IndirectShootingLoss, num_updates: int = 10, step_size: float = 0.02, width: int = 8,
                  levels: int = 2, shared: bool = True, correction: bool = True, initial: nn.Module | None = None,
-                 momentum_scale: float = 1.0):
+                 momentum_scale: float = 1.0, heavy_ball: bool = True):
         super().__init__()
         check_scheme(loss, initial)
         self.loss = loss
@@ -119,7 +123,10 @@ class UnrolledDescent(nn.Module):
         self.shared = check_bool(shared, "shared")
         self.correction = check_bool(correction, "correction")
         self.momentum_scale = check_positive(momentum_scale, "momentum_scale")
+        self.heavy_ball = check_bool(heavy_ball, "heavy_ball")
         self.step_logits = nn.Parameter(torch.zeros(self.num_updates))
+        if self.heavy_ball:                   # b_1 .. b_{K-1} (step 0 has no previous iterate)
+            self.inertia_logits = nn.Parameter(torch.zeros(self.num_updates - 1))
         count = (1 if self.shared else self.num_updates) if self.correction else 0
         self.updates = nn.ModuleList(MomentumUNet(3, width, levels, momentum_scale=self.momentum_scale)
                                      for _ in range(count))
@@ -128,12 +135,18 @@ class UnrolledDescent(nn.Module):
 
     def extra_repr(self) -> str:
         return f"num_updates={self.num_updates}, step_size={self.step_size}, shared={self.shared}, " \
-               f"correction={self.correction}"
+               f"correction={self.correction}, heavy_ball={self.heavy_ball}"
 
     @property
     def step_sizes(self) -> torch.Tensor:
         """``alpha_k = alpha softplus(a_k) / softplus(0)`` ``(K,)``, positive (``a_k = 0``: Algorithm 1's step)."""
         return self.step_size * nn.functional.softplus(self.step_logits) / math.log(2.0)
+
+    @property
+    def inertias(self) -> torch.Tensor:
+        """The heavy-ball coefficients ``beta_k = tanh(b_k)`` of steps ``k = 1..K-1``, ``(K-1,)``, in ``(-1, 1)``
+        (``b_k = 0``: none)."""
+        return torch.tanh(self.inertia_logits)
 
     def oneshot(self, template: torch.Tensor, fbp: torch.Tensor) -> torch.Tensor:
         """The initial network's momentum ``(B, 2, nx, ny)`` (zero without one)."""
@@ -159,9 +172,12 @@ class UnrolledDescent(nn.Module):
         self.residual_scale.fill_(scale)
         return float(scale)
 
-    def update(self, k: int, momentum, h, deformed, residual, template) -> torch.Tensor:
-        """``m_{k+1} = m_k - alpha_k h_k + U_k(W(K m_k, I), r_k / residual_scale, I)`` (``k`` counts from 0)."""
+    def update(self, k: int, momentum, h, deformed, residual, template, previous=None) -> torch.Tensor:
+        """``m_{k+1} = m_k - alpha_k h_k + beta_k (m_k - m_{k-1}) + U_k(W(K m_k, I), r_k / residual_scale, I)``
+        (``k`` counts from 0; the heavy-ball term with ``heavy_ball`` and a ``previous`` iterate ``m_{k-1}``)."""
         step = momentum - self.step_sizes[k] * h
+        if self.heavy_ball and previous is not None:
+            step = step + self.inertias[k - 1] * (momentum - previous)
         if not self.correction:
             return step
         x = torch.stack([deformed, residual / self.residual_scale, template], dim=1)
@@ -175,7 +191,8 @@ class UnrolledDescent(nn.Module):
         momenta = [self.start(template, fbp)]
         for k in range(steps):
             h, deformed, residual = descent_gradient(self.loss, momenta[-1], template, data, self.deformation)
-            momenta.append(self.update(k, momenta[-1], h, deformed, residual, template))
+            previous = momenta[-2] if k else None
+            momenta.append(self.update(k, momenta[-1], h, deformed, residual, template, previous))
         return momenta
 
     def forward(self, template: torch.Tensor, fbp: torch.Tensor, data, num_updates: int | None = None,

@@ -11,8 +11,8 @@ network; ``model.space=initial`` ``UnrolledMomentum``, updates of the initial mo
 gradient. Steps ``[0, train.steps)`` train the one-shot network (as ``model=oneshot``), steps ``[train.steps,
 train.steps + model.steps)`` the unrolled scheme (learning rate ``model.lr`` with a cosine decay, the one-shot
 network fixed, its input scale, ``residual_scale`` or ``gradient_scale``, calibrated on the first training samples
-when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K``, or the indirect loss at the initial
-momentum). The benchmark
+when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K`` plus ``model.supervised`` times the
+squared distance of the deformed template to the target, or the indirect loss at the initial momentum). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
 Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
@@ -26,10 +26,11 @@ replicas stay identical (checked at the end: ``replica_max_abs_diff`` in ``metri
 Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/data_fit``,
 ``train/regulariser``, ``train/ssim``, ``val/ssim``, ``val/loss``, images ``val/template``, ``val/fbp``,
 ``val/target``, ``val/prediction``; while the unrolled updates train, ``unrolled/loss``, ``unrolled/data_fit``,
-``unrolled/regulariser``, ``unrolled/ssim`` instead of ``train/*``, and ``val/ssim_update_<k>``, images
-``val/update_<k>``, the deformed template after ``k`` updates), ``checkpoint.pt`` (model, optimizer, step, RNG),
-``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``: out of distribution),
-``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in the domain's units).
+``unrolled/regulariser``, ``unrolled/supervised``, ``unrolled/ssim`` instead of ``train/*``, and
+``val/ssim_update_<k>``, images ``val/update_<k>``, the deformed template after ``k`` updates), ``checkpoint.pt``
+(model, optimizer, step, RNG), ``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``:
+out of distribution), ``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in
+the domain's units).
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from .._checks import check_finite, check_int, check_positive
+from .._checks import check_finite, check_int, check_nonnegative, check_positive
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -103,7 +104,8 @@ def build(cfg, device, dtype) -> dict:
         initial = model if str(m.init) == "oneshot" else None
         if str(m.space) == "velocity":
             model = UnrolledDescent(loss, int(m.updates), float(m.step_size), int(m.update_width),
-                                    int(m.update_levels), bool(m.shared), bool(m.correction), initial, scale)
+                                    int(m.update_levels), bool(m.shared), bool(m.correction), initial, scale,
+                                    bool(m.heavy_ball))
         else:
             model = UnrolledMomentum(loss, int(m.updates), int(m.update_width), int(m.update_levels), bool(m.shared),
                                      initial, scale, str(m.gradient))
@@ -124,12 +126,13 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 def check_config(cfg) -> None:
     """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``space``, ``init``, ``gradient`` and ``step_size`` and the lists of ``eval.ood``."""
+    ``space``, ``init``, ``gradient``, ``step_size`` and ``supervised`` and the lists of ``eval.ood``."""
     if str(cfg.model.name) == "unrolled":
         for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
         check_positive(cfg.model.step_size, "model.step_size")
+        check_nonnegative(cfg.model.supervised, "model.supervised")
     ood = cfg.eval.ood
     for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
         if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
@@ -166,13 +169,15 @@ def learning_rate(cfg, step: int, first: int, total: int) -> float:
 
 def parameter_groups(cfg, model) -> list:
     """The optimizer's groups, each with its ``scale`` of the learning rate: an ``UnrolledDescent``'s step-size
-    logits ``a_k`` learn at ``model.step_lr`` (instead of ``model.lr``; an O(1) change of ``a_k`` is a large change of
-    ``alpha_k``, which ``model.lr`` would take thousands of steps to make), everything else at 1."""
+    logits ``a_k`` and heavy-ball logits ``b_k`` learn at ``model.step_lr`` (instead of ``model.lr``; an
+    O(1) change of them is a large change of the step, which ``model.lr`` would take thousands of steps to make),
+    everything else at 1."""
     if not isinstance(model, UnrolledDescent):
         return [{"params": list(model.parameters()), "scale": 1.0}]
-    rest = [p for name, p in model.named_parameters() if name != "step_logits"]
-    return [{"params": rest, "scale": 1.0},
-            {"params": [model.step_logits], "scale": float(cfg.model.step_lr) / float(cfg.model.lr)}]
+    fast = ("step_logits", "inertia_logits")
+    rest = [p for name, p in model.named_parameters() if name not in fast]
+    steps = [p for name, p in model.named_parameters() if name in fast]
+    return [{"params": rest, "scale": 1.0}, {"params": steps, "scale": float(cfg.model.step_lr) / float(cfg.model.lr)}]
 
 
 def batch_indices(step: int, seed: int, size: int, num_samples: int, rank: int, world: int) -> torch.Tensor:
@@ -285,9 +290,16 @@ def log_validation(writer, parts, model, dataset, device, step: int, unrolled: b
     return scores
 
 
-def training_terms(net, model, parts, batch, unrolled: bool) -> dict:
-    """The loss terms of a batch: the one-shot network's ``m0``, or the unrolled scheme's ``m_K``."""
-    return bench.network_terms(net, model, parts["loss"], batch, None if unrolled else 0)
+def training_terms(cfg, net, model, parts, batch, unrolled: bool) -> dict:
+    """The loss terms of a batch: the one-shot network's ``m0``, or the unrolled scheme's ``m_K``; an
+    ``UnrolledDescent`` adds ``model.supervised`` times ``supervised``, the distance of its deformed template to
+    the target, ``||W(K m_K, I) - target||^2`` (L2 in the domain's units)."""
+    terms = bench.network_terms(net, model, parts["loss"], batch, None if unrolled else 0)
+    weight = float(cfg.model.get("supervised", 0.0))
+    if not (unrolled and isinstance(model, UnrolledDescent) and weight > 0):
+        return terms
+    distance = parts["domain"].cell_volume * (terms["deformed"] - batch["target"]).square().flatten(1).sum(1)
+    return dict(terms, supervised=distance, loss=terms["loss"] + weight * distance)
 
 
 def train(cfg, run_dir) -> dict:
@@ -325,18 +337,19 @@ def train(cfg, run_dir) -> dict:
             group["lr"] = learning_rate(cfg, step, first, steps) * group["scale"]
         idx = batch_indices(step, int(cfg.seed), size, len(train_set), rank, world)
         batch = gather(train_set, idx, device)
-        terms = training_terms(net, model, parts, batch, unrolled)
+        terms = training_terms(cfg, net, model, parts, batch, unrolled)
         optimizer.zero_grad(set_to_none=True)
         terms["loss"].mean().backward()
         optimizer.step()
         done = step + 1
-        stats = torch.stack([terms[k].detach().mean() for k in ("loss", "data_fit", "regulariser")])
+        names = [k for k in ("loss", "data_fit", "regulariser", "supervised") if k in terms]
+        stats = torch.stack([terms[k].detach().mean() for k in names])
         if world > 1:
             dist.all_reduce(stats)
             stats /= world
         if rank == 0 and (done % int(cfg.train.log_every) == 0 or done == steps):
             prefix = "unrolled" if unrolled and isinstance(model, bench.UNROLLED) else "train"
-            for name, value in zip(("loss", "data_fit", "regulariser"), stats.tolist()):
+            for name, value in zip(names, stats.tolist()):
                 writer.add_scalar(f"{prefix}/{name}", value, done)
             scores = [ssim(d, t) for d, t in zip(terms["deformed"].detach(), batch["target"])]
             writer.add_scalar(f"{prefix}/ssim", float(np.mean(scores)), done)

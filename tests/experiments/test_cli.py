@@ -136,12 +136,13 @@ def test_train_momentum_refuses_keys_it_does_not_have(capsys, override, message)
 def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for argv in (["train.steps=3", "domain.n=16"], ["model=unrolled", "model.steps=3", "model.gradient=exact"],
-                 ["model=unrolled", "model.space=initial", "model.correction=false"]):
+                 ["model=unrolled", "model.space=initial", "model.correction=false"],
+                 ["model=unrolled", "model.heavy_ball=false", "model.supervised=0"]):
         argv = [*argv, f"hydra.run.dir={tmp_path / 'run'}"]
         cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
                       train.base_config(argv))
     assert not any(tmp_path.iterdir())
-    assert cli.compose(register.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 20
+    assert cli.compose(register.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 10
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -151,6 +152,7 @@ def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
     (["model=unrolled", "model.gradient=double"], "model.gradient must be one of detached, exact, got 'double'"),
     (["model=unrolled", "model.space=momentum"], "model.space must be one of velocity, initial, got 'momentum'"),
     (["model=unrolled", "model.step_size=0"], "model.step_size must be"),
+    (["model=unrolled", "model.supervised=-1"], "model.supervised must be"),
     (["eval.ood.num_angles=[6,0]"], "eval.ood.num_angles must be an integer >= 1, got 0"),
     (["eval.ood.num_angles=[6.5]"], "eval.ood.num_angles must be an integer >= 1, got 6.5"),
     (["eval.ood.num_angles=6"], "eval.ood.num_angles must be a list (e.g. [6, 20], or []), got 6"),

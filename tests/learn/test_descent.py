@@ -18,11 +18,11 @@ def _registration(loss, template, data):
                                 gamma=loss.gamma)
 
 
-def _scheme(loss, shared=True, correction=True, num_updates=3, seed=1, std=0.3):
+def _scheme(loss, shared=True, correction=True, num_updates=3, seed=1, std=0.3, heavy_ball=True):
     torch.manual_seed(seed)
     init = MomentumUNet(2, width=2, levels=1, momentum_scale=0.01)
     scheme = UnrolledDescent(loss, num_updates=num_updates, step_size=0.05, width=2, levels=1, shared=shared,
-                             correction=correction, initial=init, momentum_scale=0.01).double()
+                             correction=correction, initial=init, momentum_scale=0.01, heavy_ball=heavy_ball).double()
     for p in scheme.parameters():               # away from the zero-initialised heads: every step does something
         torch.nn.init.normal_(p, std=std)
     return scheme
@@ -44,11 +44,13 @@ def test_batched_gradient_is_the_problems_l2_gradient():
         torch.testing.assert_close(residual[b], expected)
 
 
-def test_untrained_scheme_is_algorithm1_from_the_oneshot_geodesic():
-    """Zero correction heads and a_k = 0: K steps are K Algorithm 1 iterations from the shot one-shot momentum."""
+@pytest.mark.parametrize("heavy_ball", [False, True])
+def test_untrained_scheme_is_algorithm1_from_the_oneshot_geodesic(heavy_ball):
+    """Zero correction heads, a_k = 0 and beta_k = 0: K steps are K Algorithm 1 iterations from the shot one-shot
+    momentum."""
     loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3)
     torch.manual_seed(0)
-    scheme = UnrolledDescent(loss, num_updates=4, step_size=0.05, width=4, levels=2,
+    scheme = UnrolledDescent(loss, num_updates=4, step_size=0.05, width=4, levels=2, heavy_ball=heavy_ball,
                              initial=MomentumUNet(2, 4, 2, momentum_scale=0.01), momentum_scale=0.01).double()
     torch.nn.init.normal_(scheme.initial.head.weight, std=0.5)
     with torch.no_grad():
@@ -73,6 +75,7 @@ def _explicit(scheme, template, fbp, data, frozen=None):
     loss, s = scheme.loss, scheme.loss.shooting
     m = s(scheme.oneshot(template, fbp).detach(), template, return_all=True).momentum
     alphas = 0.05 * torch.nn.functional.softplus(scheme.step_logits) / math.log(2.0)
+    previous = m
     for k in range(scheme.num_updates):
         if frozen is None:
             problems = [_registration(loss, template[b], data[b]) for b in range(len(m))]
@@ -82,14 +85,17 @@ def _explicit(scheme, template, fbp, data, frozen=None):
         else:
             h, deformed, residual = frozen[k]
         net = scheme.updates[0 if scheme.shared else k]
-        m = m - alphas[k] * h + net(torch.stack([deformed, residual / scheme.residual_scale, template], 1))[:, None]
+        beta = torch.tanh(scheme.inertia_logits[k - 1]) if scheme.heavy_ball and k else 0.0
+        inertia = beta * (m - previous)                                     # beta_k (m_k - m_{k-1})
+        previous, m = m, (m - alphas[k] * h + inertia
+                          + net(torch.stack([deformed, residual / scheme.residual_scale, template], 1))[:, None])
     return m
 
 
-@pytest.mark.parametrize("shared", [True, False])
-def test_trained_scheme_equals_explicit_updates(shared):
+@pytest.mark.parametrize("shared, heavy_ball", [(True, True), (False, True), (True, False)])
+def test_trained_scheme_equals_explicit_updates(shared, heavy_ball):
     loss, template, fbp, data = small_problem(n=16, angles=4, num_steps=3, batch=3)
-    scheme = _scheme(loss, shared=shared)
+    scheme = _scheme(loss, shared=shared, heavy_ball=heavy_ball)
     assert len(scheme.updates) == (1 if shared else 3)
     scheme.calibrate(template, fbp, data)
     optimizer = torch.optim.Adam(scheme.parameters(), lr=1e-2)
@@ -99,6 +105,7 @@ def test_trained_scheme_equals_explicit_updates(shared):
         optimizer.step()
     assert all(p.grad is None for p in scheme.initial.parameters())    # the one-shot network stays fixed
     assert scheme.step_logits.grad.abs().min() > 0
+    assert not heavy_ball or (scheme.inertias.shape == (2,) and scheme.inertia_logits.grad.abs().min() > 0)
     with torch.no_grad():
         out = scheme(template, fbp, data)
     torch.testing.assert_close(out, _explicit(scheme, template, fbp, data), rtol=1e-10, atol=1e-12)
@@ -106,7 +113,8 @@ def test_trained_scheme_equals_explicit_updates(shared):
 
 def test_gradcheck_of_the_map_as_trained():
     """Detached h_k, W(K m_k, I), r_k: the backward is the derivative of the K updates with those held at their
-    values; gradcheck of that map in the step logits and the correction's head, and the scheme's gradient equals it."""
+    values; gradcheck of that map in the step logits, the heavy-ball coefficients and the correction's head, and the
+    scheme's gradient equals it."""
     loss, template, fbp, data = small_problem()
     scheme = _scheme(loss)
     scheme.calibrate(template, fbp, data)
@@ -115,7 +123,7 @@ def test_gradcheck_of_the_map_as_trained():
     frozen = [descent_gradient(loss, m, template, data) for m in momenta[:-1]]
     weights = torch.randn_like(momenta[-1])
     (scheme(template, fbp, data) * weights).sum().backward()
-    names = ["step_logits", "updates.0.head.weight", "updates.0.head.bias"]
+    names = ["step_logits", "inertia_logits", "updates.0.head.weight", "updates.0.head.bias"]
     params = dict(scheme.named_parameters())
     leaves = tuple(params[n].detach().clone().requires_grad_(True) for n in names)
 
@@ -131,8 +139,9 @@ def test_gradcheck_of_the_map_as_trained():
 
 def test_step_sizes_only_and_start_from_zero():
     loss, template, fbp, data = small_problem(n=16, angles=4)
-    scheme = UnrolledDescent(loss, num_updates=2, step_size=0.05, correction=False).double()
+    scheme = UnrolledDescent(loss, num_updates=2, step_size=0.05, correction=False, heavy_ball=False).double()
     assert len(scheme.updates) == 0 and torch.allclose(scheme.step_sizes, torch.full((2,), 0.05, dtype=torch.float64))
+    assert not hasattr(scheme, "inertia_logits") and "inertia_logits" not in scheme.state_dict()
     m = scheme.trajectory(template, fbp, data)
     assert len(m) == 3 and not m[0].any() and m[1].any()
     problem = _registration(loss, template[0], data[0])

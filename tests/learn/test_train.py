@@ -78,8 +78,8 @@ def test_ddp_two_processes_keep_replicas_identical(tmp_path, model):
     metrics = run(tmp_path, *extra, "eval.algorithm1.num_samples=0", launcher=torchrun)
     assert metrics["world_size"] == 2
     assert metrics["replica_max_abs_diff"] == 0.0
-    head = "updates.0.head.weight" if model == "unrolled" else "head.weight"
-    assert parameters(tmp_path)["model"][head].abs().sum() > 0
+    trained = ("step_logits", "inertia_logits") if model == "unrolled" else ("head.weight",)   # unrolled: the default
+    assert all(parameters(tmp_path)["model"][name].abs().min() > 0 for name in trained)       # (no correction)
     _, steps = scalars(tmp_path, "train/loss")
     assert steps == ([1, 2] if model == "unrolled" else [1, 2, 3])
 
@@ -101,7 +101,7 @@ def test_damaged_checkpoint_ends_in_one_line(tmp_path):
 def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path, space):
     """model=unrolled: the one-shot steps, then the updates (own scalars and images), every scheme in metrics.json
     in and out of distribution, and a resume inside the unrolled phase gives the uninterrupted run's weights."""
-    unrolled = (*UNROLLED, f"model.space={space}")
+    unrolled = (*UNROLLED, f"model.space={space}", "model.correction=true")     # velocity: + U (default: none)
     first = run(tmp_path / "a", *unrolled, "model.steps=1", "eval.algorithm1.num_samples=1")
     assert first["model"] == "unrolled" and first["steps"] == 3
     schemes = first["schemes"]
@@ -131,6 +131,8 @@ def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path, spac
     assert c["model"]["residual_scale" if space == "velocity" else "gradient_scale"] > 0
     if space == "velocity":                                      # the learned step sizes moved, and are reported
         assert c["model"]["step_logits"].abs().min() > 0 and len(first["step_sizes"]) == 2
+        assert c["model"]["inertia_logits"].abs().min() > 0 and len(first["inertias"]) == 1
+        assert [e.step for e in acc.Scalars("unrolled/supervised")] == [3, 4, 5]
     first_phase = parameters(tmp_path / "a")["model"]            # the one-shot network is fixed while updates train
     assert torch.equal(first_phase["initial.head.weight"], c["model"]["initial.head.weight"])
 
@@ -163,8 +165,36 @@ def test_step_sizes_learn_at_their_own_rate():
     dom = ImageDomain.paper(8)
     loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 2),
                                 RayTransform(dom, ParallelBeamGeometry.paper(3, 12)), gamma=1e-3)
-    model = UnrolledDescent(loss, num_updates=2, width=2, levels=1)
+    model = UnrolledDescent(loss, num_updates=2, width=2, levels=1, heavy_ball=True)
     optimizer = torch.optim.Adam(train.parameter_groups(cfg, model), lr=1.0)
     rest, steps = optimizer.param_groups
-    assert steps["params"] == [model.step_logits] and len(rest["params"]) == len(list(model.parameters())) - 1
+    assert steps["params"] == [model.step_logits, model.inertia_logits]
+    assert len(rest["params"]) == len(list(model.parameters())) - 2
     assert steps["scale"] * cfg.model.lr == pytest.approx(cfg.model.step_lr) and rest["scale"] == 1.0
+
+
+def test_supervised_term_is_the_weighted_distance_to_the_target():
+    """model.supervised: the unrolled phase of an UnrolledDescent adds w cell_volume sum (f - target)^2 to 2 E; the
+    one-shot phase and w = 0 leave the loss as it is."""
+    from indreg import GeodesicShooting, ImageDomain, IndirectShootingLoss, ParallelBeamGeometry, RayTransform
+    from indreg.deform.kernel import GaussianKernel
+    from indreg.learn import UnrolledDescent, descent_terms, train
+
+    cfg = train.base_config(["model=unrolled"])
+    dom = ImageDomain.paper(8)
+    loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 2),
+                                RayTransform(dom, ParallelBeamGeometry.paper(3, 12)), gamma=1e-3)
+    model = UnrolledDescent(loss, num_updates=2, width=2, levels=1).double()
+    gen = torch.Generator().manual_seed(0)
+    batch = {k: torch.rand(2, 8, 8, generator=gen, dtype=torch.float64) for k in ("template", "fbp", "target")}
+    batch["data"] = loss.transforms[0](torch.rand(2, 8, 8, generator=gen, dtype=torch.float64))
+    parts = {"loss": loss, "domain": dom}
+    terms = train.training_terms(cfg, model, model, parts, batch, unrolled=True)
+    plain = descent_terms(loss, model(batch["template"], batch["fbp"], batch["data"]), batch["template"], batch["data"])
+    distance = torch.stack([((f - t) ** 2).sum() * (4.0 ** 2) for f, t in zip(plain["deformed"], batch["target"])])
+    torch.testing.assert_close(terms["supervised"], distance)          # 8 x 8 pixels of side 4 on [-16, 16]^2
+    torch.testing.assert_close(terms["loss"], plain["loss"] + cfg.model.supervised * distance)
+    cfg.model.supervised = 0.0
+    assert "supervised" not in train.training_terms(cfg, model, model, parts, batch, unrolled=True)
+    cfg.model.supervised = 30.0
+    assert "supervised" not in train.training_terms(cfg, model, model, parts, batch, unrolled=False)
