@@ -8,19 +8,18 @@ on every rank from the whole noise-free data, as one process draws it: the same 
 
 Convention: volumes ``(nx, ny, nz)`` and data ``(num_tilts, det_rows, det_cols)`` float64 on the CPU; a rank's
 share is the contiguous range ``[start, stop)`` of the tilt axis' slices (``slabs._share``: the first ``n % world``
-ranks one more), and data row ``j`` is slice ``j``. The gathers run on the group's device (CPU for gloo, the rank's
-GPU for NCCL) and return CPU tensors.
+ranks one more), and data row ``j`` is slice ``j``; the shares are joined by ``indreg.problems.rows``.
 """
 from __future__ import annotations
 
-import torch
 import torch.distributed as dist
 
 from .. import phantoms
 from ..forward.tilt_series import TiltSeriesTransform
+from ..problems.rows import all_gather_rows, gather_rows
 from ..problems.slabs import _share
 
-__all__ = ["row_range", "all_gather_rows", "gather_rows", "simulated_rows", "splits"]
+__all__ = ["row_range", "counts", "simulated_rows", "splits"]
 
 
 def row_range(n: int, group) -> tuple:
@@ -36,41 +35,10 @@ def splits(T, group) -> bool:
             and T.domain.shape[T.geometry.axis] >= dist.get_world_size(group))
 
 
-def _device(group) -> torch.device:
-    return torch.device("cuda", torch.cuda.current_device()) if dist.get_backend(group) == "nccl" \
-        else torch.device("cpu")
-
-
-def _padded(part: torch.Tensor, axis: int, n: int, group) -> torch.Tensor:
-    """``part`` on the group's device, zero-padded along ``axis`` to the largest share (gathers need one size)."""
-    size = -(-n // dist.get_world_size(group))
-    pad = part.new_zeros(part.shape[:axis] + (size - part.shape[axis],) + part.shape[axis + 1:])
-    return torch.cat([part, pad], axis).to(_device(group))
-
-
-def _joined(pieces: list, axis: int, n: int, group) -> torch.Tensor:
-    """The ranks' padded ``pieces`` cut to their shares and joined along ``axis``, on the CPU."""
+def counts(n: int, group) -> list:
+    """Every rank's number of slices (``slabs._share`` of ``n``), rank 0's first."""
     world = dist.get_world_size(group)
-    cut = [p.narrow(axis, 0, len(_share(n, r, world))) for r, p in enumerate(pieces)]
-    return torch.cat(cut, axis).cpu()
-
-
-def all_gather_rows(part: torch.Tensor, axis: int, n: int, group) -> torch.Tensor:
-    """Every rank's ``part`` (its share of ``n`` rows along ``axis``, ``row_range``) joined into the whole, on every
-    rank."""
-    mine = _padded(part, axis, n, group)
-    pieces = [torch.empty_like(mine) for _ in range(dist.get_world_size(group))]
-    dist.all_gather(pieces, mine, group=group)
-    return _joined(pieces, axis, n, group)
-
-
-def gather_rows(part: torch.Tensor, axis: int, n: int, group, dst: int = 0) -> torch.Tensor | None:
-    """As ``all_gather_rows``, joined on rank ``dst`` only (None on the others)."""
-    mine = _padded(part, axis, n, group)
-    here = dist.get_rank(group) == dst
-    pieces = [torch.empty_like(mine) for _ in range(dist.get_world_size(group))] if here else None
-    dist.gather(mine, pieces, dst=dst, group=group)
-    return _joined(pieces, axis, n, group) if here else None
+    return [len(_share(n, r, world)) for r in range(world)]
 
 
 def simulated_rows(template: str, target: str, T: TiltSeriesTransform, group) -> tuple:
@@ -79,10 +47,10 @@ def simulated_rows(template: str, target: str, T: TiltSeriesTransform, group) ->
     slices along the tilt axis (``row_range``); template and data whole on every rank, the target on rank 0 (None
     on the others). One process's ``phantoms.get`` and ``T`` to rounding (a cell's mean may sum in another order)."""
     axis, n = T.geometry.axis, T.domain.shape[T.geometry.axis]
-    rows = (axis, *row_range(n, group))
+    rows, shares = (axis, *row_range(n, group)), counts(n, group)
     mine = phantoms.get(target, T.domain, rows=rows)
-    clean = all_gather_rows(T.project_rows(mine), 1, n, group)
-    whole_target = gather_rows(mine, axis, n, group)
+    clean = all_gather_rows(T.project_rows(mine), 1, shares, group)
+    whole_target = gather_rows(mine, axis, shares, group)
     del mine
-    whole_template = all_gather_rows(phantoms.get(template, T.domain, rows=rows), axis, n, group)
+    whole_template = all_gather_rows(phantoms.get(template, T.domain, rows=rows), axis, shares, group)
     return whole_template, whole_target, clean
