@@ -11,10 +11,13 @@ Three tables (Markdown), each row from a fresh subprocess (its peak memory its o
   ``f = 4``, ``N = 10``, one process: Algorithm 1 with step halving for ``--big-iters`` iterations, seconds per
   iteration and the peak; the template and target are phantoms of a 4x coarser grid interpolated (the phantoms'
   float64 coordinates of the full grid would take 6 GiB).
-- ``ranks``: ``indreg-register experiment=suite_et_3d_256`` (``--ranks-iters`` iterations, no baselines) under
-  ``torchrun --nproc_per_node=2`` with one thread a rank, against one process with two threads: objective, each
-  rank's peak and wall time, slabs per rank, all-reduce bytes per iteration, and the time per iteration that the
-  measured per-slice and replicated costs predict for ``1024 x 1024 x 256`` on 8 and 64 ranks.
+- ``ranks``: ``indreg-register experiment=suite_et_3d_256`` (``--ranks-iters`` iterations, no baselines unless
+  ``--ranks-baselines``; ``--ranks-size`` another ``phantom.size`` for a quick look) under ``torchrun
+  --nproc_per_node=2`` with one thread a rank, against one process with two threads (``--ranks-runs``: which of the
+  two, and one process slab-wise): objective, each rank's peak and wall time, slabs per rank, all-reduce bytes per
+  iteration; the seconds of each set-up and output stage of every process (``CLI_STAGES``: phantoms, projection and
+  noise, set-up, baselines, the loop, the outputs); and the time per iteration that the measured per-slice and
+  replicated costs predict for ``1024 x 1024 x 256`` on 8 and 64 ranks.
 - ``stages`` (not in the default set): milliseconds per slice of each stage of a slab's gradient at
   ``1024 x 1024 x 256`` (``big``'s problem at the first iterate: the upsampling ``P_s u_N``, the grid, the warp, the
   projector, its transpose, the warp's adjoint and ``P_s^T``), ``--stage-slabs`` slabs after a warm-up one.
@@ -26,6 +29,7 @@ machine are noisy: the load average is printed with each table.
     python scripts/bench_slabs.py                              # the three tables (about 15 minutes on 2 cores)
     python scripts/bench_slabs.py --tables whole --n 128       # a quick look
     python scripts/bench_slabs.py --tables whole big --device cuda
+    python scripts/bench_slabs.py --tables ranks --ranks-runs two one --ranks-iters 100   # the whole preset's run
 """
 from __future__ import annotations
 
