@@ -92,7 +92,7 @@ def phantom_data(cfg: DictConfig) -> Data:
     """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
     (noise drawn with the run's seed), so the same config gives the same data on every device. Over the ranks of
     ``torchrun`` a tilt series is built by rows (``split_setup.simulated_rows``: each rank its share of the slices;
-    the target on rank 0 only), with the same values."""
+    the target on rank 0 only), the same values to rounding."""
     from ..problems.slabs import default_group
     from . import split_setup
 
