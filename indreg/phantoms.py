@@ -213,17 +213,23 @@ def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def supersampled(domain: ImageDomain, fn, supersample: int = 2) -> torch.Tensor:
+def supersampled(domain: ImageDomain, fn, supersample: int = 2, rows: tuple | None = None) -> torch.Tensor:
     """Cell means of ``fn(u)`` over ``supersample^3`` points per cell of a 3D ``domain``; ``fn`` takes
     normalised points ``u`` ``(3, ...)`` in ``[-1, 1]^3`` (mapped affinely onto the domain's box) and returns
     values ``u.shape[1:]``. Evaluated in slabs along x of at most about 2^18 points, so that every temporary stays
     below glibc's mmap threshold (32 MiB): larger ones are mapped afresh and page-faulted at every operation, which
-    made 64^3 take 5.8 s instead of 2.0 s. Returns float64 ``(nx, ny, nz)``."""
+    made 64^3 take 5.8 s instead of 2.0 s. Returns float64 ``(nx, ny, nz)``; with ``rows = (axis, start, stop)``
+    only the cells whose index along ``axis`` is in ``[start, stop)`` (that axis cut to ``stop - start``: those rows
+    of the whole volume to rounding, e.g. one process's share of a tilt series' slices)."""
     s = check_int(supersample, "supersample", 1)
     if domain.ndim != 3:
         raise ValueError(f"a 3D phantom needs a 3D domain, got shape {domain.shape}")
     fine = [(torch.arange(s * n, dtype=torch.float64) + 0.5) * (2.0 / (s * n)) - 1.0 for n in domain.shape]
-    nx, ny, nz = domain.shape
+    shape = list(domain.shape)
+    if rows is not None:
+        axis, start, stop = _check_rows(rows, domain.shape)
+        fine[axis], shape[axis] = fine[axis][s * start: s * stop], stop - start
+    nx, ny, nz = shape
     step = max(1, 2**18 // (s ** 3 * ny * nz))   # cells along x per slab
     slabs = []
     for i in range(0, nx, step):
@@ -233,16 +239,30 @@ def supersampled(domain: ImageDomain, fn, supersample: int = 2) -> torch.Tensor:
     return torch.cat(slabs)
 
 
-def ellipsoid_phantom(domain: ImageDomain, ellipsoids, supersample: int = 2) -> torch.Tensor:
+def _check_rows(rows, shape: tuple) -> tuple:
+    """``rows = (axis, start, stop)`` checked against a volume's ``shape``: ``0 <= start < stop <= shape[axis]``."""
+    if not (isinstance(rows, tuple) and len(rows) == 3 and all(isinstance(r, int) and not isinstance(r, bool)
+                                                               for r in rows)):
+        raise ValueError(f"rows must be a tuple (axis, start, stop) of integers, got {rows!r}")
+    axis, start, stop = rows
+    if axis not in (0, 1, 2) or not 0 <= start < stop <= shape[axis]:
+        raise ValueError(f"rows (axis, start, stop) must have axis 0, 1 or 2 and 0 <= start < stop <= the "
+                         f"axis' {shape[axis] if axis in (0, 1, 2) else '?'} cells, got {rows!r}")
+    return axis, start, stop
+
+
+def ellipsoid_phantom(domain: ImageDomain, ellipsoids, supersample: int = 2, rows: tuple | None = None) \
+        -> torch.Tensor:
     """Sum of constant-valued ellipsoids on a 3D domain, averaged over ``supersample^3`` points per cell.
 
     Convention: rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` in the normalised frame ``[-1, 1]^3``
-    mapped affinely onto ``[min_pt, max_pt]`` (as the 2D ``ellipse_phantom``); returns float64 ``(nx, ny, nz)``.
+    mapped affinely onto ``[min_pt, max_pt]`` (as the 2D ``ellipse_phantom``); returns float64 ``(nx, ny, nz)``
+    (``rows``: a share of the cells along one axis, as ``supersampled``).
     Analytic line integrals: ``ellipsoid_line_integrals``.
     """
-    rows = tuple(ellipsoids)
-    _ellipsoids(rows)
-    return supersampled(domain, lambda u: ellipsoid_values(rows, u), supersample)
+    table = tuple(ellipsoids)
+    _ellipsoids(table)
+    return supersampled(domain, lambda u: ellipsoid_values(table, u), supersample, rows)
 
 
 def ellipsoid_line_integrals(ellipsoids, domain: ImageDomain, points: torch.Tensor,
@@ -303,15 +323,18 @@ def swirl_bend(u: torch.Tensor, inverse: bool = False) -> torch.Tensor:
     return swirl(bend(u, -1.0), -1.0) if inverse else bend(swirl(u, 1.0), 1.0)
 
 
-def shepp_logan_3d(domain: ImageDomain) -> torch.Tensor:
-    """3D modified Shepp-Logan (``SHEPP_LOGAN_3D_ELLIPSOIDS``) on a 3D domain: suite ET-3D's template."""
-    return ellipsoid_phantom(domain, SHEPP_LOGAN_3D_ELLIPSOIDS)
+def shepp_logan_3d(domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
+    """3D modified Shepp-Logan (``SHEPP_LOGAN_3D_ELLIPSOIDS``) on a 3D domain: suite ET-3D's template (``rows``:
+    only a share of the cells along one axis, ``supersampled``)."""
+    return ellipsoid_phantom(domain, SHEPP_LOGAN_3D_ELLIPSOIDS, rows=rows)
 
 
-def shepp_logan_3d_swirl(domain: ImageDomain) -> torch.Tensor:
+def shepp_logan_3d_swirl(domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
     """Suite ET-3D's target: the 3D Shepp-Logan deformed by ``swirl_bend``, ``I o phi^-1`` evaluated exactly
-    (the ellipsoids at ``phi^-1(u)``) at the sub-sample points, so no registration code is involved."""
-    return supersampled(domain, lambda u: ellipsoid_values(SHEPP_LOGAN_3D_ELLIPSOIDS, swirl_bend(u, inverse=True)))
+    (the ellipsoids at ``phi^-1(u)``) at the sub-sample points, so no registration code is involved (``rows``: as
+    ``shepp_logan_3d``)."""
+    return supersampled(domain, lambda u: ellipsoid_values(SHEPP_LOGAN_3D_ELLIPSOIDS, swirl_bend(u, inverse=True)),
+                        rows=rows)
 
 
 @lru_cache(maxsize=None)
@@ -399,12 +422,17 @@ def ndim(name: str) -> int:
     return 3 if name in _3D else 2
 
 
-def get(name: str, domain: ImageDomain) -> torch.Tensor:
+def get(name: str, domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
     """The phantom called ``name`` sampled on ``domain``: float64 ``(nx, ny)`` or, for 3D phantoms,
-    ``(nx, ny, nz)``."""
+    ``(nx, ny, nz)``; ``rows = (axis, start, stop)`` (3D phantoms only): the cells whose index along ``axis`` is in
+    ``[start, stop)``, those rows of the whole volume to rounding (``supersampled``)."""
     d = ndim(name)
     if not isinstance(domain, ImageDomain):
         raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
     if domain.ndim != d:
         raise ValueError(f"phantom {name!r} is {d}D but the domain has shape {domain.shape}")
-    return _REGISTRY[name](domain)
+    if rows is None:
+        return _REGISTRY[name](domain)
+    if d != 3:
+        raise ValueError(f"rows: only the 3D phantoms are evaluated by rows, got the 2D phantom {name!r}")
+    return _REGISTRY[name](domain, rows=rows)

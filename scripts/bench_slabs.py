@@ -11,10 +11,13 @@ Three tables (Markdown), each row from a fresh subprocess (its peak memory its o
   ``f = 4``, ``N = 10``, one process: Algorithm 1 with step halving for ``--big-iters`` iterations, seconds per
   iteration and the peak; the template and target are phantoms of a 4x coarser grid interpolated (the phantoms'
   float64 coordinates of the full grid would take 6 GiB).
-- ``ranks``: ``indreg-register experiment=suite_et_3d_256`` (``--ranks-iters`` iterations, no baselines) under
-  ``torchrun --nproc_per_node=2`` with one thread a rank, against one process with two threads: objective, each
-  rank's peak and wall time, slabs per rank, all-reduce bytes per iteration, and the time per iteration that the
-  measured per-slice and replicated costs predict for ``1024 x 1024 x 256`` on 8 and 64 ranks.
+- ``ranks``: ``indreg-register experiment=suite_et_3d_256`` (``--ranks-iters`` iterations, no baselines unless
+  ``--ranks-baselines``; ``--ranks-size`` another ``phantom.size`` for a quick look) under ``torchrun
+  --nproc_per_node=2`` with one thread a rank, against one process with two threads (``--ranks-runs``: which of the
+  two, and one process slab-wise): objective, each rank's peak and wall time, slabs per rank, all-reduce bytes per
+  iteration; the seconds of each set-up and output stage of every process (``CLI_STAGES``: phantoms, projection and
+  noise, set-up, baselines, the loop, the outputs); and the time per iteration that the measured per-slice and
+  replicated costs predict for ``1024 x 1024 x 256`` on 8 and 64 ranks.
 - ``stages`` (not in the default set): milliseconds per slice of each stage of a slab's gradient at
   ``1024 x 1024 x 256`` (``big``'s problem at the first iterate: the upsampling ``P_s u_N``, the grid, the warp, the
   projector, its transpose, the warp's adjoint and ``P_s^T``), ``--stage-slabs`` slabs after a warm-up one.
@@ -26,6 +29,7 @@ machine are noisy: the load average is printed with each table.
     python scripts/bench_slabs.py                              # the three tables (about 15 minutes on 2 cores)
     python scripts/bench_slabs.py --tables whole --n 128       # a quick look
     python scripts/bench_slabs.py --tables whole big --device cuda
+    python scripts/bench_slabs.py --tables ranks --ranks-runs two one --ranks-iters 100   # the whole preset's run
 """
 from __future__ import annotations
 
@@ -218,18 +222,65 @@ def child_stages(a) -> dict:
     return {"ms_per_slice": out, "slab_size": problem.slab_size}
 
 
+#: The app's set-up and output stages timed by ``child_cli``: (module, attribute, label); a label with ``{0}``
+#: takes the call's first argument (the phantom's name). Nested stages are timed inside their parents.
+CLI_STAGES = (
+    ("indreg.experiments.runner", "_distributed", "process group"),
+    ("indreg.experiments.runner", "build", "build (all below)"),
+    ("indreg.phantoms", "get", "phantom {0}"),
+    ("indreg.experiments.builtin_sources", "make_data", "data: projection and noise"),
+    ("indreg.noise", "add_white_noise", "data: noise"),
+    ("indreg.experiments.builtin_sources", "check_tilt_axis", "data: tilt-axis check"),
+    ("indreg.experiments.build", "fine_arrays_in", "cast to the run's dtype"),
+    ("indreg.run", "setup", "setup (units, problem, solver)"),
+    ("indreg.experiments.runner", "baselines", "baselines"),
+    ("indreg.run.RegistrationLoop", "run", "the registration loop"),
+    ("indreg.experiments.runner", "finish", "outputs (all below)"),
+    ("indreg.experiments.outputs", "build_result", "result (deformed, phi, residual, min Jacobian)"),
+    ("indreg.experiments.outputs", "figures_of_merit", "SSIM / PSNR"),
+    ("indreg.experiments.outputs", "save_array", "arrays written"),
+    ("indreg.experiments.outputs", "save_frames", "trajectory (frames written)"),
+    ("indreg.io", "write_volume", "final.mrc"),
+    ("indreg.experiments.outputs", "write_figures", "figures"),
+)
+
+
+def _time_stages(spent: dict) -> None:
+    """Wrap each of ``CLI_STAGES`` so that its seconds add up in ``spent`` (by label)."""
+    import importlib
+
+    def wrap(fn, label):
+        def timed(*args, **kwargs):
+            key = label.format(*args) if "{0}" in label else label
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[key] = spent.get(key, 0.0) + time.perf_counter() - t
+        return timed
+
+    for module, name, label in CLI_STAGES:
+        path, _, cls = module.rpartition(".") if module.endswith("RegistrationLoop") else (module, "", "")
+        owner = getattr(importlib.import_module(path), cls) if cls else importlib.import_module(module)
+        setattr(owner, name, wrap(getattr(owner, name), label))
+
+
 def child_cli(overrides) -> None:
-    """``indreg-register`` with ``overrides``; at exit one JSON line with this rank's peak and wall time."""
+    """``indreg-register`` with ``overrides``; at exit one JSON line with this rank's peak, wall time and the
+    seconds of its set-up and output stages (``CLI_STAGES``)."""
     import atexit
     t0 = time.perf_counter()
+    spent: dict = {}
 
     def report():
         with open("/proc/self/status") as f:
             peak = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 2 ** 20
         print("RANKSTAT " + json.dumps({"rank": int(os.environ.get("RANK", "0")), "peak_gib": peak,
-                                        "wall_s": time.perf_counter() - t0}), file=sys.stderr, flush=True)
+                                        "wall_s": time.perf_counter() - t0, "stages": spent}),
+              file=sys.stderr, flush=True)
 
     atexit.register(report)
+    _time_stages(spent)
     from indreg.experiments import runner
     finish = runner.finish
 
@@ -324,18 +375,24 @@ def _cli(name, threads, launcher, overrides, tmp) -> tuple:
     return json.loads((out / "metrics.json").read_text()), stats, slabs
 
 
+#: The runs of the ``ranks`` table (``--ranks-runs``): name, threads, launched by torchrun, extra overrides.
+RANK_RUNS = {"one": ("1 process, 2 threads", 2, False, []),
+             "two": ("2 ranks, 1 thread each", 1, True, []),
+             "slab": ("1 process, 2 threads, slab-wise", 2, False, ["deformation.slab_size=32"])}
+
+
 def table_ranks(a, slab) -> None:
-    base = ["experiment=suite_et_3d_256", f"solver.max_iter={a.ranks_iters}", "baseline=none",
-            "logging.figure=false", "logging.tensorboard=false", "logging.progress=false", "device=cpu"]
+    base = ["experiment=suite_et_3d_256", f"solver.max_iter={a.ranks_iters}", "logging.figure=false",
+            "logging.tensorboard=false", "logging.progress=false", "device=cpu"]
+    base += [] if a.ranks_baselines else ["baseline=none"]
+    base += [] if a.ranks_size == 256 else [f"phantom.size={a.ranks_size}", f"geometry.det_count={a.ranks_size}"]
     torchrun = (sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2")
     with tempfile.TemporaryDirectory() as tmp:
-        runs = {name: _cli(name, threads, launcher, base + extra, tmp) for name, threads, launcher, extra in (
-            ("1 process, 2 threads", 2, (sys.executable,), []),
-            ("2 ranks, 1 thread each", 1, torchrun, []),
-            ("1 process, 2 threads, slab-wise", 2, (sys.executable,), ["deformation.slab_size=32"]))}
-    one, one_stats, _ = runs["1 process, 2 threads"]
-    two, two_stats, _ = runs["2 ranks, 1 thread each"]
-    print(f"\nsuite_et_3d_256, {a.ranks_iters} iterations, no baselines; load {_load()}\n")
+        runs = {name: _cli(name, threads, torchrun if ranked else (sys.executable,), base + extra, tmp)
+                for name, threads, ranked, extra in (RANK_RUNS[k] for k in a.ranks_runs)}
+    size = "" if a.ranks_size == 256 else f" at {a.ranks_size}^3"
+    print(f"\nsuite_et_3d_256{size}, {a.ranks_iters} iterations, {'with' if a.ranks_baselines else 'no'} baselines; "
+          f"load {_load()}\n")
     print("| run | ranks | slabs per rank x slices | all-reduce / gradient | s / it | per-rank peak GiB (rank 0: loop "
           "/ with the outputs) | per-rank wall s | objective | SSIM |\n|---|---|---|---|---|---|---|---|---|")
     for name, (m, stats, slabs) in runs.items():
@@ -345,14 +402,36 @@ def table_ranks(a, slab) -> None:
         print(f"| {name} | {len(stats)} | {slabs} | {ar / 2 ** 20:.1f} MiB | {m['seconds_per_iteration']:.2f} | "
               + ", ".join(peaks) + " | " + ", ".join(f"{s['wall_s']:.0f}" for s in stats)
               + f" | {m['objective']:.8g} | {m['ssim']:.4f} |")
-    slabwise = runs["1 process, 2 threads, slab-wise"][0]
-    loop_peak = max([two_stats[0]["loop_peak_gib"]] + [s["peak_gib"] for s in two_stats[1:]])
-    print(f"\nobjective: 2 ranks vs 1 process {abs(two['objective'] / one['objective'] - 1):.1e}, vs 1 process "
-          f"slab-wise {abs(two['objective'] / slabwise['objective'] - 1):.1e} (relative, float32); loop peak ratio "
-          f"{loop_peak / one_stats[0]['loop_peak_gib']:.2f}; s / it ratio "
-          f"{two['seconds_per_iteration'] / one['seconds_per_iteration']:.2f}")
+    stage_table(runs)
+    one, two = (runs.get(RANK_RUNS[k][0]) for k in ("one", "two"))
+    if one is None or two is None:
+        return
+    ratios = [f"wall time {max(s['wall_s'] for s in two[1]) / one[1][0]['wall_s']:.2f}x (the slower rank)",
+              f"s / it {two[0]['seconds_per_iteration'] / one[0]['seconds_per_iteration']:.2f}x",
+              f"objective {abs(two[0]['objective'] / one[0]['objective'] - 1):.1e} relative (float32)"]
+    loop_peak = max([two[1][0]["loop_peak_gib"]] + [s["peak_gib"] for s in two[1][1:]])
+    ratios.append(f"loop peak {loop_peak / one[1][0]['loop_peak_gib']:.2f}x")
+    print("\n2 ranks / 1 process: " + "; ".join(ratios))
     if slab is not None:
         predict(slab, a)
+
+
+def stage_table(runs: dict) -> None:
+    """Seconds of each set-up and output stage (``CLI_STAGES``), one column a process; ``other``: the wall time
+    less the top-level stages (imports, the config, the checkpoint's checks, the final all-reduce)."""
+    columns = [(f"{name}, rank {s['rank']}" if len(stats) > 1 else name, s) for name, (_, stats, _) in runs.items()
+               for s in stats]
+    seen = list(dict.fromkeys(k for _, s in columns for k in s["stages"]))
+    labels = [k for _, _, label in CLI_STAGES for k in seen if k == label or k.startswith(label.split("{0}")[0])
+              and "{0}" in label]
+    top = [label for _, _, label in CLI_STAGES if label in ("process group", "build (all below)", "baselines",
+                                                             "the registration loop", "outputs (all below)")]
+    print("\n| stage (s) | " + " | ".join(c for c, _ in columns) + " |\n|---|" + "---|" * len(columns))
+    for label in labels:
+        print(f"| {label} | " + " | ".join(f"{s['stages'].get(label, 0.0):.1f}" for _, s in columns) + " |")
+    print("| other | " + " | ".join(f"{s['wall_s'] - sum(s['stages'].get(k, 0.0) for k in top):.1f}"
+                                  for _, s in columns) + " |")
+    print("| **wall** | " + " | ".join(f"**{s['wall_s']:.1f}**" for _, s in columns) + " |")
 
 
 def predict(slab, a) -> None:
@@ -385,6 +464,10 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--big-iters", type=int, default=2)
     p.add_argument("--ranks-iters", type=int, default=5)
+    p.add_argument("--ranks-runs", nargs="+", default=list(RANK_RUNS), choices=list(RANK_RUNS),
+                   help="the ranks table's runs: one process, two ranks, one process slab-wise")
+    p.add_argument("--ranks-size", type=int, default=256, help="the ranks table's phantom.size (a quick look)")
+    p.add_argument("--ranks-baselines", action="store_true", help="the ranks table's runs with the baselines")
     p.add_argument("--max-memory", type=float, default=None)
     p.add_argument("--stage-slabs", type=int, default=8)
     p.add_argument("--device", default="cpu")

@@ -72,11 +72,12 @@ def geometry_options(g) -> dict:
             "angle_unit": g.angle_unit.value}
 
 
-def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
-    """Noise-free and noisy data (float64, CPU) and the realised SNR in dB (``cfg.noise.convention``)."""
+def make_data(cfg: DictConfig, T, target_64: Optional[torch.Tensor], clean: Optional[torch.Tensor] = None) -> tuple:
+    """Noise-free and noisy data (float64, CPU) and the realised SNR in dB (``cfg.noise.convention``); ``clean``:
+    the noise-free data ``T(target_64)`` where already projected (then ``target_64`` is not read)."""
     from ..noise import add_white_noise, snr_db
 
-    clean = T(target_64)
+    clean = T(target_64) if clean is None else clean
     n = cfg.noise
     if n.snr_db is None and n.std is None:
         return clean, clean.clone(), float("inf")
@@ -89,14 +90,22 @@ def make_data(cfg: DictConfig, T, target_64: torch.Tensor) -> tuple:
 
 def phantom_data(cfg: DictConfig) -> Data:
     """The ``phantom`` group's template and target on ``size^ndim`` cells; data simulated in float64 on the CPU
-    (noise drawn with the run's seed), so the same config gives the same data on every device."""
+    (noise drawn with the run's seed), so the same config gives the same data on every device. Over the ranks of
+    ``torchrun`` a tilt series is built by rows (``split_setup.simulated_rows``: each rank its share of the slices;
+    the target on rank 0 only), the same values to rounding."""
+    from ..problems.slabs import default_group
+    from . import split_setup
+
     p, g = cfg.phantom, cfg.geometry
     domain = (square_domain(p.size, p.half_width, p.ndim) if p.thickness is None and p.rows is None
               else box_domain((p.size, p.rows or p.size, p.thickness or p.size), p.half_width))
     T = make_operator(domain, make_geometry(g.kind.value, g.det_count, angles=_angles(g), **geometry_options(g)))
-    target = phantoms.get(p.target.value, domain)
-    template = phantoms.get(p.template.value, domain)
-    clean, noisy, snr = make_data(cfg, T, target)
+    group = default_group()
+    if split_setup.splits(T, group):
+        template, target, clean = split_setup.simulated_rows(p.template.value, p.target.value, T, group)
+    else:
+        target, template, clean = phantoms.get(p.target.value, domain), phantoms.get(p.template.value, domain), None
+    clean, noisy, snr = make_data(cfg, T, target, clean)
     report = {}
     if g.kind.value == "tilt_series":   # simulated in indreg's layout: the check's numbers, for comparison
         check = check_tilt_axis(noisy.numpy())

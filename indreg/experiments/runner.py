@@ -240,9 +240,11 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     except StepOverflowError as e:   # found only in the run: one line naming the config key
         writer.close()
         raise ConfigError(f"invalid configuration: {e.message(_config_key)}") from None
-    if rank != 0:   # the final evaluation's sum over the ranks, then rank 0 writes
+    if rank != 0:   # its part of rank 0's outputs: the final evaluation's sum, its slabs of the trajectory's frames
         if status not in ("failed", "stopped", "interrupted"):
             problem.evaluate_iterate(state.iterate)
+            for _ in problem.image_frames(state.iterate):
+                pass
         return {"status": status, "iteration": state.iteration, "rank": rank}
     if status == "failed":  # keep the last checkpoint: its iterate is finite
         writer.close()

@@ -190,7 +190,22 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
         """``T f``: volumes ``(..., nx, ny, nz)`` -> data ``(..., num_tilts, det_rows, det_cols)``."""
-        f = self.domain.check_image(f, "volume")
+        return self._slices(self.domain.check_image(f, "volume"))
+
+    def project_rows(self, f: torch.Tensor) -> torch.Tensor:
+        """``T`` of consecutive slices: ``f`` ``(..., nx, ny, nz)`` with the tilt axis cut to any ``k`` slices ->
+        their detector rows ``(..., num_tilts, k, det_cols)``: the same values as those rows of ``T`` of the whole
+        volume (e.g. one process's share of a simulated tilt series)."""
+        u, v = self.geometry.slice_axes
+        shape = self.domain.shape
+        if not (isinstance(f, torch.Tensor) and f.dim() >= 3 and f.shape[f.dim() - 3 + u] == shape[u]
+                and f.shape[f.dim() - 3 + v] == shape[v] and f.shape[f.dim() - 3 + self.geometry.axis] >= 1):
+            raise ValueError(f"volume rows must be a tensor (..., nx, ny, nz) of {shape} with any number of slices "
+                             f"along the tilt axis {AXES[self.geometry.axis]}, got "
+                             f"{tuple(f.shape) if isinstance(f, torch.Tensor) else type(f).__name__}")
+        return self._slices(f)
+
+    def _slices(self, f: torch.Tensor) -> torch.Tensor:
         self._check_dtype(f, "volume")
         slices = f.movedim(f.dim() - 3 + self.geometry.axis, -3)           # (..., n_t, n_u, n_v)
         batch = slices.shape[:-2]

@@ -37,6 +37,7 @@ from ..deform.functional.sampling import _planewise_applies, _planewise_sample, 
 from ..forward.ray_transform import _matmul, matmul_columns
 from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
+from .rows import gather_rows
 
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
            "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL",
@@ -331,13 +332,28 @@ class SlabwiseRegistration(IndirectRegistration):
             return out
 
     def image_frames(self, x: tuple):
-        """``W(K m, I)(t_i)`` for i = 0..N one at a time, each assembled slab by slab (one fine volume held)."""
+        """``W(K m, I)(t_i)`` for i = 0..N one at a time, each assembled slab by slab (one fine volume held). In a
+        group each rank assembles its own slabs and rank 0 gets the frames gathered: whole there, None on the other
+        ranks (every rank iterates them to the end)."""
         with torch.no_grad():   # not held across a yield: the caller's grad mode stays its own
             slots, jac, _ = self._flow(self.velocity(x[0]))
         for i in range(slots.shape[0]):
             with torch.no_grad():
-                frame = self._assemble(torch.empty_like(self.template), slots[i], None if jac is None else jac[i])
+                frame = self._assemble(torch.empty_like(self.template), slots[i], None if jac is None else jac[i]) \
+                    if self.group is None else self._gathered(slots[i], None if jac is None else jac[i])
             yield frame
+
+    def _gathered(self, u: torch.Tensor, jac) -> torch.Tensor | None:
+        """``I o (Id + P u)`` (times ``P J``) on this rank's slabs, joined on rank 0 (``rows.gather_rows``)."""
+        start, stop = self.slab_ranges[self.own[0]][0], self.slab_ranges[self.own[-1]][1]
+        shape = list(self.template.shape)
+        shape[self.axis] = stop - start
+        mine = self.template.new_empty(shape)
+        for a, b in (self.slab_ranges[s] for s in self.own):
+            mine.narrow(self.axis, a - start, b - a).copy_(self._slab(u, jac, a, b, None)[1])
+        counts = [sum(b - a for a, b in (self.slab_ranges[s] for s in _share(len(self.slab_ranges), r, self.world)))
+                  for r in range(self.world)]
+        return gather_rows(mine, self.axis, counts, self.group)
 
     def l2_gradient(self, m: torch.Tensor) -> tuple:
         """``IndirectRegistration.l2_gradient`` slab-wise: this rank's slabs, one ``all_reduce`` of the coarse

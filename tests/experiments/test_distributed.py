@@ -42,7 +42,10 @@ def test_two_ranks_equal_one_process(tmp_path):
     _ok(_run(tmp_path / "one", "solver.max_iter=3"))
     proc = _run(tmp_path / "two", "solver.max_iter=3", ranks=2)
     _ok(proc)
-    _same(tmp_path / "one", tmp_path / "two", ("momentum", "final"))
+    # the data built by rows over the ranks (each its share of the slices) are one process's
+    # and the trajectory's frames gathered from the ranks' slabs
+    _same(tmp_path / "one", tmp_path / "two", ("momentum", "final", "template", "target", "data", "data_clean",
+                                               "trajectory"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["one", "two"]     # rank 1 wrote nowhere else
     assert "rank=0/2" in proc.stderr + proc.stdout and "slabs=4" in proc.stderr + proc.stdout
 
