@@ -64,18 +64,6 @@ VARIANTS = {"threads": ("1 process, 2 threads", "one", 2),
             "slabs": ("1 process, 2 threads, FBP and SIRT by slabs", "slabs", 2)}
 
 
-def _reset_peak() -> None:
-    """Start the peak afresh after the set-up: glibc's free memory back to the system, the kernel's high-water mark
-    reset (``/proc/self/clear_refs``)."""
-    import ctypes
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
-
-
 def child(a) -> None:
     """One variant, timed: ``one`` the whole volume, ``ranks`` this rank's rows (gathered on rank 0), ``slabs`` FBP
     and SIRT slab by slab in one process (no TV: it runs whole there)."""
@@ -86,13 +74,15 @@ def child(a) -> None:
     from indreg.forward import fbp, sirt, tv_reconstruction
     from indreg.forward.split import by_slabs, gather_rows, split_rows
 
+    from bench_slabs import _reset_peak   # this script's directory is first on sys.path
+
     T, g, mu = _problem(a.size)
     ranks = a.child == "ranks"
     if ranks:
         dist.init_process_group("gloo")
         T = split_rows(T, dist.group.WORLD)
         g = T.data_rows(g)
-    _reset_peak()
+    _reset_peak(torch.device("cpu"))
     setup = _peak_gib()
     runs = {"fbp": lambda op, y: fbp(op, y),
             "sirt": lambda op, y: sirt(op, y, num_iter=100 // a.scale, nonneg=True)[0],

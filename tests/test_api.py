@@ -192,17 +192,23 @@ def test_relative_tv_weight_is_invariant_to_the_intensity_unit(tiny):
         indreg.register(template, data, T, tv_rel=0.1, tv_weight=1.0, max_iter=1)
 
 
+def _scaled_box(lam: float):
+    """``(T, template, target)``: 6 angles on the paper's 24^2 box with every length times ``lam`` (the same pixels
+    in either box)."""
+    domain = indreg.ImageDomain(shape=(24, 24), min_pt=(-16 * lam, -16 * lam), max_pt=(16 * lam, 16 * lam))
+    geometry = indreg.ParallelBeamGeometry(angles=torch.linspace(0, 3, 6, dtype=torch.float64), det_count=36,
+                                           det_min=-24 * lam, det_max=24 * lam)
+    paper = indreg.ImageDomain.paper(24)
+    return (indreg.RayTransform(domain, geometry), phantoms.get("j", paper).double(),
+            phantoms.get("v", paper).double())
+
+
 def test_default_run_is_invariant_to_the_length_unit():
     """The same object in a box 13.44 times larger (nanometres for the paper's units), sigma in the same units:
     the relative defaults give the same reconstruction."""
     results = []
     for lam in (1.0, 13.44):
-        domain = indreg.ImageDomain(shape=(24, 24), min_pt=(-16 * lam, -16 * lam), max_pt=(16 * lam, 16 * lam))
-        geometry = indreg.ParallelBeamGeometry(angles=torch.linspace(0, 3, 6, dtype=torch.float64), det_count=36,
-                                               det_min=-24 * lam, det_max=24 * lam)
-        T = indreg.RayTransform(domain, geometry)
-        template = phantoms.get("j", indreg.ImageDomain.paper(24)).double()   # the same pixels in either box
-        target = phantoms.get("v", indreg.ImageDomain.paper(24)).double()
+        T, template, target = _scaled_box(lam)
         results.append(indreg.register(template, T(target), T, sigma=6.0 * lam, num_steps=4, max_iter=10,
                                        target=target))
     ref, r = results
@@ -215,12 +221,7 @@ def test_relative_tv_weight_is_invariant_to_the_length_unit():
     13.44 times larger gives the same reconstruction (up to the smoothed TV's absolute eps); the TV weight of the
     paper's box, taken as absolute, does not carry over."""
     def run(lam, **tv):
-        domain = indreg.ImageDomain(shape=(24, 24), min_pt=(-16 * lam, -16 * lam), max_pt=(16 * lam, 16 * lam))
-        geometry = indreg.ParallelBeamGeometry(angles=torch.linspace(0, 3, 6, dtype=torch.float64), det_count=36,
-                                               det_min=-24 * lam, det_max=24 * lam)
-        T = indreg.RayTransform(domain, geometry)
-        template = phantoms.get("j", indreg.ImageDomain.paper(24)).double()   # the same pixels in either box
-        target = phantoms.get("v", indreg.ImageDomain.paper(24)).double()
+        T, template, target = _scaled_box(lam)
         data, _ = noise.add_white_noise(T(target), snr_db=15.0, seed=0)
         return indreg.register(template, data, T, sigma=6.0 * lam, num_steps=4, max_iter=8, target=target, **tv)
 

@@ -70,35 +70,39 @@ def test_rank_rows_are_contiguous_balanced_shares():
 
 
 # ------------------------------------------------------------------------------------------------- two processes
-def _ranks(rank, world, store, out):
-    """One rank: its rows of FBP, SIRT and TV and of the gradient / divergence of random fields, gathered on 0."""
+def _on_rank(rank, body, world, store, out):
+    """``body(T, y, Ts)`` (the whole problem and this rank's split of it) in a gloo group of ``world`` ranks; what it
+    returns saved as ``out/rank{rank}.pt``."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world)
     try:
         T, y = _problem()
-        Ts = split_rows(T, dist.group.WORLD)
-        ys = Ts.data_rows(y)
-        gen = torch.Generator().manual_seed(2)
-        f = torch.randn(T.domain.shape, generator=gen, dtype=torch.float64)
-        p = torch.randn(3, *T.domain.shape, generator=gen, dtype=torch.float64)
-        x_sirt, h_sirt = sirt(Ts, ys, num_iter=8, nonneg=True)
-        x_tv, h_tv = tv_reconstruction(Ts, ys, **TV)
-        g, d = gradient(own_rows(f, Ts.domain), Ts.domain), divergence(own_rows(p, Ts.domain), Ts.domain)
-        res = {"rows": (Ts.split.start, Ts.split.stop), "fbp": gather_rows(fbp(Ts, ys), Ts),
-               "sirt": gather_rows(x_sirt, Ts), "sirt_history": h_sirt, "tv": gather_rows(x_tv, Ts),
-               "tv_history": h_tv, "gradient": gather_rows(g, Ts), "divergence": gather_rows(d, Ts),
-               "intensity_scale": intensity_scale(Ts, ys),
-               "adjoint": (Ts.domain.inner(g, own_rows(p, Ts.domain)).sum(),
-                           Ts.domain.inner(own_rows(f, Ts.domain), d))}
-        torch.save(res, os.path.join(out, f"rank{rank}.pt"))
+        torch.save(body(T, y, split_rows(T, dist.group.WORLD)), os.path.join(out, f"rank{rank}.pt"))
     finally:
         dist.destroy_process_group()
+
+
+def _two_ranks_body(T, y, Ts):
+    """One rank: its rows of FBP, SIRT and TV and of the gradient / divergence of random fields, gathered on 0."""
+    ys = Ts.data_rows(y)
+    gen = torch.Generator().manual_seed(2)
+    f = torch.randn(T.domain.shape, generator=gen, dtype=torch.float64)
+    p = torch.randn(3, *T.domain.shape, generator=gen, dtype=torch.float64)
+    x_sirt, h_sirt = sirt(Ts, ys, num_iter=8, nonneg=True)
+    x_tv, h_tv = tv_reconstruction(Ts, ys, **TV)
+    g, d = gradient(own_rows(f, Ts.domain), Ts.domain), divergence(own_rows(p, Ts.domain), Ts.domain)
+    return {"rows": (Ts.split.start, Ts.split.stop), "fbp": gather_rows(fbp(Ts, ys), Ts),
+            "sirt": gather_rows(x_sirt, Ts), "sirt_history": h_sirt, "tv": gather_rows(x_tv, Ts),
+            "tv_history": h_tv, "gradient": gather_rows(g, Ts), "divergence": gather_rows(d, Ts),
+            "intensity_scale": intensity_scale(Ts, ys),
+            "adjoint": (Ts.domain.inner(g, own_rows(p, Ts.domain)).sum(), Ts.domain.inner(own_rows(f, Ts.domain), d))}
 
 
 @pytest.fixture(scope="module")
 def two_ranks(tmp_path_factory):
     out = tmp_path_factory.mktemp("ranks")
-    mp.start_processes(_ranks, args=(2, str(out / "store"), str(out)), nprocs=2, start_method="spawn")
+    mp.start_processes(_on_rank, args=(_two_ranks_body, 2, str(out / "store"), str(out)), nprocs=2,
+                       start_method="spawn")
     return [torch.load(out / f"rank{r}.pt", weights_only=False) for r in range(2)]
 
 
@@ -136,25 +140,18 @@ def test_two_ranks_gradient_and_divergence_across_the_split(two_ranks):
     assert torch.equal(one["adjoint"][0], lhs)
 
 
-def _three_ranks(rank, world, store, out):
+def _three_ranks_body(T, y, Ts):
     """A middle rank sends and receives in each halo: the differences and a short TV over three ranks."""
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world)
-    try:
-        T, y = _problem()
-        Ts = split_rows(T, dist.group.WORLD)
-        f = torch.randn(2, *T.domain.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-        g = gradient(own_rows(f, Ts.domain), Ts.domain)                          # batch dims too
-        x, hist = tv_reconstruction(Ts, Ts.data_rows(y), **dict(TV, num_iter=5))
-        res = {"rows": (Ts.split.start, Ts.split.stop), "gradient": gather_rows(g, Ts),
-               "divergence": gather_rows(divergence(g, Ts.domain), Ts), "tv": gather_rows(x, Ts), "history": hist}
-        torch.save(res, os.path.join(out, f"rank{rank}.pt"))
-    finally:
-        dist.destroy_process_group()
+    f = torch.randn(2, *T.domain.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    g = gradient(own_rows(f, Ts.domain), Ts.domain)                          # batch dims too
+    x, hist = tv_reconstruction(Ts, Ts.data_rows(y), **dict(TV, num_iter=5))
+    return {"rows": (Ts.split.start, Ts.split.stop), "gradient": gather_rows(g, Ts),
+            "divergence": gather_rows(divergence(g, Ts.domain), Ts), "tv": gather_rows(x, Ts), "history": hist}
 
 
 def test_three_ranks_halo_and_tv(tmp_path):
-    mp.start_processes(_three_ranks, args=(3, str(tmp_path / "store"), str(tmp_path)), nprocs=3, start_method="spawn")
+    mp.start_processes(_on_rank, args=(_three_ranks_body, 3, str(tmp_path / "store"), str(tmp_path)), nprocs=3,
+                       start_method="spawn")
     res = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(3)]
     assert [r["rows"] for r in res] == [(0, 5), (5, 9), (9, 13)]
     T, y = _problem()
