@@ -7,25 +7,23 @@ Every rank needs the whole template (a displacement may carry a slab's points an
 on every rank from the whole noise-free data, as one process draws it: the same data, the same noise.
 
 Convention: volumes ``(nx, ny, nz)`` and data ``(num_tilts, det_rows, det_cols)`` float64 on the CPU; a rank's
-share is the contiguous range ``[start, stop)`` of the tilt axis' slices (``slabs._share``: the first ``n % world``
-ranks one more), and data row ``j`` is slice ``j``; the shares are joined by ``indreg.problems.rows``.
+share is the contiguous range ``[start, stop)`` of the tilt axis' slices (``indreg._rows.rank_rows``: the first
+``n % world`` ranks one more), and data row ``j`` is slice ``j``; the shares are joined by ``indreg._rows``.
 """
 from __future__ import annotations
 
 import torch.distributed as dist
 
 from .. import phantoms
+from .._rows import all_gather_rows, gather_rows, rank_rows
 from ..forward.tilt_series import TiltSeriesTransform
-from ..problems.rows import all_gather_rows, gather_rows
-from ..problems.slabs import _share
 
 __all__ = ["row_range", "counts", "simulated_rows", "splits"]
 
 
 def row_range(n: int, group) -> tuple:
     """``(start, stop)``: this rank's contiguous share of ``n`` slices."""
-    share = _share(n, dist.get_rank(group), dist.get_world_size(group))
-    return share.start, share.stop
+    return rank_rows(n, dist.get_rank(group), dist.get_world_size(group))
 
 
 def splits(T, group) -> bool:
@@ -36,9 +34,9 @@ def splits(T, group) -> bool:
 
 
 def counts(n: int, group) -> list:
-    """Every rank's number of slices (``slabs._share`` of ``n``), rank 0's first."""
+    """Every rank's number of slices (``rank_rows`` of ``n``), rank 0's first."""
     world = dist.get_world_size(group)
-    return [len(_share(n, r, world)) for r in range(world)]
+    return [b - a for a, b in (rank_rows(n, r, world) for r in range(world))]
 
 
 def simulated_rows(template: str, target: str, T: TiltSeriesTransform, group) -> tuple:

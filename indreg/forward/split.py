@@ -27,18 +27,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from .. import _rows
+from .._rows import rank_rows
 from ..domain import ImageDomain
 from .tilt_series import TiltSeriesTransform
 
 __all__ = ["SlabSplit", "SlabDomain", "SlabTransform", "rank_rows", "split_rows", "slab_transforms", "by_slabs",
            "beyond", "total", "maximum", "own_rows", "whole_domain", "gather_rows"]
-
-
-def rank_rows(n: int, rank: int, world: int) -> tuple:
-    """Rank ``rank``'s rows ``(start, stop)`` of ``n``: contiguous shares, the first ``n % world`` ranks one more."""
-    base, extra = divmod(n, world)
-    start = rank * base + min(rank, extra)
-    return start, start + base + (rank < extra)
 
 
 class SlabSplit:
@@ -215,17 +210,7 @@ def by_slabs(reconstruct, T: TiltSeriesTransform, y: torch.Tensor, slab_size: in
 
 def gather_rows(x: torch.Tensor, T: SlabTransform, dst: int = 0) -> torch.Tensor | None:
     """The ranks' rows of ``x (..., *T.domain.shape)`` assembled into ``(..., *whole.shape)`` on rank ``dst``
-    (None on the others); every rank's share is sent once (``gather``, padded to the largest share)."""
-    import torch.distributed as dist
-
+    (None on the others): ``indreg._rows.gather_rows`` along the split axis."""
     s = T.split
-    dim = x.dim() - 3 + s.axis
-    size = -(-s.n // s.world)
-    padded = torch.zeros(*x.shape[:dim], size, *x.shape[dim + 1:], dtype=x.dtype, device=x.device)
-    padded.narrow(dim, 0, x.shape[dim]).copy_(x)
-    parts = [torch.empty_like(padded) for _ in range(s.world)] if s.rank == dst else None
-    dist.gather(padded, parts, dst=s._peer(dst), group=s.group)
-    if parts is None:
-        return None
-    shares = [rank_rows(s.n, r, s.world) for r in range(s.world)]
-    return torch.cat([p.narrow(dim, 0, b - a) for p, (a, b) in zip(parts, shares)], dim=dim)
+    counts = [b - a for a, b in (rank_rows(s.n, r, s.world) for r in range(s.world))]
+    return _rows.gather_rows(x, x.dim() - 3 + s.axis, counts, s.group, dst)

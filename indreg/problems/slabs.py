@@ -37,7 +37,7 @@ from ..deform.functional.sampling import _planewise_applies, _planewise_sample, 
 from ..forward.ray_transform import _matmul, matmul_columns
 from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
-from .rows import gather_rows
+from .._rows import gather_rows, rank_rows
 
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
            "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL",
@@ -344,7 +344,7 @@ class SlabwiseRegistration(IndirectRegistration):
             yield frame
 
     def _gathered(self, u: torch.Tensor, jac) -> torch.Tensor | None:
-        """``I o (Id + P u)`` (times ``P J``) on this rank's slabs, joined on rank 0 (``rows.gather_rows``)."""
+        """``I o (Id + P u)`` (times ``P J``) on this rank's slabs, joined on rank 0 (``indreg._rows.gather_rows``)."""
         start, stop = self.slab_ranges[self.own[0]][0], self.slab_ranges[self.own[-1]][1]
         shape = list(self.template.shape)
         shape[self.axis] = stop - start
@@ -406,10 +406,8 @@ def _rank_world(group) -> tuple:
 
 
 def _share(count: int, rank: int, world: int) -> range:
-    """Rank ``rank``'s contiguous share of ``count`` items (the first ``count % world`` ranks one more)."""
-    base, extra = divmod(count, world)
-    start = rank * base + min(rank, extra)
-    return range(start, start + base + (rank < extra))
+    """Rank ``rank``'s contiguous share of ``count`` items (``indreg._rows.rank_rows``) as a range."""
+    return range(*rank_rows(count, rank, world))
 
 
 def process_group(distributed: bool | None, device) -> object | None:
