@@ -258,19 +258,25 @@ class SlabwiseRegistration(IndirectRegistration):
         out = _matmul(self.ray_transform.system.get(r.dtype, r.device)[1], r.reshape(r.shape[0], -1))
         return out.reshape(r.shape[0], self.image_domain.shape[u], self.image_domain.shape[v]).movedim(0, self.axis)
 
-    def _slab(self, u_n: torch.Tensor, jac_n, start: int, stop: int, grads: tuple | None):
-        """The slab ``[start, stop)``: its data fit and deformed template; with ``grads = (kappa, mu)`` (coarse
-        ``dL/du_N``, ``dL/dJ_N`` or None) its share of the gradient added into them."""
-        fine, coarse = self.image_domain.shape, self.domain.shape
+    def _warped(self, u_n: torch.Tensor, jac_n, start: int, stop: int) -> tuple:
+        """``(grid, image, pj, f)`` of the slab ``[start, stop)``: its points, ``I`` there, ``P J`` (or None) and the
+        deformed template ``f = I o (Id + P u)`` (times ``P J``)."""
+        fine = self.image_domain.shape
         grid = self._grid(upsample_rows(u_n, fine, self.axis, start, stop), start, stop)
         image = self._sample(grid)
         pj = None if jac_n is None else upsample_rows(jac_n.unsqueeze(0), fine, self.axis, start, stop).squeeze(0)
-        f = image if pj is None else pj * image
+        return grid, image, pj, image if pj is None else pj * image
+
+    def _slab(self, u_n: torch.Tensor, jac_n, start: int, stop: int, grads: tuple | None):
+        """The slab ``[start, stop)``'s data fit; with ``grads = (kappa, mu)`` (coarse ``dL/du_N``, ``dL/dJ_N`` or
+        None) its share of the gradient added into them."""
+        fine, coarse = self.image_domain.shape, self.domain.shape
+        grid, image, pj, f = self._warped(u_n, jac_n, start, stop)
         residual = self._project(f).sub_(self.data.narrow(1, start, stop - start).movedim(1, 0))
         weight = self.ray_transform.geometry.data_weight
         fit = 0.5 * (weight * residual.square().sum())
         if grads is None:
-            return fit, f
+            return fit
         g = self._backproject(residual.mul_(weight))           # dL/df on the slab
         lam = g if pj is None else g * pj
         _, slope = _sample_adjoint(lam.unsqueeze(0), self.template.unsqueeze(0), grid, "zeros", False, True)
@@ -282,7 +288,7 @@ class SlabwiseRegistration(IndirectRegistration):
         if grads[1] is not None:
             grads[1].add_(upsample_rows_adjoint((g * image).unsqueeze(0), coarse, fine, self.axis, start,
                                                 stop).squeeze(0))
-        return fit, None
+        return fit
 
     # ------------------------------------------------------------------------------- the objective
     def _flow(self, nu: torch.Tensor) -> tuple:
@@ -298,7 +304,7 @@ class SlabwiseRegistration(IndirectRegistration):
         """The data fit ``sum_s D_s`` over all ranks."""
         slots, jac, _ = self._flow(nu)
         jac_n = None if jac is None else jac[-1]
-        fit = sum(self._slab(slots[-1], jac_n, *self.slab_ranges[s], None)[0] for s in self.own)
+        fit = sum(self._slab(slots[-1], jac_n, *self.slab_ranges[s], None) for s in self.own)
         return float(self._all_reduce(fit.reshape(1))[0])
 
     def terms(self, m: torch.Tensor, nu: torch.Tensor | None = None) -> dict:
@@ -313,7 +319,7 @@ class SlabwiseRegistration(IndirectRegistration):
     def _assemble(self, out: torch.Tensor, u: torch.Tensor, jac) -> torch.Tensor:
         """``out`` filled slab by slab with ``I o (Id + P u)`` (times ``P J``): every slab, no communication."""
         for start, stop in self.slab_ranges:
-            out.narrow(self.axis, start, stop - start).copy_(self._slab(u, jac, start, stop, None)[1])
+            out.narrow(self.axis, start, stop - start).copy_(self._warped(u, jac, start, stop)[3])
         return out
 
     def deformed(self, m: torch.Tensor) -> torch.Tensor:
@@ -350,7 +356,7 @@ class SlabwiseRegistration(IndirectRegistration):
         shape[self.axis] = stop - start
         mine = self.template.new_empty(shape)
         for a, b in (self.slab_ranges[s] for s in self.own):
-            mine.narrow(self.axis, a - start, b - a).copy_(self._slab(u, jac, a, b, None)[1])
+            mine.narrow(self.axis, a - start, b - a).copy_(self._warped(u, jac, a, b)[3])
         counts = [sum(b - a for a, b in (self.slab_ranges[s] for s in _share(len(self.slab_ranges), r, self.world)))
                   for r in range(self.world)]
         return gather_rows(mine, self.axis, counts, self.group)
@@ -367,7 +373,7 @@ class SlabwiseRegistration(IndirectRegistration):
             kappa = buffer[:self.domain.ndim * size].view(self.domain.ndim, *self.domain.shape)
             mu = None if jac is None else buffer[self.domain.ndim * size:-1].view(self.domain.shape)
             for s in self.own:
-                fit, _ = self._slab(slots[-1], None if jac is None else jac[-1], *self.slab_ranges[s], (kappa, mu))
+                fit = self._slab(slots[-1], None if jac is None else jac[-1], *self.slab_ranges[s], (kappa, mu))
                 buffer[-1] += fit
             self._all_reduce(buffer)
             _displacement_sweep(kappa, mu, ExactRecord(slots, jac), nu, self.domain, self.deformation.scheme,
