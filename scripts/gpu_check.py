@@ -36,8 +36,8 @@ def steps(quick: bool) -> list:
                          "--iters", "2", "--warmup", "1", "--threads", "8"], 200, r"^\|.*\| (cpu|cuda) \|")]
     if (ROOT / "scripts" / "bench_slabs.py").exists():
         tables = ["--tables", "whole", "--n", "64", "--reps", "1", "--rounds", "1"] if quick else \
-            ["--tables", "whole", "big", "--rounds", "1"]
-        out.append(("slabs", [py, "scripts/bench_slabs.py", "--device", "cuda" if not quick else "cpu", *tables], 240,
+            ["--tables", "whole", "big", "--rounds", "1", "--big-iters", "4", "--max-memory", "8e9"]
+        out.append(("slabs", [py, "scripts/bench_slabs.py", "--device", "cuda" if not quick else "cpu", *tables], 300,
                     r"^\|.*(cuda|cpu|slab|whole)"))
     return out
 
