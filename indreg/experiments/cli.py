@@ -24,6 +24,11 @@ LAUNCHER_EXTRAS = {
     "ray_aws": ("ray", "hydra_plugins.hydra_ray_launcher"),
 }
 
+#: Hydra's flags that load a file as code: ``--experimental-rerun FILE`` unpickles FILE (a crafted file runs code).
+#: Hydra's parser (argparse, ``allow_abbrev``) also takes every unambiguous prefix: ``--exp FILE``,
+#: ``--experimental-r=FILE``. (``--config-dir`` / ``--config-path`` read yaml config files, which run no code.)
+LOADING_FLAGS = ("--experimental-rerun",)
+
 #: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
 #: ``--info``, ``-cd``, ...) is Hydra's business alone.
 _MULTIRUN_FLAGS = ("-m", "--multirun")
@@ -37,6 +42,29 @@ def exit_error(prog: str, message: str) -> None:
     """``<prog>: error: <message>`` on stderr (one line), exit status 1."""
     print(f"{prog}: error: " + " ".join(str(message).split()), file=sys.stderr, flush=True)
     sys.exit(1)
+
+
+def loading_flag(argv) -> str | None:
+    """The first argument of ``argv`` that Hydra's parser would read as a flag of :data:`LOADING_FLAGS` (the flag
+    or a prefix of it, ``--name`` or ``--name=value``), else ``None``."""
+    for arg in argv:
+        name = str(arg).split("=", 1)[0]
+        if name.startswith("--") and len(name) > 2 and any(f.startswith(name) for f in LOADING_FLAGS):
+            return str(arg)
+    return None
+
+
+def refuse_loading_flags(argv, prog: str) -> None:
+    """Exit with one line (status 2, a usage error) if ``argv`` asks Hydra to load a file as code
+    (:func:`loading_flag`): every entry point calls this before Hydra parses its command line."""
+    arg = loading_flag(argv)
+    if arg is None:
+        return
+    flag = next(f for f in LOADING_FLAGS if f.startswith(arg.split("=", 1)[0]))
+    print(f"{prog}: error: {arg.split('=', 1)[0]} ({flag}) is not supported: it unpickles a file (a crafted file "
+          "runs code), and indreg never writes one; rerun with the same overrides, or resume=true with the same "
+          "run directory", file=sys.stderr, flush=True)
+    sys.exit(2)
 
 
 def error_chain(exc: BaseException) -> str:

@@ -416,7 +416,8 @@ def base_config(overrides=()):
 
 def main() -> None:
     """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
-    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``)."""
+    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
+    ``--experimental-rerun`` and its prefixes, which unpickle a file, exit 2)."""
     import sys
 
     import hydra
@@ -424,6 +425,7 @@ def main() -> None:
     from ..experiments import cli
     from ..experiments.config import CONFIG_DIR
 
+    cli.refuse_loading_flags(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 
