@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from .._outfiles import open_replacing
+
 __all__ = ["tv_mu", "baselines"]
 
 log = logging.getLogger(__name__)
@@ -61,7 +63,8 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     log.info("baselines (%s) in %.1f s%s", ", ".join(rec).upper().replace(
         "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the TV weight unit"),
         time.perf_counter() - t0, how)
-    np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
+    with open_replacing(cache) as f:   # a fresh file renamed over the cache: no link followed
+        np.savez(f, key=key, **{k: v.numpy() for k, v in rec.items()})
     return rec
 
 

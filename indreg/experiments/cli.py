@@ -134,6 +134,17 @@ def check_writable_dir(key: str, path) -> None:
         raise UsageError(f"{key}={path} is not writable: {what} is read-only for this user; choose another {key}")
 
 
+def check_links(key: str, path) -> None:
+    """``path`` (an existing run or sweep directory) holds no symbolic link: Hydra (its ``.hydra/`` files, the
+    log) and the app would write through one (``indreg._outfiles``)."""
+    from .._outfiles import LinkError, check_no_links
+
+    try:
+        check_no_links(path, remedy=f"choose another {key}")
+    except LinkError as e:
+        raise UsageError(str(e)) from None
+
+
 def _split_sweeps(overrides) -> list:
     """The overrides without sweeps (``a=1,2``, ``range(...)``, ...): a multirun's common config."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -172,7 +183,7 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
     keys of an app without config groups (``base``, its config), the composition (a broken yaml file, an unknown
     group or option, ``hydra.searchpath`` included), the job's config (``validate``; a multirun's sweeps are
     left to its jobs) and the run directory (``hydra.run.dir``, or ``hydra.sweep.dir`` with ``-m``): it must be
-    creatable and writable. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
+    creatable and writable and hold no symbolic link. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
     """
     flags = [a for a in argv if a.startswith("-")]
     if any(f not in _MULTIRUN_FLAGS for f in flags):
@@ -188,6 +199,7 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
             validate(job_config(cfg))
         key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
         check_writable_dir(key, _resolved(cfg, key))
+        check_links(key, _resolved(cfg, key))
     except UsageError as e:
         exit_error(prog, str(e))
     except ValueError as e:  # the app's ConfigError (a ValueError naming the key)

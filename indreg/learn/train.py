@@ -46,6 +46,7 @@ import torch
 import torch.distributed as dist
 
 from .._checks import check_finite, check_int, check_nonnegative, check_positive
+from .._outfiles import open_replacing, replacing
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -311,11 +312,12 @@ def train(cfg, run_dir) -> dict:
         dist.broadcast_object_list(holder, src=0)
         run_dir = holder[0]
     run_dir = Path(run_dir)
+    checkpoint = run_dir / "checkpoint.pt"
+    ckpt.check_location(checkpoint, bool(cfg.train.resume), hint=RESUME_HINT)   # writable, no planted links
     parts = build(cfg, device, dtype)
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
     optimizer = torch.optim.Adam(parameter_groups(cfg, model), lr=float(cfg.train.lr))
-    checkpoint = run_dir / "checkpoint.pt"
     start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
     if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
@@ -369,11 +371,13 @@ def train(cfg, run_dir) -> dict:
         metrics.update(bench.evaluate(cfg, parts, model, val_set, device, dtype))
         metrics["eval_seconds"] = time.perf_counter() - t1
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
-        heldout_figure(model, parts, val_set, device, title=f"held-out examples after {steps} steps: mean SSIM "
-                       f"{metrics['network']['ssim']:.3f} (template {metrics['network']['template_ssim']:.3f})"
-                       ).savefig(run_dir / "figure.png", dpi=100)
+        with replacing(run_dir / "figure.png") as figure:   # a fresh file renamed over it: no link followed
+            title = (f"held-out examples after {steps} steps: mean SSIM {metrics['network']['ssim']:.3f} "
+                     f"(template {metrics['network']['template_ssim']:.3f})")
+            heldout_figure(model, parts, val_set, device, title=title).savefig(figure, dpi=100)
         writer.close()
-        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        with open_replacing(run_dir / "metrics.json", "w") as f:
+            f.write(json.dumps(metrics, indent=2))
         print(json.dumps({k: v for k, v in metrics.items() if k != "ood"}, indent=2), flush=True)
     if world > 1:
         dist.barrier()
