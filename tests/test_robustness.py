@@ -141,3 +141,42 @@ def test_a_template_of_one_pixel_along_an_axis_is_refused_in_one_line(shape):
     with pytest.raises(DataFileError, match=r"^template: shape .* has a single pixel along an axis"):
         indreg.load(np.ones(shape), np.ones((4, 8)), angles=np.linspace(0, 180, 4, endpoint=False), det_min=-16,
                     det_max=16)
+
+
+@pytest.fixture(scope="module")
+def ray():
+    return indreg.RayTransform(indreg.ImageDomain.paper(8), indreg.ParallelBeamGeometry.paper(4, 12))
+
+
+@pytest.mark.parametrize("rows, error, match", [
+    ([0.5, 1.5], ValueError, r"got \[0\.5, 1\.5\] \(not integers\)"),
+    ([[0, 1], [2, 3]], ValueError, r"got an array of shape \(2, 2\)"),
+    ("0,1", TypeError, "got '0,1'"), (None, TypeError, "got None"),
+    ([True, False], TypeError, r"got \[True, False\] \(dtype bool\)"), ([0, [1]], TypeError, r"got \[0, \[1\]\]")])
+def test_restrict_refuses_rows_that_are_not_integer_indices(ray, rows, error, match):
+    with pytest.raises(error, match=r"^rows must be a 1D sequence of integer indices in \[0, 4\), " + match):
+        indreg.restrict(ray, rows)
+
+
+@pytest.mark.parametrize("rows", [[1, 3], np.array([1, 3], dtype=np.float32), [np.float32(1), np.float32(3)],
+                                  torch.tensor([1, 3]), (np.int64(1), 3)])
+def test_restrict_takes_integer_rows_in_any_container(ray, rows):
+    assert indreg.restrict(ray, rows).rows.tolist() == [1, 3]
+
+
+def test_times_as_a_list_of_numpy_scalars_are_the_same_as_the_array():
+    from indreg.problems.spatiotemporal import time_indices
+
+    times = np.array([0.25, 0.5, 1.0], dtype=np.float32)
+    assert time_indices(list(times), 8, 3) == time_indices(times, 8, 3) == [2, 4, 8]
+    with pytest.raises(ValueError, match="times must be a list of 2 numbers"):
+        time_indices([np.bool_(True), 1.0], 8, 2)
+
+
+@pytest.mark.parametrize("optimizer", ["optimizer", "Optimizer", torch.optim.Optimizer])
+def test_torch_optim_solver_refuses_the_abstract_base_optimizer(setup, optimizer):
+    from indreg.solvers import TorchOptimSolver
+
+    with pytest.raises(ValueError, match=r"^optimizer must be a subclass of torch\.optim\.Optimizer \(not the base "
+                                         r"class itself\) or one of \[.*'adam'"):
+        TorchOptimSolver(setup.problem, optimizer=optimizer)
