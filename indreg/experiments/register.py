@@ -167,7 +167,10 @@ def main() -> None:
         _stand_in_schema()
     else:
         use_heap_allocator()
-        _register_schema(argv)   # plug-in models named on the command line: their options become keys
+        try:
+            _register_schema(argv)   # plug-in models named on the command line: their options become keys
+        except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
+            _exit_error(str(e))
         preflight(argv)
     hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_FILE)(_task)()
 
