@@ -126,14 +126,17 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 
 def check_config(cfg) -> None:
-    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``space``, ``init``, ``gradient``, ``step_size`` and ``supervised`` and the lists of ``eval.ood``."""
+    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the data
+    set's and the training's numbers, the model's ``space``, ``init``, ``gradient``, ``step_size``,
+    ``supervised``, ``lr``, ``step_lr``, ``updates`` and ``steps``, and the lists of ``eval.ood``."""
+    try:
+        _check_numbers(cfg)
+    except TypeError as e:   # check_int's type error: the same one line
+        raise ValueError(str(e)) from None
     if str(cfg.model.name) == "unrolled":
         for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
-        check_positive(cfg.model.step_size, "model.step_size")
-        check_nonnegative(cfg.model.supervised, "model.supervised")
     ood = cfg.eval.ood
     for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
         if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
@@ -149,6 +152,27 @@ def check_config(cfg) -> None:
     except (TypeError, ValueError) as e:
         message = str(e) if str(e).startswith("eval.ood") else f"eval.ood.phantoms: {e}"
         raise ValueError(message) from None
+
+
+def _check_numbers(cfg) -> None:
+    """Counts are integers >= 1 (``model.steps`` >= 0), rates and sizes finite and > 0, ``data.snr_db`` finite:
+    ``model.lr=0`` would divide by zero, ``data.num_train=0`` leave no batch, a NaN poison every sample."""
+    d, t = cfg.data, cfg.train
+    for key in ("num_train", "num_val"):
+        check_int(d[key], f"data.{key}", 1)
+    check_finite(d.snr_db, "data.snr_db")
+    check_positive(d.displacement, "data.displacement")
+    check_positive(d.smoothness, "data.smoothness")
+    check_int(t.batch_size, "train.batch_size", 1)
+    check_int(t.steps, "train.steps", 0)
+    check_positive(t.lr, "train.lr")
+    if str(cfg.model.name) == "unrolled":
+        m = cfg.model
+        check_int(m.updates, "model.updates", 1)
+        check_int(m.steps, "model.steps", 0)
+        for key in ("lr", "step_lr", "step_size"):
+            check_positive(m[key], f"model.{key}")
+        check_nonnegative(m.supervised, "model.supervised")
 
 
 def schedule(cfg) -> tuple:
