@@ -3,8 +3,10 @@
 A :class:`Callback` sees the loop at four moments: :meth:`~Callback.begin` (before the first step),
 :meth:`~Callback.before` (before every step), :meth:`~Callback.after` (after every step, with the solver's report
 ``info``) and :meth:`~Callback.end`. ``before`` and ``after`` may return a status that stops the loop
-(``"stopped"``, ``"early_stopped"``, ...); :meth:`~Callback.describe` adds text to the progress log line. ``a & b``
-runs ``a`` then ``b`` (:class:`Callbacks`): every callback runs each time, the first status returned wins.
+(one of :data:`STOP_STATUSES`; anything else but ``None`` / ``False`` is a ``TypeError`` naming the callback);
+:meth:`~Callback.describe` adds text to the progress log line. ``a & b`` runs ``a`` then ``b`` (:class:`Callbacks`):
+every callback runs each time, the first status returned wins. Every ``end`` runs, also when a ``begin``, a step
+or another ``end`` raised; the first exception is the one that propagates (later ones are logged).
 
 Built in: :class:`UserCallback` (``register(callback=fn)``: ``fn(state, info)`` returning True stops the run),
 :class:`HeldOut` (``holdout=``: the held-out residual every ``every`` iterations, early stopping). The app adds
@@ -19,9 +21,12 @@ from __future__ import annotations
 import logging
 from typing import Callable, Optional
 
-__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut"]
+__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut", "STOP_STATUSES"]
 
 log = logging.getLogger("indreg")
+
+#: The statuses a callback's ``before`` / ``after`` may return to stop the loop.
+STOP_STATUSES = ("stopped", "early_stopped", "interrupted")
 
 
 class Callback:
@@ -64,24 +69,39 @@ class Callbacks(Callback):
             c.begin(loop)
 
     def before(self, loop) -> Optional[str]:
-        return _first([c.before(loop) for c in self.callbacks])
+        return _first([(c, "before", c.before(loop)) for c in self.callbacks])
 
     def after(self, loop, info: dict, done: bool) -> Optional[str]:
-        return _first([c.after(loop, info, done) for c in self.callbacks])
+        return _first([(c, "after", c.after(loop, info, done)) for c in self.callbacks])
 
     def describe(self, info: dict) -> str:
         return "".join(c.describe(info) for c in self.callbacks)
 
     def end(self, loop) -> None:
+        """Every callback's ``end``, also after one raised; then the first exception is raised."""
+        first = None
         for c in self.callbacks:
-            c.end(loop)
+            try:
+                c.end(loop)
+            except Exception as e:
+                if first is not None:
+                    log.error("%s.end() failed too: %s: %s", type(c).__name__, type(e).__name__, e)
+                first = first or e
+        if first is not None:
+            raise first
 
     def __repr__(self) -> str:
         return " & ".join(type(c).__name__ for c in self.callbacks) or "Callbacks()"
 
 
-def _first(statuses: list) -> Optional[str]:
-    return next((s for s in statuses if s), None)
+def _first(returned: list) -> Optional[str]:
+    """The first status of ``(callback, method, value)`` triples; a value that is not ``None``, ``False`` or one
+    of :data:`STOP_STATUSES` is a ``TypeError`` naming the callback."""
+    for c, method, s in returned:
+        if s is not None and s is not False and s not in STOP_STATUSES:
+            raise TypeError(f"{type(c).__name__}.{method}() returned {s!r}: a callback returns None to go on or one "
+                            f"of {', '.join(map(repr, STOP_STATUSES))} to stop the loop")
+    return next((s for _, _, s in returned if s), None)
 
 
 class UserCallback(Callback):

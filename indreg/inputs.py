@@ -125,6 +125,9 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     ndim = 3 if geometry == "tilt_series" else 2
     read = dict(convention=conv, integer_scale=integer_scale)
     f = _image(template, key["template"], ndim, **read)
+    if min(f.shape) < 2:
+        raise DataFileError(f"{_where(key['template'], template)}: shape {' x '.join(map(str, f.shape))} has a single "
+                            "pixel along an axis; a registration needs an image of at least 2 pixels per axis")
     if ndim == 2 and f.shape[0] != f.shape[1]:
         raise DataFileError(f"{_where(key['template'], template)}: shape {f.shape[0]} x {f.shape[1]} is not square; "
                             f"the domain [-{half_width:g}, {half_width:g}]^2 needs n x n pixels (square cells): pad "

@@ -96,7 +96,22 @@ def _read_h5(path: Path, key) -> np.ndarray:
             raise _Problem(f"dataset {key!r} is {what}")
         if obj.dtype.kind not in "biufc":
             raise _Problem(f"dataset {key!r} has non-numeric dtype {obj.dtype}")
+        elsewhere = _h5_elsewhere(obj, f)
+        if elsewhere:
+            raise _Problem(f"dataset {key!r} {elsewhere}; indreg reads only data stored in the file itself")
         return obj[()]
+
+
+def _h5_elsewhere(obj, f) -> str:
+    """Why the dataset's values lie outside the file ``f`` (an external link, a virtual dataset, external raw
+    storage: a crafted file could make any file's bytes the image), or ``""``."""
+    if obj.file.filename != f.filename:
+        return f"is an external link to {obj.file.filename}"
+    if obj.is_virtual:
+        return "is a virtual dataset (its values lie in other files)"
+    if obj.external:
+        return f"has external storage ({obj.external[0][0]!r})"
+    return ""
 
 
 def _read_mrc(path: Path, key) -> np.ndarray:

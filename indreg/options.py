@@ -141,6 +141,8 @@ def _import(path: str) -> None:
         problem = None if isinstance(model, Model) else f"is a {type(model).__name__}, not an indreg.models.Model"
     except Exception as e:   # a syntax error or an exception at import: one line
         problem = f"cannot be imported: {type(e).__name__}: {e}"
+    except SystemExit as e:   # the module called sys.exit() at import
+        problem = f"cannot be imported: it called sys.exit({e.code!r}) at import"
     if problem is not None:   # nothing the failed import registered stays
         MODELS.clear()
         MODELS.update(before)

@@ -255,6 +255,17 @@ class RegistrationLoop:
         old, new = h[-1 - STALL_WINDOW]["objective"], h[-1]["objective"]
         return any(x.get("halvings") for x in h) and old - new <= self.rtol * abs(old)
 
+    def _end(self, error) -> None:
+        """Every callback's ``end`` (``Callbacks.end``); while ``error`` (of ``begin`` or a step) propagates, an
+        ``end`` that raises too is logged, not raised: the first exception is the one reported."""
+        try:
+            self.callbacks.end(self)
+        except Exception as e:
+            if error is None:
+                raise
+            log.error("a callback's end() failed while %s propagated: %s: %s", type(error).__name__,
+                      type(e).__name__, e)
+
     def run(self) -> str:
         from tqdm import tqdm
 
@@ -262,8 +273,9 @@ class RegistrationLoop:
         meter = Progress(self.max_iter, state.iteration)
         bar = tqdm(total=self.max_iter, initial=state.iteration, desc=self.desc, dynamic_ncols=True,
                    disable=not (self.progress and sys.stderr.isatty()))
-        self.callbacks.begin(self)
+        error = None
         try:
+            self.callbacks.begin(self)
             while state.iteration < self.max_iter:
                 stop = self.callbacks.before(self)
                 if stop:
@@ -305,9 +317,12 @@ class RegistrationLoop:
                 if done:
                     status = reason
                     break
+        except BaseException as e:
+            error = e
+            raise
         finally:
             bar.close()
-            self.callbacks.end(self)
+            self._end(error)
         rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
             log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)", self.warnings,

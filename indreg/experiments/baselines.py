@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from .._outfiles import open_replacing
+
 __all__ = ["tv_mu", "baselines"]
 
 log = logging.getLogger(__name__)
@@ -49,7 +51,8 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
                     b.sirt_iterations if volume else 0], dtype=str)
     group, rank = _group()
     cache = out / "baselines.npz"
-    rec = _cached(cache, key) if rank == 0 else None
+    names = ("fbp", "sirt", "tv") if volume else ("fbp", "tv")
+    rec = _cached(cache, key, names, tuple(exp.domain.shape)) if rank == 0 else None
     if _broadcast(rec is not None, group):
         return rec or {}
     t0 = time.perf_counter()
@@ -61,7 +64,8 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     log.info("baselines (%s) in %.1f s%s", ", ".join(rec).upper().replace(
         "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the TV weight unit"),
         time.perf_counter() - t0, how)
-    np.savez(cache, key=key, **{k: v.numpy() for k, v in rec.items()})
+    with open_replacing(cache) as f:   # a fresh file renamed over the cache: no link followed
+        np.savez(f, key=key, **{k: v.numpy() for k, v in rec.items()})
     return rec
 
 
@@ -110,13 +114,27 @@ def _group() -> tuple:
     return group, dist.get_rank(group)
 
 
-def _cached(cache: Path, key: np.ndarray) -> dict | None:
-    """The reconstructions of ``cache`` when its key is ``key``, else None."""
-    if cache.is_file():
-        with np.load(cache) as z:
-            if np.array_equal(z["key"], key):
-                return {k: torch.from_numpy(z[k]) for k in z.files if k != "key"}
-    return None
+def _cached(cache: Path, key: np.ndarray, names: tuple, shape: tuple) -> dict | None:
+    """The reconstructions ``names`` of ``cache`` when its key is ``key`` and each is a finite float array of
+    ``shape``, else None (recomputed). A damaged or crafted cache (not a zip, object arrays: never unpickled,
+    other names, shapes or values) is only a warning: the baselines are recomputed and the cache rewritten."""
+    if not cache.is_file():
+        return None
+    try:
+        with np.load(cache, allow_pickle=False) as z:
+            if "key" not in z.files or not np.array_equal(z["key"], key):
+                return None
+            rec = {k: z[k] for k in z.files if k != "key"}
+    except Exception as e:   # not a zip, a truncated member, an object array, ...
+        log.warning("%s is unreadable (%s: %s): recomputing the baselines", cache, type(e).__name__,
+                    " ".join(str(e).split()))
+        return None
+    if sorted(rec) != sorted(names) or not all(
+            a.dtype.kind == "f" and a.shape == shape and np.isfinite(a).all() for a in rec.values()):
+        log.warning("%s does not hold finite %s arrays of shape %s: recomputing the baselines", cache,
+                    "/".join(names), shape)
+        return None
+    return {k: torch.from_numpy(rec[k]) for k in names}
 
 
 def _broadcast(flag: bool, group) -> bool:

@@ -21,8 +21,11 @@ The registration app (``indreg.experiments.register``) stores::
 RNG states are stored as tensors and numbers: python's Mersenne Twister key (625 ints) and numpy's MT19937 key
 (624 uint32) as int64 tensors, torch's CPU / CUDA states as their uint8 tensors.
 
-Writing goes to ``<path>.tmp``, which is flushed, fsync'ed and moved over ``<path>`` with ``os.replace`` (then
-the directory is fsync'ed), so a run killed while writing leaves the previous checkpoint intact.
+Writing goes to a fresh file (``O_EXCL | O_NOFOLLOW``, in a new private directory beside ``<path>``:
+``indreg._outfiles``), which is flushed, fsync'ed and moved over ``<path>`` with ``os.replace`` (then the directory
+is fsync'ed), so a run killed while writing leaves the previous checkpoint intact, and a link planted at
+``<path>`` or ``<path>.tmp`` is never written through. A run directory holding a link is refused
+(:func:`check_location`).
 """
 from __future__ import annotations
 
@@ -38,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from .._outfiles import LinkError, check_no_links, open_replacing
 
 VERSION = 2
 HINT = "delete it or run without resume=true"
@@ -114,23 +119,11 @@ def encode(payload: dict) -> bytes:
 
 
 def save(path, payload: dict) -> None:
-    """Atomically write ``payload`` to ``path``: tmp file, fsync, ``os.replace``, fsync of the directory."""
-    path = Path(path)
+    """Atomically write ``payload`` to ``path``: a fresh file, fsync, ``os.replace``, fsync of the directory
+    (:func:`indreg._outfiles.open_replacing`: no link is followed)."""
     blob = encode(payload)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(blob)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    with open_replacing(path, "wb", fsync=True) as f:
+        f.write(blob)
 
 
 # ------------------------------------------------------------------ reading
@@ -195,10 +188,15 @@ def restoring(path, hint: str = HINT):
 
 
 def check_location(path, resume: bool, hint: str = HINT) -> None:
-    """Before any computing: the directory of ``path`` can be created and written, ``path`` is not a directory,
-    and with ``resume`` an existing ``path`` is readable and writable (it will be replaced)."""
+    """Before any computing: the directory of ``path`` can be created and written and holds no symbolic link
+    (outputs are never written through one), ``path`` is not a directory, and with ``resume`` an existing
+    ``path`` is readable and writable (it will be replaced)."""
     path = Path(path)
     out = path.parent
+    try:
+        check_no_links(out)
+    except LinkError as e:
+        raise CheckpointError(str(e)) from None
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):

@@ -24,6 +24,11 @@ LAUNCHER_EXTRAS = {
     "ray_aws": ("ray", "hydra_plugins.hydra_ray_launcher"),
 }
 
+#: Hydra's flags that load a file as code: ``--experimental-rerun FILE`` unpickles FILE (a crafted file runs code).
+#: Hydra's parser (argparse, ``allow_abbrev``) also takes every unambiguous prefix: ``--exp FILE``,
+#: ``--experimental-r=FILE``. (``--config-dir`` / ``--config-path`` read yaml config files, which run no code.)
+LOADING_FLAGS = ("--experimental-rerun",)
+
 #: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
 #: ``--info``, ``-cd``, ...) is Hydra's business alone.
 _MULTIRUN_FLAGS = ("-m", "--multirun")
@@ -37,6 +42,29 @@ def exit_error(prog: str, message: str) -> None:
     """``<prog>: error: <message>`` on stderr (one line), exit status 1."""
     print(f"{prog}: error: " + " ".join(str(message).split()), file=sys.stderr, flush=True)
     sys.exit(1)
+
+
+def loading_flag(argv) -> str | None:
+    """The first argument of ``argv`` that Hydra's parser would read as a flag of :data:`LOADING_FLAGS` (the flag
+    or a prefix of it, ``--name`` or ``--name=value``), else ``None``."""
+    for arg in argv:
+        name = str(arg).split("=", 1)[0]
+        if name.startswith("--") and len(name) > 2 and any(f.startswith(name) for f in LOADING_FLAGS):
+            return str(arg)
+    return None
+
+
+def refuse_loading_flags(argv, prog: str) -> None:
+    """Exit with one line (status 2, a usage error) if ``argv`` asks Hydra to load a file as code
+    (:func:`loading_flag`): every entry point calls this before Hydra parses its command line."""
+    arg = loading_flag(argv)
+    if arg is None:
+        return
+    flag = next(f for f in LOADING_FLAGS if f.startswith(arg.split("=", 1)[0]))
+    print(f"{prog}: error: {arg.split('=', 1)[0]} ({flag}) is not supported: it unpickles a file (a crafted file "
+          "runs code), and indreg never writes one; rerun with the same overrides, or resume=true with the same "
+          "run directory", file=sys.stderr, flush=True)
+    sys.exit(2)
 
 
 def error_chain(exc: BaseException) -> str:
@@ -106,6 +134,17 @@ def check_writable_dir(key: str, path) -> None:
         raise UsageError(f"{key}={path} is not writable: {what} is read-only for this user; choose another {key}")
 
 
+def check_links(key: str, path) -> None:
+    """``path`` (an existing run or sweep directory) holds no symbolic link: Hydra (its ``.hydra/`` files, the
+    log) and the app would write through one (``indreg._outfiles``)."""
+    from .._outfiles import LinkError, check_no_links
+
+    try:
+        check_no_links(path, remedy=f"choose another {key}")
+    except LinkError as e:
+        raise UsageError(str(e)) from None
+
+
 def _split_sweeps(overrides) -> list:
     """The overrides without sweeps (``a=1,2``, ``range(...)``, ...): a multirun's common config."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -144,7 +183,7 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
     keys of an app without config groups (``base``, its config), the composition (a broken yaml file, an unknown
     group or option, ``hydra.searchpath`` included), the job's config (``validate``; a multirun's sweeps are
     left to its jobs) and the run directory (``hydra.run.dir``, or ``hydra.sweep.dir`` with ``-m``): it must be
-    creatable and writable. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
+    creatable and writable and hold no symbolic link. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
     """
     flags = [a for a in argv if a.startswith("-")]
     if any(f not in _MULTIRUN_FLAGS for f in flags):
@@ -160,6 +199,7 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
             validate(job_config(cfg))
         key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
         check_writable_dir(key, _resolved(cfg, key))
+        check_links(key, _resolved(cfg, key))
     except UsageError as e:
         exit_error(prog, str(e))
     except ValueError as e:  # the app's ConfigError (a ValueError naming the key)

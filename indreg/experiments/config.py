@@ -185,7 +185,8 @@ def _validate_data(c: DictConfig) -> None:
     d, g = c.data, c.geometry
     source = sources.get(d.source)
     if source.check is not None:   # the source's own keys (and what it needs of the geometry)
-        source.check(c, _require)
+        with sources.calling(source, "check"):
+            source.check(c, _require)
     _require((g.det_min is None) == (g.det_max is None), "geometry.det_min",
              "both det_min and det_max, or neither (fitted to the domain)", (g.det_min, g.det_max))
     if g.det_min is not None:

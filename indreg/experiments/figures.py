@@ -192,7 +192,11 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None):
 
 
 def save(fig, path, dpi: int = 100) -> None:
-    fig.savefig(path, dpi=dpi)
+    """``fig`` as a PNG at ``path``, written to a fresh file renamed over ``path`` (no link followed)."""
+    from .._outfiles import replacing
+
+    with replacing(path) as new:
+        fig.savefig(new, dpi=dpi)
 
 
 def frames_figure(frames: np.ndarray, truth: np.ndarray | None = None, title: str = "", times=None) -> Figure:
@@ -230,4 +234,7 @@ def save_gif(frames: np.ndarray, path, vmin: float, vmax: float, seconds_per_fra
 
     scale = 255.0 / max(vmax - vmin, 1e-12)
     images = [upscale(np.clip((np.rot90(f) - vmin) * scale, 0, 255).astype(np.uint8)) for f in np.asarray(frames)]
-    imageio.mimsave(path, images, duration=seconds_per_frame, loop=0)
+    from .._outfiles import replacing
+
+    with replacing(path) as new:   # a fresh file renamed over path: no link followed
+        imageio.mimsave(new, images, duration=seconds_per_frame, loop=0)

@@ -15,12 +15,14 @@ from __future__ import annotations
 import json
 import logging
 import math
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from .._outfiles import open_replacing, replacing
 from ..run import build_result, count_halvings, count_rejected
 from .baselines import tv_mu
 from .config import to_plain
@@ -73,10 +75,12 @@ def _json_float(v):
     return v
 
 
-def _npy(path: Path, shape: tuple):
-    """``path`` opened for a float64 ``.npy`` of ``shape``, its header written (``np.save``'s): the values follow
-    in C order. Written, not memory-mapped: a mapped file's pages would count in the process's resident memory."""
-    f = open(path, "wb")
+def _npy(stack: ExitStack, path: Path, shape: tuple):
+    """``path`` opened (in ``stack``; :func:`indreg._outfiles.open_replacing`: a fresh file renamed over ``path``
+    when ``stack`` closes, no link followed) for a float64 ``.npy`` of ``shape``, its header written (``np.save``'s):
+    the values follow in C order. Written, not memory-mapped: a mapped file's pages would count in the process's
+    resident memory."""
+    f = stack.enter_context(open_replacing(path))
     np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": tuple(shape)})
     return f
 
@@ -84,27 +88,24 @@ def _npy(path: Path, shape: tuple):
 def save_array(path: Path, a) -> None:
     """``a`` (a tensor, any dtype / device) as a float64 ``.npy`` at ``path``, converted :data:`SAVE_CHUNK` values
     at a time (the file ``np.save`` of the float64 array writes, without that array)."""
-    with _npy(path, a.shape) as f:
-        save_rows(f, a)
+    with ExitStack() as stack:
+        save_rows(_npy(stack, path, a.shape), a)
 
 
 def save_frames(path: Path, frames, count: int, keep=()) -> dict:
     """The ``count`` frames of the iterator ``frames`` (tensors of one shape) as one float64 ``.npy`` ``(count,
     *shape)`` at ``path``, written as they come; returns the frames of the indices ``keep`` (in their dtype)."""
     kept, f, i = {}, None, -1
-    try:
+    with ExitStack() as stack:
         for i, frame in enumerate(frames):
             if i >= count:
                 raise ValueError(f"save_frames: expected {count} frames, got more")
-            f = f or _npy(path, (count, *frame.shape))
+            f = f or _npy(stack, path, (count, *frame.shape))
             save_rows(f, frame)
             if i in keep:
                 kept[i] = frame
-    finally:
-        if f is not None:
-            f.close()
-    if i + 1 != count:
-        raise ValueError(f"save_frames: expected {count} frames, got {i + 1}")
+        if i + 1 != count:
+            raise ValueError(f"save_frames: expected {count} frames, got {i + 1}")
     return kept
 
 
@@ -115,16 +116,22 @@ def save_rows(f, a) -> None:
         f.write(to_numpy(flat[i:i + SAVE_CHUNK]).tobytes())
 
 
+def write_json(out: Path, history: list, result: dict) -> None:
+    """``history.json`` and ``metrics.json`` (non-finite floats as strings), each written to a fresh file renamed
+    over the old one (no link followed)."""
+    with open_replacing(out / "history.json", "w") as f:
+        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
+    with open_replacing(out / "metrics.json", "w") as f:
+        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+
+
 def failed(out: Path, history: list) -> dict:
     """A run whose objective or gradient became non-finite: ``metrics.json`` and ``history.json`` say so."""
     last = history[-1]
     result = {"status": "failed", "iteration": last["iteration"], "objective": last["objective"],
               "grad_norm": last["grad_norm"], "evaluations": last["evaluations"],
               "warning": last["warning"] or "non-finite gradient norm"}
-    with open(out / "history.json", "w") as f:
-        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
-    with open(out / "metrics.json", "w") as f:
-        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    write_json(out, history, result)
     log.error("failed at iteration %d: %s (%s is not overwritten: it keeps the last periodic checkpoint, if any)",
               result["iteration"], result["warning"], out / "checkpoint.pt")
     return result
@@ -171,7 +178,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     if r.alignment:   # shifts per tilt and the tilt-axis angle (docs/alignment.md), and their plot
         from ..alignment import plot_shifts
         result["alignment"] = r.alignment
-        plot_shifts(r.alignment, out / "alignment.png")
+        with replacing(out / "alignment.png") as path:
+            plot_shifts(r.alignment, path)
     result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})
@@ -188,14 +196,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     if volume:   # the registered volume for IMOD / ChimeraX too (voxel size in the header)
         from ..io import write_volume
         from .run_figures import shown_frames
-        write_volume(out / "final.mrc", r.deformed.detach().cpu().numpy(), exp.domain)
+        with replacing(out / "final.mrc") as path:
+            write_volume(path, r.deformed.detach().cpu().numpy(), exp.domain)
         shown = shown_frames(r.velocity.shape[0] - 1) if cfg.logging.figure or writer.enabled else ()
         frames = save_frames(out / "trajectory.npy", problem.image_frames(state.iterate), r.velocity.shape[0],
                              shown)
-    with open(out / "history.json", "w") as f:
-        json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
-    with open(out / "metrics.json", "w") as f:
-        json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
+    write_json(out, history, result)
     write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")

@@ -61,14 +61,6 @@ PROG = "indreg-register"
 
 #: Hydra's flags that only print text: the config schema is not needed (nor torch, which it imports).
 _PRINT_ONLY = ("--help", "-h", "--hydra-help")
-#: Hydra's flag that unpickles a file (``--experimental-rerun FILE``): indreg never writes one, so it is refused.
-_RERUN = "--experimental-rerun"
-
-
-def _asks_rerun(argv) -> bool:
-    return any(a == _RERUN or a.startswith(_RERUN + "=") for a in argv)
-
-
 def _register_schema(argv=()) -> None:
     """The schema in Hydra's ConfigStore, with the options of the plug-in models named in ``argv``."""
     from .config import register_schema
@@ -157,9 +149,7 @@ def preflight(argv) -> None:
     """Check the command line before Hydra creates the run directory (:func:`indreg.experiments.cli.preflight`:
     launcher plugin, composition, the config's values, the data files, the run directory), so that a problem
     ends in one line (``indreg-register: error: ...``, exit 1) with nothing written."""
-    if _asks_rerun(argv):
-        cli.exit_error(PROG, f"{_RERUN} is not supported: it unpickles a file (code could run), and indreg never "
-                             "writes one; rerun with the same overrides, or resume=true with the same hydra.run.dir")
+    cli.refuse_loading_flags(argv, PROG)
     _register_schema()
     cli.preflight(argv, PROG, _CONFIG, _CONFIG_FILE, validate=_check_config)
 
@@ -172,11 +162,15 @@ def main() -> None:
     from .._malloc import use_heap_allocator
 
     argv = sys.argv[1:]
-    if any(a in _PRINT_ONLY for a in argv) and not _asks_rerun(argv):
+    cli.refuse_loading_flags(argv, PROG)   # --experimental-rerun and its prefixes: exit 2
+    if any(a in _PRINT_ONLY for a in argv):
         _stand_in_schema()
     else:
         use_heap_allocator()
-        _register_schema(argv)   # plug-in models named on the command line: their options become keys
+        try:
+            _register_schema(argv)   # plug-in models named on the command line: their options become keys
+        except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
+            _exit_error(str(e))
         preflight(argv)
     hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_FILE)(_task)()
 

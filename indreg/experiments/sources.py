@@ -31,12 +31,14 @@ Convention: images ``(n, n)`` (or volumes ``(nx, ny, nz)``) float64 on the CPU, 
 from __future__ import annotations
 
 import importlib
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import torch
 from omegaconf import DictConfig
 
+from .._files import DataFileError
 from ..domain import ImageDomain
 from ..inputs import RegistrationInputs
 from ..options import add_to_registry
@@ -114,6 +116,8 @@ def get(name: str) -> Source:
         obj, problem = (_import(name) if ":" in name else _entry_point(name)), None
     except Exception as e:   # the user's module: a missing module or attribute, a syntax error, ... as one line
         obj, problem = None, f"{type(e).__name__}: {' '.join(str(e).split())}"
+    except SystemExit as e:   # the module called sys.exit() at import
+        obj, problem = None, f"it called sys.exit({e.code!r}) at import"
     if problem is not None:   # raised outside the except: no chained context in the one-line message
         raise ConfigError(f"invalid config value data.source={name!r}: cannot import it ({problem})")
     if obj is None:
@@ -134,9 +138,31 @@ def resolve(name: str) -> Callable:
     return get(name).load
 
 
+@contextmanager
+def calling(source: Source, what: str):
+    """Around a plug-in source's ``load`` / ``check`` / ``preflight``: anything it raises but a ``ConfigError`` or
+    ``DataFileError`` (the contract's one-line errors) becomes a ``ConfigError`` naming the source, ``what`` and
+    the exception, in one line. The built-in sources' errors pass unchanged."""
+    try:
+        yield
+    except (ConfigError, DataFileError):
+        raise
+    except Exception as e:
+        if str(getattr(getattr(source, what), "__module__", "")).startswith("indreg."):   # a built-in function
+            raise
+        raise ConfigError(f"the data source {source.name!r}: its {what} raised {type(e).__name__}: "
+                          f"{' '.join(str(e).split())}") from None   # the message has it all: one line
+
+
+def _type_name(kind) -> str:
+    return kind.__name__ if isinstance(kind, type) else str(kind).replace("typing.", "")
+
+
 def load(cfg: DictConfig) -> Data:
     """The data of ``cfg.data.source`` (:func:`get`)."""
-    data = get(cfg.data.source).load(cfg)
+    source = get(cfg.data.source)
+    with calling(source, "load"):
+        data = source.load(cfg)
     if isinstance(data, RegistrationInputs):
         return Data.from_inputs(data)
     if not isinstance(data, Data):
@@ -149,7 +175,8 @@ def check_files(cfg: DictConfig) -> None:
     """The source's ``preflight`` (``data=files``: the files exist), before the app creates its run directory."""
     source = get(cfg.data.source)
     if source.preflight is not None:
-        source.preflight(cfg)
+        with calling(source, "preflight"):
+            source.preflight(cfg)
 
 
 def is_measured(name: str) -> bool:
@@ -161,15 +188,19 @@ def is_measured(name: str) -> bool:
 
 
 def data_fields() -> list:
-    """``(key, type, dataclasses.field(default=...))`` of every registered source's keys, for the app's schema."""
+    """``(key, type, dataclasses.field(default=...))`` of every registered source's keys, for the app's schema; a
+    key two sources declare with different types or defaults is a ``ConfigError`` naming both."""
     seen: dict = {}
     for source in SOURCES.values():
         for key, kind, default in source.options:
             if key in seen and seen[key][:2] != (kind, default):
-                raise TypeError(f"data.{key} is declared twice with different types or defaults (source "
-                                f"{source.name!r} and an earlier one)")
-            seen[key] = (kind, default)
-    return [(k, kind, field(default=d)) for k, (kind, d) in seen.items()]
+                k0, d0, other = seen[key]
+                raise ConfigError(f"data.{key} is declared twice with different types or defaults: by source "
+                                  f"{other!r} ({_type_name(k0)}, default {d0!r}) and by source {source.name!r} "
+                                  f"({_type_name(kind)}, default {default!r}); "
+                                  "rename the plug-in's key")
+            seen.setdefault(key, (kind, default, source.name))
+    return [(k, kind, field(default=d)) for k, (kind, d, _) in seen.items()]
 
 
 def _import(path: str):

@@ -12,6 +12,8 @@ import io
 import json
 from pathlib import Path
 
+from .._outfiles import open_replacing
+
 
 #: The grid of the paper's suite-3 table (conf/sweep/suite3_table.yaml sweeps the same values).
 SUITE3_GAMMAS = (1e-7, 1e-5, 1e-3, 1e-1, 10.0)
@@ -127,8 +129,9 @@ def main(argv=None) -> None:
         md = markdown(records, args.convention)
         out = Path(args.out or args.multirun_dir)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "table.md").write_text(md)
-        (out / "table.csv").write_text(csv_text(records))
+        for name, text in (("table.md", md), ("table.csv", csv_text(records))):
+            with open_replacing(out / name, "w") as f:   # a fresh file renamed over it: no link followed
+                f.write(text)
     except (OSError, ValueError) as e:  # no runs, an unreadable or foreign metrics.json, an unwritable --out
         exit_error(PROG, str(e))
     print(md)

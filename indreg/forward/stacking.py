@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Callable, Optional, Sequence
 
+import numpy as np
 import torch
 
 from .._checks import check_tensor
@@ -123,7 +124,7 @@ class RestrictedOperator(OperatorAlgebra):
     def __init__(self, operator, rows):
         check_operator(operator, "operator")
         count = int(operator.range_shape[0])
-        self.rows = torch.as_tensor(rows, dtype=torch.long).flatten()
+        self.rows = _indices(rows, count)
         if self.rows.numel() == 0 or bool((self.rows < 0).any()) or bool((self.rows >= count).any()) \
                 or bool((self.rows[1:] <= self.rows[:-1]).any()):
             raise ValueError(f"rows must be strictly increasing indices in [0, {count}), got {self.rows.tolist()}")
@@ -163,6 +164,25 @@ class RestrictedOperator(OperatorAlgebra):
 
     def __repr__(self) -> str:
         return f"RestrictedOperator({self.operator!r}, {len(self.rows)} of {self.operator.range_shape[0]} rows)"
+
+
+def _indices(rows, count: int) -> torch.Tensor:
+    """``rows`` (an int, or a 1D sequence / array / tensor of integers, integer-valued floats included) as a long
+    tensor; anything else (a string, None, booleans, fractions, nested lists) is a one-line error."""
+    what = f"rows must be a 1D sequence of integer indices in [0, {count})"
+    if rows is None or isinstance(rows, (str, bytes)):
+        raise TypeError(f"{what}, got {rows!r}")
+    try:
+        a = np.asarray(rows.detach().cpu() if isinstance(rows, torch.Tensor) else rows)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{what}, got {rows!r} ({e})") from None
+    if a.ndim > 1:
+        raise ValueError(f"{what}, got an array of shape {a.shape}")
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+        raise TypeError(f"{what}, got {rows!r} (dtype {a.dtype})")
+    if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a) & (a == np.round(a))):
+        raise ValueError(f"{what}, got {a.tolist()} (not integers)")
+    return torch.as_tensor(a.astype(np.int64).reshape(-1))
 
 
 def stack(*operators) -> StackedOperator:

@@ -46,6 +46,7 @@ import torch
 import torch.distributed as dist
 
 from .._checks import check_finite, check_int, check_nonnegative, check_positive
+from .._outfiles import open_replacing, replacing
 from ..deform.kernel import GaussianKernel
 from ..deform.shooting import GeodesicShooting
 from ..domain import ImageDomain
@@ -125,14 +126,17 @@ def datasets(cfg, parts: dict, dtype) -> tuple:
 
 
 def check_config(cfg) -> None:
-    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the model's
-    ``space``, ``init``, ``gradient``, ``step_size`` and ``supervised`` and the lists of ``eval.ood``."""
+    """The options that Hydra does not check, before anything runs (a ``ValueError`` naming the key): the data
+    set's and the training's numbers, the model's ``space``, ``init``, ``gradient``, ``step_size``,
+    ``supervised``, ``lr``, ``step_lr``, ``updates`` and ``steps``, and the lists of ``eval.ood``."""
+    try:
+        _check_numbers(cfg)
+    except TypeError as e:   # check_int's type error: the same one line
+        raise ValueError(str(e)) from None
     if str(cfg.model.name) == "unrolled":
         for key, allowed in (("space", SPACES), ("init", INITS), ("gradient", GRADIENTS)):
             if str(cfg.model[key]) not in allowed:
                 raise ValueError(f"model.{key} must be one of {', '.join(allowed)}, got {cfg.model[key]!r}")
-        check_positive(cfg.model.step_size, "model.step_size")
-        check_nonnegative(cfg.model.supervised, "model.supervised")
     ood = cfg.eval.ood
     for key, example in (("num_angles", "[6, 20]"), ("snr_db", "[5.0]"), ("phantoms", "[j, v]")):
         if not isinstance(ood[key], Sequence) or isinstance(ood[key], str):
@@ -148,6 +152,27 @@ def check_config(cfg) -> None:
     except (TypeError, ValueError) as e:
         message = str(e) if str(e).startswith("eval.ood") else f"eval.ood.phantoms: {e}"
         raise ValueError(message) from None
+
+
+def _check_numbers(cfg) -> None:
+    """Counts are integers >= 1 (``model.steps`` >= 0), rates and sizes finite and > 0, ``data.snr_db`` finite:
+    ``model.lr=0`` would divide by zero, ``data.num_train=0`` leave no batch, a NaN poison every sample."""
+    d, t = cfg.data, cfg.train
+    for key in ("num_train", "num_val"):
+        check_int(d[key], f"data.{key}", 1)
+    check_finite(d.snr_db, "data.snr_db")
+    check_positive(d.displacement, "data.displacement")
+    check_positive(d.smoothness, "data.smoothness")
+    check_int(t.batch_size, "train.batch_size", 1)
+    check_int(t.steps, "train.steps", 0)
+    check_positive(t.lr, "train.lr")
+    if str(cfg.model.name) == "unrolled":
+        m = cfg.model
+        check_int(m.updates, "model.updates", 1)
+        check_int(m.steps, "model.steps", 0)
+        for key in ("lr", "step_lr", "step_size"):
+            check_positive(m[key], f"model.{key}")
+        check_nonnegative(m.supervised, "model.supervised")
 
 
 def schedule(cfg) -> tuple:
@@ -311,11 +336,12 @@ def train(cfg, run_dir) -> dict:
         dist.broadcast_object_list(holder, src=0)
         run_dir = holder[0]
     run_dir = Path(run_dir)
+    checkpoint = run_dir / "checkpoint.pt"
+    ckpt.check_location(checkpoint, bool(cfg.train.resume), hint=RESUME_HINT)   # writable, no planted links
     parts = build(cfg, device, dtype)
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
     optimizer = torch.optim.Adam(parameter_groups(cfg, model), lr=float(cfg.train.lr))
-    checkpoint = run_dir / "checkpoint.pt"
     start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
     net = model
     if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
@@ -369,11 +395,13 @@ def train(cfg, run_dir) -> dict:
         metrics.update(bench.evaluate(cfg, parts, model, val_set, device, dtype))
         metrics["eval_seconds"] = time.perf_counter() - t1
         writer.add_text("eval/metrics", json.dumps(metrics, indent=2), steps)
-        heldout_figure(model, parts, val_set, device, title=f"held-out examples after {steps} steps: mean SSIM "
-                       f"{metrics['network']['ssim']:.3f} (template {metrics['network']['template_ssim']:.3f})"
-                       ).savefig(run_dir / "figure.png", dpi=100)
+        with replacing(run_dir / "figure.png") as figure:   # a fresh file renamed over it: no link followed
+            title = (f"held-out examples after {steps} steps: mean SSIM {metrics['network']['ssim']:.3f} "
+                     f"(template {metrics['network']['template_ssim']:.3f})")
+            heldout_figure(model, parts, val_set, device, title=title).savefig(figure, dpi=100)
         writer.close()
-        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        with open_replacing(run_dir / "metrics.json", "w") as f:
+            f.write(json.dumps(metrics, indent=2))
         print(json.dumps({k: v for k, v in metrics.items() if k != "ood"}, indent=2), flush=True)
     if world > 1:
         dist.barrier()
@@ -416,7 +444,8 @@ def base_config(overrides=()):
 
 def main() -> None:
     """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
-    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``)."""
+    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
+    ``--experimental-rerun`` and its prefixes, which unpickle a file, exit 2)."""
     import sys
 
     import hydra
@@ -424,6 +453,7 @@ def main() -> None:
     from ..experiments import cli
     from ..experiments.config import CONFIG_DIR
 
+    cli.refuse_loading_flags(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 

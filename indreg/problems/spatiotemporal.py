@@ -31,7 +31,9 @@ frames' residuals back-projected and pulled back to ``t = 0`` through the curren
 from __future__ import annotations
 
 import math
+import numbers
 
+import numpy as np
 import torch
 
 from .._checks import check_nonnegative, check_same, check_tensor
@@ -52,9 +54,10 @@ def time_indices(times, num_steps: int, count: int) -> list:
         times = [(k + 1) / count for k in range(count)]
     if hasattr(times, "tolist") and not isinstance(times, (str, bytes)):
         times = times.tolist()
-    if not isinstance(times, (list, tuple)) or not all(isinstance(t, (int, float)) and not isinstance(t, bool)
-                                                       for t in times):
+    if not isinstance(times, (list, tuple)) or not all(
+            isinstance(t, numbers.Real) and not isinstance(t, (bool, np.bool_)) for t in times):
         raise ValueError(f"times must be a list of {count} numbers in [0, 1], got {times!r}")
+    times = [float(t) for t in times]   # numpy scalars (a list of np.float32) as the same array's tolist()
     if len(times) != count:
         raise ValueError(f"times has {len(times)} entries but the data {count} frames: give one time per frame")
     if not all(math.isfinite(t) and 0 <= t <= 1 for t in times):

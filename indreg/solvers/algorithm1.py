@@ -194,10 +194,14 @@ class Algorithm1(IterativeSolver):
 
         block = sorted(self._block(it))   # step control halves only the steps of the cycle's block
 
-        def trial(sizes):
+        def with_block(sizes) -> list:
             steps = list(self.step_sizes)
             for k, a in zip(block, sizes):
                 steps[k] = a
+            return steps
+
+        def trial(sizes):
+            steps = with_block(sizes)
             x_new = self._moved(state.iterate, h, steps, it)
             try:
                 new = self._evaluate(x_new)
@@ -211,14 +215,15 @@ class Algorithm1(IterativeSolver):
 
         rtol = rounding_tolerance(state.iterate[0].dtype)
         sizes = [self.step_sizes[k] for k in block]
-        (x_new, new, steps), min_jac, _, warnings, rejected, halvings = self.control.search(
+        result, min_jac, tried, warnings, rejected, halvings = self.control.search(
             sizes, terms["objective"], trial, rtol)
         for k, a in zip(block, sizes):
             self.step_sizes[k] = a
-        if rejected:
-            new = (terms, h, nu)
+        if rejected:   # every trial failed (possibly each overflowed: no result at all); the iterate stays
+            new, steps = (terms, h, nu), tuple(with_block(tried))
             min_jac = self._min_jacobian(nu, it + 1)
         else:
+            x_new, new, steps = result
             state.iterate = x_new
             self._current = (mark(x_new), *new)
         state.iteration += 1

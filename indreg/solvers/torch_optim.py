@@ -23,14 +23,16 @@ _DEFAULTS = {
 
 
 def _optimizer_class(optimizer):
-    if isinstance(optimizer, type) and issubclass(optimizer, torch.optim.Optimizer):
+    """The optimizer class of a name or class; the abstract base ``torch.optim.Optimizer`` is not one."""
+    base = torch.optim.Optimizer
+    if isinstance(optimizer, type) and issubclass(optimizer, base) and optimizer is not base:
         return optimizer
     names = {name.lower(): getattr(torch.optim, name) for name in dir(torch.optim)
-             if isinstance(getattr(torch.optim, name), type)
-             and issubclass(getattr(torch.optim, name), torch.optim.Optimizer)}
+             if isinstance(getattr(torch.optim, name), type) and getattr(torch.optim, name) is not base
+             and issubclass(getattr(torch.optim, name), base)}
     if not isinstance(optimizer, str) or optimizer.lower() not in names:
-        raise ValueError(f"optimizer must be a torch.optim.Optimizer subclass or one of "
-                         f"{sorted(n for n in names if n != 'optimizer')}, got {optimizer!r}")
+        raise ValueError(f"optimizer must be a subclass of torch.optim.Optimizer (not the base class itself) or "
+                         f"one of {sorted(names)}, got {optimizer!r}")
     return names[optimizer.lower()]
 
 

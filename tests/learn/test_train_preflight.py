@@ -1,0 +1,39 @@
+"""``indreg-train-momentum``'s preflight refuses the values that used to fail minutes later with a traceback
+(``model.lr=0``: ZeroDivisionError, ``data.num_train=0``, NaNs, ...) in one line, before any data are built."""
+import pytest
+
+from indreg.experiments import cli, register
+from indreg.learn import train
+
+
+def _error(capsys, argv) -> str:
+    with pytest.raises(SystemExit) as exc:
+        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
+                      train.base_config(argv))
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 1 and len(lines) == 1, lines
+    return lines[0]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("model.lr=0", "model.lr must be a finite number > 0, got 0"),
+    ("model.lr=nan", "model.lr must be a finite number > 0, got nan"),
+    ("model.updates=0", "model.updates must be an integer >= 1, got 0"),
+    ("model.updates=1.5", "model.updates must be an integer >= 1, got 1.5"),
+    ("model.step_lr=-1", "model.step_lr must be a finite number > 0, got -1"),
+    ("data.num_train=0", "data.num_train must be an integer >= 1, got 0"),
+    ("data.snr_db=nan", "data.snr_db must be a finite number, got nan"),
+    ("data.displacement=nan", "data.displacement must be a finite number > 0, got nan"),
+    ("train.batch_size=0", "train.batch_size must be an integer >= 1, got 0"),
+])
+def test_unrolled_values_that_cannot_train_are_refused_in_one_line(tmp_path, capsys, monkeypatch, override,
+                                                                   message):
+    monkeypatch.setattr(train, "datasets", lambda *a: pytest.fail("data were built"))
+    line = _error(capsys, ["model=unrolled", override, f"hydra.run.dir={tmp_path / 'run'}"])
+    assert line == f"indreg-train-momentum: error: {message}" and not (tmp_path / "run").exists()
+
+
+def test_the_defaults_pass(tmp_path):
+    for argv in (["model=unrolled"], ["model=oneshot"]):
+        cli.preflight(argv + [f"hydra.run.dir={tmp_path / 'run'}"], train.PROG, register.CONFIG_DIR,
+                      train.CONFIG_NAME, train.check_config, train.base_config(argv))
