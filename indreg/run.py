@@ -107,7 +107,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from . import alignment, intensity
+    from . import alignment, intensity, orientation
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
@@ -141,6 +141,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
+    orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))   # before the run
     aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
                                            o["align_gauge"], o["align_interpolation"])
     full_data, validation = data, None
