@@ -193,6 +193,9 @@ def describe_sinogram(convention) -> str:
 
 #: A convention whose reading fits the data better by this much correlation is named in a warning.
 MARGIN = 0.1
+#: Readings within this correlation of the best are named with it (ASTRA's picture and IMOD's section with its
+#: angles are one reading: the displayed picture is the section mirrored, and the mirror negates the angles).
+TIE = 0.01
 #: The check runs on at most this many pixels a side and angles (block means, evenly chosen rows): milliseconds.
 CHECK_PIXELS, CHECK_ANGLES = 64, 18
 
@@ -262,7 +265,8 @@ def orientation_hint(scores: dict, current) -> str | None:
     best = max(scores, key=lambda name: scores[name][0], default=own)
     if own not in scores or best == own or scores[best][0] < scores[own][0] + MARGIN:
         return None
-    names = " or ".join(_distinct()[best])
+    tied = [name for name in scores if scores[name][0] >= scores[best][0] - TIE]   # no telling them apart here
+    names = " or ".join(n for name in sorted(tied, key=lambda k: -scores[k][0]) for n in _distinct()[name])
     listed = ", ".join(f"{name} {value:.2f}" for name, (value, _) in sorted(scores.items(), key=lambda kv: -kv[1][0]))
     layout = "(bins, angles)" if CONVENTIONS[best].sinogram == "bin_angle" else "(angles, bins)"
     swapped = f", with the sinogram's axes swapped ({best}'s is {layout})" if scores[best][1] else ""

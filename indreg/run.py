@@ -141,6 +141,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
+    if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
+        units.locate_target(template, o["target"])
     orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))   # before the run
     aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
                                            o["align_gauge"], o["align_interpolation"])
@@ -332,7 +334,8 @@ class RegistrationResult:
     non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
     ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
     ``background``), what was measured (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale``
-    of the relative options. ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
+    of the relative options. ``ssim`` / ``psnr`` only with a target, in its units: the template's as given (the
+    reconstruction divided by ``template_scale``, ``Units.to_target_units``). ``holdout`` (with ``holdout=``):
     ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
@@ -441,7 +444,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
         problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))
     if target is not None:
-        result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
+        scored = units.to_target_units(image)   # the target's units (template_scale: maybe the template's)
+        result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)
     if validation is not None:
         result.holdout = validation.summary(image)
     result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,

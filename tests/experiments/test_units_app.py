@@ -154,3 +154,20 @@ def test_relative_weights_are_in_metrics(tmp_path):
     assert S > 0 and m["noise_residual"] > 0
     assert m["hparams"]["gamma"] == pytest.approx(1.7e-7 * S, rel=1e-6)
     assert json.loads((tmp_path / "metrics.json").read_text())["data_scale"] == S
+
+
+def test_template_and_target_at_255_score_in_the_target_s_units(tmp_path):
+    """The example's template and ground truth at 0..255 with 0..1 data (``data.template_scale=auto``): metrics.json's
+    SSIM / PSNR are the 0..1 run's (the reconstruction scored in the target's units), as is TensorBoard's and the
+    log line's (the same figures_of_merit)."""
+    files = unit_files(tmp_path)
+    np.save(tmp_path / "target255.npy", np.load(DATA_DIR / "own_data_target.npy"))
+    np.save(tmp_path / "target01.npy", np.load(DATA_DIR / "own_data_target.npy") / 255)
+    np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png"))
+    ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=10",
+                         f"data.target={tmp_path / 'target01.npy'}"], tmp_path / "x1")
+    auto = run_app(OWN + files + ["solver.max_iter=10", "data.template_scale=auto",
+                                  f"data.target={tmp_path / 'target255.npy'}"], tmp_path / "auto")
+    saved = json.loads((tmp_path / "auto" / "metrics.json").read_text())
+    assert saved["target_units"] == "template"
+    assert abs(saved["ssim"] - ref["ssim"]) < 0.005 and abs(saved["psnr"] - ref["psnr"]) < 0.1

@@ -1,0 +1,95 @@
+"""The orientation probe before a run (indreg.orientation): each wrong reading of a 2D and a 3D problem is named
+(warned or refused, with its fix), its right reading is silent; orientation='warn' runs anyway, 'off' skips it."""
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+import indreg
+from indreg import orientation, phantoms
+
+
+def problem_2d():
+    """A 48^2 template (suite 3's, plus an off-centre disc: no mirror symmetry) and the noise-free data of its
+    target over 0..180 degrees."""
+    domain = indreg.ImageDomain.paper(48)
+    x, y = domain.points()
+    disc = 0.6 * ((x - 7) ** 2 + (y - 4) ** 2 < 9).double()
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(num_angles=24, det_count=68))
+    template = phantoms.get("shepp_logan_template", domain) + disc
+    return template, T(phantoms.get("shepp_logan", domain) + disc), T
+
+
+def problem_3d():
+    """A 24^3 Shepp-Logan with an off-centre ball (no mirror symmetry), its swirled target's tilt series."""
+    domain = indreg.ImageDomain.paper(24, ndim=3)
+    x, y, z = domain.points()
+    ball = 0.8 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 4) ** 2 < 12).double()
+    T = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry.uniform(-60, 60, 6, 24, -16.0, 16.0))
+    return (phantoms.get("shepp_logan_3d", domain) + ball,
+            T(phantoms.get("shepp_logan_3d_swirl", domain) + ball), T)
+
+
+WRONG_2D = {"the detector reversed": lambda g: g.flip(-1),
+            "the angles in the opposite sense": lambda g: None}
+WRONG_3D = {"the stack turned by 180 degrees": lambda g: g.flip(-1, -2),
+            "the detector reversed": lambda g: g.flip(-1)}
+
+
+def test_right_readings_are_silent(caplog):
+    for template, data, T in (problem_2d(), problem_3d()):
+        with caplog.at_level(logging.WARNING, logger="indreg"):
+            table = orientation.check(template, data, T)
+        assert caplog.text == "" and max(table.values()) - table["as given"] <= orientation.WARN
+
+
+def test_reversed_detector_2d_is_refused_naming_the_fix():
+    template, data, T = problem_2d()
+    with pytest.raises(ValueError, match=r"reverse the detector bins.*\(or orientation='warn' to run anyway\)$"):
+        orientation.check(template, data.flip(-1), T)
+
+
+def test_opposite_angles_2d_names_imod(caplog):
+    """Data of the angles -theta given with theta (IMOD's sense read as indreg's)."""
+    template, _, T = problem_2d()
+    domain = T.domain
+    angles = T.geometry.angles
+    T_neg = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=-angles, det_count=68))
+    data = T_neg(phantoms.get("shepp_logan", domain) + (template - phantoms.get("shepp_logan_template", domain)))
+    level, message = orientation.verdict(orientation.scores(template, data, T))
+    assert level == "refuse" and "the angles in the opposite sense" in message.split(" at ")[1]
+    assert "convention=imod" in message and "\n" not in message
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        orientation.check(template, data, T, mode="warn")
+    assert "the data were probably read wrongly" in caplog.text
+
+
+@pytest.mark.parametrize("wrong", list(WRONG_3D))
+def test_wrong_3d_readings_are_named(wrong, caplog):
+    template, data, T = problem_3d()
+    table = orientation.scores(template, WRONG_3D[wrong](data), T)
+    level, message = orientation.verdict(table)
+    assert level in ("warn", "refuse") and wrong in message.split(" at ")[1].split(" (")[0]
+
+
+def test_register_runs_the_probe_and_its_modes(caplog):
+    template, data, T = problem_2d()
+    with pytest.raises(ValueError, match="reverse the detector bins"):
+        indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2)
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        r = indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2, orientation="warn")
+    assert r.iterations == 1 and "reverse the detector bins" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2, orientation="off")
+    assert "read wrongly" not in caplog.text
+    with pytest.raises(ValueError, match="orientation"):
+        indreg.register(template, data, T, max_iter=1, orientation="sometimes")
+
+
+def test_unrelated_template_says_nothing():
+    """A template that fits no reading (random) is left to the poor-fit warning: no verdict."""
+    _, data, T = problem_2d()
+    noise = torch.from_numpy(np.random.default_rng(0).uniform(size=T.domain.shape))
+    assert orientation.verdict(orientation.scores(noise, data, T))[0] == ""
