@@ -252,6 +252,8 @@ def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=N
     ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any."""
     scores = {}
     for name in _distinct():
+        if picture and CONVENTIONS[name].angle_sense < 0:   # no tool of the other sense writes pictures: a picture
+            continue                                         # upside down is flip_hint's
         score = _fit(stored_f, stored_g, np.asarray(radians), name, half_width, det_min, det_max, picture)
         if score is not None:
             scores[name] = score
