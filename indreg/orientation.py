@@ -37,16 +37,17 @@ log = logging.getLogger("indreg")
 
 #: A reading whose fit exceeds the data-as-given's by this much is named in a warning ...
 WARN = 0.05
-#: ... and by this much refused (measured, scripts/orientation_probes.py: the right reading of every probe case
-#: scores within 0.012 of the best reading, the wrong ones lose 0.13 (a 3D stack turned by 180 degrees) to 0.64 (a
-#: 2D detector reversed); docs/reliability.md).
-REFUSE = 0.25
+#: ... and by this much refused (measured, scripts/orientation_probes.py: the right reading of every probe case and
+#: every preset scores within 0.005 of the best reading; the wrong ones lose 0.13 (a 3D stack turned by 180 degrees:
+#: a warning) to 0.25 (a 2D detector reversed, angles in the opposite sense: refused); docs/reliability.md).
+REFUSE = 0.2
 #: A reading is named only when its fit is at least this (a template that fits no reading says nothing).
 MIN_FIT = 0.3
 #: Readings within this of the best are named with it (they cannot be told apart on these data).
 TIE = 0.02
-#: The blur before the gradients, in bins (a Gaussian's standard deviation along the detector).
-BLUR = 1.0
+#: The blurs before the gradients, in bins (a Gaussian's standard deviation along the detector): the one whose best
+#: reading fits best is taken (noise-free data: 1 bin; the paper's noisy suites: 4).
+BLUR = (1.0, 4.0)
 #: ``orientation=``: ``check`` (warn, refuse a large margin), ``warn`` (warn only), ``off``.
 MODES = ("check", "warn", "off")
 
@@ -109,39 +110,43 @@ def readings(operator, data_shape: tuple) -> list:
     return out
 
 
-def _blur(g: torch.Tensor) -> torch.Tensor:
-    """A Gaussian blur of :data:`BLUR` bins along the last axis (zero padding)."""
-    r = max(1, math.ceil(3 * BLUR))
+def _blur(g: torch.Tensor, width: float) -> torch.Tensor:
+    """A Gaussian blur of ``width`` bins along the last axis (zero padding)."""
+    r = max(1, math.ceil(3 * width))
     x = torch.arange(-r, r + 1, dtype=g.dtype, device=g.device)
-    w = torch.exp(-x ** 2 / (2 * BLUR ** 2))
+    w = torch.exp(-x ** 2 / (2 * width ** 2))
     flat = g.reshape(-1, 1, g.shape[-1])
     return torch.nn.functional.conv1d(flat, (w / w.sum()).view(1, 1, -1), padding=r).reshape(g.shape)
 
 
-def _gradients(g: torch.Tensor) -> torch.Tensor:
+def _gradients(g: torch.Tensor, width: float) -> torch.Tensor:
     """The differences of the blurred data along the detector and along the axis before it, as one vector."""
-    g = _blur(g.double())
+    g = _blur(g.double(), width)
     return torch.cat([g.diff(dim=-1).flatten(), g.diff(dim=-2).flatten()])
 
 
-def _correlation(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = _gradients(a), _gradients(b)
+def _correlation(a: torch.Tensor, b: torch.Tensor, width: float = BLUR[0]) -> float:
+    a, b = _gradients(a, width), _gradients(b, width)
     a, b = a - a.mean(), b - b.mean()
     norm = float(a.norm() * b.norm())
     return float(a @ b) / norm if norm > 0 else 0.0
 
 
 def scores(template: torch.Tensor, data: torch.Tensor, operator) -> dict:
-    """``{reading name: (correlation, Reading)}`` of the template's projection with the data under each reading."""
-    out = {}
+    """``{reading name: (correlation, Reading)}`` of the template's projection with the data under each reading, at
+    the blur of :data:`BLUR` whose best reading fits best (noisy data: the wider one)."""
+    tables = []
     with torch.no_grad():
         projections = {}
+        pairs = []
         for r in readings(operator, tuple(data.shape)):
             key = r.template if r.template is not _same else None
             if key not in projections:
                 projections[key] = operator(r.template(template))
-            out[r.name] = (_correlation(projections[key], r.data(data)), r)
-    return out
+            pairs.append((r, projections[key], r.data(data)))
+        for width in BLUR:
+            tables.append({r.name: (_correlation(p, g, width), r) for r, p, g in pairs})
+    return max(tables, key=lambda t: max(v for v, _ in t.values()))
 
 
 def verdict(table: dict) -> tuple:

@@ -116,14 +116,49 @@ def probe(kwargs: dict, options: dict, register: bool) -> dict:
     return out
 
 
+def presets(size2d: int, size3d: int) -> None:
+    """The probe's table and verdict on every preset's data (at ``size2d`` / ``size3d`` cells a side)."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    from indreg.experiments import register, sources
+
+    names = sorted(p.stem for p in (Path(register.CONFIG_DIR) / "experiment").glob("*.yaml"))
+    for name in names:
+        with initialize_config_dir(version_base="1.3", config_dir=str(register.CONFIG_DIR), job_name="probe"):
+            cfg = compose(register._CONFIG_NAME, overrides=[f"experiment={name}"])
+        if cfg.data.source == "phantom":
+            with initialize_config_dir(version_base="1.3", config_dir=str(register.CONFIG_DIR), job_name="probe"):
+                three = cfg.phantom.get("ndim", 2) == 3
+                extra = [f"phantom.size={size3d if three else size2d}"]
+                extra += ["phantom.thickness=null", "phantom.rows=null"] if three else []
+                try:
+                    cfg = compose(register._CONFIG_NAME, overrides=[f"experiment={name}", *extra])
+                except Exception:   # noqa: BLE001  (a preset without these keys: as it is)
+                    cfg = compose(register._CONFIG_NAME, overrides=[f"experiment={name}", extra[0]])
+        data = sources.load(cfg)
+        if not data.template_known:
+            print(f"preset {name}: template unknown, no probe")
+            continue
+        op = data.operator
+        table = orientation.scores(data.template_64, data.data_64, op)
+        level, _ = orientation.verdict(table)
+        print(f"preset {name} {tuple(data.template_64.shape)}: verdict {level or 'none'} | "
+              f"{ {k: round(v, 3) for k, (v, _) in table.items()} }", flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--register", action="store_true", help="run the registrations too (minutes)")
     p.add_argument("--size3d", type=int, default=32)
     p.add_argument("--iter3d", type=int, default=40)
     p.add_argument("--iter2d", type=int, default=200)
+    p.add_argument("--presets", action="store_true", help="the probe on every preset's data instead")
     a = p.parse_args()
     torch.set_num_threads(1)
+    if a.presets:
+        return presets(64, 32)
     opts2 = dict(sigma=3.0, gamma=1e-6, step_size=0.02, max_iter=a.iter2d)
     opts3 = dict(sigma=3.0, gamma=1e-6, step_size=0.1, max_iter=a.iter3d, num_steps=10, interpolation="compose",
                  dtype="float32")
