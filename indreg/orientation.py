@@ -16,8 +16,9 @@ few iterations' projections.
 Readings (:func:`readings`): every operator is probed for a reversed detector (the data's last axis flipped); a 2D
 parallel-beam ``RayTransform`` and a ``TiltSeriesTransform`` also for the opposite sense of the angles (``theta ->
 -theta`` is the template mirrored along the second axis of the plane of rotation: exact on a domain centred in
-it) and a tilt series for its stack turned by 180 degrees (rows and columns reversed) and, with square
-projections, by 90 degrees. Other operators (fan beam, composed, user-defined): the detector alone.
+it), a 2D one (square) for its template turned by 90 degrees either way or transposed (an array stored as
+displayed, or as an MRC section, read as indreg's), and a tilt series for its stack turned by 180 degrees (rows and
+columns reversed) and, with square projections, by 90 degrees. Other operators (fan beam, composed, user-defined): the detector alone.
 
 Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
 ``indreg.run.setup``); the angles on the first data axis, detector columns on the last.
@@ -97,7 +98,7 @@ def readings(operator, data_shape: tuple) -> list:
     if t is None:
         out.append(Reading("the angles in the opposite sense and the detector reversed", mirror,
                            lambda g: g.flip(-1), f"{negate} and reverse the detector bins"))
-        return out
+        return out + (_turns() if operator.domain.shape[0] == operator.domain.shape[1] else [])
     out.append(Reading("the stack turned by 180 degrees", _same, lambda g: g.flip(-1, -2),
                        "turn the stack by 180 degrees: add 180 to the tilt-axis angle (geometry.tilt_axis_angle / "
                        "tilt_axis_angle)"))
@@ -108,6 +109,19 @@ def readings(operator, data_shape: tuple) -> list:
                                f"turn the stack by {90 * sign:+d} degrees: subtract {90 * sign} from the tilt-axis "
                                "angle (geometry.tilt_axis_angle / tilt_axis_angle)"))
     return out
+
+
+def _turns() -> list:
+    """The 2D template turned or transposed: an array stored as displayed, or as an MRC section, read as indreg's."""
+    return [Reading("the template turned by -90 degrees", lambda f: f.rot90(-1, (-2, -1)), _same,
+                    "the template is probably stored as displayed (rows = y top-down, as ASTRA, scikit-image and "
+                    "TomoPy hold images): data.convention=astra / skimage / tomopy (convention= in indreg.load), or "
+                    "np.rot90(template, -1)"),
+            Reading("the template turned by +90 degrees", lambda f: f.rot90(1, (-2, -1)), _same,
+                    "turn the template: np.rot90(template)"),
+            Reading("the template transposed", lambda f: f.transpose(-2, -1), _same,
+                    "the template is probably an MRC section (rows = y bottom-up): data.convention=imod (convention= "
+                    "in indreg.load), or template.T")]
 
 
 def _blur(g: torch.Tensor, width: float) -> torch.Tensor:
@@ -166,18 +180,17 @@ def verdict(table: dict) -> tuple:
     return ("refuse" if best - own > REFUSE else "warn"), message
 
 
-def check(template, data, operator, mode: str = "check", key: str = "orientation") -> dict:
+def check(template, data, operator, mode: str = "check", key: str = "orientation") -> str:
     """Probe (``mode`` in :data:`MODES`): log a warning, or raise ``ValueError`` (``mode="check"`` and a margin above
-    :data:`REFUSE`) naming ``key`` to override; returns ``{reading: correlation}`` (empty with ``mode="off"`` or no
-    template)."""
+    :data:`REFUSE`) naming ``key`` to override; returns the warning (``""``: none, ``mode="off"``, no template, a
+    time series), which the run's poor-fit report repeats (``indreg.run.poor_fit``)."""
     from .forward import TimeSeriesOperator
 
     if mode == "off" or template is None or isinstance(operator, TimeSeriesOperator):
-        return {}
-    table = scores(template, data, operator)
-    level, message = verdict(table)
+        return ""
+    level, message = verdict(scores(template, data, operator))
     if level == "refuse" and mode == "check":
         raise ValueError(f"{message} (or {key}='warn' to run anyway)")
     if level:
         log.warning("%s", message)
-    return {k: v for k, (v, _) in table.items()}
+    return message

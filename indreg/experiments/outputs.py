@@ -144,7 +144,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume)
+                     trajectory=not volume, orientation=exp.setup.orientation)
     target = exp.target_64
     result = {}
     if target is not None:
