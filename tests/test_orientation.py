@@ -22,10 +22,11 @@ def problem_2d():
 
 
 def problem_3d():
-    """A 24^3 Shepp-Logan with an off-centre ball (no mirror symmetry), its swirled target's tilt series."""
+    """A 24^3 Shepp-Logan with an off-centre ball (no mirror symmetry), its swirled target's tilt series (-60..60
+    degrees in 6-degree steps)."""
     domain = indreg.ImageDomain.paper(24, ndim=3)
     x, y, z = domain.points()
-    ball = 0.8 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 4) ** 2 < 12).double()
+    ball = 1.5 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 8) ** 2 < 16).double()
     T = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry.uniform(-60, 60, 6, 24, -16.0, 16.0))
     return (phantoms.get("shepp_logan_3d", domain) + ball,
             T(phantoms.get("shepp_logan_3d_swirl", domain) + ball), T)
@@ -104,3 +105,16 @@ def test_template_turned_2d_names_the_convention():
     for stored, fix in ((template.rot90(1, (0, 1)), "data.convention=astra"), (template.T, "data.convention=imod")):
         level, message = orientation.verdict(orientation.scores(stored, data, T))
         assert level in ("warn", "refuse") and fix in message
+
+
+def test_imod_sense_3d_names_imod():
+    """A tilt series in IMOD's sense of rotation read as indreg's: the probe names the opposite sense and
+    data.convention=imod."""
+    template, _, T = problem_3d()
+    x, y, z = T.domain.points()
+    target = phantoms.get("shepp_logan_3d_swirl", T.domain) + 1.5 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 8) ** 2 < 16)
+    T_imod = indreg.TiltSeriesTransform(T.domain, indreg.TiltSeriesGeometry(-T.geometry.angles, 24, -16.0, 16.0,
+                                                                             angle_unit="rad"))
+    level, message = orientation.verdict(orientation.scores(template, T_imod(target.double()), T))
+    assert level in ("warn", "refuse") and "the angles in the opposite sense" in message.split(" at ")[1]
+    assert "data.convention=imod" in message
