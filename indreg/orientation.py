@@ -11,14 +11,15 @@ reading (raw correlations: 0.86 and 0.92 for a 3D stack turned by 180 degrees an
 a deformed template ranking the readings right. A reading better than the
 data as given by :data:`WARN` gets a warning naming the fix, by :data:`REFUSE` an error (``orientation="warn"``
 lets the run go on; ``"off"`` skips the probe). One forward projection of each mirrored template: the cost of a
-few iterations' projections.
+few iterations' projections, on at most :data:`SLICES` slices of a tilt series.
 
 Readings (:func:`readings`): every operator is probed for a reversed detector (the data's last axis flipped); a 2D
 parallel-beam ``RayTransform`` and a ``TiltSeriesTransform`` also for the opposite sense of the angles (``theta ->
 -theta`` is the template mirrored along the second axis of the plane of rotation: exact on a domain centred in
 it), a 2D one (square) for its template turned by 90 degrees either way or transposed (an array stored as
 displayed, or as an MRC section, read as indreg's), and a tilt series for its stack turned by 180 degrees (rows and
-columns reversed) and, with square projections, by 90 degrees. Other operators (fan beam, composed, user-defined): the detector alone.
+columns reversed) and, with square projections, by 90 degrees. Other operators (fan beam, composed,
+user-defined): the detector alone.
 
 Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
 ``indreg.run.setup``); the angles on the first data axis, detector columns on the last.
@@ -32,7 +33,7 @@ from typing import Callable, Optional
 
 import torch
 
-__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "MODES", "Reading", "readings", "scores", "verdict", "check"]
+__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "Reading", "readings", "scores", "verdict", "check"]
 
 log = logging.getLogger("indreg")
 
@@ -49,6 +50,8 @@ TIE = 0.02
 #: The blurs before the gradients, in bins (a Gaussian's standard deviation along the detector): the one whose best
 #: reading fits best is taken (noise-free data: 1 bin; the paper's noisy suites: 4).
 BLUR = (1.0, 4.0)
+#: A tilt series is probed on at most this many slices along its tilt axis (evenly spaced).
+SLICES = 32
 #: ``orientation=``: ``check`` (warn, refuse a large margin), ``warn`` (warn only), ``off``.
 MODES = ("check", "warn", "off")
 
@@ -146,10 +149,37 @@ def _correlation(a: torch.Tensor, b: torch.Tensor, width: float = BLUR[0]) -> fl
     return float(a @ b) / norm if norm > 0 else 0.0
 
 
+def _fewer_slices(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
+    """A tilt series of more than :data:`SLICES` slices along its tilt axis probed on that many, evenly spaced and
+    symmetric about the middle (so that a turned stack's rows are among them): ``(template, data, operator)``; other
+    problems as they are."""
+    from .domain import ImageDomain
+    from .forward import TiltSeriesGeometry, TiltSeriesTransform
+
+    if not isinstance(operator, TiltSeriesTransform):
+        return template, data, operator
+    t, n = operator.geometry.axis, operator.domain.shape[operator.geometry.axis]
+    if n <= SLICES:
+        return template, data, operator
+    half = [round(j * (n - 1) / (SLICES - 1)) for j in range(SLICES // 2)]
+    rows = torch.as_tensor(half + [n - 1 - i for i in reversed(half)], device=data.device)
+    d, g = operator.domain, operator.geometry
+    h = d.cell_sides[t]
+    shape = tuple(SLICES if a == t else m for a, m in enumerate(d.shape))
+    lo = tuple(-h * SLICES / 2 if a == t else x for a, x in enumerate(d.min_pt))
+    hi = tuple(h * SLICES / 2 if a == t else x for a, x in enumerate(d.max_pt))
+    s = g.slice_geometry
+    small = TiltSeriesTransform(ImageDomain(shape, lo, hi), TiltSeriesGeometry(
+        s.angles, s.det_count, s.det_min, s.det_max, g.tilt_axis, angle_unit="rad", angle_weights=s.angle_weights))
+    k = template.dim() - 3 + t
+    return template.index_select(k, rows.to(template.device)), data.index_select(data.dim() - 2, rows), small
+
+
 def scores(template: torch.Tensor, data: torch.Tensor, operator) -> dict:
     """``{reading name: (correlation, Reading)}`` of the template's projection with the data under each reading, at
     the blur of :data:`BLUR` whose best reading fits best (noisy data: the wider one)."""
     tables = []
+    template, data, operator = _fewer_slices(template, data, operator)
     with torch.no_grad():
         projections = {}
         pairs = []

@@ -156,7 +156,8 @@ def test_skimage_files_without_the_convention_name_it(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="indreg"):
         indreg.load(tmp_path / "t.npy", tmp_path / "st.npy", angles=THETA)
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
-    assert len(warned) == 1 and "probably follow skimage" in warned[0] and "with the sinogram's axes swapped" in warned[0]
+    assert len(warned) == 1 and "probably follow skimage" in warned[0]
+    assert "with the sinogram's axes swapped" in warned[0]
 
 
 def test_orientation_warning_names_imod(tmp_path, caplog):

@@ -118,3 +118,28 @@ def test_imod_sense_3d_names_imod():
     level, message = orientation.verdict(orientation.scores(template, T_imod(target.double()), T))
     assert level in ("warn", "refuse") and "the angles in the opposite sense" in message.split(" at ")[1]
     assert "data.convention=imod" in message
+
+
+def test_poor_fit_repeats_the_probe():
+    """A finished run after a probe warning is a poor fit whatever its residual; a failed one is not."""
+    from indreg.run import poor_fit
+
+    assert poor_fit("completed", 0.01, 0.01, [], None, "read as X").startswith(
+        "poor fit: the run fitted data that were probably read wrongly (read as X)")
+    assert poor_fit("failed", 0.01, 0.01, [], None, "read as X") == ""
+    assert poor_fit("completed", 0.01, 0.01, [], None, "") == ""
+
+
+def test_a_long_tilt_axis_is_probed_on_fewer_slices():
+    """A tilt series of 80 slices along its axis is probed on 32 (the sub-problem is the problem's rows exactly,
+    symmetric about the middle), and still names a turned stack."""
+    domain = indreg.ImageDomain((16, 80, 16), (-16.0, -80.0, -16.0), (16.0, 80.0, 16.0))
+    T = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry.uniform(-60, 60, 10, 16, -16.0, 16.0))
+    f = torch.from_numpy(np.random.default_rng(3).uniform(size=domain.shape))
+    small_f, small_g, small_T = orientation._fewer_slices(f, T(f), T)
+    assert small_f.shape[1] == small_g.shape[-2] == orientation.SLICES
+    torch.testing.assert_close(small_T(small_f), small_g, rtol=1e-10, atol=1e-10)
+    x, y, z = domain.points()
+    f = (x ** 2 / 100 + (y - 30) ** 2 / 900 + z ** 2 / 64 < 1).double() + ((x - 5) ** 2 + (y + 40) ** 2 < 30).double()
+    assert orientation.verdict(orientation.scores(f, T(f).flip(-1, -2), T))[0] in ("warn", "refuse")
+    assert orientation.verdict(orientation.scores(f, T(f), T))[0] == ""
