@@ -27,9 +27,10 @@ Convention:
     - ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
       (``indreg.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
       series takes ``indreg`` or ``imod`` (IMOD's stack layout is indreg's; ``imod`` negates the angles, IMOD's
-      sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as ``fraction`` of their full
-      scale (default) or ``raw``. The log says how each file was read and warns when the template's projection
-      fits the data better read another way (:func:`indreg.conventions.orientation_hint`).
+      sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as
+      ``fraction`` of their full scale (default) or ``raw``. The log says how each file was read and warns when the
+      template's projection fits the data better read another way (:func:`indreg.conventions.orientation_hint`;
+      the readings no convention makes are probed before the run: ``indreg.orientation``).
     - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
       agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
       tilt series gets columns as wide as the voxels, centred on the tilt axis.

@@ -33,7 +33,8 @@ from typing import Callable, Optional
 
 import torch
 
-__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "Reading", "readings", "scores", "verdict", "check"]
+__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "Reading", "readings", "scores", "verdict",
+           "check"]
 
 log = logging.getLogger("indreg")
 

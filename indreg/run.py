@@ -336,8 +336,8 @@ class RegistrationResult:
     non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
     ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
     ``background``), what was measured (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale``
-    of the relative options. ``ssim`` / ``psnr`` only with a target, in its units: the template's as given (the
-    reconstruction divided by ``template_scale``, ``Units.to_target_units``). ``holdout`` (with ``holdout=``):
+    of the relative options. ``ssim`` / ``psnr`` only with a target, in its units: the data's, or the template's as
+    given (the reconstruction divided by ``template_scale``: ``Units.locate_target``). ``holdout`` (with ``holdout=``):
     ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
