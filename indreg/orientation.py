@@ -13,13 +13,14 @@ data as given by :data:`WARN` gets a warning naming the fix, by :data:`REFUSE` a
 lets the run go on; ``"off"`` skips the probe). One forward projection of each mirrored template: the cost of a
 few iterations' projections, on at most :data:`SLICES` slices of a tilt series.
 
-Readings (:func:`readings`): every operator is probed for a reversed detector (the data's last axis flipped); a 2D
+Readings (:func:`readings`): an operator with a ``geometry`` (indreg's ray transforms) is probed for a reversed
+detector (the data's last axis flipped); a 2D
 parallel-beam ``RayTransform`` and a ``TiltSeriesTransform`` also for the opposite sense of the angles (``theta ->
 -theta`` is the template mirrored along the second axis of the plane of rotation: exact on a domain centred in
 it), a 2D one (square) for its template turned by 90 degrees either way or transposed (an array stored as
 displayed, or as an MRC section, read as indreg's), and a tilt series for its stack turned by 180 degrees (rows and
-columns reversed) and, with square projections, by 90 degrees. Other operators (fan beam, composed,
-user-defined): the detector alone.
+columns reversed) and, with square projections, by 90 degrees. A fan beam: the detector alone; other operators
+(composed, user-defined): not probed.
 
 Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
 ``indreg.run.setup``); the angles on the first data axis, detector columns on the last.
@@ -87,9 +88,11 @@ def _plane(operator) -> Optional[tuple]:
 
 def readings(operator, data_shape: tuple) -> list:
     """The readings probed for ``operator`` (module docstring); the first is the data as given."""
-    out = [Reading("as given", _same, _same, ""),
-           Reading("the detector reversed", _same, lambda g: g.flip(-1),
-                   "reverse the detector bins (np.flip(data, -1))")]
+    out = [Reading("as given", _same, _same, "")]
+    if getattr(operator, "geometry", None) is None or len(data_shape) < 2:   # not a ray transform: no detector
+        return out
+    out.append(Reading("the detector reversed", _same, lambda g: g.flip(-1),
+                       "reverse the detector bins (np.flip(data, -1))"))
     plane = _plane(operator)
     if plane is None:
         return out
@@ -217,7 +220,8 @@ def check(template, data, operator, mode: str = "check", key: str = "orientation
     time series), which the run's poor-fit report repeats (``indreg.run.poor_fit``)."""
     from .forward import TimeSeriesOperator
 
-    if mode == "off" or template is None or isinstance(operator, TimeSeriesOperator):
+    if mode == "off" or template is None or isinstance(operator, TimeSeriesOperator) \
+            or len(readings(operator, tuple(data.shape))) == 1:
         return ""
     level, message = verdict(scores(template, data, operator))
     if level == "refuse" and mode == "check":
