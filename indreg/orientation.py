@@ -113,8 +113,8 @@ def readings(operator, data_shape: tuple) -> list:
         for sign in (1, -1):
             out.append(Reading(f"the stack turned by {90 * sign:+d} degrees",
                                _same, lambda g, s=sign: g.rot90(s, (-2, -1)),
-                               f"turn the stack by {90 * sign:+d} degrees: subtract {90 * sign} from the tilt-axis "
-                               "angle (geometry.tilt_axis_angle / tilt_axis_angle)"))
+                               f"turn the stack: add {90 * sign:+d} degrees to the tilt-axis angle "
+                               "(geometry.tilt_axis_angle / tilt_axis_angle)"))
     return out
 
 
