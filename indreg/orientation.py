@@ -10,8 +10,9 @@ the gradients see the edges that tell the readings apart, where the smooth envel
 reading (raw correlations: 0.86 and 0.92 for a 3D stack turned by 180 degrees and turned back), and the blur keeps
 a deformed template ranking the readings right. A reading better than the
 data as given by :data:`WARN` gets a warning naming the fix, by :data:`REFUSE` an error (``orientation="warn"``
-lets the run go on; ``"off"`` skips the probe). One forward projection of each mirrored template: the cost of a
-few iterations' projections, on at most :data:`SLICES` slices of a tilt series.
+lets the run go on; ``"off"`` skips the probe). One forward projection of each mirrored or turned template (less
+than one iteration: 0.68 and 0.85 of one on docs/reliability.md's 2D and 3D cases), on at most :data:`SLICES`
+slices of a tilt series.
 
 Readings (:func:`readings`): an operator with a ``geometry`` (indreg's ray transforms) is probed for a reversed
 detector (the data's last axis flipped); a 2D
