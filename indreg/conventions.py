@@ -13,9 +13,12 @@ Convention:
       (rows = y from the bottom up, MRC sections as IMOD shows them: ``f = a.T``). Pictures (``.png``, ``.tif``)
       are always read as displayed, whatever the convention.
     - ``sinogram``: ``"angle_bin"`` (rows = angles) or ``"bin_angle"`` (columns = angles: transposed).
-    - ``angle_offset`` (degrees): indreg's angle = the tool's angle + ``angle_offset`` (0 for every tool here: none
-      reverses the sense of rotation or the bins; kept for other tools).
-    - ``pixel_units``: the data are line integrals in pixels (multiplied by the pixel side ``h`` on reading).
+    - ``angle_sense`` and ``angle_offset`` (degrees): indreg's angle = ``angle_sense`` x the tool's angle +
+      ``angle_offset``. ``angle_sense = -1`` for IMOD: its ``tilt`` projects the point ``(x, z)`` of a section to
+      ``x cos b - z sin b`` (docs/file_formats.md, "IMOD's projection convention"), indreg to ``x cos t + z sin t``;
+      ``angle_offset`` is 0 for every tool here (kept for other tools).
+    - ``pixel_units``: the data are line integrals in pixels, i.e. pixel sums (multiplied by the pixel side ``h`` on
+      reading).
     - ``bins``: the detector when ``det_min`` / ``det_max`` are not given: ``"fit"`` (indreg fits it to the
       domain), ``"middle"`` (one pixel a bin, centred on the rotation axis) or ``"index"`` (one pixel a bin, bin
       ``D // 2`` on the rotation axis, which is the image's pixel ``n // 2`` in rows and columns: the domain is
@@ -50,6 +53,7 @@ class Convention:
     name: str
     image: str = "xy"
     sinogram: str = "angle_bin"
+    angle_sense: float = 1.0
     angle_offset: float = 0.0
     pixel_units: bool = False
     bins: str = "fit"
@@ -66,8 +70,9 @@ CONVENTIONS = {c.name: c for c in (
     Convention("tomopy", image="displayed", pixel_units=True, bins="middle",
                source="tomopy.project / recon: ASTRA's (libtomo calc_coords: rays along (cos, sin) of the slice's "
                       "(row, column) axes, bins along (-sin, cos), centre = det_count / 2)"),
-    Convention("imod", image="yx", bins="middle",
-               source="IMOD / MRC: sections (Y, X) with Y up, one row of a tilt series, tilt axis centred"),
+    Convention("imod", image="yx", angle_sense=-1.0, pixel_units=True, bins="middle",
+               source="IMOD / MRC: sections (Y, X) with Y up, one row of a tilt series, tilt axis centred; tilt's "
+                      "projection x cos b - z sin b (flib/tilt/tilt.f90: sinBeta = -sin), pixel sums"),
 )}
 
 
@@ -121,13 +126,15 @@ def sinogram_from_indreg(g: np.ndarray, convention, h: float = 1.0) -> np.ndarra
 
 
 def angles_to_indreg(radians: np.ndarray, convention) -> np.ndarray:
-    """The tool's angles (radians) as indreg's: ``+ angle_offset``."""
-    return np.asarray(radians, dtype=np.float64) + math.radians(get_convention(convention).angle_offset)
+    """The tool's angles (radians) as indreg's: ``angle_sense * angle + angle_offset``."""
+    c = get_convention(convention)
+    return c.angle_sense * np.asarray(radians, dtype=np.float64) + math.radians(c.angle_offset)
 
 
 def angles_from_indreg(radians: np.ndarray, convention) -> np.ndarray:
     """The inverse of :func:`angles_to_indreg`."""
-    return np.asarray(radians, dtype=np.float64) - math.radians(get_convention(convention).angle_offset)
+    c = get_convention(convention)
+    return (np.asarray(radians, dtype=np.float64) - math.radians(c.angle_offset)) / c.angle_sense
 
 
 # --- domain and detector ----------------------------------------------------------------------------------------
@@ -171,6 +178,8 @@ def describe_sinogram(convention) -> str:
     """How a sinogram was read, for the loader's message."""
     c = get_convention(convention)
     parts = ["(bins, angles), transposed" if c.sinogram == "bin_angle" else "rows = angles, columns = bins"]
+    if c.angle_sense < 0:
+        parts.append("angles negated (the opposite sense of rotation)")
     if c.angle_offset:
         parts.append(f"angles + {c.angle_offset:g} degrees")
     if c.pixel_units:
@@ -184,6 +193,9 @@ def describe_sinogram(convention) -> str:
 
 #: A convention whose reading fits the data better by this much correlation is named in a warning.
 MARGIN = 0.1
+#: Readings within this correlation of the best are named with it (ASTRA's picture and IMOD's section with its
+#: angles are one reading: the displayed picture is the section mirrored, and the mirror negates the angles).
+TIE = 0.01
 #: The check runs on at most this many pixels a side and angles (block means, evenly chosen rows): milliseconds.
 CHECK_PIXELS, CHECK_ANGLES = 64, 18
 
@@ -199,7 +211,7 @@ def _distinct() -> dict:
     """One convention per distinct reading (``odl`` reads as ``indreg``, ``tomopy`` as ``astra``): ``{first: names}``."""
     groups: dict = {}
     for c in CONVENTIONS.values():
-        key = (c.image, c.sinogram, c.angle_offset, c.pixel_units, c.bins)
+        key = (c.image, c.sinogram, c.angle_sense, c.angle_offset, c.pixel_units, c.bins)
         groups.setdefault(key, []).append(c.name)
     return {names[0]: names for names in groups.values()}
 
@@ -240,6 +252,8 @@ def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=N
     ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any."""
     scores = {}
     for name in _distinct():
+        if picture and CONVENTIONS[name].angle_sense < 0:   # no tool of the other sense writes pictures: a picture
+            continue                                         # upside down is flip_hint's
         score = _fit(stored_f, stored_g, np.asarray(radians), name, half_width, det_min, det_max, picture)
         if score is not None:
             scores[name] = score
@@ -253,7 +267,8 @@ def orientation_hint(scores: dict, current) -> str | None:
     best = max(scores, key=lambda name: scores[name][0], default=own)
     if own not in scores or best == own or scores[best][0] < scores[own][0] + MARGIN:
         return None
-    names = " or ".join(_distinct()[best])
+    tied = [name for name in scores if scores[name][0] >= scores[best][0] - TIE]   # no telling them apart here
+    names = " or ".join(n for name in sorted(tied, key=lambda k: -scores[k][0]) for n in _distinct()[name])
     listed = ", ".join(f"{name} {value:.2f}" for name, (value, _) in sorted(scores.items(), key=lambda kv: -kv[1][0]))
     layout = "(bins, angles)" if CONVENTIONS[best].sinogram == "bin_angle" else "(angles, bins)"
     swapped = f", with the sinogram's axes swapped ({best}'s is {layout})" if scores[best][1] else ""

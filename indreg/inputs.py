@@ -26,9 +26,11 @@ Convention:
       data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
     - ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
       (``indreg.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
-      series takes ``indreg`` (= ``imod``). ``integer_scale``: 8- / 16-bit pictures as ``fraction`` of their full
-      scale (default) or ``raw``. The log says how each file was read and warns when the template's projection
-      fits the data better read another way (:func:`indreg.conventions.orientation_hint`).
+      series takes ``indreg`` or ``imod`` (IMOD's stack layout is indreg's; ``imod`` negates the angles, IMOD's
+      sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as
+      ``fraction`` of their full scale (default) or ``raw``. The log says how each file was read and warns when the
+      template's projection fits the data better read another way (:func:`indreg.conventions.orientation_hint`;
+      the readings no convention makes are probed before the run: ``indreg.orientation``).
     - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
       agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
       tilt series gets columns as wide as the voxels, centred on the tilt axis.
@@ -63,7 +65,8 @@ GEOMETRIES = ("parallel", "fan_flat", "tilt_series")
 NAMES = {key: key for key in ("template", "data", "target", "geometry", "angles", "angle_unit", "half_width",
                               "num_angles", "det_count", "tilt_axis", "tilt_axis_angle", "convention",
                               "integer_scale")}
-#: Conventions with a meaning beyond the 2D parallel beam: a tilt series (IMOD's layout is indreg's), a fan beam.
+#: Conventions with a meaning beyond the 2D parallel beam: a tilt series (IMOD's layout is indreg's, its angles
+#: the opposite sense), a fan beam.
 _CONVENTIONS_3D = ("indreg", "imod")
 _CONVENTIONS_FAN = ("indreg", "odl")
 
@@ -145,8 +148,14 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
         h = domain.cell_sides[0]
         g, radians = conventions.sinogram_units(g, conv, h), conventions.angles_to_indreg(radians, conv)
         det_min, det_max = conventions.detector_for(conv, g.shape[-1], h, det_min, det_max)
+    if ndim == 3:   # imod: IMOD's sense of rotation and pixel sums (docs/file_formats.md)
+        h = domain.cell_sides[1 if tilt_axis == "x" else 0]
+        g, radians = conventions.sinogram_units(g, conv, h), conventions.angles_to_indreg(radians, conv)
+        if conv.name != "indreg":
+            log.info("%s: %s", _where(key["data"], data), conventions.describe_sinogram(conv).replace(
+                "rows = angles, columns = bins", "(tilts, rows, columns) as stored"))
     if ndim == 3 and det_min is None and det_max is None:   # measured data: columns as wide as the voxels
-        det_max = g.shape[2] * domain.cell_sides[1 if tilt_axis == "x" else 0] / 2
+        det_max = g.shape[2] * h / 2
         det_min = -det_max
     try:
         T = make_operator(domain, make_geometry(geometry, g.shape[-1], angles=torch.as_tensor(radians), det_min=det_min,

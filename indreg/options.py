@@ -231,6 +231,10 @@ INPUTS = (
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
            "a number", Optional[Any]),
+    Option("orientation", "data", "orientation", "check", choice(("check", "warn", "off")),
+           "the orientation probe before the run (indreg.orientation): 'check' (a warning when the template's "
+           "projection fits the data clearly better read another way: detector reversed, angles in the opposite "
+           "sense, a stack turned; an error when by far), 'warn' (a warning only) or 'off'", str),
     Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
            "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "
            "angle of a tilt series), re-estimated against the reconstruction's projection (docs/alignment.md)", str),

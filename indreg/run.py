@@ -90,13 +90,15 @@ def _make_solver(problem, o: dict, solver_options: dict):
 @dataclass
 class Setup:
     """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
-    did to the inputs, and ``validation``: the held-out angles (``indreg.validation.Validation``) when ``holdout``
-    is set, else None."""
+    did to the inputs, ``validation``: the held-out angles (``indreg.validation.Validation``) when ``holdout``
+    is set, else None, and ``orientation``: the orientation probe's warning (``indreg.orientation.check``), ``""``
+    for none."""
     problem: object
     solver: object
     options: dict
     units: Units = field(default_factory=Units)
     validation: object = None
+    orientation: str = ""
 
 
 def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
@@ -107,7 +109,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from . import alignment, intensity
+    from . import alignment, intensity, orientation
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
@@ -141,6 +143,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
+    if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
+        units.locate_target(template, o["target"])
+    probe = orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))
     aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
                                            o["align_gauge"], o["align_interpolation"])
     full_data, validation = data, None
@@ -156,7 +161,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     problem, solver_options = model.make(operator, template, data, kernel, o)
     solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
     solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
-    return Setup(problem, solver, o, units, validation)
+    return Setup(problem, solver, o, units, validation, probe)
 
 
 def initial_state(problem):
@@ -346,7 +351,8 @@ class RegistrationResult:
     non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
     ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
     ``background``), what was measured (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale``
-    of the relative options. ``ssim`` / ``psnr`` only with a target. ``holdout`` (with ``holdout=``):
+    of the relative options. ``ssim`` / ``psnr`` only with a target, in its units: the data's, or the template's as
+    given (the reconstruction divided by ``template_scale``: ``Units.locate_target``). ``holdout`` (with ``holdout=``):
     ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
@@ -417,10 +423,17 @@ def final_status(status: str, residual: float) -> str:
     return status
 
 
-def poor_fit(status: str, residual: float, noise: float, history: list, held_out: Optional[float] = None) -> str:
+def poor_fit(status: str, residual: float, noise: float, history: list, held_out: Optional[float] = None,
+             orientation: str = "") -> str:
     """The poor-fit warning of a finished run (:data:`POOR_FIT`), ``""`` for none; the larger of the fitted and the
-    ``held_out`` residual counts. The status stays what it was: the warning is the word that goes with it."""
-    if status not in ("completed", "converged", "stalled", "early_stopped") or len(history) <= STALL_WINDOW:
+    ``held_out`` residual counts. ``orientation``: the probe's warning before the run (``indreg.orientation``), which
+    makes any finished run a poor fit (the residual cannot tell: a mis-read run may end below the right reading's).
+    The status stays what it was: the warning is the word that goes with it."""
+    if status not in ("completed", "converged", "stalled", "early_stopped"):
+        return ""
+    if orientation:
+        return f"poor fit: the run fitted data that were probably read wrongly ({orientation})"
+    if len(history) <= STALL_WINDOW:
         return ""
     value, where = (held_out, " on the held-out angles") if held_out is not None and held_out > residual else \
         (residual, "")
@@ -434,11 +447,13 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
-                 units: Optional[Units] = None, validation=None, trajectory: bool = True) -> RegistrationResult:
+                 units: Optional[Units] = None, validation=None, trajectory: bool = True,
+                 orientation: str = "") -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
-    ``validation`` if given; ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`)."""
+    ``validation`` if given; ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
+    ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning."""
     from . import alignment
 
     units = units or Units()
@@ -455,11 +470,12 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
         problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))
     if target is not None:
-        result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
+        scored = units.to_target_units(image)   # the target's units (template_scale: maybe the template's)
+        result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)
     if validation is not None:
         result.holdout = validation.summary(image)
     result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,
-                               result.holdout.get("holdout_residual"))
+                               result.holdout.get("holdout_residual"), orientation)
     if result.poor_fit:
         log.warning("%s", result.poor_fit)
     return result

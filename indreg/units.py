@@ -67,7 +67,9 @@ class Units:
     ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
     ``T.inner_data``); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:
-    the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`)."""
+    the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`);
+    ``target_units``: ``"data"`` or ``"template"`` (as given), the units of a ground truth, where SSIM / PSNR
+    score the reconstruction (:meth:`locate_target`, :meth:`to_target_units`)."""
     template_scale: float = 1.0
     template_offset: float = 0.0
     background: float = 0.0
@@ -75,6 +77,7 @@ class Units:
     scale_fit: float = math.nan
     data_scale: float = math.nan
     noise_residual: float = math.nan
+    target_units: str = "data"
 
     def apply(self, template, data) -> tuple:
         """``(template * template_scale + template_offset, data - background)``: the only place the inputs are
@@ -82,6 +85,24 @@ class Units:
         if template is not None and (self.template_scale != 1.0 or self.template_offset != 0.0):
             template = template * self.template_scale + self.template_offset
         return template, (data - self.background if self.background != 0.0 else data)
+
+    def locate_target(self, template, target) -> None:
+        """Decide the units of a ground truth (``target_units``): the template's as given (a picture read like the
+        template) when its mean magnitude is nearer (in ratio) to the given template's than to the prepared
+        ``template``'s, else the data's."""
+        if self.template_scale == 1.0 and self.template_offset == 0.0:
+            return
+        r = float(target.double().abs().mean()) / max(float(template.double().abs().mean()), 1e-300)
+        if r > 0 and abs(math.log(r * self.template_scale)) < abs(math.log(r)):
+            self.target_units = "template"
+
+    def to_target_units(self, image):
+        """An image of the run (the data's units) in the target's (:meth:`locate_target`), where SSIM / PSNR score
+        it: ``(image - template_offset) / template_scale`` for a target in the template's units as given (the
+        inverse of :meth:`apply` on the template), else the image."""
+        if self.target_units != "template":
+            return image
+        return (image - self.template_offset) / self.template_scale
 
     def as_dict(self) -> dict:
         return asdict(self)

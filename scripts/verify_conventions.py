@@ -13,7 +13,8 @@ with data made by indreg's operator (the two should agree within 0.01).
             along (cos theta, sin theta) of the slice's axes (1, 2), bins along (-sin theta, cos theta), centred)
             on Gaussian blobs, whose line integrals are exact
     IMOD    MRC files as IMOD writes them (mrcfile): a section of ``tilt``'s reconstruction (Y, Z, X) read as a 2D
-            ``convention=imod`` problem against the tilt series' row, against the 3D loader's data
+            ``convention=imod`` problem against the tilt series' row (IMOD's sense and pixel sums), against the
+            3D ``convention=imod`` loader's data
 
 Tools that are not installed are skipped. Usage (a venv with the tools beside indreg's)::
 
@@ -174,24 +175,28 @@ def check_tomopy(folder: Path, register: bool) -> list:
 
 
 def check_imod(folder: Path, register: bool) -> list:
-    """IMOD's files: the tilt series (tilt, Y, X) of a volume and one section of ``tilt``'s unrotated
-    reconstruction (Y, Z, X), i.e. a 2D image (Z, X) with Z up; the 2D load of that section and the series' row
-    against the 3D load of the whole series (docs/tilt_series.md)."""
+    """IMOD's files: the tilt series (tilt, Y, X) of a volume as IMOD's ``tilt`` projects it (column
+    ``x cos b - z sin b``, pixel sums: indreg's operator at the angles ``-b``, divided by the pixel side, with the
+    ``.tlt`` holding ``b``) and one section of ``tilt``'s unrotated reconstruction (Y, Z, X), i.e. a 2D image (Z, X)
+    with Z up; the 2D load of that section and the series' row against the 3D ``convention=imod`` load of the whole
+    series (docs/file_formats.md, "IMOD's projection convention")."""
     mrcfile = importlib.import_module("mrcfile")
     n, j = 32, 13
     domain = indreg.ImageDomain((n, n, n), (-8.0,) * 3, (8.0,) * 3)       # volume (x, y, z), tilt axis y
+    h = domain.cell_sides[0]
     rng = np.random.default_rng(0)
     f = indreg.phantoms.get("shepp_logan", indreg.ImageDomain.paper(n)).numpy()[:, None, :] * rng.uniform(0.5, 1.5, n)[
         None, :, None] + np.where(np.arange(n)[None, None, :] < 9, 0.4, 0.0)     # (x, y, z), no mirror symmetry
-    geometry = indreg.TiltSeriesGeometry(torch.from_numpy(np.deg2rad(THETA - 60.0)), n, -8.0, 8.0, angle_unit="rad")
-    g = indreg.TiltSeriesTransform(domain, geometry)(torch.from_numpy(f)).numpy()         # (tilt, Y, X)
-    indreg.writers.write_tilt_series(folder / "ts.mrc", g, THETA - 60.0)
+    tilts = THETA - 60.0
+    geometry = indreg.TiltSeriesGeometry(torch.from_numpy(-np.deg2rad(tilts)), n, -8.0, 8.0, angle_unit="rad")
+    g = indreg.TiltSeriesTransform(domain, geometry)(torch.from_numpy(f)).numpy() / h     # (tilt, Y, X), IMOD's
+    indreg.writers.write_tilt_series(folder / "ts.mrc", g, tilts)
     with mrcfile.new(folder / "rec.mrc", overwrite=True) as mrc:
         mrc.set_data(np.ascontiguousarray(f.transpose(1, 2, 0)[j:j + 1]).astype(np.float32))   # (Y, Z, X): section j
     with mrcfile.new(folder / "row.mrc", overwrite=True) as mrc:
         mrc.set_data(np.ascontiguousarray(g[:, j:j + 1, :]).astype(np.float32))                # (tilt, 1, X)
-    three = indreg.load(f, folder / "ts.mrc", "tilt_series", half_width=8.0)
-    two, own = (indreg.load(folder / "rec.mrc", folder / "row.mrc", angles=THETA - 60.0, half_width=8.0,
+    three = indreg.load(f, folder / "ts.mrc", "tilt_series", half_width=8.0, convention="imod")
+    two, own = (indreg.load(folder / "rec.mrc", folder / "row.mrc", angles=tilts, half_width=8.0,
                             convention=name) for name in ("imod", "indreg"))
     assert np.array_equal(two.template.numpy(), f[:, j, :].astype(np.float32)), "the section is not the slice"
     return [("imod (mrcfile)", f"{n}^2 section (Z, X) of (Y, Z, X), row {j} of (tilt, Y, X)",

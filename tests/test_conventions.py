@@ -97,7 +97,7 @@ def test_tables_say_what_differs():
     assert (astra.image, astra.sinogram, astra.angle_offset, astra.bins) == ("displayed", "angle_bin", 0.0, "middle")
     assert (tomopy.image, tomopy.sinogram, tomopy.angle_offset, tomopy.pixel_units, tomopy.bins) == \
         (astra.image, astra.sinogram, astra.angle_offset, astra.pixel_units, astra.bins)      # TomoPy reads as ASTRA
-    assert (imod.image, imod.pixel_units, imod.bins) == ("yx", False, "middle")
+    assert (imod.image, imod.angle_sense, imod.pixel_units, imod.bins) == ("yx", -1.0, True, "middle")
     odl, own = CONVENTIONS["odl"], CONVENTIONS["indreg"]
     assert (odl.image, odl.sinogram, odl.angle_offset, odl.pixel_units, odl.bins) == \
         (own.image, own.sinogram, own.angle_offset, own.pixel_units, own.bins)
@@ -156,26 +156,27 @@ def test_skimage_files_without_the_convention_name_it(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="indreg"):
         indreg.load(tmp_path / "t.npy", tmp_path / "st.npy", angles=THETA)
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
-    assert len(warned) == 1 and "probably follow skimage, with the sinogram's axes swapped" in warned[0]
+    assert len(warned) == 1 and "probably follow skimage" in warned[0]
+    assert "with the sinogram's axes swapped" in warned[0]
 
 
 def test_orientation_warning_names_imod(tmp_path, caplog):
-    """An image stored transposed (rows = y, MRC's sections) read as indreg's: the warning names imod; read as
-    imod, no warning."""
+    """IMOD's files (an MRC-like section (Z, X), rows = z, and data in IMOD's sense of rotation, pixel sums) read as
+    indreg's: the warning names imod (with astra and tomopy: the same reading here); read as imod, no warning."""
     domain = indreg.ImageDomain.paper(32)
+    h = domain.cell_sides[0]
     f = indreg.phantoms.get("shepp_logan", domain).numpy() + np.where(np.arange(32)[:, None] < 8, 0.5, 0.0)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=torch.from_numpy(np.deg2rad(THETA)),
-                                                                det_count=46))
+    T_imod = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=torch.from_numpy(-np.deg2rad(THETA)),
+                                                                     det_count=46, det_min=-23 * h, det_max=23 * h))
     np.save(tmp_path / "t.npy", f.T)
-    np.save(tmp_path / "s.npy", T(torch.from_numpy(f)).numpy())
+    np.save(tmp_path / "s.npy", T_imod(torch.from_numpy(f)).numpy() / h)
     with caplog.at_level(logging.WARNING, logger="indreg"):
         indreg.load(tmp_path / "t.npy", tmp_path / "s.npy", angles=THETA)
-        assert "probably follow imod" in caplog.text and "set convention accordingly" in caplog.text
+        assert "imod" in caplog.text.split("probably follow")[1] and "set convention accordingly" in caplog.text
         caplog.clear()
-        indreg.load(tmp_path / "t.npy", tmp_path / "s.npy", angles=THETA, convention="imod")
-        np.save(tmp_path / "t.npy", f)
-        indreg.load(tmp_path / "t.npy", tmp_path / "s.npy", angles=THETA)
+        d = indreg.load(tmp_path / "t.npy", tmp_path / "s.npy", angles=THETA, convention="imod")
     assert caplog.text == ""
+    assert relative(d.operator(d.template), d.data) < 1e-6
 
 
 # --- the other tools, numerically ---------------------------------------------------------------------------------
@@ -241,27 +242,60 @@ def test_tomopy_geometry_is_indreg_operator(n):
     assert relative(d.operator(d.template), d.data) > 0.3
 
 
-def test_imod_section_is_the_tilt_series_slice(tmp_path):
-    """``convention="imod"``: a section of IMOD's unrotated reconstruction (MRC ``(Y, Z, X)``: the slice ``(Z, X)``
-    with Z up) and the same row of the tilt series ``(tilt, Y, X)`` load as the slice of the 3D reading: the 2D
-    template is the volume's slice and its data are the 3D operator's row."""
+# IMOD's projection, written from its formula (flib/tilt/tilt.f90 of IMOD: the point (x, z) of a section, in pixels
+# from the centre, lands on detector column x cos b - z sin b; the datum is a pixel sum), independent of indreg: the
+# analytic line integrals of Gaussian blobs in pixel lengths.
+BLOBS = ((0.31, -0.18, 0.05, 1.0), (-0.22, 0.27, -0.1, 0.7), (0.05, 0.12, 0.2, 0.5))   # (x, z, y) / n, amplitude
+
+
+def imod_blobs(n: int, tilts_deg: np.ndarray, width: float = 2.5) -> tuple:
+    """``(volume (x, y, z), tilt series (tilt, Y, X))`` in pixels: Gaussian blobs of ``width`` pixels sampled at the
+    pixel centres, and their projections by IMOD's formula in pixel sums (``sqrt(2 pi) width`` per unit of
+    amplitude along a ray), the tilt axis along Y, centres at ``(n - 1) / 2``."""
+    c = np.arange(n) - (n - 1) / 2
+    x, y, z = np.meshgrid(c, c, c, indexing="ij")
+    b = np.deg2rad(tilts_deg)[:, None, None]
+    rows, cols = np.meshgrid(c, c, indexing="ij")
+    f, g = np.zeros((n, n, n)), np.zeros((b.size, n, n))
+    for bx, bz, by, a in BLOBS:
+        x0, y0, z0 = bx * n, by * n, bz * n
+        f += a * np.exp(-((x - x0) ** 2 + (y - y0) ** 2 + (z - z0) ** 2) / (2 * width ** 2))
+        p0 = x0 * np.cos(b) - z0 * np.sin(b)                                    # IMOD: x cos b - z sin b
+        g += a * np.sqrt(2 * np.pi) * width * np.exp(-((cols - p0) ** 2 + (rows - y0) ** 2) / (2 * width ** 2))
+    return f, g
+
+
+def test_imod_convention_matches_imods_formula(tmp_path):
+    """``convention="imod"`` against the independent projector above: a section of IMOD's unrotated reconstruction
+    (MRC ``(Y, Z, X)``: the slice ``(Z, X)``, Z up) and the matching row of the tilt series load as a template and
+    data that indreg's operator reproduces (to the blobs' sampling), in the domain's length unit (pixel sums times
+    the pixel side ``h = 0.25``); the angles' sense or the units left as indreg's do not; the 3D reading of the whole
+    series agrees with the 2D one."""
     import mrcfile
 
-    n, j, tilts = 24, 9, THETA - 60.0
-    f = np.random.default_rng(2).uniform(size=(n, n, n)) + np.where(np.arange(n) < 7, 1.0, 0.0)   # (x, y, z)
-    domain = indreg.ImageDomain((n, n, n), (-6.0,) * 3, (6.0,) * 3)
-    T3 = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry(torch.from_numpy(np.deg2rad(tilts)), n, -6.0,
-                                                                      6.0, angle_unit="rad"))
-    g = T3(torch.from_numpy(f)).numpy()
+    n, tilts = 48, np.arange(-60.0, 61.0, 3.0)
+    f, g = imod_blobs(n, tilts)
+    j = int(round(BLOBS[0][2] * n + (n - 1) / 2))                 # the row through the first blob
     with mrcfile.new(tmp_path / "rec.mrc") as mrc:
-        mrc.set_data(np.ascontiguousarray(f.transpose(1, 2, 0)[j:j + 1]).astype(np.float32))
+        mrc.set_data(np.ascontiguousarray(f.transpose(1, 2, 0)[j:j + 1]).astype(np.float32))   # (Y, Z, X): section j
     with mrcfile.new(tmp_path / "row.mrc") as mrc:
-        mrc.set_data(np.ascontiguousarray(g[:, j:j + 1]).astype(np.float32))
-    d = indreg.load(tmp_path / "rec.mrc", tmp_path / "row.mrc", angles=tilts, half_width=6.0, convention="imod")
+        mrc.set_data(np.ascontiguousarray(g[:, j:j + 1]).astype(np.float32))                    # (tilt, 1, X)
+    half_width = n * 0.25 / 2
+    d = indreg.load(tmp_path / "rec.mrc", tmp_path / "row.mrc", angles=tilts, half_width=half_width,
+                    convention="imod")
     np.testing.assert_array_equal(d.template.numpy(), f[:, j].astype(np.float32))
-    assert relative(d.operator(d.template), g[:, j]) < 1e-6
-    own = indreg.load(tmp_path / "rec.mrc", tmp_path / "row.mrc", angles=tilts, half_width=6.0)
-    assert relative(own.operator(own.template), g[:, j]) > 0.1
+    np.testing.assert_allclose(d.data.numpy(), 0.25 * g[:, j].astype(np.float32), rtol=1e-6)
+    assert relative(d.operator(d.template), d.data) < 0.02
+    sense = indreg.load(f[:, j], 0.25 * g[:, j], angles=tilts, half_width=half_width)          # indreg's sense
+    assert relative(sense.operator(sense.template), sense.data) > 0.3
+    astra = indreg.load(tmp_path / "rec.mrc", tmp_path / "row.mrc", angles=tilts, half_width=half_width,
+                        convention="astra")       # the same reading: the section as displayed is it mirrored in z
+    assert relative(astra.operator(astra.template), astra.data) < 0.02
+    three = indreg.load(f, g, "tilt_series", angles=tilts, half_width=half_width, convention="imod")
+    assert relative(three.operator(three.template), three.data) < 0.02
+    np.testing.assert_allclose(three.data[:, j].numpy(), d.data.numpy(), rtol=1e-6)
+    own = indreg.load(f, g, "tilt_series", angles=tilts, half_width=half_width)
+    assert relative(own.operator(own.template), own.data) > 0.3
 
 
 # --- 8-bit pictures through load; bad values ----------------------------------------------------------------------

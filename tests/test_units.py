@@ -370,3 +370,17 @@ def test_template_scale_fit_needs_lddmm_with_the_geometric_action():
         with pytest.raises(ValueError, match="template_scale must be None, 'auto' or a number with model") as e:
             indreg.register(template, data, T, template_scale="fit", max_iter=1, **options)
         assert "\n" not in str(e.value)
+
+
+def test_ssim_at_255_is_scored_in_the_target_s_units():
+    """A template at x255 (``template_scale="auto"``: 1 / 255) with its ground truth read like it (also x255): SSIM /
+    PSNR score the reconstruction in the target's units and equal the x1 run's; a target in the data's units is
+    scored as it is (the same numbers)."""
+    template, data, T, target = tiny()
+    x1 = indreg.register(template, data, T, target=target, **QUICK)
+    like_template = indreg.register(255 * template, data, T, target=255 * target, template_scale="auto", **QUICK)
+    like_data = indreg.register(255 * template, data, T, target=target, template_scale="auto", **QUICK)
+    assert like_template.units.target_units == "template" and like_data.units.target_units == "data"
+    for r in (like_template, like_data):
+        assert r.ssim == pytest.approx(x1.ssim, abs=1e-6) and r.psnr == pytest.approx(x1.psnr, abs=1e-4)
+    assert metrics.ssim(like_template.deformed, 255 * target) < x1.ssim - 0.1    # what was reported before

@@ -78,6 +78,8 @@ def build(cfg: DictConfig) -> Experiment:
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
     template_64, data_64 = s.units.apply(data.template_64, data.data_64)
+    if data.target_64 is not None and data.template_known:   # SSIM / PSNR in the target's units
+        s.units.locate_target(template_64, data.target_64)
     return Experiment(data=data, setup=s, template=s.units.apply(template, g)[0], template_64=template_64,
                       noisy_data_64=data_64)
 

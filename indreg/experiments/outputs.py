@@ -37,13 +37,15 @@ log = logging.getLogger("indreg.experiments.register")
 SAVE_CHUNK = 2 ** 22
 
 
-def figures_of_merit(image, target_64, paper: bool = True) -> dict:
+def figures_of_merit(image, target_64, paper: bool = True, units=None) -> dict:
     """SSIM / PSNR against the target (data range of the target) and, for the paper's phantoms (``paper``:
     grey levels 0..1), also in the paper's convention (``ssim_paper`` / ``psnr_paper``: a fixed data range 2 / 1
-    that means nothing for other units; docs/paper_notes.md)."""
+    that means nothing for other units; docs/paper_notes.md). ``units`` (``indreg.units.Units``): the image, in
+    the run's units, is scored in the target's (``units.to_target_units``)."""
     from .. import metrics
 
     x = image.detach() if image.dim() == 3 else image.detach().to("cpu", torch.float64)   # volumes: in chunks
+    x = x if units is None else units.to_target_units(x)
     out = {"ssim": metrics.ssim(x, target_64), "psnr": metrics.psnr(x, target_64)}
     if paper:
         out.update(ssim_paper=metrics.ssim_paper(x, target_64), psnr_paper=metrics.psnr_paper(x, target_64))
@@ -149,12 +151,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume)
+                     trajectory=not volume, orientation=exp.setup.orientation)
     target = exp.target_64
     result = {}
     if target is not None:
         def fom(image):
-            return figures_of_merit(image, target, exp.paper)
+            return figures_of_merit(image, target, exp.paper, exp.units)
 
         result.update(fom(r.deformed))
         for name, image in rec.items():

@@ -127,7 +127,7 @@ class Evaluation(Callback):
             return
         deformed = loop.problem.reconstruction(loop.state.iterate)
         if exp.target_64 is not None:
-            fom = figures_of_merit(deformed, exp.target_64, exp.paper)
+            fom = figures_of_merit(deformed, exp.target_64, exp.paper, exp.units)
             self.writer.metrics(fom, it)
             self.text = f", SSIM {fom['ssim']:.4f}, PSNR {fom['psnr']:.2f}"
         self.writer.image("images/deformed_template", deformed, it)
@@ -226,7 +226,7 @@ def _run(cfg: DictConfig, output_dir) -> dict:
             writer.image(f"images/{k}", v, 0)
         writer.image("images/deformed_template", exp.template_64, 0)
         if exp.target_64 is not None:
-            writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper), 0)
+            writer.metrics(figures_of_merit(exp.template_64, exp.target_64, exp.paper, exp.units), 0)
 
     checkpoints, signals = Checkpoints(path, problem_cfg, cfg.logging.checkpoint_every), Signals()
     callbacks = StopAfter(cfg.stop_after) & signals

@@ -37,7 +37,11 @@ def test_angle_gives_the_aligned_run(raw):
 
 
 def test_axis_along_x_without_angle_is_reported(raw):
-    m = run_app(ARGS + files(raw, raw / "raw.mrc"), raw / "run")
+    """The stack turned by 90 degrees without its angle: the orientation probe refuses it naming the angle to add
+    (+90, the one that aligns it above); with data.orientation=warn the run reports the check's numbers."""
+    with pytest.raises(ConfigError, match=r"add \+90 degrees to the tilt-axis angle \(geometry.tilt_axis_angle"):
+        run_app(ARGS + files(raw, raw / "raw.mrc"), raw / "refused")
+    m = run_app(ARGS + files(raw, raw / "raw.mrc") + ["data.orientation=warn"], raw / "run")
     assert m["tilt_axis_direction"] == "columns" and m["tilt_axis_inconsistency"] > \
         2 * m["tilt_axis_inconsistency_columns"]
 

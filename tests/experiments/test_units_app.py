@@ -31,14 +31,16 @@ def unit_files(d):
 
 def test_png_template_with_data_in_other_units(tmp_path, caplog):
     """Template 0..255, data 0..1: a warning naming both numbers; ``data.template_scale=auto`` fits c,
-    takes the unit factor 1/255 and gives the registration of the example with template and data in 0..1 units."""
+    takes the unit factor 1/255 and gives the registration of the example with template and data in 0..1 units (its
+    0..255 target scored in its units: the SSIM of the 0..1 run against the 0..1 target)."""
     files = unit_files(tmp_path)
     run_app(OWN + files + ["solver.max_iter=0"], tmp_path / "plain")
     warned = [r.getMessage() for r in caplog.records if "different units" in r.getMessage()]
     assert len(warned) == 1 and "data.template_scale='auto'" in warned[0] and "0.00388" in warned[0]
     np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png"))   # 8-bit: / 255
-    ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=30"],
-                  tmp_path / "x1")
+    np.save(tmp_path / "target01.npy", np.load(DATA_DIR / "own_data_target.npy") / 255)   # the x1 run's target too
+    ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=30",
+                         f"data.target={tmp_path / 'target01.npy'}"], tmp_path / "x1")
     auto = run_app(OWN + files + ["solver.max_iter=30", "data.template_scale=auto"], tmp_path / "auto")
     assert auto["scale_fit"] == pytest.approx(0.9903 / 255, rel=1e-3) and auto["template_scale"] == pytest.approx(1 / 255)
     assert json.loads((tmp_path / "auto" / "metrics.json").read_text())["template_scale"] == auto["template_scale"]
@@ -154,3 +156,20 @@ def test_relative_weights_are_in_metrics(tmp_path):
     assert S > 0 and m["noise_residual"] > 0
     assert m["hparams"]["gamma"] == pytest.approx(1.7e-7 * S, rel=1e-6)
     assert json.loads((tmp_path / "metrics.json").read_text())["data_scale"] == S
+
+
+def test_template_and_target_at_255_score_in_the_target_s_units(tmp_path):
+    """The example's template and ground truth at 0..255 with 0..1 data (``data.template_scale=auto``): metrics.json's
+    SSIM / PSNR are the 0..1 run's (the reconstruction scored in the target's units), as is TensorBoard's and the
+    log line's (the same figures_of_merit)."""
+    files = unit_files(tmp_path)
+    np.save(tmp_path / "target255.npy", np.load(DATA_DIR / "own_data_target.npy"))
+    np.save(tmp_path / "target01.npy", np.load(DATA_DIR / "own_data_target.npy") / 255)
+    np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png"))
+    ref = run_app(OWN + [f"data.template={tmp_path / 'template01.npy'}", files[1], "solver.max_iter=10",
+                         f"data.target={tmp_path / 'target01.npy'}"], tmp_path / "x1")
+    auto = run_app(OWN + files + ["solver.max_iter=10", "data.template_scale=auto",
+                                  f"data.target={tmp_path / 'target255.npy'}"], tmp_path / "auto")
+    saved = json.loads((tmp_path / "auto" / "metrics.json").read_text())
+    assert saved["target_units"] == "template"
+    assert abs(saved["ssim"] - ref["ssim"]) < 0.005 and abs(saved["psnr"] - ref["psnr"]) < 0.1

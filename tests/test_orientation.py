@@ -1,0 +1,145 @@
+"""The orientation probe before a run (indreg.orientation): each wrong reading of a 2D and a 3D problem is named
+(warned or refused, with its fix), its right reading is silent; orientation='warn' runs anyway, 'off' skips it."""
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+import indreg
+from indreg import orientation, phantoms
+
+
+def problem_2d():
+    """A 48^2 template (suite 3's, plus an off-centre disc: no mirror symmetry) and the noise-free data of its
+    target over 0..180 degrees."""
+    domain = indreg.ImageDomain.paper(48)
+    x, y = domain.points()
+    disc = 0.6 * ((x - 7) ** 2 + (y - 4) ** 2 < 9).double()
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(num_angles=24, det_count=68))
+    template = phantoms.get("shepp_logan_template", domain) + disc
+    return template, T(phantoms.get("shepp_logan", domain) + disc), T
+
+
+def problem_3d():
+    """A 24^3 Shepp-Logan with an off-centre ball (no mirror symmetry), its swirled target's tilt series (-60..60
+    degrees in 6-degree steps)."""
+    domain = indreg.ImageDomain.paper(24, ndim=3)
+    x, y, z = domain.points()
+    ball = 1.5 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 8) ** 2 < 16).double()
+    T = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry.uniform(-60, 60, 6, 24, -16.0, 16.0))
+    return (phantoms.get("shepp_logan_3d", domain) + ball,
+            T(phantoms.get("shepp_logan_3d_swirl", domain) + ball), T)
+
+
+WRONG_2D = {"the detector reversed": lambda g: g.flip(-1),
+            "the angles in the opposite sense": lambda g: None}
+WRONG_3D = {"the stack turned by 180 degrees": lambda g: g.flip(-1, -2),
+            "the detector reversed": lambda g: g.flip(-1)}
+
+
+def test_right_readings_are_silent(caplog):
+    for template, data, T in (problem_2d(), problem_3d()):
+        with caplog.at_level(logging.WARNING, logger="indreg"):
+            assert orientation.check(template, data, T) == ""
+        table = {k: v for k, (v, _) in orientation.scores(template, data, T).items()}
+        assert caplog.text == "" and max(table.values()) - table["as given"] <= orientation.WARN
+
+
+def test_reversed_detector_2d_is_refused_naming_the_fix():
+    template, data, T = problem_2d()
+    with pytest.raises(ValueError, match=r"reverse the detector bins.*\(or orientation='warn' to run anyway\)$"):
+        orientation.check(template, data.flip(-1), T)
+
+
+def test_opposite_angles_2d_names_imod(caplog):
+    """Data of the angles -theta given with theta (IMOD's sense read as indreg's)."""
+    template, _, T = problem_2d()
+    domain = T.domain
+    angles = T.geometry.angles
+    T_neg = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=-angles, det_count=68))
+    data = T_neg(phantoms.get("shepp_logan", domain) + (template - phantoms.get("shepp_logan_template", domain)))
+    level, message = orientation.verdict(orientation.scores(template, data, T))
+    assert level == "refuse" and "the angles in the opposite sense" in message.split(" at ")[1]
+    assert "convention=imod" in message and "\n" not in message
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        orientation.check(template, data, T, mode="warn")
+    assert "the data were probably read wrongly" in caplog.text
+
+
+@pytest.mark.parametrize("wrong", list(WRONG_3D))
+def test_wrong_3d_readings_are_named(wrong, caplog):
+    template, data, T = problem_3d()
+    table = orientation.scores(template, WRONG_3D[wrong](data), T)
+    level, message = orientation.verdict(table)
+    assert level in ("warn", "refuse") and wrong in message.split(" at ")[1].split(" (")[0]
+
+
+def test_register_runs_the_probe_and_its_modes(caplog):
+    template, data, T = problem_2d()
+    with pytest.raises(ValueError, match="reverse the detector bins"):
+        indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2)
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        r = indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2, orientation="warn")
+    assert r.iterations == 1 and "reverse the detector bins" in caplog.text
+    assert r.poor_fit.startswith("poor fit: the run fitted data that were probably read wrongly")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="indreg"):
+        indreg.register(template, data.flip(-1), T, max_iter=1, num_steps=2, orientation="off")
+    assert "read wrongly" not in caplog.text
+    with pytest.raises(ValueError, match="orientation"):
+        indreg.register(template, data, T, max_iter=1, orientation="sometimes")
+
+
+def test_unrelated_template_says_nothing():
+    """A template that fits no reading (random) is left to the poor-fit warning: no verdict."""
+    _, data, T = problem_2d()
+    noise = torch.from_numpy(np.random.default_rng(0).uniform(size=T.domain.shape))
+    assert orientation.verdict(orientation.scores(noise, data, T))[0] == ""
+
+
+def test_template_turned_2d_names_the_convention():
+    """A template stored as displayed (ASTRA's, scikit-image's) read as indreg's: the turned reading is named with
+    convention=astra; stored as an MRC section: transposed, convention=imod."""
+    template, data, T = problem_2d()
+    for stored, fix in ((template.rot90(1, (0, 1)), "data.convention=astra"), (template.T, "data.convention=imod")):
+        level, message = orientation.verdict(orientation.scores(stored, data, T))
+        assert level in ("warn", "refuse") and fix in message
+
+
+def test_imod_sense_3d_names_imod():
+    """A tilt series in IMOD's sense of rotation read as indreg's: the probe names the opposite sense and
+    data.convention=imod."""
+    template, _, T = problem_3d()
+    x, y, z = T.domain.points()
+    target = phantoms.get("shepp_logan_3d_swirl", T.domain) + 1.5 * ((x - 6) ** 2 + (y + 5) ** 2 + (z - 8) ** 2 < 16)
+    T_imod = indreg.TiltSeriesTransform(T.domain, indreg.TiltSeriesGeometry(-T.geometry.angles, 24, -16.0, 16.0,
+                                                                             angle_unit="rad"))
+    level, message = orientation.verdict(orientation.scores(template, T_imod(target.double()), T))
+    assert level in ("warn", "refuse") and "the angles in the opposite sense" in message.split(" at ")[1]
+    assert "data.convention=imod" in message
+
+
+def test_poor_fit_repeats_the_probe():
+    """A finished run after a probe warning is a poor fit whatever its residual; a failed one is not."""
+    from indreg.run import poor_fit
+
+    assert poor_fit("completed", 0.01, 0.01, [], None, "read as X").startswith(
+        "poor fit: the run fitted data that were probably read wrongly (read as X)")
+    assert poor_fit("failed", 0.01, 0.01, [], None, "read as X") == ""
+    assert poor_fit("completed", 0.01, 0.01, [], None, "") == ""
+
+
+def test_a_long_tilt_axis_is_probed_on_fewer_slices():
+    """A tilt series of 80 slices along its axis is probed on 32 (the sub-problem is the problem's rows exactly,
+    symmetric about the middle), and still names a turned stack."""
+    domain = indreg.ImageDomain((16, 80, 16), (-16.0, -80.0, -16.0), (16.0, 80.0, 16.0))
+    T = indreg.TiltSeriesTransform(domain, indreg.TiltSeriesGeometry.uniform(-60, 60, 10, 16, -16.0, 16.0))
+    f = torch.from_numpy(np.random.default_rng(3).uniform(size=domain.shape))
+    small_f, small_g, small_T = orientation._fewer_slices(f, T(f), T)
+    assert small_f.shape[1] == small_g.shape[-2] == orientation.SLICES
+    torch.testing.assert_close(small_T(small_f), small_g, rtol=1e-10, atol=1e-10)
+    x, y, z = domain.points()
+    f = (x ** 2 / 100 + (y - 30) ** 2 / 900 + z ** 2 / 64 < 1).double() + ((x - 5) ** 2 + (y + 40) ** 2 < 30).double()
+    assert orientation.verdict(orientation.scores(f, T(f).flip(-1, -2), T))[0] in ("warn", "refuse")
+    assert orientation.verdict(orientation.scores(f, T(f), T))[0] == ""
