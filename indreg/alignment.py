@@ -32,9 +32,9 @@ import torch
 from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
-__all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
-           "MAX_ANGLE_SE_DEG", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts",
-           "projection_matching", "summary", "wrap"]
+__all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
+           "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate",
+           "find_aligned", "gauge", "plot_shifts", "projection_matching", "summary", "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 
