@@ -337,13 +337,15 @@ class AlignmentSolver(RefitSolver):
 
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
-                    alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records))
+                    alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records),
+                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)))
 
     def load_state_dict(self, d: dict) -> None:
         d = dict(d)
         self.operator.shifts = d.pop("alignment_shifts").double()
         self.operator.angle = torch.tensor(float(d.pop("alignment_angle")), dtype=torch.float64)
         self.operator.records = list(d.pop("alignment_records"))
+        self.operator.angle_se = float(d.pop("alignment_angle_se", math.inf))
         self.inner.load_state_dict(d)
 
 
