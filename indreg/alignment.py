@@ -32,9 +32,9 @@ import torch
 from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
-__all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
-           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts",
-           "projection_matching", "summary", "wrap"]
+__all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
+           "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate",
+           "find_aligned", "gauge", "plot_shifts", "projection_matching", "summary", "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -56,6 +56,8 @@ GN_ITERATIONS = 15
 GN_MAX_STEP = 1.0
 #: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
 GN_TOL = 1e-3
+#: Above this standard error (deg, :func:`angle_uncertainty`) the tilt-axis angle is reported as undetermined.
+MAX_ANGLE_SE_DEG = 0.2
 
 
 # ---------------------------------------------------------------------------------------------------- the model
@@ -209,6 +211,56 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     return s.cpu(), a.cpu(), at_bound
 
 
+def _gram(columns: list, K: int, c: int) -> torch.Tensor:
+    """``J^T J`` for the unknowns ``(s_{0,0}, ..., s_{K-1,c-1}, g_1, ...)`` from ``columns``: the ``c`` shift
+    derivatives (projection ``k`` depends on ``s_k`` only), then those of parameters of all projections."""
+    flat = torch.stack([j.reshape(K, -1) for j in columns])            # (columns, K, pixels)
+    block = torch.einsum("ikp,jkp->kij", flat[:c], flat[:c])            # per projection
+    cross = torch.einsum("ikp,jkp->kij", flat[:c], flat[c:]).reshape(K * c, -1)
+    glob = torch.einsum("ikp,jkp->ij", flat[c:], flat[c:])
+    H = torch.block_diag(*block)
+    return torch.cat([torch.cat([H, cross], dim=1), torch.cat([cross.T, glob], dim=1)])
+
+
+def turn_projection(operator, image: torch.Tensor) -> torch.Tensor:
+    """``T(L f)`` for a ``TiltSeriesTransform`` ``T``: the projection of the derivative of the image ``f`` turned
+    about the beam at tilt 0 (the axis orthogonal to the tilt axis and the detector columns), at no turn; ``L f =
+    u d_t f - t d_u f`` with ``u`` across the axis, ``t`` along it (central differences). At tilt ``theta`` this turn
+    is an in-plane rotation of the projection by ``cos(theta)`` times the turn, plus an out-of-plane part."""
+    g = operator.geometry
+    u, t = g.slice_axes[0], g.axis
+    f = image.detach().double()
+    grid = torch.meshgrid(*operator.domain.axes(device=f.device), indexing="ij")
+    sides = operator.domain.cell_sides
+    d_u, d_t = (torch.gradient(f, spacing=sides[i], dim=i)[0] for i in (u, t))
+    return operator((grid[u] * d_t - grid[t] * d_u).to(image.dtype))
+
+
+def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tensor) -> float:
+    """The standard error (degrees) of ``op``'s tilt-axis angle when the object may also turn about the beam (the
+    deformation can carry such a turn, and at low tilts it looks like the angle): Gauss-Newton's normal matrix of
+    ``(1/2) ||S_{s, alpha}(T f + beta T(L f)) - g||^2`` in the shifts, the angle and the turn ``beta``
+    (:func:`turn_projection`) at ``op``'s alignment and ``beta = 0``, its inverse's angle entry times the residual's
+    variance per datum (``2 cost / (data - unknowns)``). ``inf`` when the data cannot tell the angle from a turn of
+    the object (a narrow tilt range, an object that looks alike at every turn); above :data:`MAX_ANGLE_SE_DEG`
+    the angle is not determined by the data."""
+    T = op.operator
+    P, g = T(image.detach()).double(), data.detach().double()
+    s, a = op.shifts.to(P.device), op.angle.to(P.device)
+    K, c = op.num_projections, op.components
+    columns = _jacobian(op, P, s, a, True) + [op.warp(turn_projection(T, image).double(), s, a)]
+    H = _gram(columns, K, c)
+    cost = 0.5 * float(((op.warp(P, s, a) - g) ** 2).sum())
+    sigma2 = 2 * cost / max(g.numel() - H.shape[0], 1)
+    e = torch.zeros(H.shape[0], dtype=H.dtype, device=H.device)
+    e[K * c] = 1
+    try:
+        variance = float(torch.linalg.solve(H, e)[K * c]) * sigma2
+    except RuntimeError:   # singular: the angle has no effect the turn or the shifts cannot make
+        return math.inf
+    return math.degrees(math.sqrt(variance)) if variance > 0 and math.isfinite(variance) else math.inf
+
+
 def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
                         interpolation: str = "linear") -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
@@ -265,11 +317,14 @@ class AlignmentSolver(RefitSolver):
         """Estimate the alignment at ``state.iterate`` and set it on the operator."""
         op = self.operator
         with torch.no_grad():
-            P = op.operator(self.problem.reconstruction(state.iterate))
+            image = self.problem.reconstruction(state.iterate)
+            P = op.operator(image)
             start = op.shifts
             if not op.records:   # first estimate: the integer peak of the cross-correlation
                 start = gauge(op, coarse_shifts(op, P.double(), self.data.double()).cpu())
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
+            if self.axis:
+                op.angle_se = angle_uncertainty(op, image, self.data)
         op.records.append((state.iteration, op.shifts.clone(), float(op.angle)))
         if op.at_bound:
             log.warning("iteration %d: %d alignment parameter(s) at their bound (|s| <= %s px, |alpha| <= %g deg): "
@@ -282,13 +337,15 @@ class AlignmentSolver(RefitSolver):
 
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
-                    alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records))
+                    alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records),
+                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)))
 
     def load_state_dict(self, d: dict) -> None:
         d = dict(d)
         self.operator.shifts = d.pop("alignment_shifts").double()
         self.operator.angle = torch.tensor(float(d.pop("alignment_angle")), dtype=torch.float64)
         self.operator.records = list(d.pop("alignment_records"))
+        self.operator.angle_se = float(d.pop("alignment_angle_se", math.inf))
         self.inner.load_state_dict(d)
 
 
@@ -306,11 +363,22 @@ def summary(problem) -> dict:
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    return {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
-            "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
-            "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
-            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
-            "at_bound": op.at_bound}
+    out = {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
+           "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
+           "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
+           "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
+           "at_bound": op.at_bound}
+    if op.mode == "shifts+axis" and op.records:
+        se = getattr(op, "angle_se", math.inf)
+        out["axis_angle_se_deg"] = se if math.isfinite(se) else None
+        out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG
+        if se > MAX_ANGLE_SE_DEG:
+            log.warning("the tilt-axis angle is not determined by the data: %.3f deg with a standard error of %s deg "
+                        "(above %g; the data cannot tell a turn of the axis from a turn of the object about the "
+                        "beam): measure the angle beforehand and rotate the stack, or use align='shifts'",
+                        math.degrees(float(op.angle)), f"{se:.3f}" if math.isfinite(se) else "inf",
+                        MAX_ANGLE_SE_DEG)
+    return out
 
 
 def plot_shifts(alignment: dict, path: str | Path) -> None:
