@@ -73,6 +73,8 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
                          f"{interpolation!r}")
     if mode == "none":
         return operator
+    if isinstance(operator, AlignedOperator):   # an imported alignment (indreg.alignment_files): the fit's start
+        return _started(operator, mode, label, gauge, interpolation)
     try:
         _, count, *_ = projection_frame(operator)
     except TypeError as e:
@@ -85,6 +87,23 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
     op = AlignedOperator(operator, interpolation=interpolation)
     op.mode, op.gauge, op.records, op.at_bound = mode, gauge, [], 0   # records: the estimates, for summary()
     return op
+
+
+def _started(given: AlignedOperator, mode: str, label: str, gauge: str, interpolation: str) -> AlignedOperator:
+    """A copy of ``given`` (its shifts, angle and matrices) whose first estimate starts from its alignment instead of
+    the cross-correlation peaks."""
+    op = aligned(given.operator, mode, label, gauge, interpolation)
+    op.shifts, op.angle, op.edge, op.matrices = given.shifts.clone(), given.angle.clone(), given.edge, given.matrices
+    op.started = True
+    return op
+
+
+def _first_start(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
+    """Where the first estimate starts: the operator's own shifts when they were given (:func:`_started`), else the
+    cross-correlation peaks (:func:`coarse_shifts`), in the gauge."""
+    if getattr(op, "started", False):
+        return op.shifts
+    return gauge(op, coarse_shifts(op, projection.double(), data.double()).cpu())
 
 
 def _bounds(op: AlignedOperator) -> torch.Tensor:
@@ -227,8 +246,8 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     op, records = aligned(operator, mode, "projection_matching", "translation", interpolation), []
     for r in range(rounds):
         x, history = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
-        P, before = operator(x), op.shifts.clone()
-        start = gauge(op, coarse_shifts(op, P.double(), data.double())) if r == 0 else op.shifts
+        P, before = op.operator(x), op.shifts.clone()
+        start = _first_start(op, P, data) if r == 0 else op.shifts
         op.shifts, op.angle, op.at_bound = estimate(op, P, data, start, op.angle, mode == "shifts+axis")
         norm = op.inner_data(data, data).sqrt()
         records.append((float(history["data_residual"][-1] / norm), float((op.shifts - before).abs().max())))
@@ -241,7 +260,7 @@ def _bilinear(op: AlignedOperator) -> AlignedOperator:
     it."""
     if op.interpolation == "linear":
         return op
-    return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge)
+    return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge, op.matrices)
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit
@@ -267,8 +286,8 @@ class AlignmentSolver(RefitSolver):
         with torch.no_grad():
             P = op.operator(self.problem.reconstruction(state.iterate))
             start = op.shifts
-            if not op.records:   # first estimate: the integer peak of the cross-correlation
-                start = gauge(op, coarse_shifts(op, P.double(), self.data.double()).cpu())
+            if not op.records:   # first estimate: the given alignment, else the cross-correlation peak
+                start = _first_start(op, P, self.data)
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
         op.records.append((state.iteration, op.shifts.clone(), float(op.angle)))
         if op.at_bound:
