@@ -325,11 +325,13 @@ def summary(problem) -> dict:
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    return {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
+    fixed = not hasattr(op, "mode")   # an imported alignment used as it is (indreg.alignment_files)
+    return {"mode": "fixed" if fixed else op.mode, "gauge": None if fixed else op.gauge,
+            "interpolation": op.interpolation,
             "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
             "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
-            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
-            "at_bound": op.at_bound}
+            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(getattr(op, "records", ())),
+            "every": ALIGN_EVERY, "at_bound": getattr(op, "at_bound", 0)}
 
 
 def plot_shifts(alignment: dict, path: str | Path) -> None:
@@ -355,7 +357,7 @@ def wrap(solver, operator, data: torch.Tensor, label: str = "align"):
     """``solver`` with the alignment of ``operator`` (from :func:`aligned`) in the fit: an :class:`AlignmentSolver`;
     ``solver`` itself when ``operator`` is not aligned. One-line error for solver='fast' (its coarse levels have
     no aligned operator)."""
-    if not isinstance(operator, AlignedOperator):
+    if not isinstance(operator, AlignedOperator) or not hasattr(operator, "mode"):   # none, or a fixed alignment
         return solver
     from .solvers import MultilevelSolver
 
