@@ -94,16 +94,20 @@ def _started(given: AlignedOperator, mode: str, label: str, gauge: str, interpol
     the cross-correlation peaks."""
     op = aligned(given.operator, mode, label, gauge, interpolation)
     op.shifts, op.angle, op.edge, op.matrices = given.shifts.clone(), given.angle.clone(), given.edge, given.matrices
-    op.started = True
+    op.started = bool(given.shifts.abs().max() > 0)   # zero shifts: nothing to start from (a rotation only)
     return op
 
 
 def _first_start(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
     """Where the first estimate starts: the operator's own shifts when they were given (:func:`_started`), else the
-    cross-correlation peaks (:func:`coarse_shifts`), in the gauge."""
+    cross-correlation peaks (:func:`coarse_shifts`) of the data with the projection moved by the operator's angle
+    and matrices at zero shift (the identity without them), in the gauge."""
     if getattr(op, "started", False):
         return op.shifts
-    return gauge(op, coarse_shifts(op, projection.double(), data.double()).cpu())
+    P = projection.double()
+    if op.matrices is not None or float(op.angle) != 0:
+        P = op.warp(P, torch.zeros_like(op.shifts).to(P.device), op.angle)
+    return gauge(op, coarse_shifts(op, P, data.double()).cpu())
 
 
 def _bounds(op: AlignedOperator) -> torch.Tensor:
@@ -229,7 +233,7 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
 
 
 def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
-                        interpolation: str = "linear") -> tuple:
+                        interpolation: str = "linear", progress=None) -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
     reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
     projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
@@ -237,6 +241,9 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     translation only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis
     (docs/alignment.md). The estimates use ``interpolation``; SIRT needs a nonnegative matrix and runs through
     bilinear interpolation.
+    ``operator`` may be an ``AlignedOperator`` (an imported alignment, a known tilt-axis rotation): the estimates
+    start from its shifts (from the cross-correlation when they are all zero) and keep its matrices.
+    ``progress(round, record)``, if given, is called after every round.
     Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
     move in px)`` per round (the relative residual before the round's estimate)."""
     from .forward.sirt import sirt
@@ -251,6 +258,8 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
         op.shifts, op.angle, op.at_bound = estimate(op, P, data, start, op.angle, mode == "shifts+axis")
         norm = op.inner_data(data, data).sqrt()
         records.append((float(history["data_residual"][-1] / norm), float((op.shifts - before).abs().max())))
+        if progress is not None:
+            progress(r, records[-1])
     x, _ = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
     return op, x, records
 

@@ -306,12 +306,15 @@ CONVENTIONS = {
 }
 
 
-def write_alignment(directory, op: AlignedOperator, stem: str = "alignment", frames=None, raw_size=None,
-                    pixel_size: Optional[float] = None, extra: Optional[dict] = None) -> dict:
+def write_alignment(directory, alignment, stem: str = "alignment", pixel_size: Optional[float] = None,
+                    extra: Optional[dict] = None) -> dict:
     """``stem.xf`` + ``stem.tlt``, ``stem.aln`` (when the maps are rotations) and ``stem.json`` (the numbers,
-    units and conventions) of ``op``'s alignment into ``directory``; returns the JSON record."""
+    units and conventions) of ``alignment`` (an :class:`Alignment`, or an ``AlignedOperator``:
+    :func:`from_operator`) into ``directory``; returns the JSON record."""
     directory = Path(directory)
-    alignment = from_operator(op, frames, raw_size)
+    if isinstance(alignment, AlignedOperator):
+        alignment = from_operator(alignment)
+    raw_size = alignment.raw_size
     written = {"xf": write_xf(directory / f"{stem}.xf", alignment).name, "tlt": f"{stem}.tlt"}
     try:
         written["aln"] = write_aln(directory / f"{stem}.aln", alignment).name

@@ -106,7 +106,7 @@ def test_round_trip_xf_and_aln(series, tmp_path):
     K = T.geometry.num_tilts
     A, d = _true_alignment(K, seed=3, axis=5.0)
     op = AlignedOperator(T, torch.from_numpy(d), math.radians(2.0), matrices=torch.from_numpy(A))
-    record = write_alignment(tmp_path, op, raw_size=(N, N, K), pixel_size=2.5)
+    record = write_alignment(tmp_path, from_operator(op, raw_size=(N, N, K)), pixel_size=2.5)
     assert record["files"] == {"xf": "alignment.xf", "tlt": "alignment.tlt", "aln": "alignment.aln"}
     saved = json.loads((tmp_path / "alignment.json").read_text())
     assert saved["units"]["shifts"] == "pixel" and "xf" in saved["conventions"]
