@@ -11,7 +11,8 @@ Convention:
     - The tilt axis' angle in the images (``--tilt-axis-angle``, degrees from Y counter-clockwise, IMOD's; else the
       ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
       operator (``AlignedOperator``'s per-tilt maps); ``--refine-axis`` refines the angle by projection matching.
-    - The estimation runs on the stack binned by ``--bin`` (default: the least power of 2 whose working set fits
+    - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
+      projections are about 0 outside the object), binned by ``--bin`` (default: the least power of 2 whose working set fits
       ``--max-memory``, :func:`working_set`); the shifts are scaled back to the stack's pixels, the aligned stack is
       made at full size tilt by tilt, the reconstruction is the binned one.
     - The alignment files refer to the raw stack as stored (``indreg.alignment_files``).
@@ -86,6 +87,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--refine-axis", action="store_true", help="refine the tilt-axis angle by projection matching")
     p.add_argument("--pixel-size", type=float, help="Angstrom per pixel (default: the MRC header's, else 1)")
     p.add_argument("--thickness", type=int, help="volume depth in pixels of the stack (default: X / 2)")
+    p.add_argument("--background", default="auto", help="level subtracted for the estimation: auto (the images' "
+                                                         "outer frame), none, or a number (default auto)")
     p.add_argument("--bin", type=int, help="binning of the estimation (default: from --max-memory)")
     p.add_argument("--max-memory", default="8GiB", help="memory budget (default 8GiB)")
     p.add_argument("--rounds", type=int, default=4, help="projection-matching rounds (default 4)")
@@ -125,6 +128,23 @@ def _bin(stack: np.ndarray, b: int) -> tuple:
     out = s.reshape(K, s.shape[1] // b, b, s.shape[2] // b, b).mean(axis=(2, 4))
     delta = np.array([(2 * lx - rx) / 2, (2 * ly - ry) / 2])
     return np.ascontiguousarray(out, dtype=np.float32), delta
+
+
+def _background(stack: np.ndarray, spec: str) -> float:
+    """The level subtracted before the estimation (projections are ~0 outside the object): ``"auto"`` the median of
+    the images' outer frame (``indreg.tilt_axis.frame_level``), ``"none"`` 0, or a number."""
+    from .tilt_axis import frame_level
+
+    if spec == "auto":
+        level = frame_level(stack)
+        log.info("background: the images' outer frame, %.6g, subtracted for the estimation", level)
+        return level
+    if spec == "none":
+        return 0.0
+    try:
+        return float(spec)
+    except ValueError:
+        raise ValueError(f"--background must be auto, none or a number, got {spec!r}") from None
 
 
 def _rotation(deg: float) -> np.ndarray:
@@ -223,7 +243,9 @@ def run(args) -> dict:
     K, ny, nx = rotated.shape
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
+    level = _background(rotated, args.background)
     binned, delta = _bin(rotated, b)
+    binned -= level
     nz = max(thickness // b, 4)
     log.info("estimation binned by %d: %d x %d px, volume %d x %d x %d (working set ~%.2f GiB of %.2f)", b,
              binned.shape[2], binned.shape[1], binned.shape[2], binned.shape[1], nz,
@@ -255,7 +277,7 @@ def run(args) -> dict:
     summary = {"residual_before": records[0][0], "residual_after": after,
                "axis_angle_deg": alignment.axis_angle_deg, "shift_range_px": [float(shifts.min()),
                                                                              float(shifts.max())],
-               "binning": b, "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
+               "binning": b, "background": level, "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
                "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget, "rounds": records,
                "alignment": record["files"], "outputs": written, "reconstruction": args.recon}
     (out / "align.json").write_text(json.dumps(summary, indent=1) + "\n")
