@@ -146,7 +146,7 @@ def write_xf(path, alignment: Alignment) -> Path:
     """``alignment`` as IMOD's ``.xf`` plus ``stem.tlt`` (degrees) next to it."""
     path = _as_path(path, "output")
     lines = ["".join(f"{v:12.7f}" for v in row[:4]) + "".join(f"{v:12.4f}" for v in row[4:])
-             for row in xf_of(alignment)]
+             for row in xf_of(alignment) + 0.0]   # + 0.0: no "-0.0000000"
     _write_text(path, "\n".join(lines) + "\n")
     _write_text(path.with_suffix(".tlt"), "\n".join(f"{a:.4f}" for a in alignment.tilt_angles_deg) + "\n")
     return path

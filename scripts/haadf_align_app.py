@@ -70,7 +70,7 @@ def run(folder: Path, out: Path, options: list) -> dict:
         op = binned_operator(stack_b, radians, nz, M, d, b, delta)
         x, _ = sirt(op, data, num_iter=100, nonneg=True)
         residuals[name] = _residual(op, x, data)
-    result = {"shift_rms_common_offset_px": np.sqrt((common ** 2).mean(0)).tolist(),
+    result = {"shift_rms_common_offset_px": np.sqrt((common[:, ::-1] ** 2).mean(0)).tolist(),   # [across, along]
               "shift_rms_gauge_px": np.sqrt(((gauge(mine.shifts, radians, True) - gauge(theirs, radians, True)) ** 2)
                                             .mean(0)).tolist(),
               "sirt100_residual": residuals, "axis_angle_deg": summary["axis_angle_deg"],
