@@ -75,6 +75,8 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
                          f"{interpolation!r}")
     if mode == "none":
         return operator
+    if isinstance(operator, AlignedOperator):   # an imported alignment (indreg.alignment_files): the fit's start
+        return _started(operator, mode, label, gauge, interpolation)
     try:
         _, count, *_ = projection_frame(operator)
     except TypeError as e:
@@ -87,6 +89,27 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
     op = AlignedOperator(operator, interpolation=interpolation)
     op.mode, op.gauge, op.records, op.at_bound = mode, gauge, [], 0   # records: the estimates, for summary()
     return op
+
+
+def _started(given: AlignedOperator, mode: str, label: str, gauge: str, interpolation: str) -> AlignedOperator:
+    """A copy of ``given`` (its shifts, angle and matrices) whose first estimate starts from its alignment instead of
+    the cross-correlation peaks."""
+    op = aligned(given.operator, mode, label, gauge, interpolation)
+    op.shifts, op.angle, op.edge, op.matrices = given.shifts.clone(), given.angle.clone(), given.edge, given.matrices
+    op.started = bool(given.shifts.abs().max() > 0)   # zero shifts: nothing to start from (a rotation only)
+    return op
+
+
+def _first_start(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
+    """Where the first estimate starts: the operator's own shifts when they were given (:func:`_started`), else the
+    cross-correlation peaks (:func:`coarse_shifts`) of the data with the projection moved by the operator's angle
+    and matrices at zero shift (the identity without them), in the gauge."""
+    if getattr(op, "started", False):
+        return op.shifts
+    P = projection.double()
+    if op.matrices is not None or float(op.angle) != 0:
+        P = op.warp(P, torch.zeros_like(op.shifts).to(P.device), op.angle)
+    return gauge(op, coarse_shifts(op, P, data.double()).cpu())
 
 
 def _bounds(op: AlignedOperator) -> torch.Tensor:
@@ -262,7 +285,7 @@ def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tens
 
 
 def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
-                        interpolation: str = "linear") -> tuple:
+                        interpolation: str = "linear", progress=None) -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
     reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
     projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
@@ -270,6 +293,9 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     translation only where ``cos(theta) ~ 1``, and over a wide tilt range removing it moves the axis
     (docs/alignment.md). The estimates use ``interpolation``; SIRT needs a nonnegative matrix and runs through
     bilinear interpolation.
+    ``operator`` may be an ``AlignedOperator`` (an imported alignment, a known tilt-axis rotation): the estimates
+    start from its shifts (from the cross-correlation when they are all zero) and keep its matrices.
+    ``progress(round, record)``, if given, is called after every round.
     Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
     move in px)`` per round (the relative residual before the round's estimate)."""
     from .forward.sirt import sirt
@@ -279,11 +305,13 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     op, records = aligned(operator, mode, "projection_matching", "translation", interpolation), []
     for r in range(rounds):
         x, history = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
-        P, before = operator(x), op.shifts.clone()
-        start = gauge(op, coarse_shifts(op, P.double(), data.double())) if r == 0 else op.shifts
+        P, before = op.operator(x), op.shifts.clone()
+        start = _first_start(op, P, data) if r == 0 else op.shifts
         op.shifts, op.angle, op.at_bound = estimate(op, P, data, start, op.angle, mode == "shifts+axis")
         norm = op.inner_data(data, data).sqrt()
         records.append((float(history["data_residual"][-1] / norm), float((op.shifts - before).abs().max())))
+        if progress is not None:
+            progress(r, records[-1])
     x, _ = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
     return op, x, records
 
@@ -293,7 +321,7 @@ def _bilinear(op: AlignedOperator) -> AlignedOperator:
     it."""
     if op.interpolation == "linear":
         return op
-    return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge)
+    return AlignedOperator(op.operator, op.shifts, float(op.angle), "linear", op.edge, op.matrices)
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit
@@ -320,8 +348,8 @@ class AlignmentSolver(RefitSolver):
             image = self.problem.reconstruction(state.iterate)
             P = op.operator(image)
             start = op.shifts
-            if not op.records:   # first estimate: the integer peak of the cross-correlation
-                start = gauge(op, coarse_shifts(op, P.double(), self.data.double()).cpu())
+            if not op.records:   # first estimate: the given alignment, else the cross-correlation peak
+                start = _first_start(op, P, self.data)
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
             if self.axis:
                 op.angle_se = angle_uncertainty(op, image, self.data)
@@ -363,12 +391,14 @@ def summary(problem) -> dict:
     op = find_aligned(getattr(problem, "ray_transform", None))
     if op is None:
         return {}
-    out = {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
+    fixed = not hasattr(op, "mode")   # an imported alignment used as it is (indreg.alignment_files)
+    out = {"mode": "fixed" if fixed else op.mode, "gauge": None if fixed else op.gauge,
+           "interpolation": op.interpolation,
            "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
            "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
-           "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
-           "at_bound": op.at_bound}
-    if op.mode == "shifts+axis" and op.records:
+           "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(getattr(op, "records", ())),
+           "every": ALIGN_EVERY, "at_bound": getattr(op, "at_bound", 0)}
+    if not fixed and op.mode == "shifts+axis" and op.records:
         se = getattr(op, "angle_se", math.inf)
         out["axis_angle_se_deg"] = se if math.isfinite(se) else None
         out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG
@@ -404,7 +434,7 @@ def wrap(solver, operator, data: torch.Tensor, label: str = "align"):
     """``solver`` with the alignment of ``operator`` (from :func:`aligned`) in the fit: an :class:`AlignmentSolver`;
     ``solver`` itself when ``operator`` is not aligned. One-line error for solver='fast' (its coarse levels have
     no aligned operator)."""
-    if not isinstance(operator, AlignedOperator):
+    if not isinstance(operator, AlignedOperator) or not hasattr(operator, "mode"):   # none, or a fixed alignment
         return solver
     from .solvers import MultilevelSolver
 

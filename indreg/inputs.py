@@ -101,8 +101,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
          half_width: float = 16.0, det_min: Optional[float] = None, det_max: Optional[float] = None,
          det_count: Optional[int] = None, num_angles: Optional[int] = None, tilt_axis: str = "y",
          tilt_axis_angle: Optional[float] = None, src_radius: Optional[float] = None, det_radius: float = 0.0,
-         convention: str = "indreg", integer_scale: str = "fraction", names: Optional[dict] = None
-         ) -> RegistrationInputs:
+         convention: str = "indreg", integer_scale: str = "fraction", names: Optional[dict] = None,
+         alignment=None) -> RegistrationInputs:
     """Template, data, operator (and optionally the ground truth ``target``) of a registration from files or
     arrays (see the module's Convention).
 
@@ -116,7 +116,11 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     stack whose axis still runs along X is an error when an angle was given (by the argument or the ``.mdoc``)
     and a warning otherwise. ``det_min`` / ``det_max``: the
     detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
-    (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``).
+    (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``). ``alignment`` (tilt series): an
+    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.alignment_files``): its shifts and per-tilt maps
+    become the operator's own (an ``AlignedOperator``; ``register(..., align=...)`` refines them), its tilt angles
+    (the ``.aln``'s, or the ``.xf``'s ``.tlt`` unless ``angles`` is given) the geometry's, its dark frames are left
+    out, and the stack is not rotated (the file's maps hold the tilt axis' angle).
 
     Raises:
         DataFileError: a problem with a file, a count or shape that does not fit, a geometry that cannot be built.
@@ -137,9 +141,12 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             "or resample the image")
     g = _measurements(data, key["data"], ndim, **read)
     axis = None
-    if ndim == 3:
+    if alignment is not None:   # another tool's alignment of the raw stack, applied in the operator
+        g, radians, alignment = _aligned_stack(g, alignment, angles, angle_unit, ndim, tilt_axis_angle, key)
+    elif ndim == 3:
         g, tilt_axis_angle, axis = _align(g, data, tilt_axis_angle, key)
-    radians = _angles(angles, angle_unit, data, g.shape, ndim, key)
+    if alignment is None:
+        radians = _angles(angles, angle_unit, data, g.shape, ndim, key)
     _check_counts(g.shape, data, num_angles, det_count, ndim, key)
     truth = _target(target, f, ndim, key, read)
     domain = conventions.domain_for(conv, f.shape[0], half_width) if ndim == 2 else box_domain(f.shape, half_width)
@@ -169,8 +176,13 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             "axis, columns)")
     if ndim == 2 and geometry == "parallel":
         _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
+    operator = T
+    if alignment is not None:
+        from .alignment_files import to_operator
+        operator = to_operator(T, alignment)
     label = io.split_path(template)[0].name if _is_path(template) else "array"
-    return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=T, domain=domain,
+    return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=operator,
+                              domain=domain,
                               geometry=T.geometry, target=truth, label=label, tilt_axis_angle=tilt_axis_angle,
                               tilt_axis=axis)
 
@@ -281,6 +293,29 @@ def _align(g: np.ndarray, data, angle, key: dict) -> tuple:
     else:
         log.info("%s: %s", where, check.describe())
     return g, angle, check
+
+
+def _aligned_stack(g: np.ndarray, alignment, angles, unit: str, ndim: int, tilt_axis_angle, key: dict) -> tuple:
+    """The raw stack's frames that ``alignment`` (a file) covers, their angles (radians) and the alignment."""
+    from .alignment_files import read_alignment
+
+    if ndim != 3:
+        raise ValueError(f"alignment applies to a tilt series ({key['geometry']}=tilt_series)")
+    if tilt_axis_angle is not None:
+        raise ValueError(f"give {key['tilt_axis_angle']} or alignment, not both: the alignment file holds the tilt "
+                         "axis' angle")
+    if angles is not None and not _is_path(angles):
+        angles = list(np.degrees(io.read_angles(angles, unit, name=key["angles"])))
+    a = read_alignment(alignment, angles, name="alignment")
+    if a.raw_size and (a.raw_size[0], a.raw_size[1]) != (g.shape[2], g.shape[1]):
+        raise DataFileError(f"alignment file {alignment}: RawSize {a.raw_size[0]} x {a.raw_size[1]} but the stack's "
+                            f"images are {g.shape[2]} x {g.shape[1]}")
+    if a.frames.max() >= g.shape[0] or (a.raw_size is None and len(a.frames) != g.shape[0]):
+        raise DataFileError(f"alignment file {alignment}: {len(a.frames)} tilts (sections up to {a.frames.max()}) "
+                            f"but the stack has {g.shape[0]} sections")
+    log.info("alignment %s (%s): %d tilts, in-plane rotation %.2f degrees, shifts up to %.2f px, applied in the "
+             "operator", alignment, a.source, len(a.frames), a.axis_angle_deg, float(np.abs(a.shifts).max()))
+    return np.ascontiguousarray(g[a.frames]), np.radians(a.tilt_angles_deg), a
 
 
 def _array(value, name: str, ndim: int) -> np.ndarray:

@@ -133,7 +133,8 @@ def file_data(cfg: DictConfig) -> Data:
     """``indreg.load`` with the ``data`` and ``geometry`` groups' values (messages name the config keys): a square
     template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
     the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
-    ``data.integer_scale`` say how to read them. No noise is added."""
+    ``data.integer_scale`` say how to read them; ``data.alignment`` (a tilt series) another tool's alignment of the
+    raw stack (``indreg.alignment_files``). No noise is added."""
     d, g = cfg.data, cfg.geometry
     try:
         inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
@@ -141,7 +142,8 @@ def file_data(cfg: DictConfig) -> Data:
                              det_min=g.det_min, det_max=g.det_max, det_count=g.det_count, num_angles=g.num_angles,
                              tilt_axis=g.tilt_axis.value, tilt_axis_angle=g.tilt_axis_angle,
                              src_radius=g.src_radius, det_radius=g.det_radius, convention=d.convention.value,
-                             integer_scale=d.integer_scale.value, names=CONFIG_KEYS)
+                             integer_scale=d.integer_scale.value, names=CONFIG_KEYS,
+                             alignment=d.alignment or None)
     except DataFileError:
         raise
     except (ValueError, TypeError) as e:   # a config value (inline angles); the message names its key
@@ -205,7 +207,8 @@ register_source(Source("files", file_data, check=_check_files, preflight=_files_
     ("template", Optional[str], None), ("sinogram", Optional[str], None), ("target", Optional[str], None),
     ("half_width", float, 16.0),
     ("convention", FileConvention, FileConvention.indreg),      # skimage, astra, tomopy, imod, odl
-    ("integer_scale", IntegerScale, IntegerScale.fraction))))   # 8/16-bit pictures as fractions, or raw
+    ("integer_scale", IntegerScale, IntegerScale.fraction),    # 8/16-bit pictures as fractions, or raw
+    ("alignment", Optional[str], None))))   # a tilt series' IMOD .xf / AreTomo .aln, applied in the operator
 register_source(Source("dynamic", dynamic_data, check=_check_dynamic, doc="a breathing phantom measured over time",
                        options=(
     ("frames", int, 12),              # time points K (t_k = k / K)

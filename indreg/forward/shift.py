@@ -20,6 +20,10 @@ Convention:
     - A feature at the ideal detector point ``q = (s, t)`` (physical units; ``t = 0`` at the middle row, ``s``
       as ``det_points``) appears at ``p = R(alpha) q + (s_k det_cell, s_k' row_cell)``, ``R`` the counter-clockwise
       rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
+    - ``matrices`` (optional, ``(num_projections, 2, 2)``, tilt series only): a fixed linear map ``B_k`` of the
+      ``(s, t)`` plane per projection (another tool's per-tilt rotation, magnification, stretch;
+      ``indreg.alignment_files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
+      ``(S y)(p) = y(B_k^{-1} R(-alpha)(p - shift))``. Without it ``B_k = I``.
     - Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
       field of view, a rod along the axis, continues there) or zero (``edge="zero"``).
 """
@@ -70,16 +74,29 @@ def projection_frame(operator) -> tuple:
                                                     if hasattr(operator, "geometry") else ""))
 
 
+def _check_matrices(matrices, count: int, components: int) -> torch.Tensor:
+    """``matrices`` as float64 ``(count, 2, 2)``, finite and invertible; one-line errors otherwise."""
+    if components != 2:
+        raise ValueError("matrices (a per-projection linear map of the detector plane) need a tilt series")
+    m = check_tensor(torch.as_tensor(matrices, dtype=torch.float64), "matrices", (count, 2, 2))
+    det = torch.linalg.det(m).abs()
+    if not bool((det > 1e-6).all()):
+        raise ValueError(f"matrices: projection {int(det.argmin())} has a singular matrix (|det| "
+                         f"{float(det.min()):.3g})")
+    return m
+
+
 class AlignedOperator(OperatorAlgebra):
     """``T_s f = S_{s, alpha} T f`` for a parallel-beam ``T`` (module docstring), a ``LinearOperator`` in ``f``.
 
     ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
-    as float64 tensors and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
+    as float64 tensors; ``matrices`` ``(num_projections, 2, 2)`` (or None) a fixed per-projection map ``B_k`` and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
     (differentiable in all three). ``interpolation``: ``"linear"`` (bilinear) or ``"cubic"``; ``edge``:
     ``"nearest"`` or ``"zero"`` (module docstring). ``range_shape`` and ``inner_data`` are ``T``'s.
     """
 
-    def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "linear", edge: str = "nearest"):
+    def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "linear", edge: str = "nearest",
+                 matrices=None):
         check_operator(operator, "operator")
         for name, value, allowed in (("interpolation", interpolation, INTERPOLATIONS), ("edge", edge, EDGES)):
             if value not in allowed:
@@ -94,6 +111,8 @@ class AlignedOperator(OperatorAlgebra):
             else check_tensor(torch.as_tensor(shifts, dtype=torch.float64), "shifts",
                               (self.num_projections, self.components))
         self.angle = torch.as_tensor(float(angle), dtype=torch.float64)
+        self.matrices = None if matrices is None else _check_matrices(matrices, self.num_projections,
+                                                                      self.components)
 
     def __repr__(self) -> str:
         return f"AlignedOperator({self.operator!r}, {self.num_projections} projections, {self.components} shift(s))"
@@ -110,6 +129,9 @@ class AlignedOperator(OperatorAlgebra):
         c, n = torch.cos(angle), torch.sin(angle)
         qs = c * (s - ds) + n * (t - dt)
         qt = -n * (s - ds) + c * (t - dt)
+        if self.matrices is not None:   # q = B_k^{-1} R(-alpha)(p - shift)
+            inv = torch.linalg.inv(self.matrices).to(**opts).view(-1, 1, 1, 2, 2)
+            qs, qt = inv[..., 0, 0] * qs + inv[..., 0, 1] * qt, inv[..., 1, 0] * qs + inv[..., 1, 1] * qt
         return qt / self.row_cell + (self.rows - 1) / 2, (qs - s[0, 0, 0]) / self.det_cell
 
     def _weights(self, shifts, angle, like) -> tuple:

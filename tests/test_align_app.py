@@ -1,0 +1,93 @@
+"""``indreg-align`` on a raw stack made by IMOD's formula (scipy) from known shifts and a tilt axis at 93 degrees:
+the .xf it writes recovers them (in the gauge), the residual falls, the outputs carry their pixel sizes."""
+import json
+import math
+import subprocess
+import sys
+
+import mrcfile
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import affine_transform
+
+from indreg import ImageDomain
+from indreg.align_app import choose_binning, main, parse_bytes, working_set
+from indreg.alignment_files import read_aln, read_xf
+from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+from indreg.io import write_tilt_series
+
+N, AXIS = 32, 93.0
+
+
+def _raw_series(tmp_path):
+    domain = ImageDomain((N, N, N // 2), (-N / 2, -N / 2, -N / 4), (N / 2, N / 2, N / 4))
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-60, 60, 6, det_count=N, det_min=-N / 2,
+                                                               det_max=N / 2))
+    gen = np.random.default_rng(5)
+    x, y, z = torch.meshgrid(*(torch.arange(n, dtype=torch.float64) - (n - 1) / 2 for n in domain.shape),
+                             indexing="ij")
+    f = sum(gen.uniform(0.5, 1) * torch.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / 6)
+            for c in gen.uniform(-5, 5, (6, 3)) * [1, 1, 0.5])
+    ideal = T(f).numpy()
+    K = len(ideal)
+    t = np.radians(-AXIS)
+    A = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    D = gen.uniform(-2, 2, (K, 2))
+    c = np.full(2, (N - 1) / 2)
+    m = np.array([[A[1, 1], A[1, 0]], [A[0, 1], A[0, 0]]])
+    raw = np.stack([affine_transform(ideal[k], m, D[k, ::-1] + c - m @ c, order=1, mode="nearest")
+                    for k in range(K)])   # raw(u) = aligned(A u + D), IMOD's formula
+    write_tilt_series(tmp_path / "raw.mrc", raw, T.geometry.angles, pixel_size=2.5)
+    return T.geometry.angles.numpy(), D
+
+
+def _gauge(D, theta):
+    """Across the axis without a cos + b sin, along it without its mean (projection matching's gauge)."""
+    basis = np.stack([np.cos(theta), np.sin(theta)], 1)
+    across = D[:, 0] - basis @ np.linalg.lstsq(basis, D[:, 0], rcond=None)[0]
+    return np.stack([across, D[:, 1] - D[:, 1].mean()], 1)
+
+
+@pytest.mark.slow
+def test_recovers_the_shifts_and_writes_the_outputs(tmp_path, capsys):
+    theta, D = _raw_series(tmp_path)
+    out = tmp_path / "out"
+    assert main([str(tmp_path / "raw.mrc"), "--tilt-axis-angle", str(AXIS), "--out", str(out), "--rounds", "3",
+                 "--iters", "20", "--thickness", "16", "--bin", "1"]) == 0
+    line = capsys.readouterr().out
+    assert line.startswith("indreg-align: residual") and line.count("\n") == 1
+    s = json.loads((out / "align.json").read_text())
+    assert s["residual_after"] < 0.5 * s["residual_before"], s
+    xf = np.loadtxt(out / "alignment.xf")
+    rotation = np.degrees(np.arctan2(xf[:, 2] - xf[:, 1], xf[:, 0] + xf[:, 3]))
+    np.testing.assert_allclose(rotation, -AXIS, atol=1e-3)   # the axis given, not refined
+    error = _gauge(xf[:, 4:], theta) - _gauge(D, theta)
+    assert np.sqrt((error ** 2).mean()) < 0.2, error
+    a = read_xf(out / "alignment.xf")
+    b = read_aln(out / "alignment.aln")
+    np.testing.assert_allclose(a.shifts, b.shifts, atol=1e-3)
+    np.testing.assert_allclose(a.tilt_angles_deg, np.degrees(theta), atol=1e-3)
+    with mrcfile.open(out / "aligned.mrc") as mrc:
+        assert mrc.data.shape == (len(theta), N, N) and abs(float(mrc.voxel_size.x) - 2.5) < 1e-6
+    with mrcfile.open(out / "reconstruction.mrc") as mrc:
+        assert mrc.data.shape == (16, N, N) and abs(float(mrc.voxel_size.z) - 2.5) < 1e-6
+        assert abs(float(mrc.header.origin.x) + (N - 1) / 2 * 2.5) < 1e-4
+    assert {o["writer"] for o in s["outputs"]} == {"mrcfile"}
+
+
+def test_memory_budget_and_errors(tmp_path, capsys):
+    assert parse_bytes("8GiB") == 8 * 2**30 and parse_bytes("512M") == 512 * 2**20
+    with pytest.raises(ValueError, match="--max-memory must be a size"):
+        parse_bytes("lots")
+    full = working_set(1024, 1024, 512, 61)
+    b = choose_binning(1024, 1024, 512, 61, 8 * 2**30, 3 * 61 * 1024 ** 2 * 4, "linear")
+    assert working_set(1024 // b, 1024 // b, 512 // b, 61) < 8 * 2**30 < full or b == 1
+    assert main([str(tmp_path / "missing.mrc")]) == 2
+    assert "indreg-align: error: " in capsys.readouterr().err
+
+
+def test_help_is_fast():
+    r = subprocess.run([sys.executable, "-m", "indreg.align_app", "--help"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and "--max-memory" in r.stdout
