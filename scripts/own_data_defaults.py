@@ -33,9 +33,8 @@ RUNS = [
     {},                                                           # the defaults
     {"sigma": 6.0, "interpolation": "reinterpolate"},             # documented before (the paper's suite 1)
     {"solver": "fast", "sigma": 3.0},
-    {"sigma": 1.0}, {"sigma": 3.0}, {"sigma": 4.0}, {"sigma": 6.0},   # compose (the default) at other widths
-    {"sigma": 2.0, "interpolation": "reinterpolate"}, {"sigma": 4.0, "interpolation": "reinterpolate"},
-    {"solver": "fast", "sigma": 2.0}, {"solver": "fast", "sigma": 4.0},
+    {"sigma": 2.0}, {"sigma": 6.0}, {"sigma": 8.0},               # compose (the default) at other widths
+    {"sigma": 4.0, "interpolation": "reinterpolate"}, {"solver": "fast", "sigma": 4.0},
     {"sigma": "auto"},
 ]
 
