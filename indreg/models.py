@@ -333,3 +333,46 @@ register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotempo
            "template unknown: weight of TV(I) (its objective's; the intertwined TV step's mu is twice it)", float,
            models=_ST),
 )))
+
+
+def _residual(operator, template, data, kernel, o: dict) -> tuple:
+    from .deform import LDDMMDeformation
+    from .forward.tv import intensity_scale, tv_weight_unit
+    from .problems.residual import ResidualRegistration
+
+    W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
+                         backward=o["backward"] or "paper", interpolation=o["interpolation"])
+    h = min(kernel.domain.cell_sides)
+    smoothing = RESIDUAL_SMOOTHING * intensity_scale(operator, data) / h
+    mu = 0.5 * o["residual_tv"] * tv_weight_unit(operator, data)   # E's (1/2)||.||^2: half the TV baseline's mu
+    problem = ResidualRegistration(operator, W, kernel, template, data, o["gamma"], mu, smoothing,
+                                   tv_weight=o["tv_weight"])
+    start = int(round(o["residual_start_fraction"] * o["max_iter"]))
+    return problem, {ALGORITHM1: {"steps": {"residual": o["residual_step_size"]}, "frozen": {"residual": start}},
+                     "torch": {}}
+
+
+def _check_residual(o: dict, label) -> None:
+    _backward_in(("paper", "exact", "autograd"))(o, label)
+    if o["solver"] == "fast":
+        raise OptionError(label("solver"), o["solver"], "'algorithm1' or a torch.optim name for model='residual' "
+                          "(no coarse-to-fine form)")
+
+
+#: The residual's TV smoothing eps, relative to the data's intensity unit per cell side.
+RESIDUAL_SMOOTHING = 0.01
+_RES = ("residual",)
+register_model(Model("residual", _residual, defaults=_interpolation, check=_check_residual,
+                     doc="LDDMM plus an intensity residual regularised by TV (indreg.problems.residual): the template's "
+                         "shape deformed, the intensities it cannot fit added",
+                     options=(
+    Option("residual_tv", "deformation", "residual_tv", 1e-4, number(0.0),
+           "the residual's TV weight relative to the TV weight unit (indreg.forward.tv_weight_unit: the TV "
+           "baseline's tv_mu; docs/real_data.md)", float, models=_RES),
+    Option("residual_start_fraction", "solver", "residual_start_fraction", 0.5, _fraction,
+           "Algorithm 1: the fraction of max_iter with the residual frozen at 0 (the deformation first)", float,
+           solvers=(ALGORITHM1,), models=_RES),
+    Option("residual_step_size", "solver", "residual_step_size", None, optional(number(0.0, strict=True)),
+           "Algorithm 1's residual step (None: 1 / (||T||^2 + the smoothed TV's curvature bound))",
+           Optional[float], solvers=(ALGORITHM1,), models=_RES),
+)))

@@ -169,13 +169,17 @@ _positive = number(0.0, strict=True)
 _nonneg = number(0.0)
 
 CORE = (
-    Option("sigma", "kernel", "sigma", 6.0, _positive, "width of the Gaussian kernel of V (physical units)", float),
+    Option("sigma", "kernel", "sigma", None, auto_or(_positive, "a finite number > 0"),
+           "width of the Gaussian kernel of V (physical units); None: 1/8 of the box's largest side, 'auto': "
+           "chosen from held-out angles among 1/16, 1/8, 1/4 of it (3 registrations first; indreg.kernel_width)",
+           Optional[Any], app_default=6.0),
     Option("num_steps", "deformation", "num_steps", 20, number(1, integer=True), "time steps N", int),
     Option("action", "deformation", "action", "geometric", choice(("geometric", "mass_preserving")),
            "group action: geometric or mass_preserving", str),
-    Option("interpolation", "deformation", "interpolation", None, optional(choice(("reinterpolate", "compose"))),
-           "reinterpolate (the paper's) or compose; None: the model's rule (compose with solver='fast' or "
-           "velocity_factor > 1, else reinterpolate)", Optional[str]),
+    Option("interpolation", "deformation", "interpolation", "compose", optional(choice(("reinterpolate", "compose"))),
+           "compose (phi_{1,0} composed, the template sampled once: less numerical blur) or reinterpolate (the "
+           "paper's); None: the model's rule (compose with solver='fast' or velocity_factor > 1, else "
+           "reinterpolate; the app's default, which the paper's presets use)", Optional[str], app_default=None),
     Option("backward", "deformation", "backward", None, optional(choice(("paper", "exact", "autograd", "adjoint"))),
            "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
            Optional[str], app_default="paper"),

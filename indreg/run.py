@@ -27,6 +27,7 @@ from . import metrics, models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
+from .kernel_width import default_sigma
 from .units import Units, data_term_scale, noise_residual, prepare
 
 log = logging.getLogger("indreg")
@@ -118,6 +119,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     from .validation import split
 
     o = opts.resolve(options, label, strict)
+    if o["sigma"] == "auto":   # chosen from held-out angles first, then the run (indreg.kernel_width)
+        options = dict(options, sigma=auto_sigma(template, data, operator, label, strict, options))
+        o = opts.resolve(options, label, strict)
     operator, data = as_time_series(operator, data)   # sequences: one operator / data set per time point
     check_operator(operator, "operator")
     model = models.get(o["model"])
@@ -157,11 +161,32 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     for name in ("step_size", "lr"):     # a step must stay finite (and nonzero) in the run's dtype
         if o[name] is not None:
             check_finite_in(o[name], label(names[name]), dtype)
+    if o["sigma"] is None:
+        o["sigma"] = default_sigma(domain)
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = model.make(operator, template, data, kernel, o)
     solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
     solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
     return Setup(problem, solver, o, units, validation, probe)
+
+
+def auto_sigma(template, data, operator, label, strict: bool, options: dict) -> float:
+    """``sigma="auto"``: the width of ``indreg.kernel_width.candidates`` whose registration (the run's options,
+    its ``holdout`` or every ``AUTO_HOLDOUT``-th angle held out, no early stop) predicts the held-out angles
+    best."""
+    from .kernel_width import AUTO_HOLDOUT, candidates, choose_sigma
+
+    trial = dict(options, holdout=options.get("holdout") or AUTO_HOLDOUT, patience=None, callback=None,
+                 progress=False, target=None)
+
+    def held_out(sigma: float) -> float:
+        s = setup(template, data, operator, label, strict, **dict(trial, sigma=sigma))
+        o = s.options
+        RegistrationLoop(s.problem, s.solver, initial_state(s.problem), o["max_iter"], every=o["log_every"],
+                         validation=s.validation).run()
+        return s.validation.best[1]
+
+    return choose_sigma(held_out, candidates(getattr(operator, "domain", None) or operator[0].domain))[0]
 
 
 def initial_state(problem):

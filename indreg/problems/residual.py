@@ -1,0 +1,138 @@
+"""LDDMM with an intensity residual (``model="residual"``): the template's shape, deformed, plus the intensities it
+cannot fit, regularised by total variation (a template-anchored TV).
+
+    E(nu, r) = (gamma/2) sum_i (1/N) ||nu_i||_V^2 + (1/2) ||T (W(nu, I) + r) - g||^2_data + mu TV_eps(r)
+
+The reconstruction is ``f = W(nu, I) + r``. A TV reconstruction regularises ``f`` itself (``TV(f)``); here the
+deformed template anchors it: where the data say nothing (a limited tilt range's missing wedge) ``r`` stays near 0
+and ``f`` keeps the template's shape, where they disagree with every deformation of the template (an intensity the
+template lacks) ``r`` fits them, piecewise constant. ``r = 0`` throughout (``mu`` infinite, or the residual frozen
+for every iteration: ``residual_start >= max_iter``) is LDDMM.
+
+Convention: ``r`` on ``image_domain`` (the template's grid), in the data's intensity units; ``mu`` (``tv_weight``
+of the residual, ``residual_tv``) absolute; ``TV_eps`` the smoothed isotropic TV of ``indreg.forward.tv``
+(``eps`` = ``smoothing``, an intensity per length); the L2 gradient in ``r`` is the torch gradient divided by
+the cell volume. Algorithm 1's default step for ``r`` is ``1 / (||T||^2 + mu 4 d / (h^2 eps))`` (the data term's
+and the smoothed TV's curvature bounds, ``h`` the smallest cell side).
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from .._checks import check_nonnegative
+from ..forward.operator import operator_norm
+from ..forward.tv import total_variation
+from .lddmm import IndirectRegistration
+
+__all__ = ["ResidualRegistration"]
+
+
+class ResidualRegistration(IndirectRegistration):
+    """``min_{nu, r} E(nu, r)`` (module docstring); the iterate is ``x = (m, r)``, ``nu = K m``. Arguments as
+    :class:`IndirectRegistration`, and ``residual_tv`` (``mu >= 0``) and ``smoothing`` (``eps > 0``)."""
+
+    iterate_names = ("momentum", "residual")
+    output_kinds = {"deformation_part": "parts", "intensity_part": "parts"}
+
+    def __init__(self, ray_transform, deformation, kernel, template, data, gamma, residual_tv: float,
+                 smoothing: float, tv_weight: float = 0.0):
+        super().__init__(ray_transform, deformation, kernel, template, data, gamma, tv_weight)
+        self.residual_tv = check_nonnegative(residual_tv, "residual_tv", template.dtype)
+        self.smoothing = check_nonnegative(smoothing, "residual smoothing", template.dtype)
+        if self.smoothing <= 0:
+            raise ValueError(f"residual smoothing must be > 0 (the smoothed TV's eps), got {smoothing}")
+
+    def __repr__(self):
+        return (f"ResidualRegistration(domain={self.image_domain}, N={self.num_steps}, gamma={self.gamma}, "
+                f"residual_tv={self.residual_tv}, smoothing={self.smoothing})")
+
+    def with_deformation(self, deformation) -> "ResidualRegistration":
+        return ResidualRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
+                                    self.gamma, self.residual_tv, self.smoothing, self.tv_weight)
+
+    def zero_residual(self) -> torch.Tensor:
+        return torch.zeros(self.image_domain.shape, dtype=self.template.dtype, device=self.template.device)
+
+    def residual_terms(self, m: torch.Tensor, r: torch.Tensor, nu: torch.Tensor | None = None) -> dict:
+        """All terms as 0-dim tensors, differentiable through ``m`` (or ``nu``) and ``r``."""
+        nu = self.velocity(m) if nu is None else nu
+        out = self.matching(self.deformation(nu, self.template) + r)
+        out["regulariser"] = self.regulariser(m, nu)
+        out["residual_tv"] = self.residual_tv * total_variation(r, self.image_domain, self.smoothing)
+        out["objective"] = out["data_fit"] + out["tv"] + out["regulariser"] + out["residual_tv"]
+        return out
+
+    # the registration-problem protocol (indreg.problems.problem): the iterate is x = (m, r)
+    def zero_iterate(self) -> tuple:
+        return self.zero_momentum(), self.zero_residual()
+
+    def check_iterate(self, x: tuple) -> None:
+        if not isinstance(x, tuple) or len(x) != 2:
+            raise ValueError(f"the iterate must be a tuple of 2 tensors {self.iterate_names}")
+        self.check_momentum(x[0])
+        if tuple(x[1].shape) != tuple(self.image_domain.shape):
+            raise ValueError(f"residual must have shape {tuple(self.image_domain.shape)}, got {tuple(x[1].shape)}")
+
+    def gradient(self, x: tuple) -> tuple:
+        """``(terms, (h_nu, h_r), nu)``: one forward / backward of ``W`` and ``T``; ``h_nu`` as LDDMM's (with the
+        data residual of ``f = W + r``), ``h_r = T^*(T f - g) + mu grad TV_eps(r)`` in L2."""
+        m, r = x
+        with torch.no_grad():
+            nu = self.velocity(m)
+        with torch.enable_grad():
+            nu_leaf, r_leaf = nu.detach().requires_grad_(True), r.detach().requires_grad_(True)
+            t = self.residual_terms(m, r_leaf, nu_leaf)
+            d_nu, d_r = torch.autograd.grad(t["data_fit"] + t["tv"] + t["residual_tv"], (nu_leaf, r_leaf))
+        h_nu = d_nu.div_(self.time_weight).add_(m, alpha=self.gamma)
+        h_r = d_r.div_(self.image_domain.cell_volume)
+        return {k: float(v.detach()) for k, v in t.items()}, (h_nu, h_r), nu
+
+    def differentiable(self, x: tuple) -> tuple:
+        """Terms through ``(m, r)``, ``aux = (nu,)``; ``h_nu`` as LDDMM's, ``h_r`` the L2 gradient (``dx[1]`` is
+        the gradient in ``r / s``, ``s = N / cell_volume``: ``h_r = dx[1] / N``)."""
+        m, r = x
+        nu = self.velocity(m)
+        return self.residual_terms(m, r, nu), (nu,), lambda x, dx, daux: (
+            daux[0] / self.time_weight + 0.5 * self.gamma * x[0], dx[1] / self.num_steps)
+
+    def reconstruction(self, x: tuple) -> torch.Tensor:
+        return self.deformed(x[0]) + x[1]
+
+    def image_trajectory(self, x: tuple) -> torch.Tensor:
+        """The deformed template's trajectory, the residual added at ``t = 1``."""
+        out = self.trajectory(x[0])
+        out[-1] += x[1]
+        return out
+
+    def evaluate_iterate(self, x: tuple) -> dict:
+        self.check_iterate(x)
+        with torch.no_grad():
+            return {k: float(v) for k, v in self.residual_terms(*x).items()}
+
+    def outputs(self, x: tuple) -> dict:
+        """The parts of ``f``: ``deformation_part = W(nu, I)``, ``intensity_part = r``."""
+        return {"deformation_part": self.deformed(x[0]), "intensity_part": x[1]}
+
+    @functools.cached_property
+    def operator_norm(self) -> float:
+        """``||T||`` by 30 power iterations (computed once)."""
+        return operator_norm(self.ray_transform, 30, self.template.dtype, self.template.device)
+
+    def default_step(self, name: str) -> float:
+        """The residual's step ``1 / (||T||^2 + mu 4 d / (h^2 eps))``."""
+        if name != "residual":
+            return super().default_step(name)
+        h = min(self.image_domain.cell_sides)
+        return 1.0 / (self.operator_norm ** 2 + self.residual_tv * 4 * self.image_domain.ndim / (h * h *
+                                                                                                  self.smoothing))
+
+    def for_line_search(self) -> "ResidualRegistration":
+        return self.with_backward("exact") if self.deformation.backward == "paper" else self
+
+    def hparams(self) -> dict:
+        return {"residual_tv": self.residual_tv, "residual_smoothing": self.smoothing}
+
+    def coarsened(self, *args, **kwargs):
+        raise TypeError("model='residual' has no coarse-to-fine form: solver 'algorithm1' or a torch.optim name")

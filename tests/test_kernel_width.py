@@ -1,0 +1,60 @@
+"""The kernel width when none is given (``indreg.kernel_width``): 1/16 of the box's largest side, or
+``sigma="auto"``, the candidate width whose registration predicts held-out angles best; and ``register()``'s
+interpolation default (compose)."""
+import math
+
+import pytest
+import torch
+
+import indreg
+from indreg import phantoms
+from indreg.kernel_width import AUTO_FRACTIONS, AUTO_HOLDOUT, candidates, choose_sigma, default_sigma
+
+OPTIONS = dict(max_iter=4, num_steps=3, log_every=2, dtype="float64")
+
+
+@pytest.fixture(scope="module")
+def case():
+    """J -> V on 16^2 cells of [-8, 8]^2 (the default width 2, not the paper's box), 20 angles."""
+    domain = indreg.ImageDomain((16, 16), (-8.0, -8.0), (8.0, 8.0))
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry(angles=torch.linspace(0, math.pi, 21)[:-1].double(),
+                                                                det_count=24, det_min=-12.0, det_max=12.0))
+    template = phantoms.get("j", indreg.ImageDomain.paper(16))
+    return template, T(phantoms.get("v", indreg.ImageDomain.paper(16))), T
+
+
+def test_default_width_is_a_fraction_of_the_box():
+    assert default_sigma(indreg.ImageDomain.paper(64)) == 4.0            # [-16, 16]^2: 32 / 8
+    assert default_sigma(indreg.ImageDomain((8, 4), (0.0, 0.0), (80.0, 4.0))) == 10.0    # the largest side
+    assert candidates(indreg.ImageDomain.paper(8)) == tuple(32 * f for f in AUTO_FRACTIONS)
+
+
+def test_register_without_sigma_uses_the_default_width_and_composes(case):
+    template, data, T = case
+    r = indreg.register(template, data, T, **OPTIONS)
+    assert r.problem.kernel.sigma == default_sigma(T.domain) == 2.0
+    assert r.problem.deformation.interpolation == "compose"
+    given = indreg.register(template, data, T, sigma=2.0, interpolation="compose", **OPTIONS)
+    assert torch.equal(r.deformed, given.deformed)
+
+
+def test_auto_chooses_the_width_with_the_least_held_out_residual(case):
+    template, data, T = case
+    scores = {s: indreg.register(template, data, T, sigma=s, holdout=AUTO_HOLDOUT, **OPTIONS)
+              .holdout["holdout_best_residual"] for s in candidates(T.domain)}
+    assert len(set(scores.values())) == len(scores)                      # the choice is not a tie
+    chosen = indreg.register(template, data, T, sigma="auto", **OPTIONS)
+    assert chosen.problem.kernel.sigma == min(scores, key=scores.get)
+    assert not chosen.holdout                                             # the run itself fits every angle
+
+
+def test_choose_sigma_takes_the_least_score_and_the_first_of_equal_ones():
+    assert choose_sigma({1.0: 0.3, 2.0: 0.1, 4.0: 0.2}.get, (1.0, 2.0, 4.0)) == (2.0, {1.0: 0.3, 2.0: 0.1, 4.0: 0.2})
+    assert choose_sigma(lambda s: 0.5, (1.0, 2.0))[0] == 1.0
+
+
+@pytest.mark.parametrize("bad", ["wide", -1.0, 0.0, math.nan])
+def test_a_bad_width_is_one_line_naming_sigma(case, bad):
+    template, data, T = case
+    with pytest.raises((ValueError, TypeError), match="sigma"):
+        indreg.register(template, data, T, sigma=bad, **OPTIONS)
