@@ -196,7 +196,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         json.dump([{k: _json_float(v) for k, v in h.items()} for h in history], f)
     with open(out / "metrics.json", "w") as f:
         json.dump({k: _json_float(v) for k, v in result.items()}, f, indent=2)
-    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames, result)
+    writer.baselines(result, rec, it)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
