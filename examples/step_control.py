@@ -18,7 +18,8 @@ domain = indreg.ImageDomain.paper(64)
 T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(10, 92))
 template, target = phantoms.get("j", domain), phantoms.get("v", domain)
 data, _ = noise.add_white_noise(T(target), snr_db=4.87, seed=0)       # suite 1's data
-for label, options in (("paper's fixed step", {"step_halving": False}), ("default (step halving)", {})):
+for label, options in (("paper's fixed step", {"step_size": 0.02, "gamma": 1e-6, "step_halving": False}),
+                       ("default (step halving)", {})):
     for s in (1.0, scale):
         r = indreg.register(s * template, s * data, T, dtype="float32", target=s * target, **options)
         print(f"x{s:g}, {label}: SSIM {r.ssim:.4f}, PSNR {r.psnr:.2f} dB, min Jacobian {r.min_jacobian:.3g}, "

@@ -318,13 +318,15 @@ def mark_tilt(axes, tilt: dict, box) -> None:
             fontsize="x-small", va="top")
 
 
-def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=None, tilt=None):
+def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=None, tilt=None, residual=None):
     """One row of orthogonal slices (xy, xz, yz) per volume: ``panels`` is a list of ``(label, volume)``
     (``volume`` None: an empty row), all on the grey scale ``[vmin, vmax]`` (default: the first volume's), or
     ``(label, volume, (vmin, vmax))`` for a row on its own scale, ``(label, volume, (vmin, vmax), cmap)`` on its
     own colour map too (signed: :data:`DIVERGING`); a row's colour bar is at its end. ``box``: the domain's
     ``(min_pt, max_pt)``, for axes in ``unit``, a scale bar and each plane's position in its title; ``tilt``: see
-    :func:`mark_tilt`."""
+    :func:`mark_tilt`. A row's label (it may hold a second line, e.g. the score) heads its first panel.
+    ``residual``: ``(title, sinogram, angles_deg, det_range)`` of a last row, the data residual ``T f - g`` of
+    one detector row per angle (:func:`residual_panel`)."""
     first = next(np.asarray(p[1]) for p in panels if p[1] is not None)
     vmin = float(first.min()) if vmin is None else vmin
     vmax = float(first.max()) if vmax is None else vmax
@@ -333,8 +335,14 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=N
         z, y, x = slice_positions(first.shape, box)
         u = f" {unit}" if unit else ""
         where = [f" at z = {z:.3g}{u}", f" at y = {y:.3g}{u}", f" at x = {x:.3g}{u}"]
-    fig = Figure(figsize=(10.4, 3.1 * len(panels)), layout="constrained")
-    axes = fig.subplots(len(panels), 3, squeeze=False)
+    rows = len(panels) + (residual is not None)
+    fig = Figure(figsize=(10.4, 3.3 * rows), layout="constrained")
+    axes = fig.subplots(rows, 3, squeeze=False)
+    if residual is not None:
+        text, sinogram, angles_deg, det_range = residual
+        residual_panel(axes[-1][0], sinogram, angles_deg, det_range, unit, text)
+        for ax in axes[-1][1:]:
+            ax.set_axis_off()
     for row, (label, volume, *style) in zip(axes, panels):
         if volume is None:
             for ax in row:
@@ -343,9 +351,10 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=N
             continue
         low, high = style[0] if style else (vmin, vmax)
         cmap = style[1] if len(style) > 1 else "gray"
-        for ax, plane, image, extent, at in zip(row, PLANES, orthoslices(volume), _plane_extents(box), where):
-            im = show_image(ax, image, f"{label}: {plane}{at}", low, high, extent, axes=tuple(plane),
-                            colorbar=False, unit=unit, cmap=cmap)
+        for i, (ax, plane, image, extent, at) in enumerate(zip(row, PLANES, orthoslices(volume), _plane_extents(box),
+                                                              where)):
+            im = show_image(ax, image, f"{label}: {plane}{at}" if i == 0 else f"{plane}{at}", low, high, extent,
+                            axes=tuple(plane), colorbar=False, unit=unit, cmap=cmap)
         mark_tilt(row, tilt, box)
         fig.colorbar(im, ax=list(row), fraction=0.03, pad=0.02).ax.tick_params(labelsize="small")
     if title:

@@ -53,7 +53,7 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
     residual = residual_sinogram(exp, r.deformed) if frames_name is None else None
     model = str(exp.options.get("model", "lddmm"))
     if cfg.logging.figure:
-        figure = _ortho_figure(exp, frame, n, rec, f"{cfg.name}: {quality}", score, unit) if volume else \
+        figure = _ortho_figure(exp, frame, n, rec, f"{cfg.name}: {quality}", score, unit, residual) if volume else \
             _paper_figure(exp, traj, rec, f"{cfg.name}: {quality}", score, residual, unit)
         figures.save(figure, out / "figure.png")
         if parts is not None:
@@ -209,13 +209,14 @@ def _paper_figure(exp, traj, rec: dict, title: str, score: dict, residual, unit)
                                 or len(angles) != residual.shape[0] else angles, unit=unit)
 
 
-def _ortho_figure(exp, frame, n: int, rec: dict, title: str, score: dict, unit):
+def _ortho_figure(exp, frame, n: int, rec: dict, title: str, score: dict, unit, residual=None):
     """A volume's run: orthogonal slices of the template, W(nu, I) at t = 0.5 and 1 (``frame(i)``, of ``n + 1``),
     target, the error ``result - target`` (signed) and the baselines, each baseline on its own grey scale (its
-    value range in its label); every method's score in its label; the tilt axis and the missing wedge marked."""
-    def label(name, key):
-        text = figures.score_text(score.get(key))
-        return f"{name} ({text})" if text else name
+    value range in its label); every method's score in its label; the tilt axis and the missing wedge marked; the
+    residual sinogram of the central detector row (``residual``, :func:`residual_sinogram`) in a last row."""
+    def label(name, key, extra=""):
+        text = ", ".join(t for t in (figures.score_text(score.get(key)), extra) if t)
+        return f"{name}\n{text}" if text else name
 
     result = frame(n)
     panels = [(label("template", "template"), exp.template_64.numpy()), ("t = 0.5", frame(n // 2)),
@@ -228,10 +229,17 @@ def _ortho_figure(exp, frame, n: int, rec: dict, title: str, score: dict, unit):
         panels += [(f"result - target (+-{bound:.3g})", err, (-bound, bound), figures.DIVERGING)]
     for k, v in rec.items():
         a = _host(v)
-        panels += [(f"{label(k.upper(), k)}, {figures.value_range(a)}", a, (float(a.min()), float(a.max())))]
+        panels += [(label(k.upper(), k, figures.value_range(a)), a, (float(a.min()), float(a.max())))]
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
+    sinogram = None
+    if residual is not None:
+        angles = _angles_deg(exp)
+        sinogram = ("residual $Tf - g$ per tilt, central detector row", residual,
+                    angles if angles is not None and len(angles) == residual.shape[0] else np.arange(len(residual)),
+                    _det_range(exp, residual.shape[1]))
     return figures.ortho_figure(panels, float(shown.min()), float(shown.max()), title=title,
-                                box=(exp.domain.min_pt, exp.domain.max_pt), unit=unit, tilt=tilt_marks(exp))
+                                box=(exp.domain.min_pt, exp.domain.max_pt), unit=unit, tilt=tilt_marks(exp),
+                                residual=sinogram)
 
 
 def _parts_figure(exp, final, parts, title: str = "", unit=None, model: str = "metamorphosis"):
