@@ -24,6 +24,9 @@ LAUNCHER_EXTRAS = {
     "ray_aws": ("ray", "hydra_plugins.hydra_ray_launcher"),
 }
 
+#: The documentation site (built from the repository's docs/ and the docstrings: mkdocs.yml); both ``--help``s name it.
+DOCS_URL = "https://indreg.readthedocs.io/"
+
 #: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
 #: ``--info``, ``-cd``, ...) is Hydra's business alone.
 _MULTIRUN_FLAGS = ("-m", "--multirun")

@@ -375,6 +375,7 @@ def train(cfg, run_dir) -> dict:
         writer.close()
         (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
         print(json.dumps({k: v for k, v in metrics.items() if k != "ood"}, indent=2), flush=True)
+        print(f"outputs in {run_dir.resolve()} (figure: figure.png, metrics.json, tensorboard/)", flush=True)
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()
