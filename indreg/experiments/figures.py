@@ -353,7 +353,8 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=N
         cmap = style[1] if len(style) > 1 else "gray"
         for i, (ax, plane, image, extent, at) in enumerate(zip(row, PLANES, orthoslices(volume), _plane_extents(box),
                                                               where)):
-            im = show_image(ax, image, f"{label}: {plane}{at}" if i == 0 else f"{plane}{at}", low, high, extent,
+            head = (f"{label}\n" if "\n" in label else f"{label}: ") if i == 0 else ""
+            im = show_image(ax, image, f"{head}{plane}{at}", low, high, extent,
                             axes=tuple(plane), colorbar=False, unit=unit, cmap=cmap)
         mark_tilt(row, tilt, box)
         fig.colorbar(im, ax=list(row), fraction=0.03, pad=0.02).ax.tick_params(labelsize="small")

@@ -215,8 +215,7 @@ def _ortho_figure(exp, frame, n: int, rec: dict, title: str, score: dict, unit, 
     value range in its label); every method's score in its label; the tilt axis and the missing wedge marked; the
     residual sinogram of the central detector row (``residual``, :func:`residual_sinogram`) in a last row."""
     def label(name, key, extra=""):
-        text = ", ".join(t for t in (figures.score_text(score.get(key)), extra) if t)
-        return f"{name}\n{text}" if text else name
+        return "\n".join(t for t in (name, figures.score_text(score.get(key)), extra) if t)
 
     result = frame(n)
     panels = [(label("template", "template"), exp.template_64.numpy()), ("t = 0.5", frame(n // 2)),
