@@ -30,7 +30,7 @@ def test_ortho_figure_rows_and_columns():
     fig = figures.ortho_figure([("template", volume()), ("FBP", None), ("target", volume())], title="t")
     axes = panels(fig)
     assert len(axes) == 9 and len(fig.get_axes()) == 9 + 2    # a colour bar per shown row
-    assert [ax.get_title() for ax in axes[:3]] == ["template: xy", "template: xz", "template: yz"]
+    assert [ax.get_title() for ax in axes[:3]] == ["template: xy", "xz", "yz"]   # the row's label on its first plane
     assert axes[3].get_title() == "FBP (off)" and not axes[4].axison
 
 
@@ -66,8 +66,9 @@ def test_ortho_figure_axes_in_the_domains_units():
     xy, xz, yz = panels(fig)
     assert xy.get_images()[0].get_extent() == [-3, 3, -4, 4] and (xy.get_xlabel(), xy.get_ylabel()) == ("x", "y")
     # the planes' positions: cells 5 of 10 (z), 4 of 8 (y), 3 of 6 (x), centres at 0.5
-    assert [ax.get_title() for ax in (xy, xz, yz)] == ["template: xy at z = 0.5", "template: xz at y = 0.5",
-                                                       "template: yz at x = 0.5"]
+    assert [ax.get_title() for ax in (xy, xz, yz)] == ["template: xy at z = 0.5", "xz at y = 0.5", "yz at x = 0.5"]
+    two_lines = figures.ortho_figure([("FBP\nSSIM 0.3", volume())])
+    assert panels(two_lines)[0].get_title() == "FBP\nSSIM 0.3\nxy"   # a label of several lines: the plane below
     assert xz.get_images()[0].get_extent() == [-3, 3, -5, 5] and (xz.get_xlabel(), xz.get_ylabel()) == ("x", "z")
     assert yz.get_images()[0].get_extent() == [-4, 4, -5, 5] and (yz.get_xlabel(), yz.get_ylabel()) == ("y", "z")
 
