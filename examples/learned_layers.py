@@ -3,7 +3,9 @@
 Unrolled momentum updates through the indirect gradient, trained end to end with the indirect loss on synthetic
 deformations, then scored on held-out samples against the undeformed template:
 
-    python examples/learned_layers.py            # 32^2, 300 steps
+    python examples/learned_layers.py            # 32^2, 300 steps: about 100 s of CPU on one thread
+
+It prints a progress line every 50 steps, then ``held-out SSIM 0.960 (template 0.719), loss 206 -> 24.4``.
 """
 from __future__ import annotations
 
