@@ -3,11 +3,14 @@
 Unrolled momentum updates through the indirect gradient, trained end to end with the indirect loss on synthetic
 deformations, then scored on held-out samples against the undeformed template:
 
-    python examples/learned_layers.py            # 32^2, 300 steps
+    python examples/learned_layers.py            # 32^2, 300 steps: about 100 s of CPU on one thread
+
+It prints a progress line every 50 steps, then ``held-out SSIM 0.960 (template 0.719), loss 206 -> 24.4``.
 """
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 
@@ -30,8 +33,8 @@ def main(n: int = 32, steps: int = 300, batch: int = 8, num_samples: int = 64, s
                              initial=MomentumUNet(2, width=8, levels=2, momentum_scale=scale))
     model.calibrate(train["template"][:batch], train["fbp"][:batch], train["data"][:batch])
     optimizer = torch.optim.Adam(model.parameters(), lr=2e-3)
-    losses = []
-    for _ in range(steps):
+    losses, t0 = [], time.perf_counter()
+    for step in range(steps):
         i = torch.randint(num_samples, (batch,))
         m0 = model(train["template"][i], train["fbp"][i], train["data"][i])   # K updates through grad_k
         loss = loss_fn(m0, train["template"][i], train["data"][i])
@@ -39,6 +42,8 @@ def main(n: int = 32, steps: int = 300, batch: int = 8, num_samples: int = 64, s
         loss.backward()
         optimizer.step()
         losses.append(loss.item())
+        if (step + 1) % 50 == 0 or step + 1 == steps:                         # a progress line
+            print(f"step {step + 1}/{steps}: loss {losses[-1]:.3g} ({time.perf_counter() - t0:.0f} s)", flush=True)
 
     with torch.no_grad():
         predicted = shoot(model(held_out["template"], held_out["fbp"], held_out["data"]), held_out["template"])

@@ -30,4 +30,6 @@ result = indreg.register(d.template, d.data, d.operator, target=d.target, progre
 print(f"{result.status} after {result.iterations} iterations: SSIM {result.ssim:.4f}, PSNR {result.psnr:.2f} dB, "
       f"relative data residual {result.residual:.4f}, min Jacobian {result.min_jacobian:.3f}, "
       f"{result.warnings} warnings")
-np.save(sys.argv[1] if len(sys.argv) > 1 else "own_data_deformed.npy", result.deformed.cpu().numpy())
+out = Path(sys.argv[1] if len(sys.argv) > 1 else "own_data_deformed.npy").resolve()
+np.save(out, result.deformed.cpu().numpy())
+print(f"output: the deformed template in {out}")

@@ -403,7 +403,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     metrics["scores"] = score(volumes, T, Y, {k: v[1] for k, v in base.items()})
 
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
-    figure(volumes, out / "figure.png", cell)
+    figure(volumes, out / "figure.png", cell, metrics["scores"])
     save(volumes, domain, out)
     metrics["cpu_seconds"] = time.process_time() - t0
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))

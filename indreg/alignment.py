@@ -412,7 +412,8 @@ def summary(problem) -> dict:
 
 
 def plot_shifts(alignment: dict, path: str | Path) -> None:
-    """Shifts (px) against the tilt angle (deg), one line per component, the axis angle in the title."""
+    """Shifts (px) against the tilt angle (deg), one line per component, the axis angle in the title when it was
+    estimated (a mode with ``axis``)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -423,7 +424,9 @@ def plot_shifts(alignment: dict, path: str | Path) -> None:
         ax.plot(alignment["tilt_angles_deg"], shifts[:, i].numpy(), "o-", ms=3, label=f"{name} the tilt axis")
     ax.set_xlabel("tilt angle (deg)")
     ax.set_ylabel("shift (px)")
-    ax.set_title(f"alignment ({alignment['mode']}): tilt-axis angle {alignment['axis_angle_deg']:.3f} deg")
+    angle = f": tilt-axis angle {alignment['axis_angle_deg']:.3f} deg" if "axis" in alignment["mode"] else \
+        " (tilt-axis angle not estimated)"
+    ax.set_title(f"alignment ({alignment['mode']}){angle}")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)

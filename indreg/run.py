@@ -272,10 +272,23 @@ class RegistrationLoop:
         self.callbacks = Callbacks(*chain, *([UserCallback(callback)] if callback is not None else []))
 
     def _warn(self, it: int, info: dict) -> None:
-        """Count a warning; log the first one and then one every ``every`` iterations."""
+        """Count a warning; log the first one and then one every ``every`` iterations. A fixed step (no step
+        halving, as the paper's presets) says once what it does and is then only counted (the run's last
+        warning line gives the count): its objective may rise, which is what the paper's step does."""
         self.warnings += 1
+        if self._fixed_step():
+            if self.warnings == 1:
+                log.warning("iteration %d: %s: a fixed step (step_halving off, as the paper's presets) takes every "
+                            "step, so the objective may rise; further warnings are counted, not printed", it,
+                            info["warning"])
+            return
         if self.warnings == 1 or it % self.every == 0:
             log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+
+    def _fixed_step(self) -> bool:
+        """Algorithm 1's step control with step halving off: every step is taken."""
+        control = getattr(self.solver, "control", None)
+        return control is not None and not control.halving
 
     def _stalled(self) -> bool:
         """Step halving has collapsed the step (:data:`STALL_WINDOW`)."""
@@ -355,8 +368,10 @@ class RegistrationLoop:
             self._end(error)
         rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
-            log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)", self.warnings,
-                        len(self.history), rejected, halvings)
+            fixed = "" if not self._fixed_step() else "; the fixed step: step_halving=true (the default of " \
+                "indreg.register) rejects a step that raises the objective"
+            log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings%s)",
+                        self.warnings, len(self.history), rejected, halvings, fixed)
         return status
 
 

@@ -28,6 +28,9 @@ LAUNCHER_EXTRAS = {
 #: Hydra's parser (argparse, ``allow_abbrev``) also takes every unambiguous prefix: ``--exp FILE``,
 #: ``--experimental-r=FILE``. (``--config-dir`` / ``--config-path`` read yaml config files, which run no code.)
 LOADING_FLAGS = ("--experimental-rerun",)
+#: Where the documentation is: docs/ of indreg's source, rendered as a site by mkdocs (mkdocs.yml; the site is not
+#: hosted yet); both ``--help``s name it.
+DOCS_URL = "docs/index.md in indreg's source"
 
 #: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
 #: ``--info``, ``-cd``, ...) is Hydra's business alone.

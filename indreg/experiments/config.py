@@ -226,8 +226,18 @@ def path_component(name) -> str:
     return safe or "_"
 
 
+def run_dir_name(name, model) -> str:
+    """The run directory's name (resolver ``indreg_run_dir``): ``name`` as a path component (``path_component``),
+    with ``-<model>`` appended for a model other than LDDMM that the name does not mention, so that e.g.
+    ``experiment=suite4_missing_object deformation=metamorphosis`` is not filed in the LDDMM run's folder."""
+    short = str(getattr(model, "value", model)).rpartition(":")[2]
+    base = path_component(name)
+    return base if short in ("", "lddmm") or short in base else path_component(f"{base}-{short}")
+
+
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("indreg_path", path_component, replace=True)
+    OmegaConf.register_new_resolver("indreg_run_dir", run_dir_name, replace=True)
     OmegaConf.register_new_resolver("indreg_data", lambda name: str(DATA_DIR / name), replace=True)
     OmegaConf.register_new_resolver("indreg_simulated", simulated_only, replace=True)
     OmegaConf.register_new_resolver("indreg_run_name", run_name, replace=True)

@@ -204,7 +204,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         frames = save_frames(out / "trajectory.npy", problem.image_frames(state.iterate), r.velocity.shape[0],
                              shown)
     write_json(out, history, result)
-    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames, result)
+    writer.baselines(result, rec, it)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})

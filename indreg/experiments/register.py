@@ -50,7 +50,7 @@ from omegaconf import DictConfig
 
 from . import cli
 
-__all__ = ["main", "preflight", "run", "PROG", "CONFIG_DIR"]
+__all__ = ["main", "preflight", "run", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +110,7 @@ def _task(cfg: DictConfig):
     except (ConfigError, DataFileError, CheckpointError) as e:  # user errors: one line, no traceback
         _log_to_file(str(e))
         _exit_error(str(e))
+    _say_where(result["status"], Path(hc.runtime.output_dir))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))
     if result["status"] == "failed":
@@ -120,6 +121,24 @@ def _task(cfg: DictConfig):
                     "data (data.template_scale=auto, data.background=auto) and the step (outputs in "
                     f"{hc.runtime.output_dir})")
     return result.get("ssim")
+
+
+#: The figures a finished run may write, in the order the last line names them.
+FIGURES = ("figure.png", "parts.png", "frames.png", "frames.gif", "alignment.png")
+
+
+def where_line(status: str, out: Path) -> str:
+    """The run's last line: where its outputs are (the figures by name), or where its checkpoint is."""
+    if status in ("interrupted", "stopped"):
+        return (f"checkpoint in {out / 'checkpoint.pt'}: continue with hydra.run.dir={out} resume=true")
+    if status == "failed":
+        return f"record of the failed run in {out} (metrics.json, history.json)"
+    shown = [name for name in FIGURES if (out / name).is_file()]
+    return f"outputs in {out}" + (f" (figures: {', '.join(shown)})" if shown else "")
+
+
+def _say_where(status: str, out: Path) -> None:
+    log.info("%s", where_line(status, out.resolve()))
 
 
 def _log_to_file(message: str) -> None:

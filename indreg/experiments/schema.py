@@ -143,12 +143,15 @@ class BaselineConfig:
 
 @dataclass
 class LoggingConfig:
-    """Every ``every`` iterations: SSIM/PSNR and image to TensorBoard; checkpoint every ``checkpoint_every``."""
+    """Every ``every`` iterations: SSIM/PSNR and image to TensorBoard; checkpoint every ``checkpoint_every``.
+    ``length_unit``: the name of the domain's length unit (e.g. ``nm``) on the figures' axes and scale bars
+    (null: the box's own units, unnamed)."""
     every: int = 10
     checkpoint_every: int = 10
     tensorboard: bool = True
     progress: bool = True
     figure: bool = True
+    length_unit: Optional[str] = None
 
 
 _GROUP_DOCS = {

@@ -6,9 +6,11 @@ Tags::
              deformation/min_jacobian (every iteration; a model with more terms or iterate entries adds
              them, e.g. loss/source_regulariser, optim/source_grad_norm, optim/source_step_size); metrics/ssim, metrics/psnr, metrics/ssim_paper,
              metrics/psnr_paper (every k iterations and at the end); validation/residual (with
-             validation.holdout: the held-out angles' relative residual, every k iterations)
+             validation.holdout: the held-out angles' relative residual, every k iterations); at the end
+             metrics/<baseline>_ssim, metrics/<baseline>_psnr (fbp, tv, sirt) and metrics/template_ssim / _psnr
     images   images/deformed_template (every k), images/trajectory (t_i strip), images/template,
-             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}); a model whose
+             images/target, images/fbp, images/tv, images/deformed_grid (phi_{1,0}), images/residual (the
+             data residual T f - g per angle, a sinogram; a tilt series' central row); a model whose
              reconstruction f(1) has parts adds images/deformation_part (W(nu, I)),
              images/intensity_part (f(1) - W(nu, I), its own grey scale) and images/parts at the end
     hparams  gamma, sigma, N, step_size, action, solver, phantom -> hparam/ssim, hparam/psnr, ... (HParams tab)
@@ -73,6 +75,15 @@ class RunWriter:
             for key in METRICS:
                 if key in values:
                     self.writer.add_scalar(f"metrics/{key}", values[key], step)
+
+    def baselines(self, values: dict, names, step: int) -> None:
+        """The baselines' scores at the end (``metrics/<name>_ssim``, ``metrics/<name>_psnr``, e.g. fbp, tv, sirt),
+        beside the registration's, and the template's (``metrics/template_ssim``): what the run must beat."""
+        if self.enabled:
+            for name in (*names, "template"):
+                for key in ("ssim", "psnr"):
+                    if f"{name}_{key}" in values:
+                        self.writer.add_scalar(f"metrics/{name}_{key}", values[f"{name}_{key}"], step)
 
     def validation(self, residual: float, step: int) -> None:
         """The held-out angles' relative residual (``validation.holdout``)."""

@@ -403,6 +403,7 @@ def train(cfg, run_dir) -> dict:
         with open_replacing(run_dir / "metrics.json", "w") as f:
             f.write(json.dumps(metrics, indent=2))
         print(json.dumps({k: v for k, v in metrics.items() if k != "ood"}, indent=2), flush=True)
+        print(f"outputs in {run_dir.resolve()} (figure: figure.png, metrics.json, tensorboard/)", flush=True)
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()

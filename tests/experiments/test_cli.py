@@ -243,7 +243,8 @@ def test_register_help_describes_the_tool(tmp_path):
     out = proc.stdout
     assert out.startswith("indreg-register: indirect image registration") and "powered by Hydra" not in out
     assert "experiment: own_data_example," in out and "suite_et_3d" in out
-    for text in ("docs/index.md", "indreg-sweep-table", 'pip install "indreg[ray]"', "--cfg job"):
+    for text in (cli.DOCS_URL, "indreg-sweep-table", 'pip install "indreg[ray]"', "--cfg job",
+                 "help(indreg.register)"):
         assert text in out
     assert not any(tmp_path.iterdir())
 
@@ -254,8 +255,12 @@ def test_train_momentum_help_and_a_group_of_the_other_app(tmp_path):
     proc = subprocess.run(cmd + ["--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
-    assert out.startswith("indreg-train-momentum: train a network") and "powered by Hydra" not in out
+    assert out.startswith("indreg-train-momentum: learned LDDMM") and "powered by Hydra" not in out
     assert "experiment:" not in out and "solver:" not in out and "num_train: 256" in out
+    # the unrolled model as it is today (no correction network by default), its keys, the run's duration, the docs
+    for text in ("no correction network (model.correction=false", "model.updates (K, 10)", "about 8 minutes",
+                 cli.DOCS_URL):
+        assert text in " ".join(out.split()), text
     proc = subprocess.run(cmd + ["solver=lbfgs"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines()[0].startswith("indreg-train-momentum: error: solver=lbfgs: ")
