@@ -61,7 +61,7 @@ def to_first_line(cmd: list) -> tuple:
 
 def cases() -> list:
     register = entry_point("indreg-register", "indreg.experiments.register")
-    train = entry_point("indreg-train-momentum", "indreg.learn.train")
+    train = entry_point("indreg-train-momentum", "indreg.learn.entry")
     return [("`python -c \"import torch\"` (for scale)", to_exit, [PYTHON, "-c", "import torch"]),
             ("`python -c \"import indreg\"`", to_exit, [PYTHON, "-c", "import indreg"]),
             ("`python -c \"from indreg import register\"`", to_exit, [PYTHON, "-c", "from indreg import register"]),

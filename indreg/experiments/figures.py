@@ -11,9 +11,12 @@ Every image panel has a colour bar (panels on one grey scale share its values); 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = ["PAPER_TIMES", "PLANES", "time_indices", "show_image", "value_range", "paper_figure",
            "deformed_grid_figure", "parts_figure", "parts_ortho_figure", "orthoslices", "ortho_figure",
@@ -22,6 +25,13 @@ __all__ = ["PAPER_TIMES", "PLANES", "time_indices", "show_image", "value_range",
 PAPER_TIMES = (0.25, 0.5, 0.75, 1.0)
 PLANES = ("xy", "xz", "yz")
 GIF_SIDE = 256   # the movie's least long side in pixels (frames are repeated, nearest)
+
+
+def _figure(**kwargs) -> Figure:
+    """A matplotlib ``Figure`` (matplotlib imported here, on the first figure: the app starts without it)."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
 
 
 def time_indices(num_steps: int, times=PAPER_TIMES) -> list:
@@ -70,7 +80,7 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
     n = trajectory.shape[0] - 1
     scale = template if target is None else target
     vmin, vmax = float(np.min(scale)), float(np.max(scale))
-    fig = Figure(figsize=(12, 11), layout="constrained")
+    fig = _figure(figsize=(12, 11), layout="constrained")
     axes = fig.subplots(3, 3)
     panels = [(template, "Template")]
     panels += [(trajectory[i], f"$t={i / n:.2f}$") for i in time_indices(n)]
@@ -105,7 +115,7 @@ def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"
     p = np.asarray(points)
     nx, ny = p.shape[1:]
     every = every or max(1, min(nx, ny) // 32)
-    fig = Figure(figsize=(5, 5), layout="constrained")
+    fig = _figure(figsize=(5, 5), layout="constrained")
     ax = fig.subplots()
     for i in range(0, nx, every):
         ax.plot(p[0, i, :], p[1, i, :], color="k", lw=0.5)
@@ -124,7 +134,7 @@ def parts_figure(final, summand, remainder, target=None, extent=None, title: str
     scale = final if target is None else target
     vmin, vmax = float(np.min(scale)), float(np.max(scale))
     bound = max(float(np.max(np.abs(remainder))), 1e-12)
-    fig = Figure(figsize=(9, 8.6), layout="constrained")
+    fig = _figure(figsize=(9, 8.6), layout="constrained")
     axes = fig.subplots(2, 2).flat
     show_image(axes[0], final, "$f(1)$", vmin, vmax, extent)
     show_image(axes[1], summand, r"$W(\nu, I)$ (deformation part)", vmin, vmax, extent)
@@ -174,7 +184,7 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None):
     first = next(np.asarray(p[1]) for p in panels if p[1] is not None)
     vmin = float(first.min()) if vmin is None else vmin
     vmax = float(first.max()) if vmax is None else vmax
-    fig = Figure(figsize=(9.6, 2.9 * len(panels)), layout="constrained")
+    fig = _figure(figsize=(9.6, 2.9 * len(panels)), layout="constrained")
     axes = fig.subplots(len(panels), 3, squeeze=False)
     for row, (label, volume, *scale) in zip(axes, panels):
         if volume is None:
@@ -204,7 +214,7 @@ def frames_figure(frames: np.ndarray, truth: np.ndarray | None = None, title: st
     vmin, vmax = float(np.min(ref)), float(np.max(ref))
     k = len(frames)
     labels = [f"$t={t:.3g}$" for t in times] if times is not None else [f"k={i + 1}" for i in range(k)]
-    fig = Figure(figsize=(2.2 * k + 1.2, 2.3 * len(rows) + 0.5), layout="constrained")
+    fig = _figure(figsize=(2.2 * k + 1.2, 2.3 * len(rows) + 0.5), layout="constrained")
     axes = fig.subplots(len(rows), k, squeeze=False)
     for r, (row, images) in enumerate(zip(axes, rows)):
         for i, (ax, image) in enumerate(zip(row, images)):
