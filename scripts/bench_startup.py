@@ -5,7 +5,8 @@ less sensitive to other jobs than wall seconds) and the wall seconds of that run
 
 - ``python -c "import indreg"`` (the lazy top level) and ``python -c "from indreg import register"`` (torch
   and the registration stack), with ``python -c "import torch"`` for scale;
-- ``indreg-register --help`` and ``indreg-train-momentum --help``, to their exit;
+- ``indreg-register --help`` and ``indreg-train-momentum --help``, to their exit (as ``python -m``, the modules
+  their console scripts run);
 - ``indreg-register`` (the default experiment, in a temporary run directory) to its first log line: the process
   is stopped there and its CPU seconds read from ``/proc/<pid>/stat`` (Linux).
 
@@ -15,9 +16,9 @@ less sensitive to other jobs than wall seconds) and the wall seconds of that run
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import resource
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -27,10 +28,10 @@ from pathlib import Path
 PYTHON = sys.executable
 
 
-def entry_point(name: str, module: str) -> list:
-    """The console script next to this Python, else ``python -m module``."""
-    exe = shutil.which(name, path=str(Path(PYTHON).parent))
-    return [exe] if exe else [PYTHON, "-m", module]
+def entry_point(*modules: str) -> list:
+    """``python -m module`` (what the console script runs) of the first of ``modules`` that this indreg has (an
+    older one has no ``indreg.learn.entry``: its console script ran ``indreg.learn.train``)."""
+    return [PYTHON, "-m", next(m for m in modules if importlib.util.find_spec(m) is not None)]
 
 
 def to_exit(cmd: list) -> tuple:
@@ -60,8 +61,8 @@ def to_first_line(cmd: list) -> tuple:
 
 
 def cases() -> list:
-    register = entry_point("indreg-register", "indreg.experiments.register")
-    train = entry_point("indreg-train-momentum", "indreg.learn.entry")
+    register = entry_point("indreg.experiments.register")
+    train = entry_point("indreg.learn.entry", "indreg.learn.train")
     return [("`python -c \"import torch\"` (for scale)", to_exit, [PYTHON, "-c", "import torch"]),
             ("`python -c \"import indreg\"`", to_exit, [PYTHON, "-c", "import indreg"]),
             ("`python -c \"from indreg import register\"`", to_exit, [PYTHON, "-c", "from indreg import register"]),

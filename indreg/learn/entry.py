@@ -31,3 +31,7 @@ def _task(cfg) -> None:
     from .train import _task as train_task
 
     train_task(cfg)
+
+
+if __name__ == "__main__":
+    main()
