@@ -29,7 +29,8 @@ def test_the_run_modules_and_a_problem_import_nothing_late():
 
 @pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry"])
 def test_help_imports_no_torch(module):
-    code = f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\ntry:\n    main()\nexcept SystemExit:\n    pass"
+    code = (f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass")
     assert _loaded(code, ("torch",)) == {"torch": False}
 
 
