@@ -75,6 +75,18 @@ def check_same(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> No
         raise ValueError(f"{name_a} is on {a.device} but {name_b} is on {b.device}; they must match")
 
 
+def broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` (the same result, ``RuntimeError`` when the shapes do not broadcast) without its
+    first call's import of sympy (torch 2.13: about a second of CPU at every start of a process)."""
+    out = [1] * max((len(s) for s in shapes), default=0)
+    for shape in shapes:
+        for i, n in enumerate(shape, len(out) - len(shape)):
+            if n != 1 and out[i] not in (1, n):
+                raise RuntimeError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+            out[i] = n if n != 1 else out[i]
+    return torch.Size(out)
+
+
 def _shown(value) -> str:
     """A short description of a refused value (arrays by shape and dtype, not by their entries)."""
     if isinstance(value, (torch.Tensor, np.ndarray)):

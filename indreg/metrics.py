@@ -1,4 +1,4 @@
-"""Figures of merit of a result against the ground truth: SSIM, PSNR (scikit-image) and relative error.
+"""Figures of merit of a result against the ground truth: SSIM (scikit-image), PSNR and relative error.
 
 Convention:
     - Every function takes ``(x, gt)``: the result first, the ground truth second, each a 2D image
@@ -22,7 +22,6 @@ import math
 
 import numpy as np
 import torch
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 #: Side of scikit-image's default SSIM window (cells).
 SSIM_WINDOW = 7
@@ -80,10 +79,12 @@ def _gt_range(gt) -> float:
 
 
 def _psnr(x, gt, data_range: float) -> float:
+    """``10 log10(R^2 / MSE)``: an image's as scikit-image's ``peak_signal_noise_ratio(gt, x)`` computes it (the same
+    float64 operations, without importing its ``scipy.stats``), a volume's from float64 chunks."""
     if x.ndim == 2:
         if np.array_equal(x, gt):
             return math.inf
-        return float(peak_signal_noise_ratio(gt, x, data_range=data_range))
+        return float(10 * np.log10(data_range ** 2 / np.mean((gt - x) ** 2, dtype=np.float64)))
     squares, equal = 0.0, True
     for a, b in _chunks(0, x.shape[0]):   # a volume: the mean square error in float64 chunks
         xs, gs = _rows(x, a, b), _rows(gt, a, b)
@@ -96,6 +97,8 @@ def _ssim(x, gt, data_range: float) -> float:
     """scikit-image's SSIM; a volume's by chunks of slices with a halo of the window's half width ``p``, each
     chunk's SSIM map kept where its window lies inside the chunk (scikit-image averages the cells ``p`` or more
     from every edge)."""
+    from skimage.metrics import structural_similarity   # here: importing indreg.metrics costs no scikit-image
+
     if x.ndim == 2:
         return float(structural_similarity(x, gt, data_range=data_range))
     p, n = (SSIM_WINDOW - 1) // 2, x.shape[0]

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from ._checks import check_int
+from ._checks import broadcast_shapes, check_int
 from .domain import ImageDomain
 
 #: The frame ``[-16, 16]^2`` on which the raster phantoms are defined (the paper's image domain).
@@ -295,7 +295,7 @@ def ellipsoid_tilt_series(ellipsoids, domain: ImageDomain, geometry) -> torch.Te
     theta = geometry.angles[:, None, None]
     s = geometry.det_points[None, None, :]
     t = domain.axes()[geometry.axis][None, :, None]
-    shape = torch.broadcast_shapes(theta.shape, t.shape, s.shape)
+    shape = broadcast_shapes(theta.shape, t.shape, s.shape)
     p, d = torch.zeros(*shape, 3, dtype=torch.float64), torch.zeros(*shape, 3, dtype=torch.float64)
     p[..., u], p[..., v], p[..., geometry.axis] = s * torch.cos(theta), s * torch.sin(theta), t
     d[..., u], d[..., v] = -torch.sin(theta).expand(shape), torch.cos(theta).expand(shape)

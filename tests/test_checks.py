@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from indreg import GaussianKernel, ImageDomain, LDDMMDeformation, ParallelBeamGeometry
-from indreg._checks import (check_bool, check_finite, check_finite_in, check_int, check_nonempty, check_nonnegative,
-                            check_number, check_positive)
+from indreg._checks import (broadcast_shapes, check_bool, check_finite, check_finite_in, check_int, check_nonempty,
+                            check_nonnegative, check_number, check_positive)
 
 # numbers in every form a caller may hold them: python, numpy scalars, 0-dim arrays and tensors
 NUMBERS = [6, 6.0, np.float32(6), np.float64(6), np.int64(6), np.array(6.0), torch.tensor(6.0),
@@ -96,3 +96,21 @@ def test_parameters_checked_through_check_positive_refuse_str_and_bool():
         LDDMMDeformation(dom, True)
     with pytest.raises(TypeError, match="^step_deg must be a positive number, got '2'"):
         ParallelBeamGeometry.tilt_series(-60, 60, "2", 16)
+
+
+def test_broadcast_shapes_is_torchs():
+    """The same shape as ``torch.broadcast_shapes``, or a ``RuntimeError`` where torch raises one (sizes 0 and 1)."""
+    import itertools
+
+    sizes = (0, 1, 2, 3)
+    shapes = [()] + [(a,) for a in sizes] + [(a, b) for a in sizes for b in sizes] + [(2, 1, 3), (1, 0, 1)]
+    for s1, s2, s3 in itertools.product(shapes, shapes, [(), (1,), (2, 1)]):
+        try:
+            expected = torch.broadcast_shapes(s1, s2, s3)
+        except RuntimeError:
+            with pytest.raises(RuntimeError, match="do not broadcast"):
+                broadcast_shapes(torch.Size(s1), s2, s3)
+        else:
+            got = broadcast_shapes(torch.Size(s1), s2, s3)
+            assert got == expected and isinstance(got, torch.Size)
+    assert broadcast_shapes() == torch.Size([])

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.function import once_differentiable
 
-from .._checks import FLOAT_DTYPES, check_int, check_nonempty, check_same, check_tensor
+from .._checks import FLOAT_DTYPES, broadcast_shapes, check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 
@@ -141,7 +141,7 @@ def _record(velocity, template, config, moving) -> torch.Tensor:
 
 def _broadcast(velocity, template, d: int) -> tuple:
     """``(template, velocity)`` expanded to their common batch dims (``d`` image axes)."""
-    batch = torch.broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
+    batch = broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
     return template.expand(*batch, *template.shape[-d:]), velocity.expand(*batch, *velocity.shape[-d - 2:])
 
 
@@ -312,7 +312,7 @@ class LDDMMDeformation(torch.nn.Module):
         check_same(velocity, template, "velocity", "template")
         d = self.domain.ndim
         try:
-            torch.broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
+            broadcast_shapes(velocity.shape[:-d - 2], template.shape[:-d])
         except RuntimeError:
             raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-d - 2])} and template "
                              f"{tuple(template.shape[:-d])} do not broadcast") from None

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from .._checks import check_int, check_nonempty, check_same, check_tensor
+from .._checks import broadcast_shapes, check_int, check_nonempty, check_same, check_tensor
 from ..domain import ImageDomain
 from . import functional as Fd
 from .functional.differences import _differenced
@@ -324,7 +324,7 @@ class MetamorphosisDeformation(torch.nn.Module):
         check_nonempty(source, "source", d + 1)
         check_same(velocity, source, "velocity", "source")
         try:
-            batch = torch.broadcast_shapes(velocity.shape[:-d - 2], source.shape[:-d - 1], template.shape[:-d])
+            batch = broadcast_shapes(velocity.shape[:-d - 2], source.shape[:-d - 1], template.shape[:-d])
         except RuntimeError:
             raise ValueError(f"batch dims of velocity {tuple(velocity.shape[:-d - 2])}, source "
                              f"{tuple(source.shape[:-d - 1])} and template {tuple(template.shape[:-d])} "

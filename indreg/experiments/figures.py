@@ -14,9 +14,12 @@ by ``unit`` (e.g. ``"nm"``; None: the box's own units) and with a scale bar. Sig
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = ["PAPER_TIMES", "PLANES", "DIVERGING", "time_indices", "axis_label", "scale_bar_length", "add_scale_bar",
            "show_image", "show_signed", "value_range", "score_text", "residual_panel", "paper_figure",
@@ -27,6 +30,13 @@ PAPER_TIMES = (0.25, 0.5, 0.75, 1.0)
 PLANES = ("xy", "xz", "yz")
 GIF_SIDE = 256   # the movie's least long side in pixels (frames are repeated, nearest)
 DIVERGING = "RdBu_r"   # signed images: blue < 0 < red, white at 0
+
+
+def _figure(**kwargs) -> Figure:
+    """A matplotlib ``Figure`` (matplotlib imported here, on the first figure: the app starts without it)."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
 
 
 def time_indices(num_steps: int, times=PAPER_TIMES) -> list:
@@ -152,7 +162,7 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
     scale = template if target is None else target
     vmin, vmax = float(np.min(scale)), float(np.max(scale))
     errors = target is not None or residual is not None
-    fig = Figure(figsize=(12, 14.8 if errors else 11), layout="constrained")
+    fig = _figure(figsize=(12, 14.8 if errors else 11), layout="constrained")
     axes = fig.subplots(4 if errors else 3, 3)
     panels = [(template, _titled("Template", scores.get("template")))]
     panels += [(trajectory[i], f"$t={i / n:.2f}$") for i in time_indices(n)]
@@ -223,7 +233,7 @@ def deformed_grid_figure(points, every: int = 0, title: str = r"$\varphi_{1,0}$"
     p = np.asarray(points)
     nx, ny = p.shape[1:]
     every = every or max(1, min(nx, ny) // 32)
-    fig = Figure(figsize=(5, 5), layout="constrained")
+    fig = _figure(figsize=(5, 5), layout="constrained")
     ax = fig.subplots()
     for i in range(0, nx, every):
         ax.plot(p[0, i, :], p[1, i, :], color="k", lw=0.5)
@@ -242,7 +252,7 @@ def parts_figure(final, summand, remainder, target=None, extent=None, title: str
     the target share the target's grey scale. ``model`` opens the title."""
     scale = final if target is None else target
     vmin, vmax = float(np.min(scale)), float(np.max(scale))
-    fig = Figure(figsize=(9, 8.6), layout="constrained")
+    fig = _figure(figsize=(9, 8.6), layout="constrained")
     axes = fig.subplots(2, 2).flat
     show_image(axes[0], final, "$f(1)$", vmin, vmax, extent, unit=unit)
     show_image(axes[1], summand, r"$W(\nu, I)$ (deformation part)", vmin, vmax, extent, unit=unit)
@@ -336,7 +346,7 @@ def ortho_figure(panels, vmin=None, vmax=None, title: str = "", box=None, unit=N
         u = f" {unit}" if unit else ""
         where = [f" at z = {z:.3g}{u}", f" at y = {y:.3g}{u}", f" at x = {x:.3g}{u}"]
     rows = len(panels) + (residual is not None)
-    fig = Figure(figsize=(10.4, 3.3 * rows), layout="constrained")
+    fig = _figure(figsize=(10.4, 3.3 * rows), layout="constrained")
     axes = fig.subplots(rows, 3, squeeze=False)
     if residual is not None:
         text, sinogram, angles_deg, det_range = residual
@@ -381,7 +391,7 @@ def frames_figure(frames: np.ndarray, truth: np.ndarray | None = None, title: st
     vmin, vmax = float(np.min(ref)), float(np.max(ref))
     k = len(frames)
     labels = [f"$t={t:.3g}$" for t in times] if times is not None else [f"k={i + 1}" for i in range(k)]
-    fig = Figure(figsize=(2.2 * k + 1.2, 2.3 * len(rows) + 0.5), layout="constrained")
+    fig = _figure(figsize=(2.2 * k + 1.2, 2.3 * len(rows) + 0.5), layout="constrained")
     axes = fig.subplots(len(rows), k, squeeze=False)
     for r, (row, images) in enumerate(zip(axes, rows)):
         for i, (ax, image) in enumerate(zip(row, images)):
@@ -419,7 +429,7 @@ def gif_frames(frames: np.ndarray, vmin: float, vmax: float, labels=None) -> lis
             out.append(grey)
             continue
         h, w = grey.shape
-        fig = Figure(figsize=(w / 100, h / 100), dpi=100)
+        fig = _figure(figsize=(w / 100, h / 100), dpi=100)
         FigureCanvasAgg(fig)
         ax = fig.add_axes((0, 0, 1, 1))
         ax.imshow(grey, cmap="gray", vmin=0, vmax=255, interpolation="nearest")

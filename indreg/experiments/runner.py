@@ -177,8 +177,6 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     a bad run directory or a damaged / foreign / mismatched checkpoint raises ``ConfigError``, ``DataFileError`` or
     ``CheckpointError`` before any computing.
     """
-    from .tblog import RunWriter
-
     validate(cfg, registration=False)   # the registration options: resolved once, by build's setup
     rank, output_dir = _distributed(cfg, output_dir)
     out = Path(output_dir)
@@ -213,6 +211,8 @@ def _run(cfg: DictConfig, output_dir) -> dict:
             ckpt.set_rng_state(saved["rng"])
             history, seconds = list(saved["history"]), float(saved["seconds"])
         log.info("resumed from %s at iteration %d", path, state.iteration)
+
+    from .tblog import RunWriter   # TensorBoard imported after the first log line
 
     shown = exp.target_64 if exp.target_64 is not None else exp.template_64
     # a resumed run drops the events an interrupted one logged after its checkpoint

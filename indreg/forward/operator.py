@@ -24,7 +24,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from .._checks import FLOAT_DTYPES, check_int, check_same, check_tensor
+from .._checks import FLOAT_DTYPES, broadcast_shapes, check_int, check_same, check_tensor
 from ..domain import ImageDomain
 
 MEMBERS = ("domain", "range_shape", "__call__", "adjoint", "inner_data")
@@ -68,7 +68,7 @@ def check_data_pair(y1, y2, range_shape) -> tuple:
     check_same(y1, y2, "y1", "y2")
     k = len(shape)
     try:
-        torch.broadcast_shapes(y1.shape[:y1.dim() - k], y2.shape[:y2.dim() - k])
+        broadcast_shapes(y1.shape[:y1.dim() - k], y2.shape[:y2.dim() - k])
     except RuntimeError:
         raise ValueError(f"batch dims of y1 {tuple(y1.shape[:y1.dim() - k])} and y2 "
                          f"{tuple(y2.shape[:y2.dim() - k])} do not broadcast") from None

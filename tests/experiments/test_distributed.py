@@ -38,6 +38,7 @@ def _same(a, b, names=("momentum",)):
         np.testing.assert_allclose(y, x, rtol=0, atol=1e-6 * np.abs(x).max())
 
 
+@pytest.mark.slow   # 135 s at load 15-20: the app in one process and over two (torchrun)
 def test_two_ranks_equal_one_process(tmp_path):
     _ok(_run(tmp_path / "one", "solver.max_iter=3"))
     proc = _run(tmp_path / "two", "solver.max_iter=3", ranks=2)
@@ -50,6 +51,7 @@ def test_two_ranks_equal_one_process(tmp_path):
     assert "rank=0/2" in proc.stderr + proc.stdout and "slabs=4" in proc.stderr + proc.stdout
 
 
+@pytest.mark.slow   # 144 s at load 15-20: two app runs, two processes each
 def test_two_ranks_split_the_baselines(tmp_path):
     """FBP, SIRT and TV over two ranks (each its rows, TV with a halo) equal the one process's (FBP and SIRT slab by
     slab: its registration is slab-wise), written once, with the same figures of merit."""

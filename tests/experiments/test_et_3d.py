@@ -12,6 +12,7 @@ TINY_3D = ["experiment=suite_et_3d", "phantom.size=16", "geometry.det_count=16",
            "logging.every=1", "logging.checkpoint_every=1", "logging.progress=false"]
 
 
+@pytest.mark.slow   # 120 s at load 15-20: the 3D app through its console script
 def test_cli_suite_et_3d_tiny(tmp_path):
     out = tmp_path / "run"
     proc = run_cli(TINY_3D + [f"hydra.run.dir={out}"], cwd=tmp_path)

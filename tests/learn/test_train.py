@@ -96,7 +96,7 @@ def test_damaged_checkpoint_ends_in_one_line(tmp_path):
     assert lines[-1].startswith("indreg-train-momentum: error: checkpoint") and "Traceback" not in proc.stderr
 
 
-
+@pytest.mark.slow
 @pytest.mark.parametrize("space", ["velocity", "initial"])
 def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path, space):
     """model=unrolled: the one-shot steps, then the updates (own scalars and images), every scheme in metrics.json
@@ -135,6 +135,24 @@ def test_unrolled_run_benchmarks_every_scheme_and_resumes_exactly(tmp_path, spac
         assert [e.step for e in acc.Scalars("unrolled/supervised")] == [3, 4, 5]
     first_phase = parameters(tmp_path / "a")["model"]            # the one-shot network is fixed while updates train
     assert torch.equal(first_phase["initial.head.weight"], c["model"]["initial.head.weight"])
+
+
+def test_two_steps_in_process_write_every_output(tmp_path):
+    """The training of the entry point (``train.train`` on the app's config) in this process, two steps: the fast
+    stand-in of the end-to-end runs above (marked slow)."""
+    from omegaconf import OmegaConf
+
+    from indreg.learn import train
+
+    cfg = OmegaConf.merge(train.base_config(), OmegaConf.from_dotlist([*TINY, "train.steps=2",
+                                                                        "eval.algorithm1.num_samples=1"]))
+    metrics = train.train(cfg, tmp_path)
+    assert metrics["steps"] == 2 and metrics["resumed_from"] == 0 and metrics["world_size"] == 1
+    assert 0 <= metrics["network"]["ssim"] <= 1 and 0 <= metrics["algorithm1"]["ssim"] <= 1
+    assert json.loads((tmp_path / "metrics.json").read_text())["steps"] == 2
+    _, steps = scalars(tmp_path, "train/loss")
+    assert steps == [1, 2] and parameters(tmp_path)["step"] == 2
+    assert (tmp_path / "figure.png").stat().st_size > 10_000
 
 
 def test_schedule_and_learning_rate_of_the_two_phases():

@@ -44,6 +44,7 @@ def _explicit(scheme, template, fbp, data, loss, frozen=None):
     return m
 
 
+@pytest.mark.slow   # ~25 s idle: the full gradcheck of every head's entries through double backward
 def test_gradcheck_of_the_exact_scheme():
     """gradient="exact": the derivative of the whole map (double backward through shooting and projector)."""
     loss, template, fbp, data = small_problem()

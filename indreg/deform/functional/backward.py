@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from ..._checks import broadcast_shapes
 from ...domain import ImageDomain
 from .differences import (_add_divergence_adjoint, _difference_factors, _differences_into, _growth_into,
                           _padded_scratch)
@@ -31,7 +32,7 @@ def gradient_record(template: torch.Tensor, velocity: torch.Tensor, domain: Imag
     _check_action(action)
     d = domain.ndim
     t = -d - 2
-    record = velocity.new_empty(torch.broadcast_shapes(template.shape[:-d], velocity.shape[:t]) + velocity.shape[t:])
+    record = velocity.new_empty(broadcast_shapes(template.shape[:-d], velocity.shape[:t]) + velocity.shape[t:])
     frames, factors = record.unbind(t + 1)[:2]
     template_trajectory(template, velocity, domain, interpolation, moving, out=frames)
     if action == "geometric":
@@ -165,7 +166,7 @@ def exact_record(template: torch.Tensor, velocity: torch.Tensor, domain: ImageDo
     _check_interpolation(interpolation)
     d = domain.ndim
     c = -d - 1
-    batch = torch.broadcast_shapes(template.shape[:-d], velocity.shape[:c - 1])
+    batch = broadcast_shapes(template.shape[:-d], velocity.shape[:c - 1])
     slots = velocity.new_empty(batch + velocity.shape[c - 1:])
     geometric = action == "geometric"
     if interpolation == "reinterpolate":

@@ -18,6 +18,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..._checks import broadcast_shapes
 from ...domain import ImageDomain
 from .backward import ExactRecord, _displacement_sweep, _displacements_into, _warp_adjoint
 from .flows import _check_action, _Steps, displacements_t0, jacobian_trajectory
@@ -122,7 +123,7 @@ def coarse_record(template: torch.Tensor, velocity: torch.Tensor, coarse: ImageD
     _check_action(action)
     d = coarse.ndim
     c = -d - 1
-    batch = torch.broadcast_shapes(template.shape[:-d], velocity.shape[:c - 1])
+    batch = broadcast_shapes(template.shape[:-d], velocity.shape[:c - 1])
     slots = velocity.new_empty(batch + velocity.shape[c - 1:])
     _displacements_into(slots, velocity, coarse, moving)
     moved = bool(slots.ne(0).any())

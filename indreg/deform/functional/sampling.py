@@ -19,6 +19,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from ..._checks import broadcast_shapes
 from ...domain import ImageDomain
 
 _PADDING = {"zeros": 0, "border": 1}
@@ -94,7 +95,7 @@ def warp(f: torch.Tensor, points: torch.Tensor, domain: ImageDomain, padding_mod
     (``"border"``). Returns ``(..., *out_shape)``.
     """
     d = domain.ndim
-    batch = torch.broadcast_shapes(f.shape[:-d], points.shape[:-d - 1])
+    batch = broadcast_shapes(f.shape[:-d], points.shape[:-d - 1])
     f = f.expand(*batch, *f.shape[-d:])
     grid = domain.to_grid(points.expand(*batch, *points.shape[-d - 1:]).movedim(-d - 1, -1))
     return sample(f.unsqueeze(-d - 1), grid, padding_mode).squeeze(-d - 1)

@@ -1,0 +1,41 @@
+"""Start-up: the app's modules import nothing that a run needs only after its first log line (matplotlib,
+TensorBoard, scipy.stats, sympy), and the two entry points answer ``--help`` without torch."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+LATE = ("matplotlib", "torch.utils.tensorboard", "scipy.stats", "sympy")
+
+
+def _loaded(code: str, names) -> dict:
+    """Which of ``names`` are in ``sys.modules`` after ``code`` runs in a fresh interpreter."""
+    probe = f"{code}\nimport json, sys\nprint(json.dumps({{n: n in sys.modules for n in {list(names)!r}}}))"
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def test_the_run_modules_and_a_problem_import_nothing_late():
+    code = ("import torch\nfrom indreg import metrics, run\nfrom indreg.experiments import runner, outputs, figures\n"
+            "from indreg import ImageDomain, ParallelBeamGeometry, RayTransform, LDDMMDeformation\n"
+            "d = ImageDomain.paper(16); T = RayTransform(d, ParallelBeamGeometry.paper(4, 20))\n"
+            "y = T(torch.rand(16, 16, dtype=torch.float64)); T.inner_data(y, y)\n"
+            "LDDMMDeformation(d, 2)(torch.zeros(3, 2, 16, 16, dtype=torch.float64),"
+            " torch.rand(16, 16, dtype=torch.float64))")
+    assert _loaded(code, LATE) == dict.fromkeys(LATE, False)
+
+
+@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry"])
+def test_help_imports_no_torch(module):
+    code = (f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass")
+    assert _loaded(code, ("torch",)) == {"torch": False}
+
+
+def test_the_light_entry_point_names_the_trainings_config():
+    from indreg.experiments.config import CONFIG_DIR
+    from indreg.learn import entry, train
+
+    assert (entry._CONFIG, entry._CONFIG_NAME) == (CONFIG_DIR, train.CONFIG_NAME)
