@@ -22,9 +22,10 @@ from typing import Any, Callable, Optional
 
 import torch
 
+from . import solver_registry  # noqa: F401  (the solvers a model's solver_options name)
 from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
-                      is_torch_optim, model, number, optional, register_model)
+from .options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
+                      model, number, optional, register_model, solver_kind)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -153,7 +154,7 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
                                         source_start=start if staged else 0)
     solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": 0 if staged else
                                                                                            start}},
-                      "torch": {"lrs": {"source": o["source_lr"]}}}
+                      TORCH: {"lrs": {"source": o["source_lr"]}}}
     return problem, solver_options
 
 
@@ -251,7 +252,7 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),
     Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
-           "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
+           "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=(TORCH,), models=_META),
     Option("source_start", "solver", "source_start", None, optional(number(0, integer=True)),
            "Algorithm 1: iterations with the source frozen (its uniform part excepted); None: "
            "source_start_fraction of max_iter",
@@ -260,11 +261,6 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
            _fraction, "Algorithm 1, with source_start None: the fraction of max_iter with the source frozen", float,
            solvers=(ALGORITHM1,), models=_META),
 )))
-
-
-def solver_kind(solver: str) -> str:
-    """``"algorithm1"``, ``"fast"`` or ``"torch"`` (the key of a model's ``solver_options``)."""
-    return "torch" if is_torch_optim(solver) else solver
 
 
 def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:

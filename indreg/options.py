@@ -19,8 +19,8 @@ from typing import Any, Callable, Dict, Optional
 
 import torch
 
-from .option_checks import (ALGORITHM1, FAST, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
-                            holdout, is_torch_optim, mapping, number, optional, solver_name)
+from .option_checks import (ALGORITHM1, FAST, TORCH, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
+                            holdout, mapping, number, optional)
 from .units import GAMMA_REL, STEP_REL
 
 _NONE = object()
@@ -30,7 +30,8 @@ _NONE = object()
 @dataclass(frozen=True)
 class Option:
     """One option. ``group`` / ``key``: its config key ``group.key`` (group ``run``: ``register()`` only);
-    ``solvers``: the solvers it applies to (``"torch"`` stands for every torch.optim optimizer; None: all);
+    ``solvers``: the registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None:
+    all);
     ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
     ``default``; ``type``: its type in the Hydra schema."""
     name: str
@@ -53,8 +54,8 @@ class Option:
         return self.default if self.app_default is _NONE else self.app_default
 
     def applies(self, solver: str, model: str) -> bool:
-        ok_solver = self.solvers is None or solver in self.solvers or ("torch" in self.solvers
-                                                                     and is_torch_optim(solver))
+        ok_solver = self.solvers is None or solver in self.solvers or getattr(_serving(solver), "name", None) in \
+            self.solvers
         return ok_solver and (self.models is None or model in self.models)
 
     def where(self) -> str:
@@ -63,8 +64,7 @@ class Option:
         if self.models is not None:
             parts.append(" or ".join(f"model={m!r}" for m in self.models))
         if self.solvers is not None:
-            parts.append(" or ".join("a torch.optim solver" if s == "torch" else f"solver={s!r}"
-                                     for s in self.solvers))
+            parts.append(" or ".join(getattr(SOLVERS.get(s), "family", "") or f"solver={s!r}" for s in self.solvers))
         return " with ".join(parts)
 
 
@@ -78,8 +78,9 @@ MODELS: dict = {}
 class Model:
     """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``
     (``template`` None, unknown, only for a model with ``template_optional``);
-    ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
-    ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
+    ``solver_options``: keyword arguments of a solver's build, keyed by the registered solver's name
+    (:class:`Solver`; ``steps`` / ``frozen`` for ``"algorithm1"``, ``lrs`` for ``"torch"``), and ``"wrap"``: a
+    function of the solver built that returns the solver to run (an alternation around it)."""
     name: str
     build: Callable
     options: tuple = ()
@@ -104,6 +105,83 @@ class Model:
             raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
                             f"{type(built).__name__}")
         return built
+
+
+# ---------------------------------------------------------------------------------------------------- solvers
+# The registry of solvers lives here too, below the modules that fill it (``indreg.builtin_solvers``: algorithm1,
+# fast, the torch.optim optimizers; a plug-in's own module), so that checking an option never imports a solver.
+SOLVERS: dict = {}
+
+
+@dataclass(frozen=True)
+class Solver:
+    """A solver: ``build(problem, options, model_kwargs) -> solver`` (an iterative solver: ``step(state) -> info``,
+    ``status(info)``, ``state_dict`` / ``load_state_dict``, ``halves_steps``; ``indreg.solvers.state.IterativeSolver``
+    gives all but ``step``), ``model_kwargs`` the model's ``solver_options[name]`` (e.g. Algorithm 1's ``steps``).
+
+    ``name``: the value of ``solver=`` (the app's ``solver.name``) and the key of a model's ``solver_options``;
+    ``options``: its own ``Option``s (``solvers=(name,)``: keywords of ``register()`` and config keys, as a model's);
+    ``accepts``: a family's test of other names it serves (``accepts(value) -> the value normalised, or None``: the
+    torch.optim optimizers by class name); ``check(options, label)``: checks across options (errors via
+    ``OptionError(label(name), ...)``); ``expected``: how the list of solvers names it (default ``'name'``);
+    ``family``: how an option's error names its solvers (default ``solver='name'``)."""
+    name: str
+    build: Callable
+    options: tuple = ()
+    doc: str = ""
+    accepts: Optional[Callable] = None
+    check: Optional[Callable] = None
+    expected: str = ""
+    family: str = ""
+
+    def make(self, problem, o: dict, model_kwargs: dict):
+        """The solver of :attr:`build`; a plug-in's own exception other than a ValueError / TypeError becomes one
+        ValueError naming the solver, the original chained."""
+        try:
+            return self.build(problem, o, model_kwargs)
+        except (ValueError, TypeError):
+            raise
+        except Exception as e:
+            if getattr(self.build, "__module__", "").startswith("indreg."):
+                raise
+            raise ValueError(f"solver {self.name!r}: build raised {type(e).__name__}: {e}") from e
+
+
+def register_solver(entry: Solver) -> Solver:
+    """Add ``entry`` to the solver registry (a name already there is replaced)."""
+    return add_to_registry(SOLVERS, entry, Solver, "register_solver takes an indreg.solver_registry.Solver")
+
+
+def solver(name: str) -> Solver:
+    """The registered solver serving ``name`` (its own name, or one a family accepts); ``"package.module:attribute"``
+    imports a ``Solver`` (or a module that registers it) and registers it under that name, as :func:`model`."""
+    if isinstance(name, str) and name not in SOLVERS and ":" in name:
+        _import(name, SOLVERS, Solver, "solver", "indreg.solver_registry.Solver")
+    found = _serving(name)
+    if found is None:
+        raise ValueError(f"solver must be {solver_names()} or 'package.module:attribute', got {name!r}")
+    return found
+
+
+def _serving(name):
+    if name in SOLVERS:
+        return SOLVERS[name]
+    for entry in SOLVERS.values():
+        if entry.accepts is not None and isinstance(name, str) and entry.accepts(name) is not None:
+            return entry
+    return None
+
+
+def solver_names() -> str:
+    """The registered solvers as an error names them: ``'algorithm1', 'fast' or a torch.optim optimizer name``."""
+    what = list(dict.fromkeys(e.expected or repr(e.name) for e in SOLVERS.values()))
+    return " or ".join(filter(None, (", ".join(what[:-1]), what[-1] if what else "")))
+
+
+def solver_kind(name: str) -> str:
+    """The registry name of the solver serving ``name`` (``"torch"`` for a torch.optim optimizer): the key of a
+    model's ``solver_options``."""
+    return solver(name).name
 
 
 def add_to_registry(registry: dict, entry, cls: type, expected: str):
@@ -131,22 +209,44 @@ def model(name: str) -> Model:
     return MODELS[name]
 
 
-def _import(path: str) -> None:
+def _import(path: str, registry: Optional[dict] = None, cls: type = Model, what: str = "model",
+            public: str = "indreg.models.Model") -> None:
+    """Import ``path`` (``package.module:attribute``), an instance of ``cls``, into ``registry`` under ``path`` and its
+    own name; one-line ValueError (nothing the failed import registered stays) when it cannot."""
     import importlib
 
+    registry = MODELS if registry is None else registry
     module, _, attr = path.partition(":")
-    before = dict(MODELS)
+    before = dict(registry)
     try:
-        model = getattr(importlib.import_module(module), attr)
-        problem = None if isinstance(model, Model) else f"is a {type(model).__name__}, not an indreg.models.Model"
+        entry = getattr(importlib.import_module(module), attr)
+        problem = None if isinstance(entry, cls) else f"is a {type(entry).__name__}, not an {public}"
     except Exception as e:   # a syntax error or an exception at import: one line
         problem = f"cannot be imported: {type(e).__name__}: {e}"
     if problem is not None:   # nothing the failed import registered stays
-        MODELS.clear()
-        MODELS.update(before)
-        raise ValueError(f"model {path!r} {problem}")
-    MODELS[path] = model
-    MODELS.setdefault(model.name, model)   # its options name it (Option.models) by its own name
+        registry.clear()
+        registry.update(before)
+        raise ValueError(f"{what} {path!r} {problem}")
+    registry[path] = entry
+    registry.setdefault(entry.name, entry)   # its options name it (Option.models / solvers) by its own name
+
+
+def _solver(v, label):
+    expected = f"{solver_names()}; a plug-in: 'package.module:attribute'"
+    if not isinstance(v, str):
+        raise OptionError(label, v, expected, TypeError)
+    key = v if v in SOLVERS or ":" in v else v.lower()
+    try:
+        entry = solver(key)
+    except ValueError as e:
+        msg = str(e)
+        raise OptionError(label, v, expected if msg.startswith("solver must be ") else
+                          f"an importable solver ({msg})") from None
+    if key == entry.name and entry.accepts is not None and entry.accepts(key) is None:   # a family's own name
+        raise OptionError(label, v, expected)
+    if key in SOLVERS and SOLVERS[key] is entry:
+        return entry.name if SOLVERS.get(entry.name) is entry else key   # a plug-in by its own name
+    return entry.accepts(key)
 
 
 def _model(v, label):
@@ -189,8 +289,9 @@ CORE = (
     Option("tv_rel", "solver", "tv_rel", None, optional(_nonneg),
            "the TV weight relative to the TV weight unit: tv_weight = tv_rel x indreg.forward.tv_weight_unit (the "
            "intensity unit x the box side squared: the TV baseline's convention; with tv_weight 0)", Optional[float]),
-    Option("solver", "solver", "name", ALGORITHM1, solver_name,
-           "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
+    Option("solver", "solver", "name", ALGORITHM1, lambda v, label: _solver(v, label),
+           "'algorithm1', 'fast' (coarse to fine), a torch.optim name or a registered solver "
+           "(indreg.solver_registry; 'package.module:attribute')", str),
     Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
     Option("step_size", "solver", "step_size", None, optional(_positive),
            "Algorithm 1's step (absolute, the paper's); None: step_rel / S (S = ||g||^2 / L^2, indreg.units)",
@@ -200,7 +301,7 @@ CORE = (
            solvers=(ALGORITHM1,)),
     Option("lr", "solver", "lr", None, optional(_positive),
            "the torch.optim learning rate (None: 1.0 for L-BFGS, required for the others)", Optional[float],
-           solvers=("torch",), app_default=1.0),
+           solvers=(TORCH,), app_default=1.0),
     Option("step_halving", "solver", "step_halving", True, boolean,
            "halve steps that increase the objective or fold", bool, solvers=(ALGORITHM1,), app_default=False),
     Option("max_halvings", "solver", "max_halvings", 20, number(0, integer=True), "halvings within one iteration",
@@ -209,7 +310,7 @@ CORE = (
            float),
     Option("optimizer_kwargs", "solver", "optimizer_kwargs", None, mapping,
            "keyword arguments of the torch.optim optimizer, or solver='fast''s options", Dict[str, Any],
-           solvers=(FAST, "torch"), app_default={}),
+           solvers=(FAST, TORCH), app_default={}),
     Option("holdout", "validation", "holdout", None, holdout,
            "angles left out of the fit and used for validation: every k-th (an integer k >= 2) or a list of "
            "indices; None: all are fitted", Any),
@@ -217,6 +318,8 @@ CORE = (
            "with holdout: stop after this many evaluations without a new minimum of the held-out residual "
            "(None: never)", Optional[int]),
 )
+
+_step_size = next(o for o in CORE if o.name == "step_size")
 
 #: How the inputs are brought to one unit before the run (``indreg.units.prepare``): the app's ``data.*`` keys.
 INPUTS = (
@@ -254,9 +357,10 @@ RUN = (
 
 
 def all_options() -> tuple:
-    """The core options, then every registered model's own, then the run options."""
+    """The core options, then every registered model's and solver's own, then the run options."""
     seen, out = set(), []
-    for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *INPUTS, *RUN):
+    own = (o for entry in (*MODELS.values(), *SOLVERS.values()) for o in entry.options)
+    for o in (*CORE, *own, *INPUTS, *RUN):
         if o.name not in seen:
             seen.add(o.name)
             out.append(o)
@@ -274,7 +378,7 @@ def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
     ``indreg.forward.tv_weight_unit``). Returns ``o``."""
     if o["gamma"] is None:
         o["gamma"] = o["gamma_rel"] * scale
-    if o["step_size"] is None and o["solver"] == ALGORITHM1:
+    if o["step_size"] is None and _step_size.applies(o["solver"], o["model"]):
         o["step_size"] = o["step_rel"] / scale
     if o["tv_rel"] is not None and o["tv_weight"] == 0:
         o["tv_weight"] = o["tv_rel"] * intensity()
@@ -296,11 +400,12 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     to a solver or model it does not apply to is a TypeError; otherwise (the app) such values are reset to the
     default. Raises ``OptionError`` (``kind`` TypeError or ValueError) naming the option.
     """
-    if isinstance(values.get("model"), str) and values["model"] not in MODELS:
-        try:   # a plug-in's options join the table before unknown names are looked for
-            model(values["model"])
-        except ValueError:
-            pass   # reported with the model's label below
+    for name, find, registry in (("model", model, MODELS), ("solver", solver, SOLVERS)):
+        if isinstance(values.get(name), str) and ":" in values[name] and values[name] not in registry:
+            try:   # a plug-in's options join the table before unknown names are looked for
+                find(values[name])
+            except ValueError:
+                pass   # reported with the option's label below
     options = {o.name: o for o in all_options()}
     unknown = sorted(set(values) - set(options))
     if unknown:
@@ -316,7 +421,9 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
             raise OptionError(label(o), out[name], f"left unset: it is an option of {o.where()}", TypeError)
         else:
             out[name] = o.default
-    _check_optimizer_kwargs(out, label(options["optimizer_kwargs"]))
+    chosen_solver = solver(out["solver"])
+    if chosen_solver.check is not None:
+        chosen_solver.check(out, lambda name: label(options[name]))
     if out["patience"] is not None and out["holdout"] is None:
         raise OptionError(label(options["patience"]), out["patience"],
                           f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
@@ -332,28 +439,6 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     if chosen.check is not None:
         chosen.check(out, lambda name: label(options[name]))
     return out
-
-
-def _check_optimizer_kwargs(o: dict, label: str) -> None:
-    """Every ``optimizer_kwargs`` key must be a keyword of the torch.optim optimizer's constructor (or an option
-    of solver='fast')."""
-    import inspect
-
-    from .solvers.multilevel import options as fast_options
-    from .solvers.torch_optim import _optimizer_class
-
-    if o["solver"] == FAST:
-        allowed, what = set(fast_options()), "an option of solver='fast' (indreg.solvers.MultilevelSolver"
-    elif is_torch_optim(o["solver"]):
-        cls = _optimizer_class(o["solver"])
-        allowed = set(inspect.signature(cls.__init__).parameters) - {"self", "params", "lr"}
-        what = f"a keyword of torch.optim {cls.__name__} ("
-    else:
-        return
-    for key in o["optimizer_kwargs"]:
-        if key not in allowed:
-            raise OptionError(f"{label}.{key}", o["optimizer_kwargs"][key], f"{what}: {', '.join(sorted(allowed))})",
-                              TypeError)
 
 
 def schema_fields(group: str) -> list:

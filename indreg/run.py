@@ -64,27 +64,13 @@ def resolve_device(device, template=None) -> torch.device:
 
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
-    """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
-    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind; a model's
-    ``solver_options["wrap"]`` (a function of the solver) then wraps it."""
+    """The registered solver of ``o["solver"]`` (``indreg.solver_registry``) on ``problem``, built with the model's
+    ``solver_options`` under its name; a model's ``solver_options["wrap"]`` (a function of the solver) then wraps
+    it."""
+    entry = opts.solver(o["solver"])
+    solver = entry.make(problem, o, solver_options.get(entry.name, {}))
     wrap = solver_options.get("wrap")   # a model's solver around the one built here (e.g. an alternation)
-    solver = _make_solver(problem, o, solver_options)
     return solver if wrap is None else wrap(solver)
-
-
-def _make_solver(problem, o: dict, solver_options: dict):
-    from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
-
-    kind = models.solver_kind(o["solver"])
-    extra = solver_options.get(kind, {})
-    if kind == opts.FAST:   # optimizer_kwargs were checked by indreg.options.resolve
-        return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
-                                **extra)
-    if kind == opts.ALGORITHM1:
-        return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"],
-                          step_halving=o["step_halving"], max_halvings=o["max_halvings"], **extra)
-    return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
-                            grad_tol=o["grad_tol"], **extra, **o["optimizer_kwargs"])
 
 
 @dataclass

@@ -57,9 +57,9 @@ DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 def register_schema(argv=()) -> None:
     """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
-    resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models named
-    in the command line ``argv`` (``deformation.model=module:attribute``) are imported first, so that their
-    options are config keys (``deformation.my_option=3``)."""
+    resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models and
+    solvers named in the command line ``argv`` (``deformation.model=module:attribute``, ``solver.name=...``) are
+    imported first, so that their options are config keys (``deformation.my_option=3``)."""
     from hydra.core.config_store import ConfigStore
 
     global RegisterConfig
@@ -70,23 +70,28 @@ def register_schema(argv=()) -> None:
 
 
 def import_plugins(argv) -> bool:
-    """Import the model and the data source named ``module:attribute`` in the overrides ``argv``
-    (``deformation.model=...``, ``data.source=...``), the working directory on ``sys.path`` as with ``python -m``
+    """Import the model, the solver and the data source named ``module:attribute`` in the overrides ``argv``
+    (``deformation.model=...``, ``solver.name=...``, ``data.source=...``), the working directory on ``sys.path`` as with ``python -m``
     (console scripts leave it off). Returns whether one brought keys of its own; an import error is left to the
     config's validation, which names the key."""
     import sys
 
     given = dict(a.lstrip("+~").split("=", 1) for a in argv if "=" in a)
-    model, source = given.get("deformation.model", ""), given.get("data.source", "")
-    model, source = (model if ":" in model and model not in _options.MODELS else None,
-                     source if ":" in source and source not in sources.SOURCES else None)
-    if (model or source) and "" not in sys.path and "." not in sys.path:
+    model, solver, source = (given.get(key, "") for key in ("deformation.model", "solver.name", "data.source"))
+    model, solver, source = (model if ":" in model and model not in _options.MODELS else None,
+                             solver if ":" in solver and solver not in _options.SOLVERS else None,
+                             source if ":" in source and source not in sources.SOURCES else None)
+    if (model or solver or source) and "" not in sys.path and "." not in sys.path:
         sys.path.append("")
     new = False
+    for name, find in ((model, _options.model), (solver, _options.solver)):
+        try:
+            if name:
+                find(name)
+                new = True
+        except ValueError:
+            pass
     try:
-        if model:
-            _options.model(model)
-            new = True
         if source and sources.get(source).options:
             new = True
     except (ValueError, ConfigError):

@@ -140,3 +140,48 @@ def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
     assert m["config"]["name"] == "SOURCE"
     bad = run_cli(args[:1] + ["data.my_gain=-1"] + args[2:], cwd=tmp_path)
     assert bad.returncode == 1 and "data.my_gain" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+SOLVER = textwrap.dedent('''
+    """A plug-in solver with an option of its own: Adam with its first moment's decay ``my_beta``."""
+    import indreg
+    from indreg.options import Option, number
+    from indreg.solver_registry import Solver
+
+    def build(problem, o, model_kwargs):
+        return indreg.solvers.TorchOptimSolver(problem, "adam", lr=0.05, max_iter=o["max_iter"],
+                                               betas=(o["my_beta"], 0.999), **model_kwargs)
+
+    SOLVER = Solver("my_adam", build, options=(
+        Option("my_beta", "solver", "my_beta", 0.9, number(0.0), "Adam's first decay", float, solvers=("my_adam",)),
+    ))
+''')
+
+
+def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path, monkeypatch):
+    """``solver="module:SOLVER"`` / ``solver.name=module:SOLVER solver.my_beta=...``: nothing of indreg edited."""
+    (tmp_path / "my_solver.py").write_text(SOLVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
+    template = phantoms.get("j", domain)
+    try:
+        r = indreg.register(template, T(phantoms.get("v", domain)), T, solver="my_solver:SOLVER", my_beta=0.5,
+                            num_steps=3, max_iter=2)
+        assert r.status == "completed" and r.history[-1]["step_size"] == 0.05
+        with pytest.raises(TypeError, match="my_beta must be left unset"):
+            indreg.register(template, T(template), T, my_beta=0.5, max_iter=1)
+    finally:
+        for key in ("my_adam", "my_solver:SOLVER"):
+            indreg.options.SOLVERS.pop(key, None)
+    out = tmp_path / "run"
+    args = ["solver.name=my_solver:SOLVER", "solver.my_beta=0.5", "phantom.size=16", "deformation.num_steps=3",
+            "solver.max_iter=2", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
+            "device=cpu", f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["hparams"]["solver"] == "my_adam"
+    assert m["config"]["solver"]["my_beta"] == 0.5
+    bad = run_cli(args[:1] + ["solver.my_beta=-1"] + args[2:], cwd=tmp_path)
+    assert bad.returncode == 1 and "solver.my_beta" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
