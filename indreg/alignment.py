@@ -33,8 +33,8 @@ from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MIN_PROJECTIONS",
-           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "plot_shifts",
-           "projection_matching", "summary", "wrap"]
+           "AlignmentSolver", "aligned", "coarse_shifts", "estimate", "find_aligned", "gauge", "operator_summary",
+           "plot_shifts", "projection_matching", "summary", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -255,6 +255,8 @@ class AlignmentSolver(RefitSolver):
     objective and gradient (and a torch.optim optimizer's memory) are dropped: they belong to the old data model.
     """
 
+    name = "alignment"
+
     def __init__(self, inner, operator: AlignedOperator, data: torch.Tensor, every: int = ALIGN_EVERY):
         super().__init__(inner, every)
         self.operator, self.data = operator, data
@@ -280,6 +282,9 @@ class AlignmentSolver(RefitSolver):
         info["alignment_rms"] = float(self.operator.shifts.pow(2).sum(1).mean().sqrt())
         return info
 
+    def summary(self) -> dict:
+        return operator_summary(self.operator, self.every)
+
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
                     alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records))
@@ -304,12 +309,15 @@ def summary(problem) -> dict:
     tilt angles (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}``
     without alignment."""
     op = find_aligned(getattr(problem, "ray_transform", None))
-    if op is None:
-        return {}
+    return {} if op is None else operator_summary(op)
+
+
+def operator_summary(op: AlignedOperator, every: int = ALIGN_EVERY) -> dict:
+    """:func:`summary` of the aligned operator ``op`` (estimated every ``every`` iterations)."""
     return {"mode": op.mode, "gauge": op.gauge, "interpolation": op.interpolation,
             "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
             "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
-            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": ALIGN_EVERY,
+            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(op.records), "every": every,
             "at_bound": op.at_bound}
 
 

@@ -89,7 +89,8 @@ def register(template, data, operator, **options) -> RegistrationResult:  # noqa
     finally:
         if handler is not None:
             log.removeHandler(handler)
-    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation)
+    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
+                        solver=s.solver)
 
 
 def option_docs(indent: int = 12) -> str:

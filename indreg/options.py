@@ -184,6 +184,36 @@ def solver_kind(name: str) -> str:
     return solver(name).name
 
 
+# ---------------------------------------------------------------------------------------------------- corrections
+# The registry of in-the-fit corrections (``indreg.corrections``: the protocol and the built-in alignment and
+# intensity fit; a plug-in's own module), here for the same reason.
+CORRECTIONS: dict = {}
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A correction of the data model re-estimated in the fit, in a chain around the solver (``indreg.corrections``
+    has the protocol in full). ``wrap(solver, fit) -> solver``: ``solver`` itself where the options leave the
+    correction off, else an ``indreg.solvers.state.RefitSolver`` around it (``fit``: an ``indreg.corrections.Fit``, the
+    run's options, data model, data and units). ``options``: its own ``Option``s (keywords of ``register()``,
+    config keys); ``model(operator, options, label) -> operator``: the data model it estimates, set before the
+    problem is built (the alignment's ``T_s``); ``check(options, label)``: checks across options;
+    ``plot(summary, path)``: the app's figure of its summary (``<name>.png``)."""
+    name: str
+    wrap: Callable
+    options: tuple = ()
+    doc: str = ""
+    model: Optional[Callable] = None
+    check: Optional[Callable] = None
+    plot: Optional[Callable] = None
+
+
+def register_correction(entry: Correction) -> Correction:
+    """Add ``entry`` to the chain of corrections, after those registered before it (a name already there is
+    replaced in place)."""
+    return add_to_registry(CORRECTIONS, entry, Correction, "register_correction takes an indreg.corrections.Correction")
+
+
 def add_to_registry(registry: dict, entry, cls: type, expected: str):
     """``registry[entry.name] = entry`` (a name already there is replaced) for an instance of ``cls``; else a
     one-line TypeError (``expected``: e.g. "register_model takes an indreg.models.Model"). Returns ``entry``."""
@@ -332,17 +362,6 @@ INPUTS = (
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
            "a number", Optional[Any]),
-    Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
-           "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "
-           "angle of a tilt series), re-estimated against the reconstruction's projection (docs/alignment.md)", str),
-    Option("align_gauge", "data", "align_gauge", "offset+translation",
-           choice(("offset+translation", "translation", "none")),
-           "what the shifts of align leave to the deformation: 'offset+translation' (a constant across the axis and "
-           "an object translation), 'translation' (the axis' offset estimated too) or 'none' (the template fixes "
-           "the frame; docs/alignment.md)", str),
-    Option("align_interpolation", "data", "align_interpolation", "linear", choice(("linear", "cubic")),
-           "how align moves a projection image: 'linear' (bilinear) or 'cubic' (Keys' cubic convolution: no blur "
-           "at fractional shifts; docs/alignment.md)", str),
 )
 
 RUN = (
@@ -360,7 +379,7 @@ def all_options() -> tuple:
     """The core options, then every registered model's and solver's own, then the run options."""
     seen, out = set(), []
     own = (o for entry in (*MODELS.values(), *SOLVERS.values()) for o in entry.options)
-    for o in (*CORE, *own, *INPUTS, *RUN):
+    for o in (*CORE, *own, *INPUTS, *(o for c in CORRECTIONS.values() for o in c.options), *RUN):
         if o.name not in seen:
             seen.add(o.name)
             out.append(o)
@@ -430,11 +449,9 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     if out["tv_rel"] is not None and out["tv_weight"] != 0:
         raise OptionError(label(options["tv_rel"]), out["tv_rel"], f"None when {label(options['tv_weight'])} is "
                           "given (one TV weight: absolute or relative)")
-    fit = out["template_scale"] in ("fit", "fit+offset")
-    if fit and (out["model"] != "lddmm" or out["action"] != "geometric"):
-        raise OptionError(label(options["template_scale"]), out["template_scale"], "None, 'auto' or a number with "
-                          f"model={out['model']!r} and action={out['action']!r} (fitting with the deformation needs "
-                          "lddmm with the geometric action)")
+    for correction in CORRECTIONS.values():
+        if correction.check is not None:
+            correction.check(out, lambda name: label(options[name]))
     chosen = model(out["model"])
     if chosen.check is not None:
         chosen.check(out, lambda name: label(options[name]))

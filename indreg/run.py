@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import metrics, models, options as opts
+from . import corrections, metrics, models, options as opts
 from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
 from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
 from .solvers.state import rounding_tolerance
@@ -93,7 +93,6 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from . import alignment, intensity
     from ._checks import check_finite_in
     from .deform import GaussianKernel
     from .forward.operator import check_operator
@@ -127,9 +126,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
                                     lambda name: label(names[name]))
-    aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
-                                           o["align_gauge"], o["align_interpolation"])
-    full_data, validation = data, None
+    operator = corrections.data_model(operator, o, lambda name: label(names[name]))   # e.g. T_s (alignment)
+    fit = corrections.Fit(o, lambda name: label(names[name]), operator, data, units)
+    validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     units.data_scale = data_term_scale(operator, data)
@@ -140,8 +139,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
             check_finite_in(o[name], label(names[name]), dtype)
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = model.make(operator, template, data, kernel, o)
-    solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
-    solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
+    fit.problem = problem
+    solver = corrections.chain(make_solver(problem, o, solver_options), fit)   # the in-the-fit corrections
     return Setup(problem, solver, o, units, validation)
 
 
@@ -322,6 +321,8 @@ class RegistrationResult:
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
     ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
+    ``corrections``: the final estimates of the in-the-fit corrections by name (``indreg.corrections``:
+    ``alignment``, ``intensity``, a plug-in's), those that ran.
     ``poor_fit``: the warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a
     layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
     ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
@@ -349,6 +350,7 @@ class RegistrationResult:
     holdout: dict = field(default_factory=dict)
     alignment: dict = field(default_factory=dict)
     poor_fit: str = ""
+    corrections: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -405,14 +407,15 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
-                 units: Optional[Units] = None, validation=None, trajectory: bool = True) -> RegistrationResult:
+                 units: Optional[Units] = None, validation=None, trajectory: bool = True,
+                 solver=None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
-    ``validation`` if given; ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`)."""
-    from . import alignment
-
+    ``validation`` if given, the summaries of the in-the-fit corrections around ``solver`` if given
+    (``indreg.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`)."""
     units = units or Units()
+    fitted = corrections.summaries(solver)
     x = state.iterate
     image = problem.reconstruction(x)
     with torch.no_grad():
@@ -424,7 +427,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
-        problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))
+        problem=problem, outputs=problem.outputs(x), units=units, corrections=fitted,
+        alignment=fitted.get("alignment", {}))
     if target is not None:
         result.ssim, result.psnr = metrics.ssim(image, target), metrics.psnr(image, target)
     if validation is not None:

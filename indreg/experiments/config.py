@@ -59,7 +59,8 @@ def register_schema(argv=()) -> None:
     """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
     resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models and
     solvers named in the command line ``argv`` (``deformation.model=module:attribute``, ``solver.name=...``) are
-    imported first, so that their options are config keys (``deformation.my_option=3``)."""
+    imported first, and the modules of ``plugins=[module, ...]`` (a correction's), so that their options are config
+    keys (``deformation.my_option=3``)."""
     from hydra.core.config_store import ConfigStore
 
     global RegisterConfig
@@ -81,9 +82,13 @@ def import_plugins(argv) -> bool:
     model, solver, source = (model if ":" in model and model not in _options.MODELS else None,
                              solver if ":" in solver and solver not in _options.SOLVERS else None,
                              source if ":" in source and source not in sources.SOURCES else None)
-    if (model or solver or source) and "" not in sys.path and "." not in sys.path:
+    modules = [m.strip(" '\"") for m in given.get("plugins", "").strip("[]").split(",") if m.strip(" '\"")]
+    if (model or solver or source or modules) and "" not in sys.path and "." not in sys.path:
         sys.path.append("")
-    new = False
+    try:
+        new = _import_modules(modules)
+    except ConfigError:   # reported by the config's validation, which names the key
+        new = False
     for name, find in ((model, _options.model), (solver, _options.solver)):
         try:
             if name:
@@ -97,6 +102,19 @@ def import_plugins(argv) -> bool:
     except (ValueError, ConfigError):
         pass
     return new
+
+
+def _import_modules(modules) -> bool:
+    """Import the modules of ``plugins``; raises :class:`ConfigError` naming the key for one that cannot be."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except Exception as e:   # a syntax error or an exception at import: one line
+            raise ConfigError(f"invalid config value plugins={list(modules)!r}: {name!r} cannot be imported: "
+                              f"{type(e).__name__}: {e}") from None
+    return bool(modules)
 
 
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
@@ -129,6 +147,7 @@ def validate(cfg: DictConfig, registration: bool = True) -> None:
     if unknown:
         raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
                           "indreg.experiments.config.RegisterConfig")
+    _import_modules(c.plugins)
     _require(bool(_NAME.fullmatch(c.name)), "name", "letters, digits, '.', '_' and '-', not starting with '.'",
              c.name)
     _require(0 <= c.seed < 2 ** 32, "seed", "an integer in [0, 2**32) (numpy's seed range)", c.seed)
