@@ -58,7 +58,8 @@ def _slabwise(problem, o: dict):
     ``slab_size`` / ``max_memory`` (automatic: half the free memory) leave a whole-volume gradient no room; else
     ``problem`` itself. A split that cannot be made is an ``OptionError`` naming why (whole-volume where the
     memory bound alone asked for it)."""
-    from .problems.slabs import SlabwiseRegistration, choose_slab_size, process_group, slab_refusal
+    from .problems.slabs import SlabwiseRegistration, choose_slab_size, slab_refusal
+    from .ranks import process_group
 
     T, W, template = problem.ray_transform, problem.deformation, problem.template
     group = process_group(o["distributed"], template.device)
@@ -203,14 +204,14 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
     Option("slab_size", "deformation", "slab_size", None, optional(number(1, integer=True)),
            "a tilt series with velocity_factor > 1: the data term and its gradient slab by slab, this many slices "
            "along the tilt axis each (docs/3d.md); None: from max_memory (whole-volume where it fits)",
-           Optional[int], models=("lddmm",)),
+           Optional[int], models=("lddmm",), resumable=True),
     Option("max_memory", "deformation", "max_memory", None, optional(number(1.0)),
            "bytes a gradient may take, which sets slab_size when that is None; None: half the free memory",
-           Optional[float], models=("lddmm",)),
+           Optional[float], models=("lddmm",), resumable=True),
     Option("distributed", "deformation", "distributed", None, optional(boolean),
            "one registration over the processes of torchrun (torch.distributed: gloo on CPUs, NCCL on GPUs), each "
            "with its slabs; None: when launched so (WORLD_SIZE > 1); docs/distributed.md", Optional[bool],
-           models=("lddmm",)),
+           models=("lddmm",), resumable=True),
 )))
 #: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults relative to the data term":
 #: measured on the suite-4 missing / extra, suite-3 contrast and limited-angle cases).

@@ -33,7 +33,8 @@ class Option:
     ``solvers``: the registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None:
     all);
     ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
-    ``default``; ``type``: its type in the Hydra schema."""
+    ``default``; ``type``: its type in the Hydra schema; ``resumable``: it may change between an interrupted run
+    and its resumption (the iterates do not depend on it: the iteration budget, how the work is split)."""
     name: str
     group: str
     key: str
@@ -44,6 +45,7 @@ class Option:
     solvers: Optional[tuple] = None
     models: Optional[tuple] = None
     app_default: Any = _NONE
+    resumable: bool = False
 
     @property
     def config_key(self) -> str:
@@ -322,7 +324,7 @@ CORE = (
     Option("solver", "solver", "name", ALGORITHM1, lambda v, label: _solver(v, label),
            "'algorithm1', 'fast' (coarse to fine), a torch.optim name or a registered solver "
            "(indreg.solver_registry; 'package.module:attribute')", str),
-    Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
+    Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int, resumable=True),
     Option("step_size", "solver", "step_size", None, optional(_positive),
            "Algorithm 1's step (absolute, the paper's); None: step_rel / S (S = ||g||^2 / L^2, indreg.units)",
            Optional[float], solvers=(ALGORITHM1,)),

@@ -93,7 +93,7 @@ def phantom_data(cfg: DictConfig) -> Data:
     (noise drawn with the run's seed), so the same config gives the same data on every device. Over the ranks of
     ``torchrun`` a tilt series is built by rows (``split_setup.simulated_rows``: each rank its share of the slices;
     the target on rank 0 only), the same values to rounding."""
-    from ..problems.slabs import default_group
+    from ..ranks import default_group
     from . import split_setup
 
     p, g = cfg.phantom, cfg.geometry

@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import options as _options
 from .._checks import is_finite_number
+from ..conf import CONFIG_DIR  # noqa: F401  (re-exported: indreg.experiments.config.CONFIG_DIR)
 from . import sources
 from .errors import ConfigError   # re-exported: ``from indreg.experiments.config import ConfigError``
 from .schema import build_schema
@@ -45,10 +46,8 @@ RegisterConfig = build_schema()
 
 SCHEMA_NAME = "indreg_schema"
 
-#: The app's yaml configs, shipped inside the package (``indreg/conf``; the checkout's top-level ``configs`` is a
-#: link to it): one source of truth for the checkout and the installed wheel. Users add their own config groups
-#: or presets with Hydra's search path, e.g. ``indreg-register 'hydra.searchpath=[file:///my/configs]' ...``.
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
+# The app's yaml configs (``indreg.conf.CONFIG_DIR``, re-exported here): users add their own config groups or
+# presets with Hydra's search path, e.g. ``indreg-register 'hydra.searchpath=[file:///my/configs]' ...``.
 
 
 #: Example data shipped with the package, named in configs as ``${indreg_data:<file name>}``.

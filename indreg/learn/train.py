@@ -403,7 +403,7 @@ def base_config(overrides=()):
     gets no keys (the composition then names the options)."""
     from omegaconf import OmegaConf
 
-    from ..experiments.config import CONFIG_DIR
+    from ..conf import CONFIG_DIR
 
     cfg = OmegaConf.load(CONFIG_DIR / f"{CONFIG_NAME}.yaml")
     cfg.pop("hydra")
@@ -422,7 +422,7 @@ def main() -> None:
     import hydra
 
     from ..experiments import cli
-    from ..experiments.config import CONFIG_DIR
+    from ..conf import CONFIG_DIR
 
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
