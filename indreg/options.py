@@ -33,7 +33,7 @@ class Option:
     ``solvers``: the registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None:
     all);
     ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
-    ``default``; ``type``: its type in the Hydra schema; ``resumable``: it may change between an interrupted run
+    ``default`` (the paper's: the solver classes take it too, :func:`default`); ``type``: its type in the Hydra schema; ``resumable``: it may change between an interrupted run
     and its resumption (the iterates do not depend on it: the iteration budget, how the work is split)."""
     name: str
     group: str
@@ -390,6 +390,13 @@ def all_options() -> tuple:
 
 def defaults() -> dict:
     return {o.name: o.default for o in all_options()}
+
+
+def default(name: str, app: bool = False):
+    """The table's default of the core option ``name``: ``register()``'s, or with ``app`` the app's (the paper's,
+    ``Option.app_default``, where it has its own). The solver classes take their defaults from here."""
+    o = next(o for o in (*CORE, *INPUTS, *RUN) if o.name == name)
+    return o.schema_default if app else o.default
 
 
 def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:

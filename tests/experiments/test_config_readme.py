@@ -1,0 +1,19 @@
+"""configs/README.md is generated from the option table: the committed file is what the table gives (CI's check)."""
+from indreg.experiments import config_readme
+
+
+def test_committed_config_readme_is_the_generated_one():
+    assert config_readme.README.read_text() == config_readme.markdown(), \
+        "configs/README.md is stale: run python -m indreg.experiments.config_readme"
+    assert config_readme.main(["--check"]) == 0
+
+
+def test_config_readme_cells_are_short_and_every_key_has_a_row():
+    from indreg import options
+
+    text = config_readme.markdown()
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    assert max(len(cell) for row in rows for cell in row.replace("\\|", "").split("|")) <= 300
+    for o in options.all_options():
+        if o.group != "run":
+            assert f"| `{o.config_key}` |" in text
