@@ -6,7 +6,9 @@ A :class:`Callback` sees the loop at four moments: :meth:`~Callback.begin` (befo
 (``"stopped"``, ``"early_stopped"``, ...); :meth:`~Callback.describe` adds text to the progress log line. ``a & b``
 runs ``a`` then ``b`` (:class:`Callbacks`): every callback runs each time, the first status returned wins.
 
-Built in: :class:`UserCallback` (``register(callback=fn)``: ``fn(state, info)`` returning True stops the run),
+``register(callback=...)`` takes a ``Callback``, a chain ``a & b``, a plain function ``fn(state, info)`` (returning
+True stops the run: :class:`UserCallback`) or a list of these (:func:`as_callback`), the same loop as the app's.
+Built in: :class:`UserCallback`,
 :class:`HeldOut` (``holdout=``: the held-out residual every ``every`` iterations, early stopping). The app adds
 TensorBoard, evaluation, checkpoints and its stop requests the same way (``indreg.experiments.runner``).
 
@@ -19,7 +21,7 @@ from __future__ import annotations
 import logging
 from typing import Callable, Optional
 
-__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut"]
+__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut", "as_callback"]
 
 log = logging.getLogger("indreg")
 
@@ -92,6 +94,20 @@ class UserCallback(Callback):
 
     def after(self, loop, info: dict, done: bool) -> Optional[str]:
         return "stopped" if self.fn(loop.state, info) else None
+
+
+def as_callback(value, label: str = "callback") -> Optional[Callback]:
+    """``value`` as one :class:`Callback`: None; a ``Callback`` (or a chain ``a & b``) itself; a function
+    ``fn(state, info)`` as a :class:`UserCallback`; a list or tuple of these in order (:class:`Callbacks`). Anything
+    else is a one-line TypeError naming ``label``."""
+    if value is None or isinstance(value, Callback):
+        return value
+    if isinstance(value, (list, tuple)):
+        return Callbacks(*(as_callback(v, label) for v in value if v is not None))
+    if callable(value):
+        return UserCallback(value)
+    raise TypeError(f"{label} must be a function fn(state, info), an indreg.callbacks.Callback or a list of them, "
+                    f"got {type(value).__name__}")
 
 
 class HeldOut(Callback):

@@ -353,6 +353,17 @@ CORE = (
 
 _step_size = next(o for o in CORE if o.name == "step_size")
 
+def _callback(v, label):
+    from .callbacks import as_callback
+
+    try:
+        as_callback(v, label)
+    except TypeError:
+        raise OptionError(label, v, "a function fn(state, info), an indreg.callbacks.Callback or a list of them",
+                          TypeError) from None
+    return v
+
+
 #: How the inputs are brought to one unit before the run (``indreg.units.prepare``): the app's ``data.*`` keys.
 INPUTS = (
     Option("template_scale", "data", "template_scale", None,
@@ -369,8 +380,9 @@ INPUTS = (
 RUN = (
     Option("device", "run", "device", None, anything, "None: the template's; 'auto', 'cpu', 'cuda[:i]'"),
     Option("dtype", "run", "dtype", None, anything, "None: the template's (arrays: float32 unless float64)"),
-    Option("callback", "run", "callback", None, optional(lambda v, label: v if callable(v) else (_ for _ in ()).throw(
-        OptionError(label, v, "callable(state, info)", TypeError))), "called after every iteration"),
+    Option("callback", "run", "callback", None, _callback,
+           "fn(state, info) after every iteration (True stops the run), an indreg.callbacks.Callback (the app's loop "
+           "hooks: begin, before, after, describe, end; a & b) or a list of them"),
     Option("progress", "run", "progress", False, boolean, "a progress bar / log lines"),
     Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
     Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),

@@ -202,11 +202,12 @@ class RegistrationLoop:
 
     ``callbacks`` (``indreg.callbacks.Callback``, composed with ``&``) hook in before and after every step (either
     may return a status that stops the loop) and add text to the log line printed every ``every`` iterations; the
-    app adds TensorBoard, evaluation, checkpoints and its stop requests so. ``validation``
-    (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in the chain (the
-    held-out residual every ``every`` iterations, in ``info``, the history and the log line; early stopping);
-    ``callback(state, info)`` returning True stops the loop (``stopped``, ``indreg.callbacks.UserCallback``,
-    last). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
+    app adds TensorBoard, evaluation, checkpoints and its stop requests so, ``indreg.register(callback=...)`` the
+    user's: ``callback`` here, after ``callbacks`` (``indreg.callbacks.as_callback``: a function
+    ``callback(state, info)`` returning True stops the loop, ``stopped``; a ``Callback``; a list of them).
+    ``validation`` (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in
+    the chain (the held-out residual every ``every`` iterations, in ``info``, the history and the log line; early
+    stopping). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
     ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver accepted),
     ``early_stopped`` (``validation`` ran out of patience), or what a callback returned.
     """
@@ -214,7 +215,7 @@ class RegistrationLoop:
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
                  desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None,
                  callbacks=None):
-        from .callbacks import Callbacks, HeldOut, UserCallback
+        from .callbacks import Callbacks, HeldOut, as_callback
 
         self.problem, self.solver, self.state = problem, solver, state
         self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc
@@ -223,8 +224,8 @@ class RegistrationLoop:
         self.warnings = count_warnings(self.history)
         self.rtol = rounding_tolerance(state.iterate[0].dtype)
         chain = [HeldOut(validation)] if validation is not None else []
-        chain += [callbacks] if callbacks is not None else []
-        self.callbacks = Callbacks(*chain, *([UserCallback(callback)] if callback is not None else []))
+        chain += [c for c in (as_callback(callbacks, "callbacks"), as_callback(callback)) if c is not None]
+        self.callbacks = Callbacks(*chain)
 
     def _warn(self, it: int, info: dict) -> None:
         """Count a warning; log the first one and then one every ``every`` iterations."""
