@@ -8,8 +8,9 @@ from __future__ import annotations
 import importlib
 import importlib.util
 
-from . import _openmp
+from . import _moved, _openmp
 
+_moved.install()     # modules moved into subpackages keep their old names (indreg.writers: indreg.io.writers)
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 #: public name -> the submodule that defines it

@@ -49,7 +49,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import conventions, io
+from . import io
+from .io import conventions
 from ._checks import check_positive
 from .domain import AXES, ImageDomain
 from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry

@@ -15,7 +15,7 @@ from typing import Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from .. import conventions as _conventions
+from ..io import conventions as _conventions
 from .._checks import is_finite_number
 from .. import phantoms
 from ..inputs import box_domain, make_geometry, make_operator, square_domain
