@@ -106,7 +106,7 @@ def as_callback(value, label: str = "callback") -> Optional[Callback]:
         return Callbacks(*(as_callback(v, label) for v in value if v is not None))
     if callable(value):
         return UserCallback(value)
-    raise TypeError(f"{label} must be a function fn(state, info), an indreg.callbacks.Callback or a list of them, "
+    raise TypeError(f"{label} must be callable(state, info), an indreg.callbacks.Callback or a list of them, "
                     f"got {type(value).__name__}")
 
 

@@ -359,7 +359,7 @@ def _callback(v, label):
     try:
         as_callback(v, label)
     except TypeError:
-        raise OptionError(label, v, "a function fn(state, info), an indreg.callbacks.Callback or a list of them",
+        raise OptionError(label, v, "callable(state, info), an indreg.callbacks.Callback or a list of them",
                           TypeError) from None
     return v
 

@@ -93,6 +93,6 @@ def test_register_takes_callback_objects_functions_and_lists():
     r = indreg.register(*args, num_steps=3, max_iter=4, callback=[Recorder("a", log), lambda s, i: seen.append(
         s.iteration) or s.iteration == 3])
     assert r.status == "stopped" and seen == [1, 2, 3] and log[-1] == ("a", "end")
-    with pytest.raises(TypeError, match=r"^callback must be a function fn\(state, info\), an indreg.callbacks"
+    with pytest.raises(TypeError, match=r"^callback must be callable\(state, info\), an indreg.callbacks"
                                         r".Callback or a list of them, got 3$"):
         indreg.register(*args, max_iter=1, callback=3)
