@@ -26,7 +26,7 @@ _HOME = {
                      "MetamorphosisDescent", "MetamorphosisTorchOptim"), "solvers"),
     **dict.fromkeys(("GeodesicShooting", "ShootingResult"), "deform.shooting"),
     "IndirectShootingLoss": "learn.loss",
-    **dict.fromkeys(("RegistrationResult", "register"), "api"),
+    **dict.fromkeys(("RegistrationResult", "register"), "registration.api"),
     **dict.fromkeys(("RegistrationInputs", "load"), "inputs"),
 }
 

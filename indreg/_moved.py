@@ -13,6 +13,12 @@ __all__ = ["MOVED", "install"]
 #: old module name -> its home
 MOVED = {
     "indreg._files": "indreg.io._files",
+    "indreg.api": "indreg.registration.api",
+    "indreg.corrections": "indreg.registration.corrections",
+    "indreg.models": "indreg.registration.models",
+    "indreg.option_checks": "indreg.options.checks",
+    "indreg.run": "indreg.registration.run",
+    "indreg.solver_registry": "indreg.registration.solver_registry",
     "indreg.angle_files": "indreg.io.angle_files",
     "indreg.conventions": "indreg.io.conventions",
     "indreg.writers": "indreg.io.writers",

@@ -22,7 +22,7 @@ import torch
 from omegaconf import DictConfig
 
 from ..options import CORRECTIONS
-from ..run import build_result, count_halvings, count_rejected
+from ..registration.run import build_result, count_halvings, count_rejected
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures

@@ -19,7 +19,7 @@ from .._checks import StepOverflowError
 from .._malloc import system_allocator
 from ..callbacks import Callback
 from ..io import DataFileError
-from ..run import RegistrationLoop, initial_state
+from ..registration.run import RegistrationLoop, initial_state
 from . import checkpoint as ckpt
 from .baselines import baselines
 from .build import build, seed_everything
@@ -272,7 +272,7 @@ def _distributed(cfg: DictConfig, output_dir) -> tuple:
     """``(rank, output_dir)``: under ``torchrun`` (``WORLD_SIZE > 1``, or ``deformation.distributed``) the process
     group is started and every rank writes where rank 0 does (Hydra's dated dirs may differ between ranks)."""
     from ..ranks import process_group
-    from ..run import resolve_device
+    from ..registration.run import resolve_device
 
     group = process_group(cfg.deformation.get("distributed"), resolve_device(cfg.device))
     if group is None:

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field, make_dataclass
 from enum import Enum
 from typing import Any, List, Optional
 
-from .. import corrections as _corrections  # noqa: F401  (the registry of corrections, with their options)
-from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
+from ..registration import corrections as _corrections  # noqa: F401  (the registry of corrections, with their options)
+from ..registration import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES

@@ -21,7 +21,7 @@ import inspect
 
 import torch
 
-from .options import (ALGORITHM1, FAST, SOLVERS, TORCH, OptionError, Solver, register_solver,  # noqa: F401
+from ..options import (ALGORITHM1, FAST, SOLVERS, TORCH, OptionError, Solver, register_solver,  # noqa: F401
                       solver, solver_kind)
 
 __all__ = ["Solver", "SOLVERS", "register_solver", "get", "solver_kind"]
@@ -42,7 +42,7 @@ def _keys_within(o: dict, label, allowed, what: str) -> None:
 
 # ---------------------------------------------------------------------------------------------------- algorithm1
 def _algorithm1(problem, o: dict, model_kwargs: dict):
-    from .solvers import Algorithm1
+    from ..solvers import Algorithm1
 
     return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"],
                       step_halving=o["step_halving"], max_halvings=o["max_halvings"], **model_kwargs)
@@ -53,14 +53,14 @@ register_solver(Solver(ALGORITHM1, _algorithm1, doc="the paper's Algorithm 1: gr
 
 # ---------------------------------------------------------------------------------------------------- fast
 def _fast(problem, o: dict, model_kwargs: dict):
-    from .solvers import MultilevelSolver
+    from ..solvers import MultilevelSolver
 
     return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
                             **model_kwargs)
 
 
 def _check_fast(o: dict, label) -> None:
-    from .solvers.multilevel import options
+    from ..solvers.multilevel import options
 
     _keys_within(o, label, set(options()), "an option of solver='fast' (indreg.solvers.MultilevelSolver")
 
@@ -81,7 +81,7 @@ def _optimizer_name(value: str):
 
 
 def _torch(problem, o: dict, model_kwargs: dict):
-    from .solvers import TorchOptimSolver
+    from ..solvers import TorchOptimSolver
 
     return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
                             grad_tol=o["grad_tol"], **model_kwargs, **o["optimizer_kwargs"])

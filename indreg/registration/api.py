@@ -23,7 +23,7 @@ import logging
 import sys
 import textwrap
 
-from .options import OptionError, all_options
+from ..options import OptionError, all_options
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup)
 

@@ -23,11 +23,12 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import corrections, metrics, models, options as opts
-from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
-from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
-from .solvers.state import rounding_tolerance
-from .units import Units, data_term_scale, noise_residual, prepare
+from .. import metrics, options as opts
+from . import corrections, models
+from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
+from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
+from ..solvers.state import rounding_tolerance
+from ..units import Units, data_term_scale, noise_residual, prepare
 
 log = logging.getLogger("indreg")
 
@@ -93,12 +94,12 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from ._checks import check_finite_in
-    from .deform import GaussianKernel
-    from .forward.operator import check_operator
-    from .forward.time_series import as_time_series
-    from .forward.tv import tv_weight_unit
-    from .validation import split
+    from .._checks import check_finite_in
+    from ..deform import GaussianKernel
+    from ..forward.operator import check_operator
+    from ..forward.time_series import as_time_series
+    from ..forward.tv import tv_weight_unit
+    from ..validation import split
 
     o = opts.resolve(options, label, strict)
     operator, data = as_time_series(operator, data)   # sequences: one operator / data set per time point
@@ -146,7 +147,7 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
 
 def initial_state(problem):
     """The solvers' starting iterate ``problem.zero_iterate()`` at iteration 0."""
-    from .solvers import SolverState
+    from ..solvers import SolverState
 
     return SolverState.initial(problem)
 
@@ -215,7 +216,7 @@ class RegistrationLoop:
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
                  desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None,
                  callbacks=None):
-        from .callbacks import Callbacks, HeldOut, as_callback
+        from ..callbacks import Callbacks, HeldOut, as_callback
 
         self.problem, self.solver, self.state = problem, solver, state
         self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc

@@ -23,8 +23,8 @@ from typing import Any, Callable, Optional
 import torch
 
 from . import solver_registry  # noqa: F401  (the solvers a model's solver_options name)
-from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
+from .._checks import as_tensor
+from ..options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
                       model, number, optional, register_model, solver_kind)
 
 def get(name: str) -> Model:
@@ -41,8 +41,8 @@ def _interpolation(o: dict) -> None:
 
 
 def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import LDDMMDeformation
-    from .solvers import IndirectRegistration
+    from ..deform import LDDMMDeformation
+    from ..solvers import IndirectRegistration
 
     if o["velocity_factor"] > 1:
         W, kernel = _coarse_velocity(kernel, o)
@@ -58,8 +58,8 @@ def _slabwise(problem, o: dict):
     ``slab_size`` / ``max_memory`` (automatic: half the free memory) leave a whole-volume gradient no room; else
     ``problem`` itself. A split that cannot be made is an ``OptionError`` naming why (whole-volume where the
     memory bound alone asked for it)."""
-    from .problems.slabs import SlabwiseRegistration, choose_slab_size, slab_refusal
-    from .ranks import process_group
+    from ..problems.slabs import SlabwiseRegistration, choose_slab_size, slab_refusal
+    from ..ranks import process_group
 
     T, W, template = problem.ray_transform, problem.deformation, problem.template
     group = process_group(o["distributed"], template.device)
@@ -86,7 +86,7 @@ def _slabwise(problem, o: dict):
 def _coarse_velocity(kernel, o: dict) -> tuple:
     """``velocity_factor > 1``: ``CoarseVelocityDeformation`` and the kernel on the coarse grid (``backward``
     "paper", the app's default, runs the exact gradient: the paper's formula has no coarse-grid form)."""
-    from .deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
+    from ..deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
 
     domain, f = kernel.domain, o["velocity_factor"]
     try:
@@ -103,7 +103,7 @@ def _source_masks(mask, template: torch.Tensor, data: torch.Tensor, operator, do
     """``(source_mask, uniform_region)``: ``source_mask`` None, ``"template"`` (the template's support,
     ``template_support``), ``"data"`` (that and where the data show mass the template lacks, ``_data_only_support``:
     the ``uniform_region`` when not empty, else None) or an array."""
-    from .problems.metamorphosis import template_support
+    from ..problems.metamorphosis import template_support
 
     if mask is None:
         return None, None
@@ -125,7 +125,7 @@ def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, dom
     data's noise level) does not (``data_support``), without the parts thinner than about 4 ``width`` (the source's
     width; ``opened`` at 2 ``width``): the strips along the rays of a limited angular range, and an outline the
     deformation can reach (docs/metamorphosis.md, "The source's mask")."""
-    from .problems.metamorphosis import data_support, noise_std, opened
+    from ..problems.metamorphosis import data_support, noise_std, opened
 
     noise = noise_std(data)
     own = data_support(operator(template), operator, domain, noise=noise)
@@ -137,8 +137,8 @@ SOURCE_MASKS = ("template", "data")
 
 
 def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import GaussianKernel, MetamorphosisDeformation
-    from .solvers import MetamorphosisRegistration
+    from ..deform import GaussianKernel, MetamorphosisDeformation
+    from ..solvers import MetamorphosisRegistration
 
     domain = kernel.domain
     M = MetamorphosisDeformation(domain, num_steps=o["num_steps"], backward=o["backward"] or "adjoint",
@@ -265,9 +265,9 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
 
 
 def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import LDDMMDeformation
-    from .problems.spatiotemporal import SpatiotemporalRegistration
-    from .solvers.spatiotemporal import IntertwinedSolver
+    from ..deform import LDDMMDeformation
+    from ..problems.spatiotemporal import SpatiotemporalRegistration
+    from ..solvers.spatiotemporal import IntertwinedSolver
 
     W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                          backward=o["backward"] or "autograd", interpolation=o["interpolation"])
@@ -287,7 +287,7 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
 
 
 def _check_spatiotemporal(o: dict, label) -> None:
-    from .problems.spatiotemporal import time_indices
+    from ..problems.spatiotemporal import time_indices
 
     _backward_in(("autograd", "exact"))(o, label)
     if isinstance(o["times"], (list, tuple)):   # their number is checked against the data's frames at setup

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .options import CORRECTIONS, Correction, Option, OptionError, choice, register_correction
+from ..options import CORRECTIONS, Correction, Option, OptionError, choice, register_correction
 
 __all__ = ["Correction", "CORRECTIONS", "Fit", "register_correction", "chain", "data_model", "summaries"]
 
@@ -68,7 +68,7 @@ def chain(solver, fit: Fit):
 
 def summaries(solver) -> dict:
     """``{name: summary}`` of the corrections around ``solver`` (innermost first), those with one."""
-    from .solvers.state import RefitSolver
+    from ..solvers.state import RefitSolver
 
     out = {}
     while isinstance(solver, RefitSolver):
@@ -79,19 +79,19 @@ def summaries(solver) -> dict:
 
 # ---------------------------------------------------------------------------------------------------- alignment
 def _aligned(operator, o: dict, label):
-    from .alignment import aligned
+    from ..alignment import aligned
 
     return aligned(operator, o["align"], label("align"), o["align_gauge"], o["align_interpolation"])
 
 
 def _align(solver, fit: Fit):
-    from .alignment import wrap
+    from ..alignment import wrap
 
     return wrap(solver, fit.operator, fit.data, fit.label("align"))
 
 
 def _plot_shifts(summary: dict, path) -> None:
-    from .alignment import plot_shifts
+    from ..alignment import plot_shifts
 
     plot_shifts(summary, path)
 
@@ -117,7 +117,7 @@ _FITS = ("fit", "fit+offset")   # indreg.intensity.FITS (not imported: the regis
 
 
 def _fit_intensity(solver, fit: Fit):
-    from .intensity import wrap
+    from ..intensity import wrap
 
     return wrap(solver, fit.options["template_scale"], fit.units)
 

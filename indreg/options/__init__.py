@@ -19,9 +19,9 @@ from typing import Any, Callable, Dict, Optional
 
 import torch
 
-from .option_checks import (ALGORITHM1, FAST, TORCH, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
+from .checks import (ALGORITHM1, FAST, TORCH, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
                             holdout, mapping, number, optional)
-from .units import GAMMA_REL, STEP_REL
+from ..units import GAMMA_REL, STEP_REL
 
 _NONE = object()
 
@@ -354,7 +354,7 @@ CORE = (
 _step_size = next(o for o in CORE if o.name == "step_size")
 
 def _callback(v, label):
-    from .callbacks import as_callback
+    from ..callbacks import as_callback
 
     try:
         as_callback(v, label)
