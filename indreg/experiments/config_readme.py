@@ -119,12 +119,19 @@ def _group_rows() -> list:
     return rows
 
 
+def _builtin(function) -> bool:
+    """Whether ``function`` is indreg's (a plug-in registered in this process is not listed)."""
+    return getattr(function, "__module__", "").startswith("indreg.")
+
+
 def _option_rows() -> list:
     rows = ["| key | default | only with | what |", "|---|---|---|---|"]
+    entries = (*options.MODELS.values(), *options.SOLVERS.values(), *options.CORRECTIONS.values())
+    plugged = {id(o) for e in entries if not _builtin(getattr(e, "build", None) or e.wrap) for o in e.options}
     for o in options.all_options():
-        if o.group != "run":
+        if o.group != "run" and id(o) not in plugged:
             rows.append(f"| `{o.config_key}` | {_cell(o.schema_default)} | {o.where() or ''} | {_short(o.doc)} |")
-    for source in sources.SOURCES.values():
+    for source in (s for s in sources.SOURCES.values() if _builtin(s.load)):
         for key, _, default in source.options:
             value = getattr(default, "value", default)
             rows.append(f"| `data.{key}` | {_cell(value)} | data.source={source.name!r} | a key of the source "

@@ -17,3 +17,15 @@ def test_config_readme_cells_are_short_and_every_key_has_a_row():
     for o in options.all_options():
         if o.group != "run":
             assert f"| `{o.config_key}` |" in text
+
+
+def test_a_plug_in_registered_in_the_process_is_not_listed(monkeypatch):
+    """Tests register plug-in models and solvers: the generated file lists indreg's own keys only."""
+    from indreg import options
+
+    plugin = options.Model("plugged", lambda *a: None, options=(
+        options.Option("plugged_key", "deformation", "plugged_key", 1, options.number(), "x", int,
+                       models=("plugged",)),))
+    monkeypatch.setitem(options.MODELS, "plugged", plugin)
+    assert "plugged_key" not in config_readme.markdown()
+    assert config_readme.main(["--check"]) == 0
