@@ -124,13 +124,18 @@ def _builtin(function) -> bool:
     return getattr(function, "__module__", "").startswith("indreg.")
 
 
-def _option_rows() -> list:
-    rows = ["| key | default | only with | what |", "|---|---|---|---|"]
+def listed_options() -> list:
+    """The options with a config key that indreg itself declares (the core's, its models', solvers' and
+    corrections')."""
     entries = (*options.MODELS.values(), *options.SOLVERS.values(), *options.CORRECTIONS.values())
     plugged = {id(o) for e in entries if not _builtin(getattr(e, "build", None) or e.wrap) for o in e.options}
-    for o in options.all_options():
-        if o.group != "run" and id(o) not in plugged:
-            rows.append(f"| `{o.config_key}` | {_cell(o.schema_default)} | {o.where() or ''} | {_short(o.doc)} |")
+    return [o for o in options.all_options() if o.group != "run" and id(o) not in plugged]
+
+
+def _option_rows() -> list:
+    rows = ["| key | default | only with | what |", "|---|---|---|---|"]
+    for o in listed_options():
+        rows.append(f"| `{o.config_key}` | {_cell(o.schema_default)} | {o.where() or ''} | {_short(o.doc)} |")
     for source in (s for s in sources.SOURCES.values() if _builtin(s.load)):
         for key, _, default in source.options:
             value = getattr(default, "value", default)
