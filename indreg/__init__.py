@@ -8,8 +8,9 @@ from __future__ import annotations
 import importlib
 import importlib.util
 
-from . import _openmp
+from . import _moved, _openmp
 
+_moved.install()     # modules moved into subpackages keep their old names (indreg.writers: indreg.io.writers)
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 #: public name -> the submodule that defines it
@@ -25,7 +26,7 @@ _HOME = {
                      "MetamorphosisDescent", "MetamorphosisTorchOptim"), "solvers"),
     **dict.fromkeys(("GeodesicShooting", "ShootingResult"), "deform.shooting"),
     "IndirectShootingLoss": "learn.loss",
-    **dict.fromkeys(("RegistrationResult", "register"), "api"),
+    **dict.fromkeys(("RegistrationResult", "register"), "registration.api"),
     **dict.fromkeys(("RegistrationInputs", "load"), "inputs"),
 }
 

@@ -15,7 +15,7 @@ Convention:
       projections are about 0 outside the object), binned by ``--bin`` (default: the least power of 2 whose working set fits
       ``--max-memory``, :func:`working_set`); the shifts are scaled back to the stack's pixels, the aligned stack is
       made at full size tilt by tilt, the reconstruction is the binned one.
-    - The alignment files refer to the raw stack as stored (``indreg.alignment_files``).
+    - The alignment files refer to the raw stack as stored (``indreg.io.alignment_files``).
 """
 from __future__ import annotations
 
@@ -171,7 +171,7 @@ def _operator(stack_b: np.ndarray, radians: np.ndarray, nz: int, rest_deg: float
 
 def _full_alignment(op, b: int, delta: np.ndarray, quarter: int, raw_shape: tuple, radians: np.ndarray):
     """The binned operator's alignment in pixels of the raw stack as stored (module Convention)."""
-    from .alignment_files import Alignment, from_operator
+    from .io.alignment_files import Alignment, from_operator
 
     a = from_operator(op)
     M = a.matrices
@@ -219,9 +219,9 @@ def run(args) -> dict:
 
     from . import io
     from .alignment import projection_matching
-    from .alignment_files import write_alignment
+    from .io.alignment_files import write_alignment
     from .tilt_axis import check_tilt_axis
-    from .volume_files import write_mrc, write_ome_zarr
+    from .io.volume_files import write_mrc, write_ome_zarr
 
     start = time.perf_counter()
     budget = parse_bytes(args.max_memory)

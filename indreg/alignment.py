@@ -34,7 +34,8 @@ from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
            "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate",
-           "find_aligned", "gauge", "plot_shifts", "projection_matching", "summary", "turn_projection", "wrap"]
+           "find_aligned", "gauge", "operator_summary", "plot_shifts", "projection_matching", "summary",
+           "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -75,7 +76,7 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
                          f"{interpolation!r}")
     if mode == "none":
         return operator
-    if isinstance(operator, AlignedOperator):   # an imported alignment (indreg.alignment_files): the fit's start
+    if isinstance(operator, AlignedOperator):   # an imported alignment (indreg.io.alignment_files): the fit's start
         return _started(operator, mode, label, gauge, interpolation)
     try:
         _, count, *_ = projection_frame(operator)
@@ -335,6 +336,8 @@ class AlignmentSolver(RefitSolver):
     objective and gradient (and a torch.optim optimizer's memory) are dropped: they belong to the old data model.
     """
 
+    name = "alignment"
+
     def __init__(self, inner, operator: AlignedOperator, data: torch.Tensor, every: int = ALIGN_EVERY):
         super().__init__(inner, every)
         self.operator, self.data = operator, data
@@ -363,6 +366,9 @@ class AlignmentSolver(RefitSolver):
         info["alignment_rms"] = float(self.operator.shifts.pow(2).sum(1).mean().sqrt())
         return info
 
+    def summary(self) -> dict:
+        return operator_summary(self.operator, self.every)
+
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
                     alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records),
@@ -389,15 +395,20 @@ def summary(problem) -> dict:
     tilt angles (deg), the tilt-axis angle (deg), the number of estimates and of parameters at their bound; ``{}``
     without alignment."""
     op = find_aligned(getattr(problem, "ray_transform", None))
-    if op is None:
-        return {}
-    fixed = not hasattr(op, "mode")   # an imported alignment used as it is (indreg.alignment_files)
+    return {} if op is None else operator_summary(op)
+
+
+def operator_summary(op: AlignedOperator, every: int = ALIGN_EVERY) -> dict:
+    """:func:`summary` of the aligned operator ``op`` (estimated every ``every`` iterations; an imported alignment
+    used as it is, ``indreg.io.alignment_files``, is mode ``fixed``), with the tilt-axis angle's standard error when
+    it was estimated (a warning when it is above :data:`MAX_ANGLE_SE_DEG`)."""
+    fixed = not hasattr(op, "mode")
     out = {"mode": "fixed" if fixed else op.mode, "gauge": None if fixed else op.gauge,
            "interpolation": op.interpolation,
            "tilt_angles_deg": [math.degrees(float(t)) for t in op.operator.geometry.angles],
            "shifts_px": op.shifts.tolist(), "components": ["across", "along"][:op.components],
            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(getattr(op, "records", ())),
-           "every": ALIGN_EVERY, "at_bound": getattr(op, "at_bound", 0)}
+           "every": every, "at_bound": getattr(op, "at_bound", 0)}
     if not fixed and op.mode == "shifts+axis" and op.records:
         se = getattr(op, "angle_se", math.inf)
         out["axis_angle_se_deg"] = se if math.isfinite(se) else None

@@ -8,7 +8,9 @@ A :class:`Callback` sees the loop at four moments: :meth:`~Callback.begin` (befo
 every callback runs each time, the first status returned wins. Every ``end`` runs, also when a ``begin``, a step
 or another ``end`` raised; the first exception is the one that propagates (later ones are logged).
 
-Built in: :class:`UserCallback` (``register(callback=fn)``: ``fn(state, info)`` returning True stops the run),
+``register(callback=...)`` takes a ``Callback``, a chain ``a & b``, a plain function ``fn(state, info)`` (returning
+True stops the run: :class:`UserCallback`) or a list of these (:func:`as_callback`), the same loop as the app's.
+Built in: :class:`UserCallback`,
 :class:`HeldOut` (``holdout=``: the held-out residual every ``every`` iterations, early stopping). The app adds
 TensorBoard, evaluation, checkpoints and its stop requests the same way (``indreg.experiments.runner``).
 
@@ -21,7 +23,7 @@ from __future__ import annotations
 import logging
 from typing import Callable, Optional
 
-__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut", "STOP_STATUSES"]
+__all__ = ["Callback", "Callbacks", "UserCallback", "HeldOut", "STOP_STATUSES", "as_callback"]
 
 log = logging.getLogger("indreg")
 
@@ -112,6 +114,20 @@ class UserCallback(Callback):
 
     def after(self, loop, info: dict, done: bool) -> Optional[str]:
         return "stopped" if self.fn(loop.state, info) else None
+
+
+def as_callback(value, label: str = "callback") -> Optional[Callback]:
+    """``value`` as one :class:`Callback`: None; a ``Callback`` (or a chain ``a & b``) itself; a function
+    ``fn(state, info)`` as a :class:`UserCallback`; a list or tuple of these in order (:class:`Callbacks`). Anything
+    else is a one-line TypeError naming ``label``."""
+    if value is None or isinstance(value, Callback):
+        return value
+    if isinstance(value, (list, tuple)):
+        return Callbacks(*(as_callback(v, label) for v in value if v is not None))
+    if callable(value):
+        return UserCallback(value)
+    raise TypeError(f"{label} must be callable(state, info), an indreg.callbacks.Callback or a list of them, "
+                    f"got {type(value).__name__}")
 
 
 class HeldOut(Callback):

@@ -51,7 +51,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import conventions, io
+from . import io
+from .io import conventions
 from ._checks import check_positive
 from .domain import AXES, ImageDomain
 from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry
@@ -117,7 +118,7 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     and a warning otherwise. ``det_min`` / ``det_max``: the
     detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
     (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``). ``alignment`` (tilt series): an
-    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.alignment_files``): its shifts and per-tilt maps
+    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.io.alignment_files``): its shifts and per-tilt maps
     become the operator's own (an ``AlignedOperator``; ``register(..., align=...)`` refines them), its tilt angles
     (the ``.aln``'s, or the ``.xf``'s ``.tlt`` unless ``angles`` is given) the geometry's, its dark frames are left
     out, and the stack is not rotated (the file's maps hold the tilt axis' angle).
@@ -178,7 +179,7 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
         _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
     operator = T
     if alignment is not None:
-        from .alignment_files import to_operator
+        from .io.alignment_files import to_operator
         operator = to_operator(T, alignment)
     label = io.split_path(template)[0].name if _is_path(template) else "array"
     return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=operator,
@@ -297,7 +298,7 @@ def _align(g: np.ndarray, data, angle, key: dict) -> tuple:
 
 def _aligned_stack(g: np.ndarray, alignment, angles, unit: str, ndim: int, tilt_axis_angle, key: dict) -> tuple:
     """The raw stack's frames that ``alignment`` (a file) covers, their angles (radians) and the alignment."""
-    from .alignment_files import read_alignment
+    from .io.alignment_files import read_alignment
 
     if ndim != 3:
         raise ValueError(f"alignment applies to a tilt series ({key['geometry']}=tilt_series)")

@@ -61,6 +61,8 @@ class IntensityFitSolver(RefitSolver):
     takes ``inner``'s step. ``units`` (``indreg.units.Units``) receives the fitted values: ``template_scale`` (times
     the factor ``prepare`` applied first) and ``template_offset``."""
 
+    name = "intensity"
+
     def __init__(self, inner, units, offset: bool = False, every: int = FIT_EVERY):
         super().__init__(inner, every)
         self.units, self.with_offset = units, offset
@@ -92,6 +94,10 @@ class IntensityFitSolver(RefitSolver):
     def report(self, info: dict) -> dict:
         info["template_scale"], info["template_offset"] = self.first * self.scale, self.offset
         return info
+
+    def summary(self) -> dict:
+        """The fits: ``(iteration, factor, offset)`` each (the factor relative to the template as prepared)."""
+        return {"every": self.every, "fits": [list(r) for r in self.records]}
 
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), intensity_fit=(self.scale, self.offset, list(self.records)))

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from indreg.align_app import _bin, _operator, _residual, main as align
-from indreg.alignment_files import read_xf
+from indreg.io.alignment_files import read_xf
 from indreg.forward.shift import AlignedOperator
 from indreg.forward.sirt import sirt
 

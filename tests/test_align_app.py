@@ -13,7 +13,7 @@ from scipy.ndimage import affine_transform
 
 from indreg import ImageDomain
 from indreg.align_app import choose_binning, main, parse_bytes, working_set
-from indreg.alignment_files import read_aln, read_xf
+from indreg.io.alignment_files import read_aln, read_xf
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.io import write_tilt_series
 

@@ -11,7 +11,7 @@ from scipy.ndimage import affine_transform
 
 import indreg
 from indreg import ImageDomain
-from indreg.alignment_files import (from_operator, read_alignment, read_aln, read_xf, to_operator, write_alignment,
+from indreg.io.alignment_files import (from_operator, read_alignment, read_aln, read_xf, to_operator, write_alignment,
                                     write_xf)
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.forward.operator import adjointness

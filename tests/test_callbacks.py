@@ -76,3 +76,23 @@ def test_user_callback_and_held_out_are_callbacks(setup):
                                        every=1, callbacks=HeldOut(setup.validation) & cb)
     assert loop.run() == "stopped" and seen == [1, 2]
     assert all(torch.isfinite(torch.tensor(h["holdout_residual"])) for h in loop.history)
+
+
+def test_register_takes_callback_objects_functions_and_lists():
+    """One loop: ``register(callback=...)`` takes what the app's loop is made of (a Callback, a chain ``a & b``), a
+    plain function, or a list of both; the first stop status wins, begin / end run once."""
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 24))
+    args = (phantoms.get("j", domain), T(phantoms.get("v", domain)), T)
+    log = []
+    r = indreg.register(*args, num_steps=3, max_iter=6, callback=Recorder("a", log) & Recorder("b", log, stop_at=2))
+    assert r.status == "stopped" and r.iterations == 2
+    assert log == [("a", "begin"), ("b", "begin"), ("a", 1, False), ("b", 1, False), ("a", 2, False),
+                   ("b", 2, False), ("a", "end"), ("b", "end")]
+    seen, log = [], []
+    r = indreg.register(*args, num_steps=3, max_iter=4, callback=[Recorder("a", log), lambda s, i: seen.append(
+        s.iteration) or s.iteration == 3])
+    assert r.status == "stopped" and seen == [1, 2, 3] and log[-1] == ("a", "end")
+    with pytest.raises(TypeError, match=r"^callback must be callable\(state, info\), an indreg.callbacks"
+                                        r".Callback or a list of them, got 3$"):
+        indreg.register(*args, max_iter=1, callback=3)

@@ -1,5 +1,5 @@
-"""docs/extending.md: its Python blocks, run in order as one module, add an operator, a model and a data source
-that work through ``indreg.register`` and through the app without any change to indreg."""
+"""docs/extending.md: its Python blocks, run in order as one module, add an operator, a model, a data source and a
+solver that work through ``indreg.register`` and through the app without any change to indreg."""
 import importlib
 import re
 import sys
@@ -27,6 +27,8 @@ def toy(tmp_path_factory):
         sys.path.remove(str(folder))
         sys.modules.pop("toy_extending", None)
         indreg.models.MODELS.pop("brightness", None)
+        indreg.options.SOLVERS.pop("heavy_ball", None)
+        indreg.options.CORRECTIONS.pop("data_offset", None)
 
 
 def test_toy_operator_is_adjoint_and_registers(toy):
@@ -73,3 +75,60 @@ def test_toy_source_and_model_run_through_the_app(toy, tmp_path):
                  "baseline.enabled=false", "logging.tensorboard=false", "logging.progress=false"], tmp_path)
     assert m["status"] == "completed" and m["hparams"]["model"] == "brightness"   # the plug-in by its own name
     assert (tmp_path / "brightness.npy").is_file() and (tmp_path / "figure.png").is_file()
+
+
+def test_toy_solver_runs_with_its_own_options(toy):
+    """The guide's heavy ball descends; its option reaches the optimizer; given to another solver it is refused."""
+    assert toy.ball.status == "completed" and toy.ball.history[-1]["objective"] < toy.ball.history[0]["objective"]
+    args = (toy.template, toy.T(toy.target), toy.T)
+    r = indreg.register(*args, solver="heavy_ball", ball_momentum=0.25, num_steps=4, max_iter=2)
+    assert r.history[-1]["step_size"] == 2e-5   # the option's default reached the solver
+    with pytest.raises(TypeError, match="ball_momentum must be left unset: it is an option of solver='heavy_ball'"):
+        indreg.register(*args, ball_momentum=0.25, max_iter=1)
+    with pytest.raises(ValueError, match="ball_momentum must be a finite number >= 0"):
+        indreg.register(*args, solver="heavy_ball", ball_momentum=-1.0, max_iter=1)
+
+
+@pytest.mark.slow
+def test_toy_solver_runs_through_the_app(toy, tmp_path):
+    from experiments.experiment_helpers import run_app
+
+    from indreg.experiments.config import register_schema
+
+    register_schema(["solver.name=toy_extending:HEAVY_BALL"])   # what the app does with its command line
+    m = run_app(["solver.name=toy_extending:HEAVY_BALL", "solver.ball_momentum=0.25", "phantom.size=16",
+                 "deformation.num_steps=3", "solver.max_iter=2", "baseline.enabled=false", "logging.tensorboard=false",
+                 "logging.progress=false", "logging.figure=false"], tmp_path)
+    assert m["status"] == "completed" and m["hparams"]["solver"] == "heavy_ball"
+
+
+def test_toy_correction_finds_the_offset_and_resumes(toy):
+    """The guide's data offset: found from Python (summary, history), off by default, refused when negative, and
+    its checkpoint state restored."""
+    summary = toy.shifted.corrections["data_offset"]
+    assert summary["offset"] == pytest.approx(0.5, rel=1e-3) and summary["every"] == 5
+    assert "data_offset" in toy.shifted.history[0]
+    args = (toy.template, toy.T(toy.target), toy.T)
+    assert "data_offset" not in indreg.register(*args, num_steps=3, max_iter=1).corrections
+    with pytest.raises(ValueError, match="offset_every must be an integer >= 0"):
+        indreg.register(*args, offset_every=-1, max_iter=1)
+    s = indreg.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
+    state = indreg.run.initial_state(s.problem)
+    s.solver.step(state)
+    saved = s.solver.state_dict()
+    again = indreg.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
+    again.solver.load_state_dict(saved)
+    assert again.solver.offset == s.solver.offset and torch.equal(again.problem.data, s.problem.data)
+
+
+@pytest.mark.slow
+def test_toy_correction_runs_through_the_app(toy, tmp_path):
+    from experiments.experiment_helpers import run_app
+
+    from indreg.experiments.config import register_schema
+
+    register_schema(["plugins=[toy_extending]"])   # what the app does with its command line
+    m = run_app(["plugins=[toy_extending]", "data.offset_every=2", "phantom.size=16", "deformation.num_steps=3",
+                 "solver.max_iter=4", "baseline.enabled=false", "logging.tensorboard=false", "logging.progress=false",
+                 "logging.figure=false"], tmp_path)
+    assert m["status"] == "completed" and m["data_offset"]["every"] == 2

@@ -4,7 +4,7 @@ import mrcfile
 import numpy as np
 import pytest
 
-from indreg.volume_files import ome_zarr_available, read_ome_zarr_scale, write_mrc, write_ome_zarr
+from indreg.io.volume_files import ome_zarr_available, read_ome_zarr_scale, write_mrc, write_ome_zarr
 
 VOLUME = np.random.default_rng(0).random((6, 5, 4))   # (nx, ny, nz), all sides different
 

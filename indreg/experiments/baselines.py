@@ -90,9 +90,8 @@ def _split(cfg: DictConfig, exp, T, g: torch.Tensor, mu: float, group, rank: int
     ``{}``), slab by slab in one process for a slab-wise registration, or whole."""
     from ..forward.split import by_slabs, gather_rows, split_rows
     from ..forward.tilt_series import TiltSeriesTransform
-    from ..problems.slabs import SlabwiseRegistration
 
-    if type(T) is not TiltSeriesTransform or not isinstance(exp.problem, SlabwiseRegistration):
+    if type(T) is not TiltSeriesTransform or not getattr(exp.problem, "splits_over_ranks", False):
         return "", _reconstruct(cfg, T, g, mu) if rank == 0 else {}   # whole, on rank 0
     if group is not None:
         Ts = split_rows(T, group)
@@ -105,7 +104,7 @@ def _split(cfg: DictConfig, exp, T, g: torch.Tensor, mu: float, group, rank: int
 
 def _group() -> tuple:
     """``(group, rank)``: ``torch.distributed``'s group of several ranks, or ``(None, 0)``."""
-    from ..problems.slabs import default_group
+    from ..ranks import default_group
 
     group = default_group()
     if group is None:

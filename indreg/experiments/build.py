@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from .. import run
+from ..registration import run
 from ..options import OptionError
 from . import sources
 from .config import ConfigError, registration_values

@@ -15,7 +15,7 @@ from typing import Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from .. import conventions as _conventions
+from ..io import conventions as _conventions
 from .._checks import is_finite_number
 from .. import phantoms
 from ..inputs import box_domain, make_geometry, make_operator, square_domain
@@ -93,7 +93,7 @@ def phantom_data(cfg: DictConfig) -> Data:
     (noise drawn with the run's seed), so the same config gives the same data on every device. Over the ranks of
     ``torchrun`` a tilt series is built by rows (``split_setup.simulated_rows``: each rank its share of the slices;
     the target on rank 0 only), the same values to rounding."""
-    from ..problems.slabs import default_group
+    from ..ranks import default_group
     from . import split_setup
 
     p, g = cfg.phantom, cfg.geometry
@@ -134,7 +134,7 @@ def file_data(cfg: DictConfig) -> Data:
     template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
     the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
     ``data.integer_scale`` say how to read them; ``data.alignment`` (a tilt series) another tool's alignment of the
-    raw stack (``indreg.alignment_files``). No noise is added."""
+    raw stack (``indreg.io.alignment_files``). No noise is added."""
     d, g = cfg.data, cfg.geometry
     try:
         inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),

@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .. import options as _options
 from .._checks import is_finite_number
+from ..conf import CONFIG_DIR  # noqa: F401  (re-exported: indreg.experiments.config.CONFIG_DIR)
 from . import sources
 from .errors import ConfigError   # re-exported: ``from indreg.experiments.config import ConfigError``
 from .schema import build_schema
@@ -45,10 +46,8 @@ RegisterConfig = build_schema()
 
 SCHEMA_NAME = "indreg_schema"
 
-#: The app's yaml configs, shipped inside the package (``indreg/conf``; the checkout's top-level ``configs`` is a
-#: link to it): one source of truth for the checkout and the installed wheel. Users add their own config groups
-#: or presets with Hydra's search path, e.g. ``indreg-register 'hydra.searchpath=[file:///my/configs]' ...``.
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
+# The app's yaml configs (``indreg.conf.CONFIG_DIR``, re-exported here): users add their own config groups or
+# presets with Hydra's search path, e.g. ``indreg-register 'hydra.searchpath=[file:///my/configs]' ...``.
 
 
 #: Example data shipped with the package, named in configs as ``${indreg_data:<file name>}``.
@@ -57,9 +56,10 @@ DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 def register_schema(argv=()) -> None:
     """Store the schema ``indreg_schema`` (``RegisterConfig``) that ``conf/config.yaml`` starts from, and the
-    resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models named
-    in the command line ``argv`` (``deformation.model=module:attribute``) are imported first, so that their
-    options are config keys (``deformation.my_option=3``)."""
+    resolvers (``${indreg_data:name}``: the path of a file shipped in ``indreg/data``). The plug-in models and
+    solvers named in the command line ``argv`` (``deformation.model=module:attribute``, ``solver.name=...``) are
+    imported first, and the modules of ``plugins=[module, ...]`` (a correction's), so that their options are config
+    keys (``deformation.my_option=3``)."""
     from hydra.core.config_store import ConfigStore
 
     global RegisterConfig
@@ -70,28 +70,50 @@ def register_schema(argv=()) -> None:
 
 
 def import_plugins(argv) -> bool:
-    """Import the model and the data source named ``module:attribute`` in the overrides ``argv``
-    (``deformation.model=...``, ``data.source=...``), the working directory on ``sys.path`` as with ``python -m``
+    """Import the model, the solver and the data source named ``module:attribute`` in the overrides ``argv``
+    (``deformation.model=...``, ``solver.name=...``, ``data.source=...``), the working directory on ``sys.path`` as with ``python -m``
     (console scripts leave it off). Returns whether one brought keys of its own; an import error is left to the
     config's validation, which names the key."""
     import sys
 
     given = dict(a.lstrip("+~").split("=", 1) for a in argv if "=" in a)
-    model, source = given.get("deformation.model", ""), given.get("data.source", "")
-    model, source = (model if ":" in model and model not in _options.MODELS else None,
-                     source if ":" in source and source not in sources.SOURCES else None)
-    if (model or source) and "" not in sys.path and "." not in sys.path:
+    model, solver, source = (given.get(key, "") for key in ("deformation.model", "solver.name", "data.source"))
+    model, solver, source = (model if ":" in model and model not in _options.MODELS else None,
+                             solver if ":" in solver and solver not in _options.SOLVERS else None,
+                             source if ":" in source and source not in sources.SOURCES else None)
+    modules = [m.strip(" '\"") for m in given.get("plugins", "").strip("[]").split(",") if m.strip(" '\"")]
+    if (model or solver or source or modules) and "" not in sys.path and "." not in sys.path:
         sys.path.append("")
-    new = False
     try:
-        if model:
-            _options.model(model)
-            new = True
+        new = _import_modules(modules)
+    except ConfigError:   # reported by the config's validation, which names the key
+        new = False
+    for name, find in ((model, _options.model), (solver, _options.solver)):
+        try:
+            if name:
+                find(name)
+                new = True
+        except ValueError:
+            pass
+    try:
         if source and sources.get(source).options:
             new = True
     except (ValueError, ConfigError):
         pass
     return new
+
+
+def _import_modules(modules) -> bool:
+    """Import the modules of ``plugins``; raises :class:`ConfigError` naming the key for one that cannot be."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except Exception as e:   # a syntax error or an exception at import: one line
+            raise ConfigError(f"invalid config value plugins={list(modules)!r}: {name!r} cannot be imported: "
+                              f"{type(e).__name__}: {e}") from None
+    return bool(modules)
 
 
 _DEVICE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
@@ -124,6 +146,7 @@ def validate(cfg: DictConfig, registration: bool = True) -> None:
     if unknown:
         raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
                           "indreg.experiments.config.RegisterConfig")
+    _import_modules(c.plugins)
     _require(bool(_NAME.fullmatch(c.name)), "name", "letters, digits, '.', '_' and '-', not starting with '.'",
              c.name)
     _require(0 <= c.seed < 2 ** 32, "seed", "an integer in [0, 2**32) (numpy's seed range)", c.seed)

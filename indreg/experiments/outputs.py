@@ -23,7 +23,8 @@ import torch
 from omegaconf import DictConfig
 
 from .._outfiles import open_replacing, replacing
-from ..run import build_result, count_halvings, count_rejected
+from ..options import CORRECTIONS
+from ..registration.run import build_result, count_halvings, count_rejected
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
@@ -151,7 +152,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume, orientation=exp.setup.orientation)
+                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver)
     target = exp.target_64
     result = {}
     if target is not None:
@@ -177,11 +178,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
-    if r.alignment:   # shifts per tilt and the tilt-axis angle (docs/alignment.md), and their plot
-        from ..alignment import plot_shifts
-        result["alignment"] = r.alignment
-        with replacing(out / "alignment.png") as path:
-            plot_shifts(r.alignment, path)
+    for name, summary in r.corrections.items():   # the in-the-fit corrections' estimates, and their plots
+        result[name] = summary
+        plot = getattr(CORRECTIONS.get(name), "plot", None)
+        if plot is not None:
+            with replacing(out / f"{name}.png") as path:   # alignment.png: shifts per tilt, the tilt-axis angle
+                plot(summary, path)
     result.update(exp.report)
     if exp.snr_db is not None:
         result.update({"snr_db": exp.snr_db, "snr_convention": cfg.noise.convention.value})

@@ -44,17 +44,16 @@ from __future__ import annotations
 
 import logging
 import sys
-from pathlib import Path
 
 from omegaconf import DictConfig
 
+from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
 from . import cli
 
 __all__ = ["main", "preflight", "run", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
 log = logging.getLogger(__name__)
 
-_CONFIG = Path(__file__).resolve().parents[1] / "conf"   # = config.CONFIG_DIR, without importing its schema
 _CONFIG_FILE = "config"
 _SCHEMA = "indreg_schema"   # = config.SCHEMA_NAME
 PROG = "indreg-register"

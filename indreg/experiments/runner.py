@@ -19,7 +19,7 @@ from .._checks import StepOverflowError
 from .._malloc import system_allocator
 from ..callbacks import Callback
 from ..io import DataFileError
-from ..run import RegistrationLoop, initial_state
+from ..registration.run import RegistrationLoop, initial_state
 from . import checkpoint as ckpt
 from .baselines import baselines
 from .build import build, seed_everything
@@ -30,10 +30,9 @@ __all__ = ["run", "StopRequest", "StopAfter", "Signals", "TensorBoard", "Evaluat
 
 log = logging.getLogger("indreg.experiments.register")
 
-# Config keys that may change between an interrupted run and its resumption.
+# The app's own config keys that may change between an interrupted run and its resumption (the registration
+# options that may are marked so in the option table: ``indreg.options.Option.resumable``).
 _RESUMABLE = ("name", "device", "resume", "stop_after", "logging", "baseline")
-# Deformation keys that only split the work (slabs, processes): a run resumes with others.
-_SPLIT = ("slab_size", "max_memory", "distributed")
 
 
 class StopRequest:
@@ -67,10 +66,13 @@ class StopRequest:
 
 
 def _problem_config(plain: dict) -> dict:
-    """The config keys that define the iterates (all but ``_RESUMABLE`` and ``solver.max_iter``)."""
+    """The config keys that define the iterates (all but ``_RESUMABLE`` and the options marked ``resumable``)."""
+    from .. import options
+
     out = {k: v for k, v in plain.items() if k not in _RESUMABLE}
-    out["solver"] = {k: v for k, v in out["solver"].items() if k != "max_iter"}
-    out["deformation"] = {k: v for k, v in out["deformation"].items() if k not in _SPLIT}
+    for o in options.all_options():
+        if o.resumable and isinstance(out.get(o.group), dict):
+            out[o.group] = {k: v for k, v in out[o.group].items() if k != o.key}
     return out
 
 
@@ -269,8 +271,8 @@ def _config_key(option: str) -> str:
 def _distributed(cfg: DictConfig, output_dir) -> tuple:
     """``(rank, output_dir)``: under ``torchrun`` (``WORLD_SIZE > 1``, or ``deformation.distributed``) the process
     group is started and every rank writes where rank 0 does (Hydra's dated dirs may differ between ranks)."""
-    from ..problems.slabs import process_group
-    from ..run import resolve_device
+    from ..ranks import process_group
+    from ..registration.run import resolve_device
 
     group = process_group(cfg.deformation.get("distributed"), resolve_device(cfg.device))
     if group is None:
@@ -284,10 +286,10 @@ def _distributed(cfg: DictConfig, output_dir) -> tuple:
 
 def _check_split(problem) -> None:
     """One line when several processes run a registration that is not split between them."""
-    from ..problems.slabs import SlabwiseRegistration, default_group
+    from ..ranks import default_group
 
     group = default_group()
-    if group is not None and not isinstance(problem, SlabwiseRegistration):
+    if group is not None and not getattr(problem, "splits_over_ranks", False):
         import torch.distributed as dist
         raise ConfigError(f"{dist.get_world_size(group)} processes (torchrun) need a registration that splits into "
                           f"slabs (model lddmm, a tilt series, deformation.velocity_factor > 1, solver algorithm1, no "

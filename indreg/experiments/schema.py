@@ -11,9 +11,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, make_dataclass
 from enum import Enum
-from typing import Any, Optional
+from typing import Any, List, Optional
 
-from .. import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
+from ..registration import corrections as _corrections  # noqa: F401  (the registry of corrections, with their options)
+from ..registration import models as _models  # noqa: F401  (fills the registry of models whose options the schema holds)
 from .. import options as _options
 from .. import phantoms as _phantoms
 from ..domain import AXES
@@ -190,6 +191,7 @@ def build_schema() -> type:
         ("name", str, field(default="suite1_jv")), ("seed", int, field(default=0)),
         ("dtype", Dtype, field(default=Dtype.float32)), ("device", str, field(default="auto")),
         ("resume", bool, field(default=False)), ("stop_after", Optional[int], field(default=None)),
+        ("plugins", List[str], field(default_factory=list)),
         ("data", groups["data"], field(default_factory=groups["data"])),
         ("phantom", PhantomConfig, field(default_factory=PhantomConfig)),
         ("geometry", GeometryConfig, field(default_factory=GeometryConfig)),
@@ -199,5 +201,7 @@ def build_schema() -> type:
         ("logging", LoggingConfig, field(default_factory=LoggingConfig)),
         ("validation", groups["validation"], field(default_factory=groups["validation"]))])
     cls.__doc__ = "The whole run. ``stop_after``: stop (checkpoint, as if interrupted) once this many iterations " \
-                  "are done."
+                  "are done. ``plugins``: modules imported before the config is composed (from the working " \
+                  "directory or PYTHONPATH), whose registrations (a correction, a solver, a model, a source) and " \
+                  "their options then take part."
     return cls

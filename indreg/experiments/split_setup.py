@@ -7,15 +7,15 @@ Every rank needs the whole template (a displacement may carry a slab's points an
 on every rank from the whole noise-free data, as one process draws it: the same data, the same noise.
 
 Convention: volumes ``(nx, ny, nz)`` and data ``(num_tilts, det_rows, det_cols)`` float64 on the CPU; a rank's
-share is the contiguous range ``[start, stop)`` of the tilt axis' slices (``indreg._rows.rank_rows``: the first
-``n % world`` ranks one more), and data row ``j`` is slice ``j``; the shares are joined by ``indreg._rows``.
+share is the contiguous range ``[start, stop)`` of the tilt axis' slices (``indreg.ranks.rank_rows``: the first
+``n % world`` ranks one more), and data row ``j`` is slice ``j``; the shares are joined by ``indreg.ranks``.
 """
 from __future__ import annotations
 
 import torch.distributed as dist
 
 from .. import phantoms
-from .._rows import all_gather_rows, gather_rows, rank_rows
+from ..ranks import all_gather_rows, gather_rows, rank_rows
 from ..forward.tilt_series import TiltSeriesTransform
 
 __all__ = ["row_range", "counts", "simulated_rows", "splits"]

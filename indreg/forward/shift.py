@@ -22,7 +22,7 @@ Convention:
       rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
     - ``matrices`` (optional, ``(num_projections, 2, 2)``, tilt series only): a fixed linear map ``B_k`` of the
       ``(s, t)`` plane per projection (another tool's per-tilt rotation, magnification, stretch;
-      ``indreg.alignment_files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
+      ``indreg.io.alignment_files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
       ``(S y)(p) = y(B_k^{-1} R(-alpha)(p - shift))``. Without it ``B_k = I``.
     - Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
       field of view, a rod along the axis, continues there) or zero (``edge="zero"``).

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .. import _rows
-from .._rows import rank_rows
+from .. import ranks
+from ..ranks import rank_rows
 from ..domain import ImageDomain
 from .tilt_series import TiltSeriesTransform
 
@@ -210,7 +210,7 @@ def by_slabs(reconstruct, T: TiltSeriesTransform, y: torch.Tensor, slab_size: in
 
 def gather_rows(x: torch.Tensor, T: SlabTransform, dst: int = 0) -> torch.Tensor | None:
     """The ranks' rows of ``x (..., *T.domain.shape)`` assembled into ``(..., *whole.shape)`` on rank ``dst``
-    (None on the others): ``indreg._rows.gather_rows`` along the split axis."""
+    (None on the others): ``indreg.ranks.gather_rows`` along the split axis."""
     s = T.split
     counts = [b - a for a, b in (rank_rows(s.n, r, s.world) for r in range(s.world))]
-    return _rows.gather_rows(x, x.dim() - 3 + s.axis, counts, s.group, dst)
+    return ranks.gather_rows(x, x.dim() - 3 + s.axis, counts, s.group, dst)

@@ -432,7 +432,7 @@ def base_config(overrides=()):
     gets no keys (the composition then names the options)."""
     from omegaconf import OmegaConf
 
-    from ..experiments.config import CONFIG_DIR
+    from ..conf import CONFIG_DIR
 
     cfg = OmegaConf.load(CONFIG_DIR / f"{CONFIG_NAME}.yaml")
     cfg.pop("hydra")
@@ -452,7 +452,7 @@ def main() -> None:
     import hydra
 
     from ..experiments import cli
-    from ..experiments.config import CONFIG_DIR
+    from ..conf import CONFIG_DIR
 
     cli.refuse_loading_flags(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))

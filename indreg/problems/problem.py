@@ -61,6 +61,9 @@ class RegistrationProblem:
     #: split of the reconstruction into summands, in order), ``"frames"`` (images over time, a leading axis whose
     #: times are ``frame_times()``)
     output_kinds: dict = {}
+    #: whether the problem splits its work into slabs of rows along the tilt axis (``slab_size`` fine slices each),
+    #: shared over the ranks of a process group (``indreg.ranks``) or taken one after another in one process
+    splits_over_ranks: bool = False
 
     @property
     def time_weight(self) -> float:

@@ -37,7 +37,7 @@ from ..deform.functional.sampling import _planewise_applies, _planewise_sample, 
 from ..forward.ray_transform import _matmul, matmul_columns
 from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
-from .._rows import gather_rows, rank_rows
+from ..ranks import default_group, gather_rows, process_group, rank_rows, rank_world  # noqa: F401  (re-exported)
 
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
            "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL",
@@ -175,6 +175,8 @@ class SlabwiseRegistration(IndirectRegistration):
     what one gradient's ``all_reduce`` sends (the coarse ``dL/du_N``, ``dL/dJ_N`` when mass-preserving, the fit).
     """
 
+    splits_over_ranks = True
+
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tv_weight=0.0, tv_smoothing=1e-3,
                  slab_size: int | None = None, max_memory: int | None = None, group=None):
         super().__init__(ray_transform, deformation, kernel, template, data, gamma, tv_weight, tv_smoothing)
@@ -183,7 +185,7 @@ class SlabwiseRegistration(IndirectRegistration):
             raise ValueError(f"the data term cannot be evaluated slab-wise: {reason}")
         self.axis = ray_transform.geometry.axis
         self.group = default_group() if group is None else (None if group is False else group)
-        self.rank, self.world = _rank_world(self.group)
+        self.rank, self.world = rank_world(self.group)
         n = self.image_domain.shape[self.axis]
         if slab_size is None:   # automatic: at least SLABS_PER_RANK slabs a rank
             slab_size = min(choose_slab_size(self.image_domain.shape, self.axis, template.element_size(),
@@ -350,7 +352,7 @@ class SlabwiseRegistration(IndirectRegistration):
             yield frame
 
     def _gathered(self, u: torch.Tensor, jac) -> torch.Tensor | None:
-        """``I o (Id + P u)`` (times ``P J``) on this rank's slabs, joined on rank 0 (``indreg._rows.gather_rows``)."""
+        """``I o (Id + P u)`` (times ``P J``) on this rank's slabs, joined on rank 0 (``indreg.ranks.gather_rows``)."""
         start, stop = self.slab_ranges[self.own[0]][0], self.slab_ranges[self.own[-1]][1]
         shape = list(self.template.shape)
         shape[self.axis] = stop - start
@@ -396,36 +398,8 @@ class SlabwiseRegistration(IndirectRegistration):
         return t
 
 
-def default_group():
-    """The default process group when ``torch.distributed`` is initialised with more than one rank, else None."""
-    import torch.distributed as dist
-    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
-        return dist.group.WORLD
-    return None
-
-
-def _rank_world(group) -> tuple:
-    if group is None:
-        return 0, 1
-    import torch.distributed as dist
-    return dist.get_rank(group), dist.get_world_size(group)
-
-
 def _share(count: int, rank: int, world: int) -> range:
-    """Rank ``rank``'s contiguous share of ``count`` items (``indreg._rows.rank_rows``) as a range."""
+    """Rank ``rank``'s contiguous share of ``count`` items (``indreg.ranks.rank_rows``) as a range."""
     return range(*rank_rows(count, rank, world))
 
 
-def process_group(distributed: bool | None, device) -> object | None:
-    """The process group a registration is split over: ``torch.distributed``'s default group, started (gloo on a
-    CPU, NCCL on CUDA) when this process was launched by ``torchrun`` with ``WORLD_SIZE > 1``; None for one
-    process. ``distributed`` None: whether ``WORLD_SIZE > 1``; False: None."""
-    import os
-
-    import torch.distributed as dist
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if distributed is False or (distributed is None and world < 2) or world < 2 and not dist.is_initialized():
-        return None
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.device(device).type == "cuda" else "gloo")
-    return dist.group.WORLD if dist.get_world_size() > 1 else None

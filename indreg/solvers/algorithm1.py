@@ -8,6 +8,7 @@ import torch
 
 from .._checks import check_bool, check_int, check_positive
 from .._checks import StepOverflowError, check_nonnegative
+from ..options import default
 from ..units import STEP_REL, data_term_scale
 from ..problems.problem import RegistrationProblem
 from .state import (IterativeSolver, SolverState, StepControl, is_marked, make_info, mark, problems,
@@ -64,8 +65,9 @@ class Algorithm1(IterativeSolver):
     an uninterrupted run.
     """
 
-    def __init__(self, problem: RegistrationProblem, step_size: float | None = None, max_iter: int = 200,
-                 grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
+    def __init__(self, problem: RegistrationProblem, step_size: float | None = None,
+                 max_iter: int = default("max_iter"), grad_tol: float = default("grad_tol"),
+                 step_halving: bool = default("step_halving", app=True), max_halvings: int = default("max_halvings"),
                  jacobian_every: int = 1, steps: dict | None = None, frozen: dict | None = None,
                  cycle: tuple | None = None):
         check_problem(problem)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from ..options import default
 from ..problems.metamorphosis import MetamorphosisRegistration
 from .algorithm1 import Algorithm1
 from .state import SolverState
@@ -54,7 +55,8 @@ class MetamorphosisDescent(Algorithm1):
     """
 
     def __init__(self, problem: MetamorphosisRegistration, step_size: float | None = None, source_step_size="auto",
-                 max_iter: int = 200, grad_tol: float = 0.0, step_halving: bool = False, max_halvings: int = 10,
+                 max_iter: int = default("max_iter"), grad_tol: float = default("grad_tol"),
+                 step_halving: bool = default("step_halving", app=True), max_halvings: int = default("max_halvings"),
                  jacobian_every: int = 1, source_start: int = 0):
         _check_problem(problem)
         super().__init__(problem, step_size, max_iter, grad_tol, step_halving, max_halvings, jacobian_every,
@@ -77,7 +79,8 @@ class MetamorphosisTorchOptim(TorchOptimSolver):
     "autograd"."""
 
     def __init__(self, problem: MetamorphosisRegistration, optimizer="lbfgs", lr: float | None = None,
-                 source_lr: float | None = None, max_iter: int = 100, grad_tol: float = 0.0,
+                 source_lr: float | None = None, max_iter: int = default("max_iter"),
+                 grad_tol: float = default("grad_tol"),
                  backward: str = "adjoint", jacobian_every: int = 1, **optimizer_kwargs):
         _check_problem(problem)
         super().__init__(problem, optimizer, lr, max_iter, grad_tol, backward, jacobian_every,

@@ -16,6 +16,7 @@ import torch
 
 from .._checks import check_bool, check_int, check_positive
 from ..deform.lddmm import BACKWARDS
+from ..options import default
 from ..problems.grids import prolong, resample_time, restrict
 from .algorithm1 import Algorithm1, check_problem
 from .._checks import check_nonnegative
@@ -111,9 +112,10 @@ class MultilevelSolver(IterativeSolver):
     """
 
     def __init__(self, problem, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),
-                 max_iter: int = 200, grad_tol: float = 0.0, rtol: float = 5e-4, window: int = 5,
+                 max_iter: int = default("max_iter"), grad_tol: float = default("grad_tol"), rtol: float = 5e-4,
+                 window: int = 5,
                  inner: str = "algorithm1", step_size: float = 0.08, step_halving: bool = True,
-                 max_halvings: int = 10, backward: str = "exact", history_size: int = 10, min_size: int = 16,
+                 max_halvings: int = default("max_halvings"), backward: str = "exact", history_size: int = 10, min_size: int = 16,
                  jacobian_every: int = 1):
         check_problem(problem)
         if len(problem.iterate_names) != 1:

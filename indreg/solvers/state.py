@@ -189,9 +189,14 @@ class IterativeSolver:
 class RefitSolver:
     """A solver around ``inner`` that re-estimates part of the data model every ``every`` iterations (before the
     step at iteration ``0, every, 2 every, ...``: :meth:`refit`, which subclasses implement), drops what ``inner``
-    cached of the old model, then takes ``inner``'s step; :meth:`report` adds the estimate to the step's report.
+    cached of the old model, then takes ``inner``'s step; :meth:`report` adds the estimate to the step's report,
+    :meth:`summary` the final one to the result (``result.corrections[name]``). Checkpoints: a subclass's
+    ``state_dict`` is ``inner``'s with its own entries added, ``load_state_dict`` pops them and hands the rest on.
     Everything else (step sizes, step halving, status, ...) is ``inner``'s. Subclasses: ``indreg.alignment``'s and
-    ``indreg.intensity``'s."""
+    ``indreg.intensity``'s (the in-the-fit corrections of ``indreg.corrections``)."""
+
+    #: the correction's name (``indreg.corrections``): the key of its summary in the result and metrics.json
+    name = ""
 
     def __init__(self, inner, every: int):
         self.inner, self.every = inner, every
@@ -213,6 +218,10 @@ class RefitSolver:
 
     def report(self, info: dict) -> dict:
         return info
+
+    def summary(self) -> dict:
+        """The final estimate for the result (``{}``: nothing to add)."""
+        return {}
 
     def step(self, state) -> dict:
         if state.iteration % self.every == 0:

@@ -9,6 +9,7 @@ import torch
 from .._checks import check_int, check_positive
 from .algorithm1 import check_problem
 from .._checks import check_nonnegative
+from ..options import default
 from ..problems.problem import RegistrationProblem
 from .state import IterativeSolver, SolverState, is_marked, make_info, mark, problems, rounding_tolerance
 
@@ -75,7 +76,8 @@ class TorchOptimSolver(IterativeSolver):
     """
 
     def __init__(self, problem: RegistrationProblem, optimizer="lbfgs", lr: float | None = None,
-                 max_iter: int = 100, grad_tol: float = 0.0, backward: str | None = None, jacobian_every: int = 1,
+                 max_iter: int = default("max_iter"), grad_tol: float = default("grad_tol"),
+                 backward: str | None = None, jacobian_every: int = 1,
                  lrs: dict | None = None, **optimizer_kwargs):
         check_problem(problem)
         if backward is None:

@@ -1,6 +1,7 @@
 """A deformation model from outside indreg with options of its own: from ``indreg.register`` and from the command
 line (``deformation.model=module:attribute deformation.<option>=...``), the module in the working directory."""
 import json
+import sys
 import textwrap
 
 import pytest
@@ -140,3 +141,101 @@ def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
     assert m["config"]["name"] == "SOURCE"
     bad = run_cli(args[:1] + ["data.my_gain=-1"] + args[2:], cwd=tmp_path)
     assert bad.returncode == 1 and "data.my_gain" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+SOLVER = textwrap.dedent('''
+    """A plug-in solver with an option of its own: Adam with its first moment's decay ``my_beta``."""
+    import indreg
+    from indreg.options import Option, number
+    from indreg.solver_registry import Solver
+
+    def build(problem, o, model_kwargs):
+        return indreg.solvers.TorchOptimSolver(problem, "adam", lr=0.05, max_iter=o["max_iter"],
+                                               betas=(o["my_beta"], 0.999), **model_kwargs)
+
+    SOLVER = Solver("my_adam", build, options=(
+        Option("my_beta", "solver", "my_beta", 0.9, number(0.0), "Adam's first decay", float, solvers=("my_adam",)),
+    ))
+''')
+
+
+def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path, monkeypatch):
+    """``solver="module:SOLVER"`` / ``solver.name=module:SOLVER solver.my_beta=...``: nothing of indreg edited."""
+    (tmp_path / "my_solver.py").write_text(SOLVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
+    template = phantoms.get("j", domain)
+    try:
+        r = indreg.register(template, T(phantoms.get("v", domain)), T, solver="my_solver:SOLVER", my_beta=0.5,
+                            num_steps=3, max_iter=2)
+        assert r.status == "completed" and r.history[-1]["step_size"] == 0.05
+        with pytest.raises(TypeError, match="my_beta must be left unset"):
+            indreg.register(template, T(template), T, my_beta=0.5, max_iter=1)
+    finally:
+        for key in ("my_adam", "my_solver:SOLVER"):
+            indreg.options.SOLVERS.pop(key, None)
+    out = tmp_path / "run"
+    args = ["solver.name=my_solver:SOLVER", "solver.my_beta=0.5", "phantom.size=16", "deformation.num_steps=3",
+            "solver.max_iter=2", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
+            "device=cpu", f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["hparams"]["solver"] == "my_adam"
+    assert m["config"]["solver"]["my_beta"] == 0.5
+    bad = run_cli(args[:1] + ["solver.my_beta=-1"] + args[2:], cwd=tmp_path)
+    assert bad.returncode == 1 and "solver.my_beta" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+CORRECTION = textwrap.dedent('''
+    """A plug-in in-the-fit correction with an option: the template's mean matched to the data's every k iterations."""
+    import torch
+    from indreg.corrections import Correction, register_correction
+    from indreg.options import Option, number
+    from indreg.solvers.state import RefitSolver
+
+    class Counted(RefitSolver):
+        name, what = "counted", "a count"
+
+        def refit(self, state):
+            self.count = getattr(self, "count", 0) + 1
+
+        def summary(self):
+            return {"refits": self.count}
+
+    register_correction(Correction("counted", lambda solver, fit: solver if not fit.options["count_every"] else
+                                   Counted(solver, fit.options["count_every"]), options=(
+        Option("count_every", "data", "count_every", 0, number(0, integer=True), "refit period (0: off)", int),
+    )))
+''')
+
+
+def test_plugin_correction_with_an_option_from_python_and_the_command_line(tmp_path, monkeypatch):
+    """``import module`` / ``plugins=[module] data.count_every=...``: the chain runs it, nothing of indreg edited."""
+    import importlib
+
+    (tmp_path / "my_correction.py").write_text(CORRECTION)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    domain = indreg.ImageDomain.paper(16)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
+    template = phantoms.get("j", domain)
+    try:
+        importlib.import_module("my_correction")
+        r = indreg.register(template, T(phantoms.get("v", domain)), T, count_every=2, num_steps=3, max_iter=5)
+        assert r.corrections == {"counted": {"refits": 3}}   # before iterations 0, 2 and 4
+    finally:
+        indreg.options.CORRECTIONS.pop("counted", None)
+        sys.modules.pop("my_correction", None)
+    out = tmp_path / "run"
+    args = ["plugins=[my_correction]", "data.count_every=2", "phantom.size=16", "deformation.num_steps=3",
+            "solver.max_iter=5", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
+            "device=cpu", f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["counted"] == {"refits": 3}
+    bad = run_cli(args[:1] + ["data.count_every=-1"] + args[2:], cwd=tmp_path)
+    assert bad.returncode == 1 and "data.count_every" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    missing = run_cli(["plugins=[no_such_module]"] + args[2:], cwd=tmp_path)
+    assert missing.returncode == 1 and "plugins" in missing.stderr and len(missing.stderr.strip().splitlines()) == 1

@@ -11,11 +11,12 @@ import math
 import numbers
 from typing import Callable
 
-__all__ = ["OptionError", "number", "choice", "boolean", "optional", "mapping", "auto_or", "anything", "solver_name",
-           "is_torch_optim", "holdout", "ALGORITHM1", "FAST"]
+__all__ = ["OptionError", "number", "choice", "boolean", "optional", "mapping", "auto_or", "anything", "holdout",
+           "ALGORITHM1", "FAST", "TORCH"]
 
-#: ``register()``'s torch.optim solvers are named by their class name (``"lbfgs"``, ``"adam"``, ...).
-ALGORITHM1, FAST = "algorithm1", "fast"
+#: The built-in solvers' registry names (``indreg.solver_registry``): the options of the table name them; ``TORCH``
+#: is the family of the torch.optim optimizers (``register()`` names each by its class name: ``"lbfgs"``, ...).
+ALGORITHM1, FAST, TORCH = "algorithm1", "fast", "torch"
 
 
 class OptionError(ValueError):
@@ -88,26 +89,6 @@ def auto_or(check: Callable, what: str, words: tuple = ("auto",)) -> Callable:
 
 def anything(v, label):
     return v
-
-
-def solver_name(v, label):
-    """``"algorithm1"``, ``"fast"`` or the name of a ``torch.optim`` optimizer (case-insensitive)."""
-    from .solvers.torch_optim import _optimizer_class
-
-    if not isinstance(v, str):
-        raise OptionError(label, v, "'algorithm1', 'fast' or a torch.optim optimizer name", TypeError)
-    if v.lower() in (ALGORITHM1, FAST):
-        return v.lower()
-    try:
-        _optimizer_class(v)
-    except ValueError:
-        raise OptionError(label, v, "'algorithm1', 'fast' or a torch.optim optimizer name (lbfgs, adam, sgd, ...)") \
-            from None
-    return v.lower()
-
-
-def is_torch_optim(solver: str) -> bool:
-    return solver not in (ALGORITHM1, FAST)
 
 
 def holdout(v, label):

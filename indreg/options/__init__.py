@@ -19,9 +19,9 @@ from typing import Any, Callable, Dict, Optional
 
 import torch
 
-from .option_checks import (ALGORITHM1, FAST, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
-                            holdout, is_torch_optim, mapping, number, optional, solver_name)
-from .units import GAMMA_REL, STEP_REL
+from .checks import (ALGORITHM1, FAST, TORCH, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
+                            holdout, mapping, number, optional)
+from ..units import GAMMA_REL, STEP_REL
 
 _NONE = object()
 
@@ -30,9 +30,11 @@ _NONE = object()
 @dataclass(frozen=True)
 class Option:
     """One option. ``group`` / ``key``: its config key ``group.key`` (group ``run``: ``register()`` only);
-    ``solvers``: the solvers it applies to (``"torch"`` stands for every torch.optim optimizer; None: all);
+    ``solvers``: the registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None:
+    all);
     ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
-    ``default``; ``type``: its type in the Hydra schema."""
+    ``default`` (the paper's: the solver classes take it too, :func:`default`); ``type``: its type in the Hydra schema; ``resumable``: it may change between an interrupted run
+    and its resumption (the iterates do not depend on it: the iteration budget, how the work is split)."""
     name: str
     group: str
     key: str
@@ -43,6 +45,7 @@ class Option:
     solvers: Optional[tuple] = None
     models: Optional[tuple] = None
     app_default: Any = _NONE
+    resumable: bool = False
 
     @property
     def config_key(self) -> str:
@@ -53,8 +56,8 @@ class Option:
         return self.default if self.app_default is _NONE else self.app_default
 
     def applies(self, solver: str, model: str) -> bool:
-        ok_solver = self.solvers is None or solver in self.solvers or ("torch" in self.solvers
-                                                                     and is_torch_optim(solver))
+        ok_solver = self.solvers is None or solver in self.solvers or getattr(_serving(solver), "name", None) in \
+            self.solvers
         return ok_solver and (self.models is None or model in self.models)
 
     def where(self) -> str:
@@ -63,8 +66,7 @@ class Option:
         if self.models is not None:
             parts.append(" or ".join(f"model={m!r}" for m in self.models))
         if self.solvers is not None:
-            parts.append(" or ".join("a torch.optim solver" if s == "torch" else f"solver={s!r}"
-                                     for s in self.solvers))
+            parts.append(" or ".join(getattr(SOLVERS.get(s), "family", "") or f"solver={s!r}" for s in self.solvers))
         return " with ".join(parts)
 
 
@@ -78,8 +80,9 @@ MODELS: dict = {}
 class Model:
     """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``
     (``template`` None, unknown, only for a model with ``template_optional``);
-    ``solver_options``: keyword arguments of the solver family (``steps`` / ``frozen`` for ``Algorithm1``,
-    ``lrs`` for ``TorchOptimSolver``), keyed by solver kind ``"algorithm1"`` / ``"torch"``."""
+    ``solver_options``: keyword arguments of a solver's build, keyed by the registered solver's name
+    (:class:`Solver`; ``steps`` / ``frozen`` for ``"algorithm1"``, ``lrs`` for ``"torch"``), and ``"wrap"``: a
+    function of the solver built that returns the solver to run (an alternation around it)."""
     name: str
     build: Callable
     options: tuple = ()
@@ -104,6 +107,113 @@ class Model:
             raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
                             f"{type(built).__name__}")
         return built
+
+
+# ---------------------------------------------------------------------------------------------------- solvers
+# The registry of solvers lives here too, below the modules that fill it (``indreg.builtin_solvers``: algorithm1,
+# fast, the torch.optim optimizers; a plug-in's own module), so that checking an option never imports a solver.
+SOLVERS: dict = {}
+
+
+@dataclass(frozen=True)
+class Solver:
+    """A solver: ``build(problem, options, model_kwargs) -> solver`` (an iterative solver: ``step(state) -> info``,
+    ``status(info)``, ``state_dict`` / ``load_state_dict``, ``halves_steps``; ``indreg.solvers.state.IterativeSolver``
+    gives all but ``step``), ``model_kwargs`` the model's ``solver_options[name]`` (e.g. Algorithm 1's ``steps``).
+
+    ``name``: the value of ``solver=`` (the app's ``solver.name``) and the key of a model's ``solver_options``;
+    ``options``: its own ``Option``s (``solvers=(name,)``: keywords of ``register()`` and config keys, as a model's);
+    ``accepts``: a family's test of other names it serves (``accepts(value) -> the value normalised, or None``: the
+    torch.optim optimizers by class name); ``check(options, label)``: checks across options (errors via
+    ``OptionError(label(name), ...)``); ``expected``: how the list of solvers names it (default ``'name'``);
+    ``family``: how an option's error names its solvers (default ``solver='name'``)."""
+    name: str
+    build: Callable
+    options: tuple = ()
+    doc: str = ""
+    accepts: Optional[Callable] = None
+    check: Optional[Callable] = None
+    expected: str = ""
+    family: str = ""
+
+    def make(self, problem, o: dict, model_kwargs: dict):
+        """The solver of :attr:`build`; a plug-in's own exception other than a ValueError / TypeError becomes one
+        ValueError naming the solver, the original chained."""
+        try:
+            return self.build(problem, o, model_kwargs)
+        except (ValueError, TypeError):
+            raise
+        except Exception as e:
+            if getattr(self.build, "__module__", "").startswith("indreg."):
+                raise
+            raise ValueError(f"solver {self.name!r}: build raised {type(e).__name__}: {e}") from e
+
+
+def register_solver(entry: Solver) -> Solver:
+    """Add ``entry`` to the solver registry (a name already there is replaced)."""
+    return add_to_registry(SOLVERS, entry, Solver, "register_solver takes an indreg.solver_registry.Solver")
+
+
+def solver(name: str) -> Solver:
+    """The registered solver serving ``name`` (its own name, or one a family accepts); ``"package.module:attribute"``
+    imports a ``Solver`` (or a module that registers it) and registers it under that name, as :func:`model`."""
+    if isinstance(name, str) and name not in SOLVERS and ":" in name:
+        _import(name, SOLVERS, Solver, "solver", "indreg.solver_registry.Solver")
+    found = _serving(name)
+    if found is None:
+        raise ValueError(f"solver must be {solver_names()} or 'package.module:attribute', got {name!r}")
+    return found
+
+
+def _serving(name):
+    if name in SOLVERS:
+        return SOLVERS[name]
+    for entry in SOLVERS.values():
+        if entry.accepts is not None and isinstance(name, str) and entry.accepts(name) is not None:
+            return entry
+    return None
+
+
+def solver_names() -> str:
+    """The registered solvers as an error names them: ``'algorithm1', 'fast' or a torch.optim optimizer name``."""
+    what = list(dict.fromkeys(e.expected or repr(e.name) for e in SOLVERS.values()))
+    return " or ".join(filter(None, (", ".join(what[:-1]), what[-1] if what else "")))
+
+
+def solver_kind(name: str) -> str:
+    """The registry name of the solver serving ``name`` (``"torch"`` for a torch.optim optimizer): the key of a
+    model's ``solver_options``."""
+    return solver(name).name
+
+
+# ---------------------------------------------------------------------------------------------------- corrections
+# The registry of in-the-fit corrections (``indreg.corrections``: the protocol and the built-in alignment and
+# intensity fit; a plug-in's own module), here for the same reason.
+CORRECTIONS: dict = {}
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A correction of the data model re-estimated in the fit, in a chain around the solver (``indreg.corrections``
+    has the protocol in full). ``wrap(solver, fit) -> solver``: ``solver`` itself where the options leave the
+    correction off, else an ``indreg.solvers.state.RefitSolver`` around it (``fit``: an ``indreg.corrections.Fit``, the
+    run's options, data model, data and units). ``options``: its own ``Option``s (keywords of ``register()``,
+    config keys); ``model(operator, options, label) -> operator``: the data model it estimates, set before the
+    problem is built (the alignment's ``T_s``); ``check(options, label)``: checks across options;
+    ``plot(summary, path)``: the app's figure of its summary (``<name>.png``)."""
+    name: str
+    wrap: Callable
+    options: tuple = ()
+    doc: str = ""
+    model: Optional[Callable] = None
+    check: Optional[Callable] = None
+    plot: Optional[Callable] = None
+
+
+def register_correction(entry: Correction) -> Correction:
+    """Add ``entry`` to the chain of corrections, after those registered before it (a name already there is
+    replaced in place)."""
+    return add_to_registry(CORRECTIONS, entry, Correction, "register_correction takes an indreg.corrections.Correction")
 
 
 def add_to_registry(registry: dict, entry, cls: type, expected: str):
@@ -131,24 +241,46 @@ def model(name: str) -> Model:
     return MODELS[name]
 
 
-def _import(path: str) -> None:
+def _import(path: str, registry: Optional[dict] = None, cls: type = Model, what: str = "model",
+            public: str = "indreg.models.Model") -> None:
+    """Import ``path`` (``package.module:attribute``), an instance of ``cls``, into ``registry`` under ``path`` and its
+    own name; one-line ValueError (nothing the failed import registered stays) when it cannot."""
     import importlib
 
+    registry = MODELS if registry is None else registry
     module, _, attr = path.partition(":")
-    before = dict(MODELS)
+    before = dict(registry)
     try:
-        model = getattr(importlib.import_module(module), attr)
-        problem = None if isinstance(model, Model) else f"is a {type(model).__name__}, not an indreg.models.Model"
+        entry = getattr(importlib.import_module(module), attr)
+        problem = None if isinstance(entry, cls) else f"is a {type(entry).__name__}, not an {public}"
     except Exception as e:   # a syntax error or an exception at import: one line
         problem = f"cannot be imported: {type(e).__name__}: {e}"
     except SystemExit as e:   # the module called sys.exit() at import
         problem = f"cannot be imported: it called sys.exit({e.code!r}) at import"
     if problem is not None:   # nothing the failed import registered stays
-        MODELS.clear()
-        MODELS.update(before)
-        raise ValueError(f"model {path!r} {problem}")
-    MODELS[path] = model
-    MODELS.setdefault(model.name, model)   # its options name it (Option.models) by its own name
+        registry.clear()
+        registry.update(before)
+        raise ValueError(f"{what} {path!r} {problem}")
+    registry[path] = entry
+    registry.setdefault(entry.name, entry)   # its options name it (Option.models / solvers) by its own name
+
+
+def _solver(v, label):
+    expected = f"{solver_names()}; a plug-in: 'package.module:attribute'"
+    if not isinstance(v, str):
+        raise OptionError(label, v, expected, TypeError)
+    key = v if v in SOLVERS or ":" in v else v.lower()
+    try:
+        entry = solver(key)
+    except ValueError as e:
+        msg = str(e)
+        raise OptionError(label, v, expected if msg.startswith("solver must be ") else
+                          f"an importable solver ({msg})") from None
+    if key == entry.name and entry.accepts is not None and entry.accepts(key) is None:   # a family's own name
+        raise OptionError(label, v, expected)
+    if key in SOLVERS and SOLVERS[key] is entry:
+        return entry.name if SOLVERS.get(entry.name) is entry else key   # a plug-in by its own name
+    return entry.accepts(key)
 
 
 def _model(v, label):
@@ -195,9 +327,10 @@ CORE = (
     Option("tv_rel", "solver", "tv_rel", None, optional(_nonneg),
            "the TV weight relative to the TV weight unit: tv_weight = tv_rel x indreg.forward.tv_weight_unit (the "
            "intensity unit x the box side squared: the TV baseline's convention; with tv_weight 0)", Optional[float]),
-    Option("solver", "solver", "name", ALGORITHM1, solver_name,
-           "'algorithm1', 'fast' (coarse to fine) or a torch.optim name", str),
-    Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int),
+    Option("solver", "solver", "name", ALGORITHM1, lambda v, label: _solver(v, label),
+           "'algorithm1', 'fast' (coarse to fine), a torch.optim name or a registered solver "
+           "(indreg.solver_registry; 'package.module:attribute')", str),
+    Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int, resumable=True),
     Option("step_size", "solver", "step_size", None, optional(_positive),
            "Algorithm 1's step (absolute, the paper's); None: step_rel / S (S = ||g||^2 / L^2, indreg.units)",
            Optional[float], solvers=(ALGORITHM1,)),
@@ -206,7 +339,7 @@ CORE = (
            solvers=(ALGORITHM1,)),
     Option("lr", "solver", "lr", None, optional(_positive),
            "the torch.optim learning rate (None: 1.0 for L-BFGS, required for the others)", Optional[float],
-           solvers=("torch",), app_default=1.0),
+           solvers=(TORCH,), app_default=1.0),
     Option("step_halving", "solver", "step_halving", True, boolean,
            "halve steps that increase the objective or fold", bool, solvers=(ALGORITHM1,), app_default=False),
     Option("max_halvings", "solver", "max_halvings", 20, number(0, integer=True), "halvings within one iteration",
@@ -215,7 +348,7 @@ CORE = (
            float),
     Option("optimizer_kwargs", "solver", "optimizer_kwargs", None, mapping,
            "keyword arguments of the torch.optim optimizer, or solver='fast''s options", Dict[str, Any],
-           solvers=(FAST, "torch"), app_default={}),
+           solvers=(FAST, TORCH), app_default={}),
     Option("holdout", "validation", "holdout", None, holdout,
            "angles left out of the fit and used for validation: every k-th (an integer k >= 2) or a list of "
            "indices; None: all are fitted", Any),
@@ -223,6 +356,19 @@ CORE = (
            "with holdout: stop after this many evaluations without a new minimum of the held-out residual "
            "(None: never)", Optional[int]),
 )
+
+_step_size = next(o for o in CORE if o.name == "step_size")
+
+def _callback(v, label):
+    from ..callbacks import as_callback
+
+    try:
+        as_callback(v, label)
+    except TypeError:
+        raise OptionError(label, v, "callable(state, info), an indreg.callbacks.Callback or a list of them",
+                          TypeError) from None
+    return v
+
 
 #: How the inputs are brought to one unit before the run (``indreg.units.prepare``): the app's ``data.*`` keys.
 INPUTS = (
@@ -239,24 +385,14 @@ INPUTS = (
            "the orientation probe before the run (indreg.orientation): 'check' (a warning when the template's "
            "projection fits the data clearly better read another way: detector reversed, angles in the opposite "
            "sense, a stack turned; an error when by far), 'warn' (a warning only) or 'off'", str),
-    Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
-           "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "
-           "angle of a tilt series), re-estimated against the reconstruction's projection (docs/alignment.md)", str),
-    Option("align_gauge", "data", "align_gauge", "offset+translation",
-           choice(("offset+translation", "translation", "none")),
-           "what the shifts of align leave to the deformation: 'offset+translation' (a constant across the axis and "
-           "an object translation), 'translation' (the axis' offset estimated too) or 'none' (the template fixes "
-           "the frame; docs/alignment.md)", str),
-    Option("align_interpolation", "data", "align_interpolation", "linear", choice(("linear", "cubic")),
-           "how align moves a projection image: 'linear' (bilinear) or 'cubic' (Keys' cubic convolution: no blur "
-           "at fractional shifts; docs/alignment.md)", str),
 )
 
 RUN = (
     Option("device", "run", "device", None, anything, "None: the template's; 'auto', 'cpu', 'cuda[:i]'"),
     Option("dtype", "run", "dtype", None, anything, "None: the template's (arrays: float32 unless float64)"),
-    Option("callback", "run", "callback", None, optional(lambda v, label: v if callable(v) else (_ for _ in ()).throw(
-        OptionError(label, v, "callable(state, info)", TypeError))), "called after every iteration"),
+    Option("callback", "run", "callback", None, _callback,
+           "fn(state, info) after every iteration (True stops the run), an indreg.callbacks.Callback (the app's loop "
+           "hooks: begin, before, after, describe, end; a & b) or a list of them"),
     Option("progress", "run", "progress", False, boolean, "a progress bar / log lines"),
     Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
     Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),
@@ -264,9 +400,10 @@ RUN = (
 
 
 def all_options() -> tuple:
-    """The core options, then every registered model's own, then the run options."""
+    """The core options, then every registered model's and solver's own, then the run options."""
     seen, out = set(), []
-    for o in (*CORE, *(o for m in MODELS.values() for o in m.options), *INPUTS, *RUN):
+    own = (o for entry in (*MODELS.values(), *SOLVERS.values()) for o in entry.options)
+    for o in (*CORE, *own, *INPUTS, *(o for c in CORRECTIONS.values() for o in c.options), *RUN):
         if o.name not in seen:
             seen.add(o.name)
             out.append(o)
@@ -277,6 +414,13 @@ def defaults() -> dict:
     return {o.name: o.default for o in all_options()}
 
 
+def default(name: str, app: bool = False):
+    """The table's default of the core option ``name``: ``register()``'s, or with ``app`` the app's (the paper's,
+    ``Option.app_default``, where it has its own). The solver classes take their defaults from here."""
+    o = next(o for o in (*CORE, *INPUTS, *RUN) if o.name == name)
+    return o.schema_default if app else o.default
+
+
 def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
     """``gamma`` and ``step_size`` left None take their relative form at the data-term scale ``S`` (``scale``,
     ``indreg.units.data_term_scale``): ``gamma = gamma_rel S``, ``step_size = step_rel / S``; ``tv_rel`` given (and
@@ -284,7 +428,7 @@ def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
     ``indreg.forward.tv_weight_unit``). Returns ``o``."""
     if o["gamma"] is None:
         o["gamma"] = o["gamma_rel"] * scale
-    if o["step_size"] is None and o["solver"] == ALGORITHM1:
+    if o["step_size"] is None and _step_size.applies(o["solver"], o["model"]):
         o["step_size"] = o["step_rel"] / scale
     if o["tv_rel"] is not None and o["tv_weight"] == 0:
         o["tv_weight"] = o["tv_rel"] * intensity()
@@ -306,11 +450,12 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
     to a solver or model it does not apply to is a TypeError; otherwise (the app) such values are reset to the
     default. Raises ``OptionError`` (``kind`` TypeError or ValueError) naming the option.
     """
-    if isinstance(values.get("model"), str) and values["model"] not in MODELS:
-        try:   # a plug-in's options join the table before unknown names are looked for
-            model(values["model"])
-        except ValueError:
-            pass   # reported with the model's label below
+    for name, find, registry in (("model", model, MODELS), ("solver", solver, SOLVERS)):
+        if isinstance(values.get(name), str) and ":" in values[name] and values[name] not in registry:
+            try:   # a plug-in's options join the table before unknown names are looked for
+                find(values[name])
+            except ValueError:
+                pass   # reported with the option's label below
     options = {o.name: o for o in all_options()}
     unknown = sorted(set(values) - set(options))
     if unknown:
@@ -326,44 +471,22 @@ def resolve(values: dict, label: Callable[[Option], str] = lambda o: o.name, str
             raise OptionError(label(o), out[name], f"left unset: it is an option of {o.where()}", TypeError)
         else:
             out[name] = o.default
-    _check_optimizer_kwargs(out, label(options["optimizer_kwargs"]))
+    chosen_solver = solver(out["solver"])
+    if chosen_solver.check is not None:
+        chosen_solver.check(out, lambda name: label(options[name]))
     if out["patience"] is not None and out["holdout"] is None:
         raise OptionError(label(options["patience"]), out["patience"],
                           f"None without {label(options['holdout'])} (early stopping watches the held-out residual)")
     if out["tv_rel"] is not None and out["tv_weight"] != 0:
         raise OptionError(label(options["tv_rel"]), out["tv_rel"], f"None when {label(options['tv_weight'])} is "
                           "given (one TV weight: absolute or relative)")
-    fit = out["template_scale"] in ("fit", "fit+offset")
-    if fit and (out["model"] != "lddmm" or out["action"] != "geometric"):
-        raise OptionError(label(options["template_scale"]), out["template_scale"], "None, 'auto' or a number with "
-                          f"model={out['model']!r} and action={out['action']!r} (fitting with the deformation needs "
-                          "lddmm with the geometric action)")
+    for correction in CORRECTIONS.values():
+        if correction.check is not None:
+            correction.check(out, lambda name: label(options[name]))
     chosen = model(out["model"])
     if chosen.check is not None:
         chosen.check(out, lambda name: label(options[name]))
     return out
-
-
-def _check_optimizer_kwargs(o: dict, label: str) -> None:
-    """Every ``optimizer_kwargs`` key must be a keyword of the torch.optim optimizer's constructor (or an option
-    of solver='fast')."""
-    import inspect
-
-    from .solvers.multilevel import options as fast_options
-    from .solvers.torch_optim import _optimizer_class
-
-    if o["solver"] == FAST:
-        allowed, what = set(fast_options()), "an option of solver='fast' (indreg.solvers.MultilevelSolver"
-    elif is_torch_optim(o["solver"]):
-        cls = _optimizer_class(o["solver"])
-        allowed = set(inspect.signature(cls.__init__).parameters) - {"self", "params", "lr"}
-        what = f"a keyword of torch.optim {cls.__name__} ("
-    else:
-        return
-    for key in o["optimizer_kwargs"]:
-        if key not in allowed:
-            raise OptionError(f"{label}.{key}", o["optimizer_kwargs"][key], f"{what}: {', '.join(sorted(allowed))})",
-                              TypeError)
 
 
 def schema_fields(group: str) -> list:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ._files import _as_path, _fail
-from .forward.shift import AlignedOperator
+from ..forward.shift import AlignedOperator
 
 __all__ = ["Alignment", "ALIGNMENT_FORMATS", "read_alignment", "read_xf", "read_aln", "write_xf", "write_aln",
            "write_alignment", "to_operator", "from_operator", "xf_of", "rotation_of"]
@@ -257,7 +257,7 @@ def read_alignment(path, angles=None, *, name: str = "alignment") -> Alignment:
 # ---------------------------------------------------------------------------------------------------- the operator
 def _frame(T) -> tuple:
     """``D = diag(det_cell, row_cell)`` and the detector's middle ``c = (s_mid, 0)`` (physical) of a tilt series."""
-    from .forward.tilt_series import TiltSeriesTransform
+    from ..forward.tilt_series import TiltSeriesTransform
 
     if not isinstance(T, TiltSeriesTransform):
         raise TypeError(f"alignment files describe a tilt series (TiltSeriesTransform), got {type(T).__name__}")

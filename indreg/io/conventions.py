@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .domain import ImageDomain
+from ..domain import ImageDomain
 
 __all__ = ["Convention", "CONVENTIONS", "INTEGER_SCALES", "get_convention", "image_to_indreg", "image_from_indreg",
            "sinogram_layout", "sinogram_units", "sinogram_to_indreg", "sinogram_from_indreg", "angles_to_indreg",
@@ -223,7 +223,7 @@ def _fit(stored_f, stored_g, radians, convention, half_width: float, det_min, de
     import torch
     import torch.nn.functional as F
 
-    from .forward import ParallelBeamGeometry, RayTransform
+    from ..forward import ParallelBeamGeometry, RayTransform
 
     c = get_convention(convention)
     g, transposed = sinogram_layout(stored_g, c), False

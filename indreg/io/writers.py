@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import check_positive
+from .._checks import check_positive
 from ._files import _as_path, _fail, _Problem
-from .domain import ImageDomain
+from ..domain import ImageDomain
 
 __all__ = ["WRITE_FORMATS", "write_image", "write_volume", "write_tilt_series"]
 

@@ -1,7 +1,10 @@
-"""Rows of a volume (or of its data) shared over the ranks of a ``torch.distributed`` process group: each rank holds a
+"""Ranks as a capability: the ``torch.distributed`` process group a run is split over (``process_group``,
+``default_group``, ``rank_world``) and rows of a volume (or of its data) shared over its ranks: each rank holds a
 contiguous share along one axis (``rank_rows``), and the shares are joined into the whole on every rank
-(``all_gather_rows``) or on one (``gather_rows``). Used by the slab-wise registration (``indreg.problems.slabs``),
-the baselines over ranks (``indreg.forward.split``) and the data built by rows (``indreg.experiments.split_setup``).
+(``all_gather_rows``) or on one (``gather_rows``). Below ``indreg.forward`` and ``indreg.problems``: used by the
+slab-wise registration (``indreg.problems.slabs``), the baselines over ranks (``indreg.forward.split``), the data
+built by rows (``indreg.experiments.split_setup``) and the app's runner. A problem says whether it splits over the
+ranks by ``splits_over_ranks`` (``indreg.problems.problem.RegistrationProblem``).
 
 Convention: ``counts[r]`` is rank ``r``'s number of rows along ``axis`` (rank 0's rows first, then rank 1's, ...);
 every rank passes the same ``counts``. The exchange runs on the group's device (the CPU for gloo, this rank's GPU
@@ -12,7 +15,33 @@ from __future__ import annotations
 import torch
 import torch.distributed as dist
 
-__all__ = ["rank_rows", "all_gather_rows", "gather_rows"]
+__all__ = ["process_group", "default_group", "rank_world", "rank_rows", "all_gather_rows", "gather_rows"]
+
+
+def process_group(distributed: bool | None, device) -> object | None:
+    """The process group a registration is split over: ``torch.distributed``'s default group, started (gloo on a
+    CPU, NCCL on CUDA) when this process was launched by ``torchrun`` with ``WORLD_SIZE > 1``; None for one
+    process. ``distributed`` None: whether ``WORLD_SIZE > 1``; False: None."""
+    import os
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if distributed is False or (distributed is None and world < 2) or world < 2 and not dist.is_initialized():
+        return None
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.device(device).type == "cuda" else "gloo")
+    return dist.group.WORLD if dist.get_world_size() > 1 else None
+
+
+def default_group():
+    """The default process group when ``torch.distributed`` is initialised with more than one rank, else None."""
+    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        return dist.group.WORLD
+    return None
+
+
+def rank_world(group) -> tuple:
+    """``(rank, world size)`` in ``group``; ``(0, 1)`` for None (one process)."""
+    return (0, 1) if group is None else (dist.get_rank(group), dist.get_world_size(group))
 
 
 def rank_rows(n: int, rank: int, world: int) -> tuple:

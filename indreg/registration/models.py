@@ -22,9 +22,10 @@ from typing import Any, Callable, Optional
 
 import torch
 
-from ._checks import as_tensor
-from .options import (ALGORITHM1, MODELS, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
-                      is_torch_optim, model, number, optional, register_model)
+from . import solver_registry  # noqa: F401  (the solvers a model's solver_options name)
+from .._checks import as_tensor
+from ..options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
+                      model, number, optional, register_model, solver_kind)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -40,8 +41,8 @@ def _interpolation(o: dict) -> None:
 
 
 def _lddmm(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import LDDMMDeformation
-    from .solvers import IndirectRegistration
+    from ..deform import LDDMMDeformation
+    from ..solvers import IndirectRegistration
 
     if o["velocity_factor"] > 1:
         W, kernel = _coarse_velocity(kernel, o)
@@ -57,7 +58,8 @@ def _slabwise(problem, o: dict):
     ``slab_size`` / ``max_memory`` (automatic: half the free memory) leave a whole-volume gradient no room; else
     ``problem`` itself. A split that cannot be made is an ``OptionError`` naming why (whole-volume where the
     memory bound alone asked for it)."""
-    from .problems.slabs import SlabwiseRegistration, choose_slab_size, process_group, slab_refusal
+    from ..problems.slabs import SlabwiseRegistration, choose_slab_size, slab_refusal
+    from ..ranks import process_group
 
     T, W, template = problem.ray_transform, problem.deformation, problem.template
     group = process_group(o["distributed"], template.device)
@@ -84,7 +86,7 @@ def _slabwise(problem, o: dict):
 def _coarse_velocity(kernel, o: dict) -> tuple:
     """``velocity_factor > 1``: ``CoarseVelocityDeformation`` and the kernel on the coarse grid (``backward``
     "paper", the app's default, runs the exact gradient: the paper's formula has no coarse-grid form)."""
-    from .deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
+    from ..deform import CoarseVelocityDeformation, GaussianKernel, coarse_domain
 
     domain, f = kernel.domain, o["velocity_factor"]
     try:
@@ -101,7 +103,7 @@ def _source_masks(mask, template: torch.Tensor, data: torch.Tensor, operator, do
     """``(source_mask, uniform_region)``: ``source_mask`` None, ``"template"`` (the template's support,
     ``template_support``), ``"data"`` (that and where the data show mass the template lacks, ``_data_only_support``:
     the ``uniform_region`` when not empty, else None) or an array."""
-    from .problems.metamorphosis import template_support
+    from ..problems.metamorphosis import template_support
 
     if mask is None:
         return None, None
@@ -123,7 +125,7 @@ def _data_only_support(template: torch.Tensor, data: torch.Tensor, operator, dom
     data's noise level) does not (``data_support``), without the parts thinner than about 4 ``width`` (the source's
     width; ``opened`` at 2 ``width``): the strips along the rays of a limited angular range, and an outline the
     deformation can reach (docs/metamorphosis.md, "The source's mask")."""
-    from .problems.metamorphosis import data_support, noise_std, opened
+    from ..problems.metamorphosis import data_support, noise_std, opened
 
     noise = noise_std(data)
     own = data_support(operator(template), operator, domain, noise=noise)
@@ -135,8 +137,8 @@ SOURCE_MASKS = ("template", "data")
 
 
 def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import GaussianKernel, MetamorphosisDeformation
-    from .solvers import MetamorphosisRegistration
+    from ..deform import GaussianKernel, MetamorphosisDeformation
+    from ..solvers import MetamorphosisRegistration
 
     domain = kernel.domain
     M = MetamorphosisDeformation(domain, num_steps=o["num_steps"], backward=o["backward"] or "adjoint",
@@ -153,7 +155,7 @@ def _metamorphosis(operator, template, data, kernel, o: dict) -> tuple:
                                         source_start=start if staged else 0)
     solver_options = {ALGORITHM1: {"steps": {"source": o["source_step_size"]}, "frozen": {"source": 0 if staged else
                                                                                            start}},
-                      "torch": {"lrs": {"source": o["source_lr"]}}}
+                      TORCH: {"lrs": {"source": o["source_lr"]}}}
     return problem, solver_options
 
 
@@ -202,14 +204,14 @@ register_model(Model("lddmm", _lddmm, doc="the paper's LDDMM (eq:RegOptim)", che
     Option("slab_size", "deformation", "slab_size", None, optional(number(1, integer=True)),
            "a tilt series with velocity_factor > 1: the data term and its gradient slab by slab, this many slices "
            "along the tilt axis each (docs/3d.md); None: from max_memory (whole-volume where it fits)",
-           Optional[int], models=("lddmm",)),
+           Optional[int], models=("lddmm",), resumable=True),
     Option("max_memory", "deformation", "max_memory", None, optional(number(1.0)),
            "bytes a gradient may take, which sets slab_size when that is None; None: half the free memory",
-           Optional[float], models=("lddmm",)),
+           Optional[float], models=("lddmm",), resumable=True),
     Option("distributed", "deformation", "distributed", None, optional(boolean),
            "one registration over the processes of torchrun (torch.distributed: gloo on CPUs, NCCL on GPUs), each "
            "with its slabs; None: when launched so (WORLD_SIZE > 1); docs/distributed.md", Optional[bool],
-           models=("lddmm",)),
+           models=("lddmm",), resumable=True),
 )))
 #: The defaults of the relative metamorphosis options (docs/metamorphosis.md "Defaults relative to the data term":
 #: measured on the suite-4 missing / extra, suite-3 contrast and limited-angle cases).
@@ -251,7 +253,7 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
            "Algorithm 1's source step (None: 1 / (tau + ||T||^2))", Optional[float], solvers=(ALGORITHM1,),
            models=_META),
     Option("source_lr", "solver", "source_lr", None, optional(number(0.0, strict=True)),
-           "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=("torch",), models=_META),
+           "the source's torch.optim learning rate (None: lr)", Optional[float], solvers=(TORCH,), models=_META),
     Option("source_start", "solver", "source_start", None, optional(number(0, integer=True)),
            "Algorithm 1: iterations with the source frozen (its uniform part excepted); None: "
            "source_start_fraction of max_iter",
@@ -262,15 +264,10 @@ register_model(Model("metamorphosis", _metamorphosis, defaults=_interpolation,
 )))
 
 
-def solver_kind(solver: str) -> str:
-    """``"algorithm1"``, ``"fast"`` or ``"torch"`` (the key of a model's ``solver_options``)."""
-    return "torch" if is_torch_optim(solver) else solver
-
-
 def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import LDDMMDeformation
-    from .problems.spatiotemporal import SpatiotemporalRegistration
-    from .solvers.spatiotemporal import IntertwinedSolver
+    from ..deform import LDDMMDeformation
+    from ..problems.spatiotemporal import SpatiotemporalRegistration
+    from ..solvers.spatiotemporal import IntertwinedSolver
 
     W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                          backward=o["backward"] or "autograd", interpolation=o["interpolation"])
@@ -290,7 +287,7 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
 
 
 def _check_spatiotemporal(o: dict, label) -> None:
-    from .problems.spatiotemporal import time_indices
+    from ..problems.spatiotemporal import time_indices
 
     _backward_in(("autograd", "exact"))(o, label)
     if isinstance(o["times"], (list, tuple)):   # their number is checked against the data's frames at setup

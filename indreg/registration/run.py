@@ -23,12 +23,13 @@ from typing import Optional
 import numpy as np
 import torch
 
-from . import metrics, models, options as opts
-from ._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
-from .forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
-from .solvers.state import rounding_tolerance
-from .kernel_width import default_sigma
-from .units import Units, data_term_scale, noise_residual, prepare
+from .. import metrics, options as opts
+from . import corrections, models
+from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
+from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
+from ..kernel_width import default_sigma
+from ..solvers.state import rounding_tolerance
+from ..units import Units, data_term_scale, noise_residual, prepare
 
 log = logging.getLogger("indreg")
 
@@ -65,27 +66,13 @@ def resolve_device(device, template=None) -> torch.device:
 
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
-    """The solver of ``o["solver"]`` on ``problem``: ``Algorithm1``, ``MultilevelSolver`` (``"fast"``) or
-    ``TorchOptimSolver`` (a torch.optim name), with the model's ``solver_options`` for its kind; a model's
-    ``solver_options["wrap"]`` (a function of the solver) then wraps it."""
+    """The registered solver of ``o["solver"]`` (``indreg.solver_registry``) on ``problem``, built with the model's
+    ``solver_options`` under its name; a model's ``solver_options["wrap"]`` (a function of the solver) then wraps
+    it."""
+    entry = opts.solver(o["solver"])
+    solver = entry.make(problem, o, solver_options.get(entry.name, {}))
     wrap = solver_options.get("wrap")   # a model's solver around the one built here (e.g. an alternation)
-    solver = _make_solver(problem, o, solver_options)
     return solver if wrap is None else wrap(solver)
-
-
-def _make_solver(problem, o: dict, solver_options: dict):
-    from .solvers import Algorithm1, MultilevelSolver, TorchOptimSolver
-
-    kind = models.solver_kind(o["solver"])
-    extra = solver_options.get(kind, {})
-    if kind == opts.FAST:   # optimizer_kwargs were checked by indreg.options.resolve
-        return MultilevelSolver(problem, max_iter=o["max_iter"], grad_tol=o["grad_tol"], **o["optimizer_kwargs"],
-                                **extra)
-    if kind == opts.ALGORITHM1:
-        return Algorithm1(problem, step_size=o["step_size"], max_iter=o["max_iter"], grad_tol=o["grad_tol"],
-                          step_halving=o["step_halving"], max_halvings=o["max_halvings"], **extra)
-    return TorchOptimSolver(problem, optimizer=o["solver"], lr=o["lr"], max_iter=o["max_iter"],
-                            grad_tol=o["grad_tol"], **extra, **o["optimizer_kwargs"])
 
 
 @dataclass
@@ -110,13 +97,13 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from . import alignment, intensity, orientation
-    from ._checks import check_finite_in
-    from .deform import GaussianKernel
-    from .forward.operator import check_operator
-    from .forward.time_series import as_time_series
-    from .forward.tv import tv_weight_unit
-    from .validation import split
+    from .. import orientation
+    from .._checks import check_finite_in
+    from ..deform import GaussianKernel
+    from ..forward.operator import check_operator
+    from ..forward.time_series import as_time_series
+    from ..forward.tv import tv_weight_unit
+    from ..validation import split
 
     o = opts.resolve(options, label, strict)
     if o["sigma"] == "auto":   # chosen from held-out angles first, then the run (indreg.kernel_width)
@@ -150,9 +137,9 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
         units.locate_target(template, o["target"])
     probe = orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))
-    aligned = operator = alignment.aligned(operator, o["align"], label(names["align"]),   # T_s (docs/alignment.md)
-                                           o["align_gauge"], o["align_interpolation"])
-    full_data, validation = data, None
+    operator = corrections.data_model(operator, o, lambda name: label(names[name]))   # e.g. T_s (alignment)
+    fit = corrections.Fit(o, lambda name: label(names[name]), operator, data, units)
+    validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
     units.data_scale = data_term_scale(operator, data)
@@ -165,8 +152,8 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
         o["sigma"] = default_sigma(domain)
     kernel = GaussianKernel(domain, o["sigma"])
     problem, solver_options = model.make(operator, template, data, kernel, o)
-    solver = alignment.wrap(make_solver(problem, o, solver_options), aligned, full_data, label(names["align"]))
-    solver = intensity.wrap(solver, o["template_scale"], units)   # "fit": the template's factor and offset
+    fit.problem = problem
+    solver = corrections.chain(make_solver(problem, o, solver_options), fit)   # the in-the-fit corrections
     return Setup(problem, solver, o, units, validation, probe)
 
 
@@ -174,7 +161,7 @@ def auto_sigma(template, data, operator, label, strict: bool, options: dict) -> 
     """``sigma="auto"``: the width of ``indreg.kernel_width.candidates`` whose registration (the run's options,
     its ``holdout`` or every ``AUTO_HOLDOUT``-th angle held out, no early stop) predicts the held-out angles
     best."""
-    from .kernel_width import AUTO_HOLDOUT, candidates, choose_sigma
+    from ..kernel_width import AUTO_HOLDOUT, candidates, choose_sigma
 
     trial = dict(options, holdout=options.get("holdout") or AUTO_HOLDOUT, patience=None, callback=None,
                  progress=False, target=None)
@@ -191,7 +178,7 @@ def auto_sigma(template, data, operator, label, strict: bool, options: dict) -> 
 
 def initial_state(problem):
     """The solvers' starting iterate ``problem.zero_iterate()`` at iteration 0."""
-    from .solvers import SolverState
+    from ..solvers import SolverState
 
     return SolverState.initial(problem)
 
@@ -247,11 +234,12 @@ class RegistrationLoop:
 
     ``callbacks`` (``indreg.callbacks.Callback``, composed with ``&``) hook in before and after every step (either
     may return a status that stops the loop) and add text to the log line printed every ``every`` iterations; the
-    app adds TensorBoard, evaluation, checkpoints and its stop requests so. ``validation``
-    (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in the chain (the
-    held-out residual every ``every`` iterations, in ``info``, the history and the log line; early stopping);
-    ``callback(state, info)`` returning True stops the loop (``stopped``, ``indreg.callbacks.UserCallback``,
-    last). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
+    app adds TensorBoard, evaluation, checkpoints and its stop requests so, ``indreg.register(callback=...)`` the
+    user's: ``callback`` here, after ``callbacks`` (``indreg.callbacks.as_callback``: a function
+    ``callback(state, info)`` returning True stops the loop, ``stopped``; a ``Callback``; a list of them).
+    ``validation`` (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in
+    the chain (the held-out residual every ``every`` iterations, in ``info``, the history and the log line; early
+    stopping). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
     ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver accepted),
     ``early_stopped`` (``validation`` ran out of patience), or what a callback returned.
     """
@@ -259,7 +247,7 @@ class RegistrationLoop:
     def __init__(self, problem, solver, state, max_iter: int, every: int = 10, progress: bool = False,
                  desc: str = "indreg", history=None, seconds: float = 0.0, callback=None, validation=None,
                  callbacks=None):
-        from .callbacks import Callbacks, HeldOut, UserCallback
+        from ..callbacks import Callbacks, HeldOut, as_callback
 
         self.problem, self.solver, self.state = problem, solver, state
         self.max_iter, self.every, self.progress, self.desc = max_iter, every, progress, desc
@@ -268,8 +256,8 @@ class RegistrationLoop:
         self.warnings = count_warnings(self.history)
         self.rtol = rounding_tolerance(state.iterate[0].dtype)
         chain = [HeldOut(validation)] if validation is not None else []
-        chain += [callbacks] if callbacks is not None else []
-        self.callbacks = Callbacks(*chain, *([UserCallback(callback)] if callback is not None else []))
+        chain += [c for c in (as_callback(callbacks, "callbacks"), as_callback(callback)) if c is not None]
+        self.callbacks = Callbacks(*chain)
 
     def _warn(self, it: int, info: dict) -> None:
         """Count a warning; log the first one and then one every ``every`` iterations. A fixed step (no step
@@ -397,6 +385,8 @@ class RegistrationResult:
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
     ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
+    ``corrections``: the final estimates of the in-the-fit corrections by name (``indreg.corrections``:
+    ``alignment``, ``intensity``, a plug-in's), those that ran.
     ``poor_fit``: the warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a
     layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
     ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
@@ -424,6 +414,7 @@ class RegistrationResult:
     holdout: dict = field(default_factory=dict)
     alignment: dict = field(default_factory=dict)
     poor_fit: str = ""
+    corrections: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -488,15 +479,15 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
                  units: Optional[Units] = None, validation=None, trajectory: bool = True,
-                 orientation: str = "") -> RegistrationResult:
+                 orientation: str = "", solver=None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
-    ``validation`` if given; ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
+    ``validation`` if given, the summaries of the in-the-fit corrections around ``solver`` if given
+    (``indreg.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
     ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning."""
-    from . import alignment
-
     units = units or Units()
+    fitted = corrections.summaries(solver)
     x = state.iterate
     image = problem.reconstruction(x)
     with torch.no_grad():
@@ -508,7 +499,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
-        problem=problem, outputs=problem.outputs(x), units=units, alignment=alignment.summary(problem))
+        problem=problem, outputs=problem.outputs(x), units=units, corrections=fitted,
+        alignment=fitted.get("alignment", {}))
     if target is not None:
         scored = units.to_target_units(image)   # the target's units (template_scale: maybe the template's)
         result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)

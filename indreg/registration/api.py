@@ -23,7 +23,7 @@ import logging
 import sys
 import textwrap
 
-from .options import OptionError, all_options
+from ..options import OptionError, all_options
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup)
 
@@ -90,7 +90,7 @@ def register(template, data, operator, **options) -> RegistrationResult:  # noqa
         if handler is not None:
             log.removeHandler(handler)
     return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                        orientation=s.orientation)
+                        orientation=s.orientation, solver=s.solver)
 
 
 def option_docs(indent: int = 12) -> str:
