@@ -333,9 +333,9 @@ register_model(Model("spatiotemporal", _spatiotemporal, check=_check_spatiotempo
 
 
 def _residual(operator, template, data, kernel, o: dict) -> tuple:
-    from .deform import LDDMMDeformation
-    from .forward.tv import intensity_scale, tv_weight_unit
-    from .problems.residual import ResidualRegistration
+    from ..deform import LDDMMDeformation
+    from ..forward.tv import intensity_scale, tv_weight_unit
+    from ..problems.residual import ResidualRegistration
 
     W = LDDMMDeformation(kernel.domain, num_steps=o["num_steps"], action=o["action"],
                          backward=o["backward"] or "paper", interpolation=o["interpolation"])
