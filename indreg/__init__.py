@@ -5,10 +5,7 @@ point answering ``--help``) does not load torch; ``from indreg import register``
 """
 from __future__ import annotations
 
-import importlib
-import importlib.util
-
-from . import _moved, _openmp
+from . import _lazy, _moved, _openmp
 
 _moved.install()     # modules moved into subpackages keep their old names (indreg.writers: indreg.io.writers)
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
@@ -40,18 +37,4 @@ __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransfo
            "metrics", "noise", "phantoms"]
 __version__ = "0.1.0"
 
-
-def __getattr__(name: str):
-    """A public name (imported from its submodule on first use) or a submodule (``indreg.forward``, ...)."""
-    if name in _HOME:
-        value = getattr(importlib.import_module(f".{_HOME[name]}", __name__), name)
-    elif importlib.util.find_spec(f"{__name__}.{name}") is not None:
-        value = importlib.import_module(f".{name}", __name__)
-    else:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = _lazy.attributes(__name__, _HOME, __all__)   # public names on first use

@@ -5,8 +5,7 @@ The public names are imported on first use (PEP 562), so that the entry point ``
 ``--help`` without torch; ``from indreg.learn import MomentumUNet`` works as ever."""
 from __future__ import annotations
 
-import importlib
-import importlib.util
+from .. import _lazy
 
 #: public name -> the submodule that defines it
 _HOME = {
@@ -21,17 +20,4 @@ __all__ = ["IndirectShootingLoss", "MomentumUNet", "SyntheticDeformationDataset"
            "descent_gradient", "descent_terms", "indirect_gradient", "random_momentum", "random_template"]
 
 
-def __getattr__(name: str):
-    """A public name (imported from its submodule on first use) or a submodule (``indreg.learn.train``, ...)."""
-    if name in _HOME:
-        value = getattr(importlib.import_module(f".{_HOME[name]}", __name__), name)
-    elif importlib.util.find_spec(f"{__name__}.{name}") is not None:
-        value = importlib.import_module(f".{name}", __name__)
-    else:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list:
-    return sorted({*globals(), *__all__})
+__getattr__, __dir__ = _lazy.attributes(__name__, _HOME, __all__)   # public names on first use

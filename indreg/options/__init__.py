@@ -95,18 +95,24 @@ class Model:
         """``(problem, solver_options)`` of :attr:`build`, its return checked; a plug-in's own exception other
         than a ValueError / TypeError (which name their problem) becomes one ValueError naming the model, the
         original chained."""
-        try:
-            built = self.build(operator, template, data, kernel, o)
-        except (ValueError, TypeError):
-            raise
-        except Exception as e:
-            if getattr(self.build, "__module__", "").startswith("indreg."):
-                raise
-            raise ValueError(f"model {o['model']!r}: build raised {type(e).__name__}: {e}") from e
+        built = _build(f"model {o['model']!r}", self.build, operator, template, data, kernel, o)
         if not (isinstance(built, tuple) and len(built) == 2 and isinstance(built[1], dict)):
             raise TypeError(f"model {o['model']!r}: build must return (problem, solver_options dict), got "
                             f"{type(built).__name__}")
         return built
+
+
+def _build(what: str, build: Callable, *args):
+    """``build(*args)``; a plug-in's own exception other than a ValueError / TypeError (which name their problem)
+    becomes one ValueError naming ``what`` (e.g. ``model 'mine'``), the original chained."""
+    try:
+        return build(*args)
+    except (ValueError, TypeError):
+        raise
+    except Exception as e:
+        if getattr(build, "__module__", "").startswith("indreg."):
+            raise
+        raise ValueError(f"{what}: build raised {type(e).__name__}: {e}") from e
 
 
 # ---------------------------------------------------------------------------------------------------- solvers
@@ -139,14 +145,7 @@ class Solver:
     def make(self, problem, o: dict, model_kwargs: dict):
         """The solver of :attr:`build`; a plug-in's own exception other than a ValueError / TypeError becomes one
         ValueError naming the solver, the original chained."""
-        try:
-            return self.build(problem, o, model_kwargs)
-        except (ValueError, TypeError):
-            raise
-        except Exception as e:
-            if getattr(self.build, "__module__", "").startswith("indreg."):
-                raise
-            raise ValueError(f"solver {self.name!r}: build raised {type(e).__name__}: {e}") from e
+        return _build(f"solver {self.name!r}", self.build, problem, o, model_kwargs)
 
 
 def register_solver(entry: Solver) -> Solver:
