@@ -199,7 +199,9 @@ class Correction:
     run's options, data model, data and units). ``options``: its own ``Option``s (keywords of ``register()``,
     config keys); ``model(operator, options, label) -> operator``: the data model it estimates, set before the
     problem is built (the alignment's ``T_s``); ``check(options, label)``: checks across options;
-    ``plot(summary, path)``: the app's figure of its summary (``<name>.png``)."""
+    ``plot(summary, path)``: the app's figure of its summary (``<name>.png``); ``fixed(problem) -> dict``: the
+    summary of a part of the data model that is in the problem but not re-estimated (an imported alignment used as
+    it is), ``{}`` when there is none."""
     name: str
     wrap: Callable
     options: tuple = ()
@@ -207,6 +209,7 @@ class Correction:
     model: Optional[Callable] = None
     check: Optional[Callable] = None
     plot: Optional[Callable] = None
+    fixed: Optional[Callable] = None
 
 
 def register_correction(entry: Correction) -> Correction:

@@ -66,15 +66,22 @@ def chain(solver, fit: Fit):
     return solver
 
 
-def summaries(solver) -> dict:
-    """``{name: summary}`` of the corrections around ``solver`` (innermost first), those with one."""
+def summaries(solver, problem=None) -> dict:
+    """``{name: summary}`` of the corrections around ``solver`` (innermost first), those with one; with ``problem``
+    also the ``fixed`` summaries of corrections that did not run (an imported alignment used as it is)."""
     from ..solvers.state import RefitSolver
 
     out = {}
     while isinstance(solver, RefitSolver):
         out[solver.name] = solver.summary()
         solver = solver.inner
-    return {name: s for name, s in reversed(out.items()) if s}
+    out = {name: s for name, s in reversed(out.items()) if s}
+    for c in CORRECTIONS.values():
+        if problem is not None and c.fixed is not None and c.name not in out:
+            fixed = c.fixed(problem)
+            if fixed:
+                out[c.name] = fixed
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------- alignment
@@ -96,7 +103,13 @@ def _plot_shifts(summary: dict, path) -> None:
     plot_shifts(summary, path)
 
 
-register_correction(Correction("alignment", _align, model=_aligned, plot=_plot_shifts,
+def _fixed_alignment(problem) -> dict:
+    from ..alignment import summary
+
+    return summary(problem)
+
+
+register_correction(Correction("alignment", _align, model=_aligned, plot=_plot_shifts, fixed=_fixed_alignment,
                                doc="per-projection shifts and the tilt-axis angle (docs/alignment.md)", options=(
     Option("align", "data", "align", "none", choice(("none", "shifts", "shifts+axis")),
            "alignment in the fit: 'none', 'shifts' (per-projection shifts) or 'shifts+axis' (and the tilt-axis "

@@ -487,7 +487,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     (``indreg.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
     ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning."""
     units = units or Units()
-    fitted = corrections.summaries(solver)
+    fitted = corrections.summaries(solver, problem)
     x = state.iterate
     image = problem.reconstruction(x)
     with torch.no_grad():
