@@ -20,6 +20,8 @@ done
 # the help describes the tool (not Hydra's stock text) and points to the docs and the sweep table
 grep -q '^indreg-register: indirect image registration' <<< "$help"
 grep -q 'docs/index.md' <<< "$help" && ! grep -q 'powered by Hydra' <<< "$help"
+# the aligner's console script answers --help from the wheel
+"$bin/indreg-align" --help | grep -q 'indreg-align'
 # a missing launcher plugin names its extra: one line, exit 1
 if "$bin/indreg-register" -m hydra/launcher=slurm seed=0,1 2> "$work/launcher.err"; then false; fi
 grep -q 'pip install "indreg\[submitit\]"' "$work/launcher.err" && test "$(wc -l < "$work/launcher.err")" -eq 1
