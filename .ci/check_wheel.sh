@@ -42,7 +42,7 @@ test -f "$work/run_fast/metrics.json" && test -f "$work/run_meta/metrics.json" &
 "$bin/indreg-register" experiment=own_data_example solver.max_iter=5 baseline=none logging=quiet \
     hydra.run.dir="$work/run_own_data"
 grep -q '"source": "files"' "$work/run_own_data/metrics.json"
-grep -q '^indreg-train-momentum: train a network' <<< "$("$bin/indreg-train-momentum" --help)"
+grep -q '^indreg-train-momentum: learned LDDMM' <<< "$("$bin/indreg-train-momentum" --help)"
 "$bin/indreg-train-momentum" domain.n=16 geometry.num_angles=6 geometry.det_count=24 shooting.num_steps=3 \
     data.num_train=4 data.num_val=2 model.width=4 model.levels=2 train.batch_size=2 train.steps=2 \
     train.eval_every=2 eval.algorithm1.num_samples=1 eval.algorithm1.max_iter=2 device=cpu \
