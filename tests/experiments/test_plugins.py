@@ -47,10 +47,14 @@ def plugin(tmp_path, monkeypatch):
     return tmp_path
 
 
-def test_plugin_model_options_from_python(plugin):
+
+def _tiny_suite1():
+    """Suite 1 at 16^2 with 6 angles x 24 bins: the domain, the ray transform and the template J."""
     domain = indreg.ImageDomain.paper(16)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
-    template = phantoms.get("j", domain)
+    return domain, indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24)), phantoms.get("j", domain)
+
+def test_plugin_model_options_from_python(plugin):
+    domain, T, template = _tiny_suite1()
     r = indreg.register(template, T(phantoms.get("v", domain)), T, model="my_plugin:MODEL", brightness=2.0,
                         extra_steps=1, num_steps=3, max_iter=2)
     assert r.problem.hparams() == {"brightness": 2.0, "extra_steps": 1} and r.problem.num_steps == 4
@@ -94,9 +98,7 @@ def test_plugin_whose_build_raises_is_one_line_naming_the_model(tmp_path, monkey
     '''))
     (tmp_path / "syntax_plugin.py").write_text("def build(:\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    domain = indreg.ImageDomain.paper(16)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
-    template = phantoms.get("j", domain)
+    domain, T, template = _tiny_suite1()
     with pytest.raises(ValueError, match=r"^model 'raising': build raised KeyError: 'no such option'$") as e:
         indreg.register(template, T(template), T, model="raising_plugin:MODEL", max_iter=1)
     assert isinstance(e.value.__cause__, KeyError)
@@ -163,9 +165,7 @@ def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path,
     """``solver="module:SOLVER"`` / ``solver.name=module:SOLVER solver.my_beta=...``: nothing of indreg edited."""
     (tmp_path / "my_solver.py").write_text(SOLVER)
     monkeypatch.syspath_prepend(str(tmp_path))
-    domain = indreg.ImageDomain.paper(16)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
-    template = phantoms.get("j", domain)
+    domain, T, template = _tiny_suite1()
     try:
         r = indreg.register(template, T(phantoms.get("v", domain)), T, solver="my_solver:SOLVER", my_beta=0.5,
                             num_steps=3, max_iter=2)
@@ -217,9 +217,7 @@ def test_plugin_correction_with_an_option_from_python_and_the_command_line(tmp_p
 
     (tmp_path / "my_correction.py").write_text(CORRECTION)
     monkeypatch.syspath_prepend(str(tmp_path))
-    domain = indreg.ImageDomain.paper(16)
-    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24))
-    template = phantoms.get("j", domain)
+    domain, T, template = _tiny_suite1()
     try:
         importlib.import_module("my_correction")
         r = indreg.register(template, T(phantoms.get("v", domain)), T, count_every=2, num_steps=3, max_iter=5)
