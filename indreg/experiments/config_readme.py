@@ -5,7 +5,6 @@ differs (``tests/experiments/test_config_readme.py`` runs the check in CI)."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from .. import options
 from ..conf import CONFIG_DIR

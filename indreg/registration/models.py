@@ -17,7 +17,6 @@ Built in:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
 import torch
