@@ -12,15 +12,18 @@ Convention:
       ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
       operator (``AlignedOperator``'s per-tilt maps); ``--refine-axis`` refines the angle by projection matching.
     - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
-      projections are about 0 outside the object), binned by ``--bin`` (default: the least power of 2 whose working set fits
-      ``--max-memory``, :func:`working_set`); the shifts are scaled back to the stack's pixels, the aligned stack is
-      made at full size tilt by tilt, the reconstruction is the binned one.
+      projections are about 0 outside the object), coarse to fine: ``--rounds`` rounds binned by ``--coarse-bin``
+      (default: the largest power of 2 that leaves images of at least ``COARSE_SIZE`` pixels), then
+      ``--fine-rounds`` rounds at each finer power of 2 down to ``--bin`` (default: the least power of 2 whose
+      working set fits ``--max-memory``, :func:`working_set`), the shifts carried from level to level in the
+      stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the reconstruction is the
+      finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so, slab by slab of rows
+      along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
     - The alignment files refer to the raw stack as stored (``indreg.io.alignment_files``).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import re
@@ -31,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "working_set", "choose_binning", "parse_bytes"]
+__all__ = ["main", "working_set", "choose_binning", "parse_bytes", "levels", "slab_rows", "COARSE_SIZE"]
 
 log = logging.getLogger("indreg.align")
 
@@ -42,6 +45,8 @@ BYTES_PER_PIXEL = {"linear": 600, "cubic": 2000}
 BYTES_PER_VOXEL = 48
 BYTES_PER_NONZERO = 32
 BASE_BYTES = 300 * 2**20
+#: The smallest image side (pixels) of the coarsest level by default.
+COARSE_SIZE = 128
 
 
 def parse_bytes(text: str) -> int:
@@ -73,6 +78,29 @@ def choose_binning(nx: int, ny: int, nz: int, tilts: int, budget: int, base: int
     return b
 
 
+def levels(nx: int, ny: int, fine: int, coarse: int | None = None) -> list:
+    """The binnings of the estimation, coarse to fine: powers of 2 from ``coarse`` (default: the largest whose images
+    keep ``COARSE_SIZE`` pixels on their shorter side, at least ``fine``) down to ``fine``."""
+    if coarse is None:
+        coarse = fine
+        while min(nx, ny) // (2 * coarse) >= COARSE_SIZE:
+            coarse *= 2
+    if coarse < fine or coarse & (coarse - 1) or fine & (fine - 1):
+        raise ValueError(f"--coarse-bin ({coarse}) and --bin ({fine}) must be powers of 2, --coarse-bin >= --bin")
+    out = [coarse]
+    while out[-1] > fine:
+        out.append(out[-1] // 2)
+    return out
+
+
+def slab_rows(nx: int, ny: int, nz: int, tilts: int, budget: int) -> int:
+    """Rows along the tilt axis of a SIRT slab ``nx x rows x nz`` whose working set (:data:`BYTES_PER_VOXEL` a voxel,
+    the data twice in float32, the slice matrix) fits ``budget``; at least 1."""
+    fixed = BASE_BYTES + BYTES_PER_NONZERO * 2 * tilts * nx * max(nx, nz)
+    per_row = BYTES_PER_VOXEL * nx * nz + 8 * tilts * nx
+    return int(min(ny, max(1, (budget - fixed) // per_row)))
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="indreg-align", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -91,7 +119,13 @@ def _parser() -> argparse.ArgumentParser:
                                                          "outer frame), none, or a number (default auto)")
     p.add_argument("--bin", type=int, help="binning of the estimation (default: from --max-memory)")
     p.add_argument("--max-memory", default="8GiB", help="memory budget (default 8GiB)")
-    p.add_argument("--rounds", type=int, default=4, help="projection-matching rounds (default 4)")
+    p.add_argument("--coarse-bin", type=int, help="binning of the first rounds (default: the largest power of 2 "
+                                                  f"leaving {COARSE_SIZE}-pixel images, at least --bin)")
+    p.add_argument("--rounds", type=int, default=4, help="projection-matching rounds at the coarsest level "
+                                                         "(default 4)")
+    p.add_argument("--fine-rounds", type=int, default=1, help="rounds at each finer level (default 1)")
+    p.add_argument("--recon-bin", type=int, help="binning of the reconstruction, made slab-wise from the aligned "
+                                                 "stack (default: the finest level's SIRT)")
     p.add_argument("--iters", type=int, default=30, help="SIRT iterations per round (default 30)")
     p.add_argument("--interpolation", default="linear", choices=("linear", "cubic"))
     p.add_argument("--recon", default="sirt", choices=("sirt", "tv"), help="the quick reconstruction")
@@ -169,13 +203,26 @@ def _operator(stack_b: np.ndarray, radians: np.ndarray, nz: int, rest_deg: float
     return AlignedOperator(T, matrices=matrices)
 
 
-def _full_alignment(op, b: int, delta: np.ndarray, quarter: int, raw_shape: tuple, radians: np.ndarray):
-    """The binned operator's alignment in pixels of the raw stack as stored (module Convention)."""
-    from .io.alignment_files import Alignment, from_operator
+def _in_stack_pixels(op, b: int, delta: np.ndarray) -> tuple:
+    """The binned operator's maps ``(M, d)`` in pixels of the (quarter-turned) full-size stack."""
+    from .io.alignment_files import from_operator
 
     a = from_operator(op)
-    M = a.matrices
-    d = b * a.shifts + np.einsum("kij,j->ki", np.eye(2) - M, delta)   # the rotated stack's pixels
+    return a.matrices, b * a.shifts + np.einsum("kij,j->ki", np.eye(2) - a.matrices, delta)
+
+
+def _binned_operator(T, M: np.ndarray, d: np.ndarray, b: int, delta: np.ndarray, radians: np.ndarray):
+    """``T`` (a level binned by ``b``) with the maps ``(M, d)`` of the full-size stack as its own."""
+    from .io.alignment_files import Alignment, to_operator
+
+    shifts = (d - np.einsum("kij,j->ki", np.eye(2) - M, delta)) / b
+    return to_operator(T, Alignment(M, shifts, np.degrees(radians), np.arange(len(M))))
+
+
+def _raw_alignment(M: np.ndarray, d: np.ndarray, quarter: int, raw_shape: tuple, radians: np.ndarray):
+    """The maps of the quarter-turned stack in pixels of the raw stack as stored (module Convention)."""
+    from .io.alignment_files import Alignment
+
     Q = np.round(_rotation(90.0 * quarter))                            # raw = R(90 q) rotated (centred)
     K, ny, nx = raw_shape
     return Alignment(Q @ M, d @ Q.T, np.degrees(radians), np.arange(K), (nx, ny, K), "indreg-align")
@@ -204,9 +251,48 @@ def _reconstruct(op, data, x_sirt, kind: str, iters: int, weight: float):
                              nonneg=True)[0]
 
 
+def _slab_sirt(stack: np.ndarray, radians: np.ndarray, nz: int, iters: int, rows: int) -> tuple:
+    """Nonnegative SIRT of an aligned stack ``(K, ny, nx)`` (tilt axis along Y) slab by slab of ``rows`` rows:
+    the volume ``(nx, ny, nz)`` and its relative data residual. Exact: a tilt series' rows are independent."""
+    import torch
+
+    from .forward.sirt import sirt
+
+    K, ny, nx = stack.shape
+    volume = torch.empty(nx, ny, nz)
+    squares, norm = 0.0, 0.0
+    for start in range(0, ny, rows):
+        piece = torch.from_numpy(np.ascontiguousarray(stack[:, start:start + rows]))
+        op = _operator(piece.numpy(), radians, nz, 0.0).operator
+        x, history = sirt(op, piece, num_iter=iters, nonneg=True)
+        volume[:, start:start + rows] = x
+        squares += float(history["data_residual"][-1]) ** 2
+        norm += float(op.inner_data(piece, piece))
+        log.info("reconstruction: rows %d-%d of %d", start, min(start + rows, ny) - 1, ny)
+    return volume, math.sqrt(squares / norm)
+
+
 def _residual(op, x, data) -> float:
     r = op(x) - data
     return float(op.inner_data(r, r).sqrt() / op.inner_data(data, data).sqrt())
+
+
+def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
+    """The conventions of each output file for the run's record (``indreg.io.provenance``)."""
+    from .io.alignment_files import CONVENTIONS
+
+    volume = {"axis_order": "indreg's (nx, ny, nz) stored as (z, y, x): x along the aligned images' columns, "
+                            "y along the tilt axis, z the beam at tilt 0", "voxel_size_A": [voxel] * 3,
+              "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
+    out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
+           for name in alignment_files.values()}
+    out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
+    out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
+                          "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "
+                                                            "(scipy.ndimage.affine_transform, bilinear)"}
+    out["aligned.tlt"] = {"units": "degree", "contents": "the aligned stack's tilt angles, one a line"}
+    out["reconstruction.mrc"] = out["reconstruction.zarr"] = volume
+    return out
 
 
 def _peak_rss() -> int:
@@ -221,6 +307,7 @@ def run(args) -> dict:
     from .alignment import projection_matching
     from .io.alignment_files import write_alignment
     from .tilt_axis import check_tilt_axis
+    from .io.provenance import write_record
     from .io.volume_files import write_mrc, write_ome_zarr
 
     start = time.perf_counter()
@@ -244,43 +331,63 @@ def run(args) -> dict:
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
     level = _background(rotated, args.background)
-    binned, delta = _bin(rotated, b)
-    binned -= level
-    nz = max(thickness // b, 4)
-    log.info("estimation binned by %d: %d x %d px, volume %d x %d x %d (working set ~%.2f GiB of %.2f)", b,
-             binned.shape[2], binned.shape[1], binned.shape[2], binned.shape[1], nz,
-             (3 * raw.nbytes + working_set(binned.shape[2], binned.shape[1], nz, K, args.interpolation)) / 2**30,
-             budget / 2**30)
-    data = torch.from_numpy(binned)
-    op0 = _operator(binned, radians, nz, rest)
-
-    def progress(r, record):
-        log.info("round %d/%d: SIRT residual %.4f, largest shift update %.3f px (binned), %.0f s", r + 1,
-                 args.rounds, record[0], record[1], time.perf_counter() - start)
-
+    M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))
     mode = "shifts+axis" if args.refine_axis else "shifts"
-    op, x, records = projection_matching(op0, data, mode, args.rounds, args.iters, args.interpolation, progress)
+    steps = levels(nx, ny, b, args.coarse_bin)
+    history = []
+    for i, bl in enumerate(steps):
+        binned, delta = _bin(rotated, bl)
+        binned -= level
+        nz = max(thickness // bl, 4)
+        rounds = args.rounds if i == 0 else args.fine_rounds
+        log.info("level %d/%d: binned by %d, %d x %d px, volume %d x %d x %d, %d rounds (working set ~%.2f GiB of "
+                 "%.2f)", i + 1, len(steps), bl, binned.shape[2], binned.shape[1], binned.shape[2], binned.shape[1],
+                 nz, rounds, (3 * raw.nbytes + working_set(binned.shape[2], binned.shape[1], nz, K,
+                                                           args.interpolation)) / 2**30, budget / 2**30)
+        data = torch.from_numpy(binned)
+        op0 = _binned_operator(_operator(binned, radians, nz, 0.0).operator, M, d, bl, delta, radians)
+
+        def progress(r, rec, bl=bl, rounds=rounds):
+            log.info("bin %d, round %d/%d: SIRT residual %.4f, largest shift update %.3f px (binned), %.0f s", bl,
+                     r + 1, rounds, rec[0], rec[1], time.perf_counter() - start)
+
+        op, x, records = projection_matching(op0, data, mode, rounds, args.iters, args.interpolation, progress)
+        M, d = _in_stack_pixels(op, bl, delta)
+        history.append({"bin": bl, "shape": list(binned.shape), "rounds": records})
     after = _residual(op, x, data)
-    volume = _reconstruct(op, data, x, args.recon, args.iters, args.tv_weight)
-    alignment = _full_alignment(op, b, delta, quarter, raw.shape, radians)
+    alignment = _raw_alignment(M, d, quarter, raw.shape, radians)
     record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack)})
-    rot_full = _aligned_stack(rotated, np.round(_rotation(-90.0 * quarter)) @ alignment.matrices,
-                              alignment.shifts @ np.round(_rotation(-90.0 * quarter)).T)
+    rot_full = _aligned_stack(rotated, M, d)
     io.write_tilt_series(out / "aligned.mrc", rot_full, radians, pixel_size=pixel)
-    h = b * pixel
+    rb = args.recon_bin or b
+    if args.recon_bin:
+        if args.recon != "sirt":
+            raise ValueError("--recon-bin makes a SIRT reconstruction; --recon tv runs at the estimation's binning")
+        stack_r = _bin(rot_full, rb)[0] - level
+        nz = max(thickness // rb, 4)
+        rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)
+        log.info("reconstruction binned by %d: %d x %d x %d in slabs of %d rows", rb, stack_r.shape[2],
+                 stack_r.shape[1], nz, rows)
+        del data, binned, x, op, op0
+        volume, after = _slab_sirt(stack_r, radians, nz, args.iters, rows)
+    else:
+        volume = _reconstruct(op, data, x, args.recon, args.iters, args.tv_weight)
+    h = rb * pixel
     origin = [-(n - 1) / 2 * h for n in volume.shape]
-    written = [{"path": "aligned.mrc", "format": "MRC2014", "writer": "mrcfile", "pixel_size_A": pixel},
-               write_mrc(out / "reconstruction.mrc", volume.float().numpy(), (h, h, h), origin)]
+    write_mrc(out / "reconstruction.mrc", volume.float().numpy(), (h, h, h), origin)
     if args.zarr:
-        written.append(write_ome_zarr(out / "reconstruction.zarr", volume.float().numpy(), (h, h, h), origin))
+        write_ome_zarr(out / "reconstruction.zarr", volume.float().numpy(), (h, h, h), origin)
     shifts = alignment.shifts
-    summary = {"residual_before": records[0][0], "residual_after": after,
+    summary = {"residual_before": history[0]["rounds"][0][0], "residual_after": after,
                "axis_angle_deg": alignment.axis_angle_deg, "shift_range_px": [float(shifts.min()),
                                                                              float(shifts.max())],
-               "binning": b, "background": level, "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
-               "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget, "rounds": records,
-               "alignment": record["files"], "outputs": written, "reconstruction": args.recon}
-    (out / "align.json").write_text(json.dumps(summary, indent=1) + "\n")
+               "binning": b, "levels": history, "recon_binning": rb, "background": level,
+               "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
+               "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
+               "rounds": [r for h_ in history for r in h_["rounds"]],
+               "alignment": record["files"], "reconstruction": args.recon}
+    summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel),
+                                **summary))
     return summary
 
 

@@ -73,7 +73,15 @@ def test_recovers_the_shifts_and_writes_the_outputs(tmp_path, capsys):
     with mrcfile.open(out / "reconstruction.mrc") as mrc:
         assert mrc.data.shape == (16, N, N) and abs(float(mrc.voxel_size.z) - 2.5) < 1e-6
         assert abs(float(mrc.header.origin.x) + (N - 1) / 2 * 2.5) < 1e-4
-    assert {o["writer"] for o in s["outputs"]} == {"mrcfile"}
+    by_path = {o["path"]: o for o in s["outputs"]}
+    assert set(by_path) == {"align.json", "aligned.mrc", "reconstruction.mrc", "alignment.xf", "alignment.tlt",
+                            "alignment.aln", "alignment.json", "aligned.tlt"}
+    assert by_path["aligned.mrc"]["writer"] == by_path["reconstruction.mrc"]["writer"] == "mrcfile"
+    assert by_path["reconstruction.mrc"]["version"] == mrcfile.__version__
+    assert by_path["alignment.xf"]["writer"] == "indreg" and by_path["alignment.xf"]["format"] == "IMOD .xf"
+    np.testing.assert_allclose(by_path["reconstruction.mrc"]["voxel_size_A"], 2.5, rtol=1e-6)   # read back
+    assert by_path["reconstruction.mrc"]["shape_zyx"] == [16, N, N]
+    assert by_path["aligned.mrc"]["pixel_size_A"] == 2.5 and "tilt axis along Y" in by_path["aligned.mrc"]["axis_order"]
 
 
 def test_memory_budget_and_errors(tmp_path, capsys):

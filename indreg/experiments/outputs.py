@@ -30,7 +30,7 @@ from .config import to_plain
 from .run_figures import to_numpy, write_figures
 
 __all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality", "save_array",
-           "save_frames", "save_rows"]
+           "save_frames", "save_rows", "write_outputs_record"]
 
 log = logging.getLogger("indreg.experiments.register")
 
@@ -211,6 +211,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
+    write_outputs_record(out, exp, arrays)
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     done += " (poor fit: see the warning)" if r.poor_fit else ""
     if target is not None:
@@ -226,6 +227,30 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
                  r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],
                  r.holdout["holdout_best_iteration"])
     return result
+
+
+def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
+    """``outputs.json``: every file of the run directory with its format, the tool that wrote it and its version
+    (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the voxel size
+    and origin (the centre of voxel 0) in the domain's length unit, data layout (module Convention)."""
+    from ..io.provenance import write_record
+
+    d = exp.domain
+    h = list(d.cell_sides)
+    grid = {"voxel_size": h, "origin": [a + c / 2 for a, c in zip(d.min_pt, h)], "length_unit": "the domain's"}
+    image = {"axis_order": "(nx, ny, nz), axis 0 = x" if d.ndim == 3 else "(nx, ny), axis 0 = x", **grid}
+    data = {"axis_order": "(tilts, rows, columns)" if d.ndim == 3 else "(angles, detector bins)",
+            "values": "line integrals in the domain's length unit times the image's"}
+    grid_axes = "(nx, ny, nz)" if d.ndim == 3 else "(nx, ny)"
+    layouts = {"trajectory": f"(N + 1 time steps, *{grid_axes})", "velocity": f"(N + 1, d components, *{grid_axes})",
+               "momentum": f"(N + 1, d components, *{grid_axes})",
+               "deformation": f"(d components, *{grid_axes}): phi_(1,0), points in the domain's length unit"}
+    images = {"final", "template", "target", "fbp", "tv", "sirt"}
+    layouts.update({name: image["axis_order"] for name in images})
+    conventions = {f"{name}.npy": data if name.startswith("data") else {**image, "axis_order": layouts.get(
+        name, f"(..., *{grid_axes}): a model's output, its leading axes its own")} for name in (*arrays, "trajectory")}
+    conventions["final.mrc"] = {"voxel_size_unit": "the domain's length unit (MRC readers: Angstrom)"}
+    return write_record(out / "outputs.json", out, conventions, run="indreg-register")
 
 
 def quality(result: dict, exp, outputs: dict) -> str:
