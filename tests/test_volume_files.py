@@ -37,3 +37,16 @@ def test_ome_zarr_scale_and_translation(tmp_path):
     data, scale, translation, units = read_ome_zarr_scale(tmp_path / "v.zarr")
     np.testing.assert_allclose(data, VOLUME.transpose(2, 1, 0), rtol=1e-6)
     assert scale == [3.5, 3.0, 2.5] and translation == [-5.25, -6.0, -7.5] and units == ["angstrom"] * 3
+
+
+def test_write_volume_puts_the_domains_origin_in_the_header(tmp_path):
+    """``indreg.io.write_volume`` (the registration app's ``final.mrc``): voxel size and the centre of voxel 0."""
+    from indreg import ImageDomain
+    from indreg.io import write_volume
+
+    domain = ImageDomain((6, 5, 4), (-3.0, -1.25, 0.0), (3.0, 1.25, 6.0))
+    write_volume(tmp_path / "v.mrc", np.zeros(domain.shape), domain)
+    with mrcfile.open(tmp_path / "v.mrc") as mrc:
+        np.testing.assert_allclose([mrc.voxel_size.x, mrc.voxel_size.y, mrc.voxel_size.z], [1.0, 0.5, 1.5])
+        np.testing.assert_allclose([mrc.header.origin.x, mrc.header.origin.y, mrc.header.origin.z],
+                                   [-2.5, -1.0, 0.75])

@@ -72,7 +72,7 @@ def _finite_array(array, path: Path, ndim: int, what: str) -> np.ndarray:
     return data
 
 
-def _write_mrc(path: Path, sections: np.ndarray, voxel_size) -> None:
+def _write_mrc(path: Path, sections: np.ndarray, voxel_size, origin=None) -> None:
     import mrcfile
 
     try:
@@ -80,6 +80,8 @@ def _write_mrc(path: Path, sections: np.ndarray, voxel_size) -> None:
             mrc.set_data(np.ascontiguousarray(sections, dtype=np.float32))
             if voxel_size is not None:
                 mrc.voxel_size = tuple(float(h) for h in voxel_size)
+            if origin is not None:
+                mrc.header.origin = tuple(float(o) for o in origin)
     except OSError as err:
         raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
 
@@ -90,7 +92,9 @@ def write_volume(path, volume, domain=None) -> Path:
     Convention:
         - ``.mrc``: float32 (mode 2), sections ``(z, y, x)`` (x fastest, MRC's standard axis order), so
           IMOD/ChimeraX show x, y, z as indreg's; the voxel size in the header is the domain's cell sides
-          ``(hx, hy, hz)`` in the domain's length unit (MRC readers take it as Angstrom), 1 without a domain.
+          ``(hx, hy, hz)`` in the domain's length unit (MRC readers take it as Angstrom), 1 without a domain; the
+          header's origin the centre of voxel ``(0, 0, 0)`` (``min_pt + h / 2``), as ChimeraX and napari place a
+          grid (``indreg.io.volume_files``), 0 without a domain.
         - ``.npy``: float64 ``(nx, ny, nz)`` as it is (no voxel size).
         - ``read_volume`` (and ``read_voxel_size``) give both back.
 
@@ -113,7 +117,8 @@ def write_volume(path, volume, domain=None) -> Path:
         except OSError as err:
             raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
     else:
-        _write_mrc(path, data.transpose(2, 1, 0), None if domain is None else domain.cell_sides)
+        _write_mrc(path, data.transpose(2, 1, 0), None if domain is None else domain.cell_sides,
+                   None if domain is None else [a + h / 2 for a, h in zip(domain.min_pt, domain.cell_sides)])
     return path
 
 

@@ -27,4 +27,5 @@ def test_outputs_json_lists_every_file_with_its_writer(tmp_path):
     mrc = entries["final.mrc"]
     assert (mrc["writer"], mrc["version"]) == ("mrcfile", mrcfile.__version__)
     np.testing.assert_allclose(mrc["voxel_size_A"], h, rtol=1e-6)   # read back from the header
+    np.testing.assert_allclose(mrc["origin_A"], final["origin"], rtol=1e-6)   # the centre of voxel 0, both
     assert entries["checkpoint.pt"]["writer"] == "torch" and entries["metrics.json"]["writer"] == "indreg"
