@@ -13,8 +13,8 @@ Convention:
       operator (``AlignedOperator``'s per-tilt maps); ``--refine-axis`` refines the angle by projection matching.
     - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
       projections are about 0 outside the object), coarse to fine: ``--rounds`` rounds binned by ``--coarse-bin``
-      (default: the largest power of 2 that leaves images of at least ``COARSE_SIZE`` pixels), then
-      ``--fine-rounds`` rounds at each finer power of 2 down to ``--bin`` (default: the least power of 2 whose
+      (``--bin`` times a power of 2, by default the largest that leaves images of at least ``COARSE_SIZE``
+      pixels), then ``--fine-rounds`` rounds at each binning halved down to ``--bin`` (default: the least power of 2 whose
       working set fits ``--max-memory``, :func:`working_set`), the shifts carried from level to level in the
       stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the reconstruction is the
       finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so, slab by slab of rows
@@ -79,14 +79,15 @@ def choose_binning(nx: int, ny: int, nz: int, tilts: int, budget: int, base: int
 
 
 def levels(nx: int, ny: int, fine: int, coarse: int | None = None) -> list:
-    """The binnings of the estimation, coarse to fine: powers of 2 from ``coarse`` (default: the largest whose images
-    keep ``COARSE_SIZE`` pixels on their shorter side, at least ``fine``) down to ``fine``."""
+    """The binnings of the estimation, coarse to fine: ``fine`` times powers of 2, from ``coarse`` (default: the
+    largest that keeps ``COARSE_SIZE`` pixels on the images' shorter side, at least ``fine``) down to ``fine``."""
     if coarse is None:
         coarse = fine
         while min(nx, ny) // (2 * coarse) >= COARSE_SIZE:
             coarse *= 2
-    if coarse < fine or coarse & (coarse - 1) or fine & (fine - 1):
-        raise ValueError(f"--coarse-bin ({coarse}) and --bin ({fine}) must be powers of 2, --coarse-bin >= --bin")
+    ratio = coarse // fine if fine >= 1 and coarse % fine == 0 else 0
+    if ratio < 1 or ratio & (ratio - 1):
+        raise ValueError(f"--coarse-bin ({coarse}) must be --bin ({fine}) times a power of 2")
     out = [coarse]
     while out[-1] > fine:
         out.append(out[-1] // 2)
@@ -119,8 +120,8 @@ def _parser() -> argparse.ArgumentParser:
                                                          "outer frame), none, or a number (default auto)")
     p.add_argument("--bin", type=int, help="binning of the estimation (default: from --max-memory)")
     p.add_argument("--max-memory", default="8GiB", help="memory budget (default 8GiB)")
-    p.add_argument("--coarse-bin", type=int, help="binning of the first rounds (default: the largest power of 2 "
-                                                  f"leaving {COARSE_SIZE}-pixel images, at least --bin)")
+    p.add_argument("--coarse-bin", type=int, help="binning of the first rounds: --bin times a power of 2 (default: "
+                                                  f"the largest leaving {COARSE_SIZE}-pixel images)")
     p.add_argument("--rounds", type=int, default=4, help="projection-matching rounds at the coarsest level "
                                                          "(default 4)")
     p.add_argument("--fine-rounds", type=int, default=1, help="rounds at each finer level (default 1)")
@@ -402,7 +403,8 @@ def main(argv=None) -> int:
         return 2
     print(f"indreg-align: residual {s['residual_before']:.4f} -> {s['residual_after']:.4f}, tilt axis "
           f"{s['axis_angle_deg']:.2f} deg, shifts {s['shift_range_px'][0]:.2f}..{s['shift_range_px'][1]:.2f} px, "
-          f"bin {s['binning']}, peak {s['peak_rss_bytes'] / 2**30:.2f} GiB, {s['seconds']:.1f} s")
+          f"bin {'>'.join(str(lv['bin']) for lv in s['levels'])}, peak {s['peak_rss_bytes'] / 2**30:.2f} GiB, "
+          f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU)")
     return 0
 
 

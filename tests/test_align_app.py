@@ -107,9 +107,10 @@ def test_coarse_to_fine_and_a_slabwise_reconstruction(tmp_path, caplog):
 
 def test_levels_and_slabs():
     assert levels(1024, 1024, 4) == [8, 4] and levels(256, 200, 1) == [1] and levels(256, 256, 1) == [2, 1]
-    assert levels(1024, 1024, 4, 16) == [16, 8, 4] and levels(64, 64, 2, 2) == [2]
-    for fine, coarse in ((4, 2), (3, 6), (2, 6)):
-        with pytest.raises(ValueError, match="must be powers of 2"):
+    assert levels(1024, 1024, 4, 16) == [16, 8, 4] and levels(64, 64, 2, 2) == [2] and levels(64, 64, 3, 6) == [6, 3]
+    assert levels(768, 768, 3) == [6, 3]
+    for fine, coarse in ((4, 2), (2, 6), (3, 9)):
+        with pytest.raises(ValueError, match="must be --bin .* times a power of 2"):
             levels(64, 64, fine, coarse)
     rows = [slab_rows(1024, 1024, 512, 61, budget) for budget in (6 * 2**30, 8 * 2**30, 64 * 2**30)]
     assert 1 <= rows[0] < rows[1] < rows[2] == 1024
