@@ -16,9 +16,9 @@ Convention:
       (``--bin`` times a power of 2, by default the largest that leaves images of at least ``COARSE_SIZE``
       pixels), then ``--fine-rounds`` rounds at each binning halved down to ``--bin`` (default: the least power
       of 2 whose working set fits ``--max-memory``, :func:`working_set`), the shifts carried from level to level
-      in the stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the reconstruction is the
-      finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so, slab by slab of rows
-      along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
+      in the stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the
+      reconstruction is the finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so,
+      slab by slab of rows along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
     - The alignment files refer to the raw stack as stored (``indreg.io.alignment_files``).
 """
 from __future__ import annotations
