@@ -4,7 +4,8 @@ child process under ``/usr/bin/time -v`` (its peak RSS and CPU seconds are its o
 the summary line, the JSON's numbers and the shifts' error against the drift (RMS in the gauge of docs/alignment.md,
 and with only a common offset removed).
 
-    OMP_NUM_THREADS=1 python scripts/bench_align_app.py --size 1024 --tilts 61 -- --max-memory 8GiB
+    OMP_NUM_THREADS=1 python scripts/bench_align_app.py --size 1024 --tilts 61 -- --max-memory 8GiB \
+        --rounds 3 --fine-rounds 1 --iters 15 --thickness 320      # docs/file_formats.md's run
 """
 import argparse
 import json
