@@ -5,7 +5,8 @@ Convention:
     - One entry per file (a directory for OME-Zarr, TensorBoard, Hydra's ``.hydra``): ``path`` (relative to the
       run directory), ``format``, ``writer`` and ``version`` (the Python package that wrote the bytes: ``numpy``
       for ``.npy``, ``mrcfile`` for MRC, ``ome-zarr`` and ``zarr`` for OME-Zarr, ``matplotlib`` for figures,
-      ``torch`` for checkpoints, ``indreg`` for its own text formats), ``bytes``.
+      ``imageio`` for GIFs, ``torch`` for checkpoints and TensorBoard, ``indreg`` for its own text formats),
+      ``bytes``.
     - What the file says of itself is read back from it, not copied from the run: a ``.npy``'s dtype and shape
       (its header), an MRC's shape, voxel size and origin (its header, Angstrom by the format), an OME-Zarr's scale,
       translation and units (its metadata, ``read_ome_zarr_scale``).
@@ -34,10 +35,10 @@ FORMATS = {
     ".tlt": ("IMOD .tlt", "indreg"),
     ".aln": ("AreTomo .aln", "indreg"),
     ".png": ("PNG", "matplotlib"),
-    ".gif": ("GIF", "matplotlib"),
+    ".gif": ("GIF", "imageio"),
     ".pt": ("PyTorch checkpoint (torch.save)", "torch"),
     ".npz": ("NPZ (numpy .npz)", "numpy"),
-    ".log": ("text log", "indreg"),
+    ".log": ("text log (Hydra's job log, Python logging)", "hydra-core"),
     ".md": ("Markdown", "indreg"),
 }
 #: Directories written by a tool as a whole, by name.
