@@ -313,6 +313,9 @@ def run(args) -> dict:
 
     start = time.perf_counter()
     budget = parse_bytes(args.max_memory)
+    if args.recon_bin is not None and (args.recon_bin < 1 or args.recon != "sirt"):
+        raise ValueError(f"--recon-bin must be a positive integer with --recon sirt (TV runs at the estimation's "
+                         f"binning), got {args.recon_bin} with --recon {args.recon}")
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out or Path(args.stack).with_suffix("").as_posix() + "_align")
@@ -362,8 +365,6 @@ def run(args) -> dict:
     io.write_tilt_series(out / "aligned.mrc", rot_full, radians, pixel_size=pixel)
     rb = args.recon_bin or b
     if args.recon_bin:
-        if args.recon != "sirt":
-            raise ValueError("--recon-bin makes a SIRT reconstruction; --recon tv runs at the estimation's binning")
         stack_r = _bin(rot_full, rb)[0] - level
         nz = max(thickness // rb, 4)
         rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)

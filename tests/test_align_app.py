@@ -139,6 +139,10 @@ def test_memory_budget_and_errors(tmp_path, capsys):
     assert working_set(1024 // b, 1024 // b, 512 // b, 61) < 8 * 2**30 < full or b == 1
     assert main([str(tmp_path / "missing.mrc")]) == 2
     assert "indreg-align: error: " in capsys.readouterr().err
+    for bad in (["--recon-bin", "0"], ["--recon-bin", "2", "--recon", "tv"]):
+        assert main([str(tmp_path / "missing.mrc")] + bad) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("indreg-align: error: --recon-bin must be") and err.count("\n") == 1
 
 
 def test_help_is_fast():
