@@ -287,6 +287,7 @@ def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
               "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
     out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
            for name in alignment_files.values()}
+    out[alignment_files["tlt"]] = {"units": "degree", "contents": "the tilt angles, one a line (indreg's sign)"}
     out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
     out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
                           "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "

@@ -80,6 +80,8 @@ def test_recovers_the_shifts_and_writes_the_outputs(tmp_path, capsys):
     assert by_path["aligned.mrc"]["writer"] == by_path["reconstruction.mrc"]["writer"] == "mrcfile"
     assert by_path["reconstruction.mrc"]["version"] == mrcfile.__version__
     assert by_path["alignment.xf"]["writer"] == "indreg" and by_path["alignment.xf"]["format"] == "IMOD .xf"
+    assert by_path["alignment.xf"]["conventions"]["xf"].startswith("IMOD")
+    assert by_path["alignment.tlt"]["units"] == "degree"
     np.testing.assert_allclose(by_path["reconstruction.mrc"]["voxel_size_A"], 2.5, rtol=1e-6)   # read back
     assert by_path["reconstruction.mrc"]["shape_zyx"] == [16, N, N]
     assert by_path["aligned.mrc"]["pixel_size_A"] == 2.5 and "tilt axis along Y" in by_path["aligned.mrc"]["axis_order"]
