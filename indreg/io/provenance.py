@@ -9,7 +9,7 @@ Convention:
       ``bytes``.
     - What the file says of itself is read back from it, not copied from the run: a ``.npy``'s dtype and shape
       (its header), an MRC's shape, voxel size and origin (its header, Angstrom by the format), an OME-Zarr's scale,
-      translation and units (its metadata, ``read_ome_zarr_scale``).
+      translation and units (its metadata, read with ``ome-zarr``; the array is not loaded).
     - The writer's conventions (axis order, units, the voxel size of an ``.npy``, which has none) come from the
       caller (``describe(..., **conventions)``; :func:`record` takes them per file name).
     - Files the record does not know (another suffix) are listed with ``format`` their suffix and ``writer``
@@ -83,13 +83,20 @@ def _mrc(path: Path) -> dict:
 
 
 def _zarr(path: Path) -> dict:
-    from .volume_files import ome_zarr_available, read_ome_zarr_scale
+    """An OME-Zarr image's first scale: shape, scale, translation and units from its metadata, read with
+    ``ome-zarr``'s reader (as napari's plugin does; the array itself is not loaded)."""
+    from .volume_files import ome_zarr_available
 
     out = {"zarr_version": version("zarr")}
     if ome_zarr_available():
-        data, scale, translation, units = read_ome_zarr_scale(path)
-        out.update(shape_zyx=list(data.shape), scale_zyx=list(scale), translation_zyx=list(translation),
-                   units=units, axis_order="(z, y, x)")
+        from ome_zarr.io import parse_url
+        from ome_zarr.reader import Reader
+
+        node = next(iter(Reader(parse_url(str(path)))()))
+        transforms = {t["type"]: t for t in node.metadata["coordinateTransformations"][0]}
+        out.update(shape_zyx=list(node.data[0].shape), scale_zyx=transforms["scale"]["scale"],
+                   translation_zyx=transforms.get("translation", {}).get("translation"),
+                   units=[a.get("unit") for a in node.metadata["axes"]], axis_order="(z, y, x)")
     return out
 
 
