@@ -51,9 +51,9 @@ from indreg.units import prepare
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # the HAADF walk-through, whose scoring this reuses
 from real_data_haadf import residual, say, score  # noqa: E402
 
-__all__ = ["SDIST", "MEMBER", "SRC_MM", "DET_MM", "DETECTOR_MM", "STEP_DEG", "SIRT_ITERS", "TV_MUS", "TV_ITERS", "fetch", "read_sinogram",
-           "bin_detector", "square_domain", "operator", "background_report", "orientation", "centre_of_rotation",
-           "split_angles", "make_template", "baselines", "figure", "run", "main"]
+__all__ = ["SDIST", "MEMBER", "SRC_MM", "DET_MM", "DETECTOR_MM", "STEP_DEG", "SIRT_ITERS", "TV_MUS", "TV_ITERS",
+           "fetch", "read_sinogram", "bin_detector", "square_domain", "operator", "background_report", "orientation",
+           "centre_of_rotation", "split_angles", "make_template", "baselines", "figure", "run", "main"]
 
 SDIST = "gratopy==0.1.0"
 MEMBER = "tests/walnut_sinogram.png"          # in gratopy-0.1.0/ of the sdist
