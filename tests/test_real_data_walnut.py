@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from indreg import phantoms
@@ -91,6 +92,9 @@ def test_orientation_and_centre_found_by_consistency(example, stand_in):
     o = example.orientation(binned, angles, domain, iters=10)
     assert not o["reverse"] and o["reversed"] > 1.03 * o["as_stored"]
     assert example.orientation(binned[:, ::-1].copy(), angles, domain, iters=10)["reverse"]
+    flipped = torch.from_numpy(binned[:, ::-1].copy())                       # reversed and the angles negated:
+    mirrored = example._full_turn_residual(flipped, -angles, domain, 0.0, 10)  # the mirror image, as consistent
+    assert mirrored == pytest.approx(o["as_stored"], rel=1e-6)
     c = example.centre_of_rotation(binned, angles, domain, iters=10)
     assert c["shift_mm"] == pytest.approx(SHIFT_MM, abs=0.035)
     assert c["residual"] <= min(c["residuals"]) + 1e-9
