@@ -95,7 +95,7 @@ def test_orientation_and_centre_found_by_consistency(example, stand_in):
     flipped = torch.from_numpy(binned[:, ::-1].copy())                       # reversed and the angles negated:
     mirrored = example._full_turn_residual(flipped, -angles, domain, 0.0, 10)  # the mirror image, as consistent
     assert mirrored == pytest.approx(o["as_stored"], rel=1e-6)
-    c = example.centre_of_rotation(binned, angles, domain, iters=10)
+    c = example.centre_of_rotation(binned, angles, domain, shifts_mm=np.arange(-0.3, 1.0, 0.2), iters=10)
     assert c["shift_mm"] == pytest.approx(SHIFT_MM, abs=0.035)
     assert c["residual"] <= min(c["residuals"]) + 1e-9
 
