@@ -49,7 +49,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
-from . import cli
+from . import app_help, cli
 
 __all__ = ["main", "preflight", "run", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
@@ -184,6 +184,8 @@ def main() -> None:
     cli.refuse_loading_flags(argv, PROG)   # --experimental-rerun and its prefixes: exit 2
     if any(a in _PRINT_ONLY for a in argv):
         _stand_in_schema()
+        if app_help.answers(argv) and app_help.print_help(_CONFIG, _CONFIG_FILE, argv):
+            return
     else:
         use_heap_allocator()
         try:
