@@ -39,3 +39,18 @@ def test_the_light_entry_point_names_the_trainings_config():
     from indreg.learn import entry, train
 
     assert (entry._CONFIG, entry._CONFIG_NAME) == (CONFIG_DIR, train.CONFIG_NAME)
+
+
+@pytest.mark.parametrize("name", ["j.png", "v.png"])
+def test_the_papers_pictures_are_read_as_scikit_image_reads_them(name):
+    from importlib import resources
+
+    import numpy as np
+    from skimage.io import imread
+
+    from indreg import phantoms
+
+    with resources.as_file(resources.files("indreg").joinpath("data", name)) as path:
+        raw = imread(path, as_gray=True)
+    expected = np.rot90(raw.astype(np.float64) / np.iinfo(raw.dtype).max, -1)
+    assert np.array_equal(phantoms._raster(name), expected)

@@ -73,7 +73,12 @@ def help_text(config_dir: str | Path, config_name: str, overrides) -> str:
         cfg = hydra.compose_config(config_name, list(overrides), run_mode=RunMode.RUN)
         HydraConfig.instance().set_config(cfg)
         template = string.Template(cfg.hydra.help.template)
-        return template.substitute(_fields(template.get_identifiers(), hydra, cfg))
+        return template.substitute(_fields(_names(template), hydra, cfg))
+
+
+def _names(template: string.Template) -> set:
+    """The fields ``$NAME`` / ``${NAME}`` of ``template`` (``Template.get_identifiers`` of Python 3.11)."""
+    return {m["named"] or m["braced"] for m in template.pattern.finditer(template.template)} - {None}
 
 
 def print_help(config_dir: str | Path, config_name: str, argv) -> bool:

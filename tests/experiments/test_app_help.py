@@ -41,3 +41,12 @@ def test_a_failing_composition_is_left_to_hydra(capsys):
     register._register_schema()
     assert not app_help.print_help(register._CONFIG, "config", ["--help", "experiment=no_such_experiment"])
     assert capsys.readouterr().out == ""
+
+
+def test_the_templates_fields_are_pythons():
+    import string
+
+    template = string.Template("$FLAGS_HELP ${CONFIG} $$HYDRA_CONFIG_GROUPS $$ $APP_CONFIG_GROUPS.")
+    assert app_help._names(template) == {"FLAGS_HELP", "CONFIG", "APP_CONFIG_GROUPS"}
+    if sys.version_info >= (3, 11):
+        assert app_help._names(template) == set(template.get_identifiers())
