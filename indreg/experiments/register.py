@@ -169,7 +169,10 @@ def preflight(argv) -> None:
     launcher plugin, composition, the config's values, the data files, the run directory), so that a problem
     ends in one line (``indreg-register: error: ...``, exit 1) with nothing written."""
     cli.refuse_loading_flags(argv, PROG)
-    _register_schema()
+    try:
+        _register_schema(argv)   # plug-in models named on the command line: their options become keys
+    except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
+        _exit_error(str(e))
     cli.preflight(argv, PROG, _CONFIG, _CONFIG_FILE, validate=_check_config)
 
 
@@ -188,10 +191,6 @@ def main() -> None:
             return
     else:
         use_heap_allocator()
-        try:
-            _register_schema(argv)   # plug-in models named on the command line: their options become keys
-        except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
-            _exit_error(str(e))
         preflight(argv)
     hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_FILE)(_task)()
 
