@@ -1,12 +1,13 @@
 """Start-up: the app's modules import nothing that a run needs only after its first log line (matplotlib,
-TensorBoard, scipy.stats, sympy), and the two entry points answer ``--help`` without torch."""
+TensorBoard, scipy.stats, sympy) or not at all (scipy.fft, scikit-image's plug-ins), and the entry points answer
+``--help`` without torch."""
 import json
 import subprocess
 import sys
 
 import pytest
 
-LATE = ("matplotlib", "torch.utils.tensorboard", "scipy.stats", "sympy")
+LATE = ("matplotlib", "torch.utils.tensorboard", "scipy.stats", "sympy", "scipy.fft", "skimage")
 
 
 def _loaded(code: str, names) -> dict:
@@ -23,7 +24,8 @@ def test_the_run_modules_and_a_problem_import_nothing_late():
             "d = ImageDomain.paper(16); T = RayTransform(d, ParallelBeamGeometry.paper(4, 20))\n"
             "y = T(torch.rand(16, 16, dtype=torch.float64)); T.inner_data(y, y)\n"
             "LDDMMDeformation(d, 2)(torch.zeros(3, 2, 16, 16, dtype=torch.float64),"
-            " torch.rand(16, 16, dtype=torch.float64))")
+            " torch.rand(16, 16, dtype=torch.float64))\n"
+            "from indreg import phantoms\nphantoms.j(d), phantoms.v(d)")
     assert _loaded(code, LATE) == dict.fromkeys(LATE, False)
 
 
@@ -54,3 +56,11 @@ def test_the_papers_pictures_are_read_as_scikit_image_reads_them(name):
         raw = imread(path, as_gray=True)
     expected = np.rot90(raw.astype(np.float64) / np.iinfo(raw.dtype).max, -1)
     assert np.array_equal(phantoms._raster(name), expected)
+
+
+def test_the_kernels_fft_length_is_scipys():
+    import scipy.fft
+
+    from indreg.deform.kernel import fast_length
+
+    assert [fast_length(n) for n in range(1, 5000)] == [scipy.fft.next_fast_len(n) for n in range(1, 5000)]
