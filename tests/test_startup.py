@@ -29,11 +29,20 @@ def test_the_run_modules_and_a_problem_import_nothing_late():
     assert _loaded(code, LATE) == dict.fromkeys(LATE, False)
 
 
-@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry"])
-def test_help_imports_no_torch(module):
+#: What ``--help`` and the light modules need none of (each 0.1-2 s of CPU), nor the registration's config schema.
+HEAVY = ("torch", "matplotlib", "tensorboard", "scipy", "skimage", "indreg.experiments.config")
+
+
+@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry", "indreg.align_app"])
+def test_help_imports_nothing_heavy(module):
     code = (f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\n"
             "try:\n    main()\nexcept SystemExit:\n    pass")
-    assert _loaded(code, ("torch",)) == {"torch": False}
+    assert _loaded(code, HEAVY) == dict.fromkeys(HEAVY, False)
+
+
+def test_the_light_modules_import_nothing_heavy():
+    code = "import indreg, indreg.experiments.cli, indreg.experiments.app_help, indreg.learn"
+    assert _loaded(code, HEAVY) == dict.fromkeys(HEAVY, False)
 
 
 def test_the_light_entry_point_names_the_trainings_config():
