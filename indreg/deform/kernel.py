@@ -10,6 +10,7 @@ import torch
 from .._checks import check_positive, check_same, check_tensor
 from ..domain import ImageDomain
 
+
 def fast_length(n: int) -> int:
     """The least length ``>= n`` whose prime factors are among 2, 3, 5, 7 and 11, a fast length of an FFT (as
     ``scipy.fft.next_fast_len(n)``, without importing ``scipy.fft``: 0.1 s of a start-up)."""

@@ -68,12 +68,16 @@ def help_text(config_dir: str | Path, config_name: str, overrides) -> str:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
+    previous = HydraConfig.instance().cfg
     with initialize_config_dir(version_base="1.3", config_dir=str(config_dir), job_name=config_name):
         hydra = GlobalHydra.instance().hydra
         cfg = hydra.compose_config(config_name, list(overrides), run_mode=RunMode.RUN)
-        HydraConfig.instance().set_config(cfg)
-        template = string.Template(cfg.hydra.help.template)
-        return template.substitute(_fields(_names(template), hydra, cfg))
+        HydraConfig.instance().set_config(cfg)   # as Hydra's --help: ${hydra:...} resolves in the template
+        try:
+            template = string.Template(cfg.hydra.help.template)
+            return template.substitute(_fields(_names(template), hydra, cfg))
+        finally:
+            HydraConfig.instance().cfg = previous
 
 
 def _names(template: string.Template) -> set:

@@ -50,3 +50,11 @@ def test_the_templates_fields_are_pythons():
     assert app_help._names(template) == {"FLAGS_HELP", "CONFIG", "APP_CONFIG_GROUPS"}
     if sys.version_info >= (3, 11):
         assert app_help._names(template) == set(template.get_identifiers())
+
+
+def test_hydras_config_is_left_as_it_was():
+    from hydra.core.hydra_config import HydraConfig
+
+    HydraConfig.instance().cfg = None
+    assert "num_train" in app_help.help_text(entry._CONFIG, entry._CONFIG_NAME, [])
+    assert not HydraConfig.initialized()
