@@ -1,12 +1,13 @@
 """Start-up: the app's modules import nothing that a run needs only after its first log line (matplotlib,
-TensorBoard, scipy.stats, sympy), and the two entry points answer ``--help`` without torch."""
+TensorBoard, scipy.stats, sympy) or not at all (scipy.fft, scikit-image's plug-ins), and the entry points answer
+``--help`` without torch."""
 import json
 import subprocess
 import sys
 
 import pytest
 
-LATE = ("matplotlib", "torch.utils.tensorboard", "scipy.stats", "sympy")
+LATE = ("matplotlib", "torch.utils.tensorboard", "scipy.stats", "sympy", "scipy.fft", "skimage")
 
 
 def _loaded(code: str, names) -> dict:
@@ -23,15 +24,25 @@ def test_the_run_modules_and_a_problem_import_nothing_late():
             "d = ImageDomain.paper(16); T = RayTransform(d, ParallelBeamGeometry.paper(4, 20))\n"
             "y = T(torch.rand(16, 16, dtype=torch.float64)); T.inner_data(y, y)\n"
             "LDDMMDeformation(d, 2)(torch.zeros(3, 2, 16, 16, dtype=torch.float64),"
-            " torch.rand(16, 16, dtype=torch.float64))")
+            " torch.rand(16, 16, dtype=torch.float64))\n"
+            "from indreg import phantoms\nphantoms.j(d), phantoms.v(d)")
     assert _loaded(code, LATE) == dict.fromkeys(LATE, False)
 
 
-@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry"])
-def test_help_imports_no_torch(module):
+#: What ``--help`` and the light modules need none of (each 0.1-2 s of CPU), nor the registration's config schema.
+HEAVY = ("torch", "matplotlib", "tensorboard", "scipy", "skimage", "indreg.experiments.config")
+
+
+@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry", "indreg.align_app"])
+def test_help_imports_nothing_heavy(module):
     code = (f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\n"
             "try:\n    main()\nexcept SystemExit:\n    pass")
-    assert _loaded(code, ("torch",)) == {"torch": False}
+    assert _loaded(code, HEAVY) == dict.fromkeys(HEAVY, False)
+
+
+def test_the_light_modules_import_nothing_heavy():
+    code = "import indreg, indreg.experiments.cli, indreg.experiments.app_help, indreg.learn"
+    assert _loaded(code, HEAVY) == dict.fromkeys(HEAVY, False)
 
 
 def test_the_light_entry_point_names_the_trainings_config():
@@ -39,3 +50,26 @@ def test_the_light_entry_point_names_the_trainings_config():
     from indreg.learn import entry, train
 
     assert (entry._CONFIG, entry._CONFIG_NAME) == (CONFIG_DIR, train.CONFIG_NAME)
+
+
+@pytest.mark.parametrize("name", ["j.png", "v.png"])
+def test_the_papers_pictures_are_read_as_scikit_image_reads_them(name):
+    from importlib import resources
+
+    import numpy as np
+    from skimage.io import imread
+
+    from indreg import phantoms
+
+    with resources.as_file(resources.files("indreg").joinpath("data", name)) as path:
+        raw = imread(path, as_gray=True)
+    expected = np.rot90(raw.astype(np.float64) / np.iinfo(raw.dtype).max, -1)
+    assert np.array_equal(phantoms._raster(name), expected)
+
+
+def test_the_kernels_fft_length_is_scipys():
+    import scipy.fft
+
+    from indreg.deform.kernel import fast_length
+
+    assert [fast_length(n) for n in range(1, 5000)] == [scipy.fft.next_fast_len(n) for n in range(1, 5000)]

@@ -49,7 +49,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
-from . import cli
+from . import app_help, cli
 
 __all__ = ["main", "preflight", "run", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
@@ -169,7 +169,10 @@ def preflight(argv) -> None:
     launcher plugin, composition, the config's values, the data files, the run directory), so that a problem
     ends in one line (``indreg-register: error: ...``, exit 1) with nothing written."""
     cli.refuse_loading_flags(argv, PROG)
-    _register_schema()
+    try:
+        _register_schema(argv)   # plug-in models named on the command line: their options become keys
+    except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
+        _exit_error(str(e))
     cli.preflight(argv, PROG, _CONFIG, _CONFIG_FILE, validate=_check_config)
 
 
@@ -184,12 +187,10 @@ def main() -> None:
     cli.refuse_loading_flags(argv, PROG)   # --experimental-rerun and its prefixes: exit 2
     if any(a in _PRINT_ONLY for a in argv):
         _stand_in_schema()
+        if app_help.answers(argv) and app_help.print_help(_CONFIG, _CONFIG_FILE, argv):
+            return
     else:
         use_heap_allocator()
-        try:
-            _register_schema(argv)   # plug-in models named on the command line: their options become keys
-        except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
-            _exit_error(str(e))
         preflight(argv)
     hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_FILE)(_task)()
 

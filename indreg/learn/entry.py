@@ -20,6 +20,11 @@ def main() -> None:
     if any(a in _PRINT_ONLY for a in argv) and not any(a.startswith("--experimental-rerun") for a in argv):
         import hydra
 
+        from ..experiments import app_help
+
+        if app_help.answers(argv) and app_help.print_help(_CONFIG, _CONFIG_NAME, argv):
+            return
+
         hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_NAME)(_task)()
     else:
         from .train import main as train_main
