@@ -1,0 +1,163 @@
+"""Template-free estimates of the tilt-axis angle on series made outside indreg (issue #39; docs/alignment.md,
+"The angle on data made outside indreg"): measurements, not a method of indreg.
+
+Two criteria, each scanned over trial angles ``alpha`` (indreg's convention, docs/alignment.md), the estimate at
+the minimum refined by a parabola through it and its neighbours:
+
+- ``common-lines``: in a parallel beam every tilt image projected onto the tilt axis gives the same profile (the
+  mass of each slice), up to a shift along the axis and a scale. The profile of image ``k`` along the trial
+  direction ``(-sin alpha, cos alpha)`` (across, along) is taken in Fourier space, ``F_k(rho) = sum_p I_k(p)
+  w(tau_p - c_k) exp(-2 pi i rho tau_p)`` with ``tau_p`` the pixel's coordinate along the trial axis (an exact sum
+  over the pixels: no interpolation of the data, so the noise's share of the criterion does not depend on
+  ``alpha``), ``w`` a cos^2 window of half-width ``rows / 2 - max shift - margin`` that follows the profile's
+  fitted shift ``c_k`` (content that leaves the detector along the axis stays out), ``rho`` up to ``band``
+  cycles per pixel. The criterion is the relative misfit of ``F_k = a_k exp(-2 pi i rho c_k) M`` (a scale ``a_k``,
+  a shift ``c_k`` per tilt, one profile ``M``), fitted by alternation.
+- ``sirt``: the consistency of the stack with a reconstruction through the trial angle: ``rounds`` of nonnegative
+  SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
+  the cross-correlation start; the criterion is the last SIRT's relative residual.
+
+The series: ``scripts/bench_alignment.py --projector scipy``'s (the Shepp-Logan blurred by one voxel, projected by
+``scipy.ndimage.rotate``, every image turned by ``scipy.ndimage.rotate`` and shifted, Gaussian noise), with the
+shifts left out, only along the axis, or both ways.
+
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py                     # common lines, 32^3, a few seconds a row
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe sirt --series shifted --noise 0 0.02 --angles 3
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import time
+import types
+
+import numpy as np
+import torch
+
+import bench_alignment as bench
+
+SERIES = ("turned", "turned, shifted along", "turned, shifted")
+
+
+def arguments():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--probe", choices=("common-lines", "sirt"), default="common-lines")
+    p.add_argument("--size", type=int, default=32, help="volume side (cells)")
+    p.add_argument("--angles", type=float, nargs="+", default=[3.0, -1.0], help="true tilt-axis angles (deg)")
+    p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.02], help="noise std / largest datum")
+    p.add_argument("--series", choices=("all",) + tuple(s.split(", ")[-1].replace(" ", "-") for s in SERIES),
+                   default="all", help="which shifts: none (turned), along, both (shifted)")
+    p.add_argument("--trials", type=float, nargs=3, default=[-4.0, 4.0, 1.0], metavar=("FROM", "TO", "STEP"),
+                   help="trial angles relative to the true one (deg)")
+    p.add_argument("--band", type=float, default=0.15, help="common lines: highest frequency (cycles / px)")
+    p.add_argument("--margin", type=float, default=3.0, help="common lines: window margin (px)")
+    p.add_argument("--sirt-iters", type=int, default=100, help="sirt: SIRT iterations per round")
+    p.add_argument("--seed", type=int, default=0)
+    return p.parse_args()
+
+
+# ---------------------------------------------------------------------------------------------------- common lines
+def profiles(stack: np.ndarray, alpha_deg: float, freqs: np.ndarray, centres=None, half=None) -> np.ndarray:
+    """``F_k(rho)`` ``(tilts, freqs)`` of every image along the trial axis (module docstring), windowed about
+    ``centres`` (px along the axis) with half-width ``half`` when given."""
+    K, R, C = stack.shape
+    a = math.radians(alpha_deg)
+    t, s = np.arange(R) - (R - 1) / 2, np.arange(C) - (C - 1) / 2
+    tau = (-math.sin(a) * s[None, :] + math.cos(a) * t[:, None]).reshape(-1)
+    images = stack.reshape(K, -1)
+    if centres is not None:
+        x = (tau[None, :] - centres[:, None]) / half
+        images = images * np.where(np.abs(x) < 1, np.cos(np.pi * x / 2) ** 2, 0.0)
+    return images @ np.exp(-2j * np.pi * freqs[:, None] * tau[None, :]).T
+
+
+def common_profile_fit(F: np.ndarray, freqs: np.ndarray, rounds: int = 10) -> tuple:
+    """Fit ``F_k = a_k exp(-2 pi i rho c_k) M`` by alternation (the shifts ``c_k`` first on a grid, then by
+    Newton steps); returns ``(relative misfit, c)``."""
+    w = 2j * np.pi * freqs[None, :]
+    M, c = F.mean(0), np.zeros(len(F))
+    grid = np.arange(-8, 8.01, 0.25)
+    for r in range(rounds):
+        if r == 0:
+            phase = np.exp(2j * np.pi * freqs[None, :] * grid[:, None])
+            c = grid[np.real(np.einsum("kf,gf,f->kg", F, phase, np.conj(M))).argmax(1)]
+        for _ in range(3):
+            z = F * np.exp(w * c[:, None]) * np.conj(M)[None]
+            d1, d2 = np.real(w * z).sum(1), np.real(w ** 2 * z).sum(1)
+            c = c - np.clip(d1 / np.where(d2 < 0, d2, -1e30), -0.5, 0.5)
+        G = F * np.exp(w * c[:, None])
+        a = np.real((G * np.conj(M)[None]).sum(1)) / np.real((M * np.conj(M)).sum())
+        M = (a[:, None] * G).sum(0) / (a ** 2).sum()
+    misfit = F * np.exp(w * c[:, None]) - a[:, None] * M[None]
+    return float((np.abs(misfit) ** 2).sum() / (np.abs(F) ** 2).sum()), c
+
+
+def common_lines(stack: np.ndarray, alpha_deg: float, a) -> float:
+    """The common-lines criterion at the trial angle (module docstring): the shifts from the whole profiles, then
+    10 rounds of the window moved to the fitted shifts."""
+    R = stack.shape[1]
+    freqs = np.arange(0, int(a.band * R) + 1) / R
+    _, c = common_profile_fit(profiles(stack, alpha_deg, freqs), freqs)
+    c = c - np.median(c)
+    half = R / 2 - np.abs(c).max() - a.margin
+    for _ in range(10):
+        misfit, c = common_profile_fit(profiles(stack, alpha_deg, freqs, c, half), freqs)
+        c = c - np.median(c)
+    return misfit
+
+
+# ---------------------------------------------------------------------------------------------------- SIRT
+def sirt_consistency(T, stack: np.ndarray, alpha_deg: float, a, rounds: int = 3) -> float:
+    """The SIRT-consistency criterion at the trial angle (module docstring)."""
+    from indreg.alignment import _first_start, aligned, estimate
+    from indreg.forward.sirt import sirt
+
+    data = torch.from_numpy(stack)
+    op = aligned(T, "shifts", "probe", "translation")
+    op.angle = torch.tensor(math.radians(alpha_deg), dtype=torch.float64)
+    for r in range(rounds + 1):
+        x, history = sirt(op, data, num_iter=a.sirt_iters, nonneg=True)
+        if r == rounds:
+            return float(history["data_residual"][-1] / op.inner_data(data, data).sqrt())
+        P = op.operator(x)
+        start = _first_start(op, P, data) if r == 0 else op.shifts
+        op.shifts, _, _ = estimate(op, P, data, start, op.angle, False)
+
+
+# ---------------------------------------------------------------------------------------------------- the table
+def minimum(trials: np.ndarray, values: list) -> float:
+    """The trial angle at the criterion's minimum, refined by a parabola through its neighbours."""
+    i = min(max(int(np.argmin(values)), 1), len(values) - 2)
+    lo, mid, hi = values[i - 1], values[i], values[i + 1]
+    curvature = lo - 2 * mid + hi
+    return float(trials[i] + (0.5 * (lo - hi) / curvature if curvature > 0 else 0.0))
+
+
+def main():
+    a = arguments()
+    setup = types.SimpleNamespace(size=a.size, step=3.0, max_shift=4.0, seed=a.seed, blur=1.0, noise=0.0,
+                                  template_turn=0.0, angles=[])
+    T, _, target, _, true = bench.external(setup)
+    clean = bench.scipy_projections(target.numpy(), np.degrees(T.geometry.angles.numpy()), T.domain.cell_sides[2])
+    along = true.numpy().copy()
+    along[:, 0] = 0
+    shifts = {SERIES[0]: 0 * along, SERIES[1]: along, SERIES[2]: true.numpy()}
+    chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
+    print(f"{a.probe}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, trials {a.trials}")
+    print("| series | noise | true angle (deg) | estimate (deg) | criterion at the true angle / at its minimum | s |")
+    print("|---|---|---|---|---|---|")
+    for name in chosen:
+        for level in a.noise:
+            for angle in a.angles:
+                stack = bench.microscope(clean, angle, shifts[name], level, a.seed)
+                trials = angle + np.arange(a.trials[0], a.trials[1] + 1e-9, a.trials[2])
+                t0 = time.perf_counter()
+                values = [common_lines(stack, x, a) if a.probe == "common-lines" else sirt_consistency(T, stack, x, a)
+                          for x in trials]
+                at_true = values[int(np.argmin(np.abs(trials - angle)))]
+                print(f"| {name} | {level:g} | {angle:+g} | {minimum(trials, values):+.3f} | "
+                      f"{at_true:.3e} / {min(values):.3e} | {time.perf_counter() - t0:.0f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
