@@ -33,8 +33,8 @@ from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
-           "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_errors", "angle_uncertainty", "coarse_shifts",
-           "estimate", "find_aligned", "gauge", "operator_summary", "plot_shifts", "projection_matching", "summary",
+           "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate",
+           "find_aligned", "gauge", "operator_summary", "plot_shifts", "projection_matching", "summary",
            "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
@@ -260,54 +260,29 @@ def turn_projection(operator, image: torch.Tensor) -> torch.Tensor:
     return operator((grid[u] * d_t - grid[t] * d_u).to(image.dtype))
 
 
-def _turn_normal_equations(op: AlignedOperator, image: torch.Tensor, data: torch.Tensor) -> tuple:
-    """Gauss-Newton's ``J^T J`` and ``J^T r`` of ``(1/2) ||S_{s, alpha}(T f + beta T(L f)) - g||^2`` in the shifts,
-    the angle and the turn ``beta`` (:func:`turn_projection`) at ``op``'s alignment and ``beta = 0``, with the sum
-    of squared residuals."""
+def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tensor) -> float:
+    """The standard error (degrees) of ``op``'s tilt-axis angle when the object may also turn about the beam (the
+    deformation can carry such a turn, and at low tilts it looks like the angle): Gauss-Newton's normal matrix of
+    ``(1/2) ||S_{s, alpha}(T f + beta T(L f)) - g||^2`` in the shifts, the angle and the turn ``beta``
+    (:func:`turn_projection`) at ``op``'s alignment and ``beta = 0``, its inverse's angle entry times the residual's
+    variance per datum (``2 cost / (data - unknowns)``). ``inf`` when the data cannot tell the angle from a turn of
+    the object (a narrow tilt range, an object that looks alike at every turn); above :data:`MAX_ANGLE_SE_DEG`
+    the angle is not determined by the data."""
     T = op.operator
     P, g = T(image.detach()).double(), data.detach().double()
     s, a = op.shifts.to(P.device), op.angle.to(P.device)
     K, c = op.num_projections, op.components
     columns = _jacobian(op, P, s, a, True) + [op.warp(turn_projection(T, image).double(), s, a)]
-    r = (op.warp(P, s, a) - g).reshape(K, -1)
-    flat = torch.stack([j.reshape(K, -1) for j in columns])
-    b = torch.cat([torch.einsum("ikp,kp->ki", flat[:c], r).reshape(-1), torch.einsum("ikp,kp->i", flat[c:], r)])
-    return _gram(columns, K, c), b, float((r ** 2).sum())
-
-
-def angle_errors(op: AlignedOperator, image: torch.Tensor, data: torch.Tensor) -> tuple:
-    """``(standard error, turn step)`` of ``op``'s tilt-axis angle (degrees) when the object may also turn about the
-    beam (the deformation can carry such a turn, and at low tilts it looks like the angle), from Gauss-Newton's
-    normal equations ``H x = -J^T r`` in the shifts, the angle and the turn (:func:`_turn_normal_equations`):
-
-    - the standard error: ``H^-1``'s angle entry times the residual's variance per datum (``sum r^2 / (data -
-      unknowns)``), what noise alone moves the angle by;
-    - the turn step: the angle's entry of ``x``, how far the angle moves when the object is let turn about the beam
-      at ``op``'s alignment. Noise alone makes it about one standard error; a model that does not fit the data
-      (a deformation that took up a turn of the axis, interpolation) makes it larger, and then the misfit, not
-      the data, decides the angle (docs/alignment.md).
-
-    ``(inf, inf)`` when the data cannot tell the angle from a turn of the object (a narrow tilt range, an object
-    that looks alike at every turn)."""
-    H, b, squares = _turn_normal_equations(op, image, data)
-    i = op.num_projections * op.components
+    H = _gram(columns, K, c)
+    cost = 0.5 * float(((op.warp(P, s, a) - g) ** 2).sum())
+    sigma2 = 2 * cost / max(g.numel() - H.shape[0], 1)
+    e = torch.zeros(H.shape[0], dtype=H.dtype, device=H.device)
+    e[K * c] = 1
     try:
-        step = -torch.linalg.solve(H, b)
-        e = torch.zeros_like(b)
-        e[i] = 1
-        inverse = float(torch.linalg.solve(H, e)[i])
+        variance = float(torch.linalg.solve(H, e)[K * c]) * sigma2
     except RuntimeError:   # singular: the angle has no effect the turn or the shifts cannot make
-        return math.inf, math.inf
-    variance = inverse * squares / max(data.numel() - H.shape[0], 1)
-    if not (variance > 0 and math.isfinite(variance) and math.isfinite(float(step[i]))):
-        return math.inf, math.inf
-    return math.degrees(math.sqrt(variance)), math.degrees(float(step[i]))
-
-
-def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tensor) -> float:
-    """The standard error (degrees) of ``op``'s tilt-axis angle when the object may also turn about the beam
-    (:func:`angle_errors`' first); above :data:`MAX_ANGLE_SE_DEG` the angle is not determined by the data."""
-    return angle_errors(op, image, data)[0]
+        return math.inf
+    return math.degrees(math.sqrt(variance)) if variance > 0 and math.isfinite(variance) else math.inf
 
 
 def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
@@ -380,7 +355,7 @@ class AlignmentSolver(RefitSolver):
                 start = _first_start(op, P, self.data)
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
             if self.axis:
-                op.angle_se, op.angle_turn = angle_errors(op, image, self.data)
+                op.angle_se = angle_uncertainty(op, image, self.data)
         op.records.append((state.iteration, op.shifts.clone(), float(op.angle)))
         if op.at_bound:
             log.warning("iteration %d: %d alignment parameter(s) at their bound (|s| <= %s px, |alpha| <= %g deg): "
@@ -397,8 +372,7 @@ class AlignmentSolver(RefitSolver):
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
                     alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records),
-                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)),
-                    alignment_angle_turn=float(getattr(self.operator, "angle_turn", math.inf)))
+                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)))
 
     def load_state_dict(self, d: dict) -> None:
         d = dict(d)
@@ -406,7 +380,6 @@ class AlignmentSolver(RefitSolver):
         self.operator.angle = torch.tensor(float(d.pop("alignment_angle")), dtype=torch.float64)
         self.operator.records = list(d.pop("alignment_records"))
         self.operator.angle_se = float(d.pop("alignment_angle_se", math.inf))
-        self.operator.angle_turn = float(d.pop("alignment_angle_turn", math.inf))
         self.inner.load_state_dict(d)
 
 
@@ -437,21 +410,15 @@ def operator_summary(op: AlignedOperator, every: int = ALIGN_EVERY) -> dict:
            "axis_angle_deg": math.degrees(float(op.angle)), "estimates": len(getattr(op, "records", ())),
            "every": every, "at_bound": getattr(op, "at_bound", 0)}
     if not fixed and op.mode == "shifts+axis" and op.records:
-        se, turn = getattr(op, "angle_se", math.inf), getattr(op, "angle_turn", math.inf)
+        se = getattr(op, "angle_se", math.inf)
         out["axis_angle_se_deg"] = se if math.isfinite(se) else None
-        out["axis_angle_turn_deg"] = turn if math.isfinite(turn) else None
-        out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG and abs(turn) <= MAX_ANGLE_SE_DEG
-        angle = math.degrees(float(op.angle))
+        out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG
         if se > MAX_ANGLE_SE_DEG:
             log.warning("the tilt-axis angle is not determined by the data: %.3f deg with a standard error of %s deg "
                         "(above %g; the data cannot tell a turn of the axis from a turn of the object about the "
                         "beam): measure the angle beforehand and rotate the stack, or use align='shifts'",
-                        angle, f"{se:.3f}" if math.isfinite(se) else "inf", MAX_ANGLE_SE_DEG)
-        elif abs(turn) > MAX_ANGLE_SE_DEG:
-            log.warning("the tilt-axis angle is not determined by the data: %.3f deg moves by %+.3f deg when the "
-                        "object may turn about the beam (more than %g; the model's misfit, not the data, decides "
-                        "between a turn of the axis and one of the object): measure the angle beforehand and "
-                        "rotate the stack, or use align='shifts'", angle, turn, MAX_ANGLE_SE_DEG)
+                        math.degrees(float(op.angle)), f"{se:.3f}" if math.isfinite(se) else "inf",
+                        MAX_ANGLE_SE_DEG)
     return out
 
 

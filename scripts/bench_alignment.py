@@ -15,8 +15,7 @@ is the swirled and bent phantom, turned about the beam by ``--template-turn`` de
 alignment on the unturned, unshifted stack, then ``align="shifts+axis"`` on every turned one.
 
 Prints a table: the projector, the series, the shifts' RMS error (px, across / along the axis, in the gauge), the
-angle's error (deg), its standard error and turn step (deg,
-``indreg.alignment.angle_errors``), SSIM, relative residual and seconds of each run.
+angle's error (deg), SSIM, relative residual and seconds of each run.
 
     OMP_NUM_THREADS=1 python scripts/bench_alignment.py            # 64^3, 100 iterations, velocity_factor 2
     python scripts/bench_alignment.py --size 32 --iterations 30    # a quick look
@@ -132,21 +131,19 @@ def main():
           f"template turned {a.template_turn} deg, {a.iterations} iterations, velocity_factor {a.velocity_factor}, "
           f"{torch.get_num_threads()} thread(s)")
     print("| projector | series | align | shifts RMS error across / along (px) | axis angle error (deg) | "
-          "angle s.e. (deg) | turn step (deg) | SSIM | residual | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "angle s.e. (deg) | SSIM | residual | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, data, align, angle in runs:
         t0 = time.perf_counter()
         r = indreg.register(template, data, T, align=align, **options)
         seconds = time.perf_counter() - t0
-        errors = "- | - | - | -"
+        errors = "- | - | -"
         if r.alignment:
             rms = (torch.tensor(r.alignment["shifts_px"], dtype=torch.float64) - true).pow(2).mean(0).sqrt()
-            se, turn = r.alignment.get("axis_angle_se_deg"), r.alignment.get("axis_angle_turn_deg")
-            axis = align == "shifts+axis"
+            se = r.alignment.get("axis_angle_se_deg")
             errors = (f"{rms[0]:.3f} / {rms[1]:.3f} | "
-                      + (f"{r.alignment['axis_angle_deg'] - angle:+.3f} | " if axis else "- | ")
-                      + (f"{se:.3f}" if se is not None else ("inf" if axis else "-")) + " | "
-                      + (f"{turn:+.3f}" if turn is not None else ("inf" if axis else "-")))
+                      + (f"{r.alignment['axis_angle_deg'] - angle:+.3f} | " if align == "shifts+axis" else "- | ")
+                      + (f"{se:.3f}" if se is not None else ("-" if align != "shifts+axis" else "inf")))
         print(f"| {a.projector} | {name} | {align} | {errors} | {r.ssim:.4f} | {r.residual:.4f} | {seconds:.0f} |",
               flush=True)
 
