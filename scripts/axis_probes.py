@@ -17,12 +17,19 @@ the minimum refined by a parabola through it and its neighbours:
   SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
   the cross-correlation start; the criterion is the last SIRT's relative residual.
 
+- ``valley`` (not a scan): the data's least-squares misfit ``(1/2) ||S_{s, alpha} T(turn_beta f) - g||^2`` (shifts
+  re-fitted by ``indreg.alignment.estimate``) against the object ``f`` turned about the beam by ``--reference-turn``
+  (as a deformation that took up a turn), then by ``beta`` (``scipy.ndimage.rotate``, cubic), at the truth
+  ``(alpha, -turn)``, along the valley ``alpha + beta = const`` where a turn of the axis and one of the object
+  look alike, and across it.
+
 The series: ``scripts/bench_alignment.py --projector scipy``'s (the Shepp-Logan blurred by one voxel, projected by
 ``scipy.ndimage.rotate``, every image turned by ``scipy.ndimage.rotate`` and shifted, Gaussian noise), with the
 shifts left out, only along the axis, or both ways.
 
     OMP_NUM_THREADS=1 python scripts/axis_probes.py                     # common lines, 32^3, a few seconds a row
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe sirt --series shifted --noise 0 0.02 --angles 3
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe valley --angles 3 --noise 0.02
 """
 from __future__ import annotations
 
@@ -41,7 +48,7 @@ SERIES = ("turned", "turned, shifted along", "turned, shifted")
 
 def arguments():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--probe", choices=("common-lines", "sirt"), default="common-lines")
+    p.add_argument("--probe", choices=("common-lines", "sirt", "valley"), default="common-lines")
     p.add_argument("--size", type=int, default=32, help="volume side (cells)")
     p.add_argument("--angles", type=float, nargs="+", default=[3.0, -1.0], help="true tilt-axis angles (deg)")
     p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.02], help="noise std / largest datum")
@@ -52,6 +59,7 @@ def arguments():
     p.add_argument("--band", type=float, default=0.15, help="common lines: highest frequency (cycles / px)")
     p.add_argument("--margin", type=float, default=3.0, help="common lines: window margin (px)")
     p.add_argument("--sirt-iters", type=int, default=100, help="sirt: SIRT iterations per round")
+    p.add_argument("--reference-turn", type=float, default=2.0, help="valley: the reference's turn (deg)")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
 
@@ -124,6 +132,30 @@ def sirt_consistency(T, stack: np.ndarray, alpha_deg: float, a, rounds: int = 3)
         op.shifts, _, _ = estimate(op, P, data, start, op.angle, False)
 
 
+# ---------------------------------------------------------------------------------------------------- the valley
+def valley(T, f: torch.Tensor, stack: np.ndarray, angle: float, true: torch.Tensor, a) -> None:
+    """Print the misfit at ``(alpha, beta)`` pairs along and across the valley (module docstring)."""
+    from scipy import ndimage
+
+    from indreg.alignment import aligned, estimate
+
+    def turned(x: np.ndarray, beta: float) -> np.ndarray:
+        return ndimage.rotate(x, beta, axes=(0, 1), reshape=False, order=3, mode="nearest")
+
+    g, op = torch.from_numpy(stack), aligned(T, "shifts+axis", "probe")
+    reference = turned(f.numpy(), a.reference_turn)
+    print("| alpha (deg) | beta (deg) | where | misfit |")
+    print("|---|---|---|---|")
+    t = -a.reference_turn
+    pairs = [(angle - d, t + d, "truth" if d == 0 else "along the valley") for d in (0.0, 1.0, 2.0, 3.0, 4.0)]
+    pairs += [(angle, 0.0, "across"), (angle - 2.0, t, "across")]
+    for alpha, beta, where in pairs:
+        P = T(torch.from_numpy(turned(reference, beta))).double()
+        s, an, _ = estimate(op, P, g, true, torch.tensor(math.radians(alpha), dtype=torch.float64), False, 20)
+        print(f"| {alpha:+.2f} | {beta:+.2f} | {where} | {0.5 * float(((op.warp(P, s, an) - g) ** 2).sum()):.1f} |",
+              flush=True)
+
+
 # ---------------------------------------------------------------------------------------------------- the table
 def minimum(trials: np.ndarray, values: list) -> float:
     """The trial angle at the criterion's minimum, refined by a parabola through its neighbours."""
@@ -142,6 +174,11 @@ def main():
     along = true.numpy().copy()
     along[:, 0] = 0
     shifts = {SERIES[0]: 0 * along, SERIES[1]: along, SERIES[2]: true.numpy()}
+    if a.probe == "valley":
+        print(f"valley, {a.size}^3, {T.range_shape[0]} tilts, turned {a.angles[0]:+g} deg and shifted, noise "
+              f"{a.noise[-1]:g}, reference turned {a.reference_turn:+g} deg")
+        valley(T, target, bench.microscope(clean, a.angles[0], true.numpy(), a.noise[-1], a.seed), a.angles[0], true, a)
+        return
     chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
     print(f"{a.probe}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, trials {a.trials}")
     print("| series | noise | true angle (deg) | estimate (deg) | criterion at the true angle / at its minimum | s |")
