@@ -84,7 +84,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the stack's layout (the same for a tilt series: docs/file_formats.md)")
     p.add_argument("--tilt-axis-angle", type=float, help="degrees from Y, counter-clockwise (IMOD's); default: the "
                                                          ".mdoc's, else 0")
-    p.add_argument("--refine-axis", action="store_true", help="refine the tilt-axis angle by projection matching")
+    p.add_argument("--refine-axis", action="store_true",
+                   help="refine the tilt-axis angle by projection matching (not validated: it stays near its start, "
+                        "docs/alignment.md)")
     p.add_argument("--pixel-size", type=float, help="Angstrom per pixel (default: the MRC header's, else 1)")
     p.add_argument("--thickness", type=int, help="volume depth in pixels of the stack (default: X / 2)")
     p.add_argument("--background", default="auto", help="level subtracted for the estimation: auto (the images' "
@@ -259,6 +261,10 @@ def run(args) -> dict:
                  args.rounds, record[0], record[1], time.perf_counter() - start)
 
     mode = "shifts+axis" if args.refine_axis else "shifts"
+    if args.refine_axis:
+        log.warning("--refine-axis: the refined tilt-axis angle is not validated: projection matching's SIRT "
+                    "reconstruction takes up a turn of the axis, and the angle stays near its start "
+                    "(docs/alignment.md, issue #39); measure it beforehand where it matters")
     op, x, records = projection_matching(op0, data, mode, args.rounds, args.iters, args.interpolation, progress)
     after = _residual(op, x, data)
     volume = _reconstruct(op, data, x, args.recon, args.iters, args.tv_weight)
