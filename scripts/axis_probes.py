@@ -65,18 +65,19 @@ def arguments():
 
 
 # ---------------------------------------------------------------------------------------------------- common lines
-def profiles(stack: np.ndarray, alpha_deg: float, freqs: np.ndarray, centres=None, half=None) -> np.ndarray:
-    """``F_k(rho)`` ``(tilts, freqs)`` of every image along the trial axis (module docstring), windowed about
-    ``centres`` (px along the axis) with half-width ``half`` when given."""
-    K, R, C = stack.shape
+def along_axis(shape: tuple, alpha_deg: float) -> np.ndarray:
+    """Every pixel's coordinate along the trial axis ``(-sin alpha, cos alpha)`` (across, along), pixels from the
+    image's centre, flattened: ``(rows * columns,)``."""
+    R, C = shape
     a = math.radians(alpha_deg)
     t, s = np.arange(R) - (R - 1) / 2, np.arange(C) - (C - 1) / 2
-    tau = (-math.sin(a) * s[None, :] + math.cos(a) * t[:, None]).reshape(-1)
-    images = stack.reshape(K, -1)
-    if centres is not None:
-        x = (tau[None, :] - centres[:, None]) / half
-        images = images * np.where(np.abs(x) < 1, np.cos(np.pi * x / 2) ** 2, 0.0)
-    return images @ np.exp(-2j * np.pi * freqs[:, None] * tau[None, :]).T
+    return (-math.sin(a) * s[None, :] + math.cos(a) * t[:, None]).reshape(-1)
+
+
+def profiles(stack: np.ndarray, alpha_deg: float, freqs: np.ndarray) -> np.ndarray:
+    """``F_k(rho)`` ``(tilts, freqs)`` of every whole image along the trial axis (module docstring)."""
+    tau = along_axis(stack.shape[1:], alpha_deg)
+    return stack.reshape(len(stack), -1) @ np.exp(-2j * np.pi * freqs[:, None] * tau[None, :]).T
 
 
 def common_profile_fit(F: np.ndarray, freqs: np.ndarray, rounds: int = 10) -> tuple:
@@ -104,15 +105,12 @@ def windowed_misfits(stack: np.ndarray, alpha_deg: float, freqs: np.ndarray, M: 
                      half: float) -> tuple:
     """For every tilt and every window position ``c`` of ``grid``: the misfit of the profile windowed at ``c`` and
     moved back by ``c`` against ``a M`` (``a`` fitted), and its squared norm: ``(tilts, grid)`` each."""
-    K, R, C = stack.shape
-    a = math.radians(alpha_deg)
-    t, s = np.arange(R) - (R - 1) / 2, np.arange(C) - (C - 1) / 2
-    tau = (-math.sin(a) * s[None, :] + math.cos(a) * t[:, None]).reshape(-1)
+    tau = along_axis(stack.shape[1:], alpha_deg)
     x = (tau[None, :] - grid[:, None]) / half
     w = np.where(np.abs(x) < 1, np.cos(np.pi * x / 2) ** 2, 0.0)                       # (grid, pixels)
     E = np.exp(-2j * np.pi * freqs[:, None] * tau[None, :]).T                         # (pixels, freqs)
     back = np.exp(2j * np.pi * freqs[None, :] * grid[:, None])                        # (grid, freqs)
-    G = np.einsum("kp,gp,pf->kgf", stack.reshape(K, -1), w, E, optimize=True) * back[None]
+    G = np.einsum("kp,gp,pf->kgf", stack.reshape(len(stack), -1), w, E, optimize=True) * back[None]
     norm = (np.abs(G) ** 2).sum(-1)
     return norm - np.real((G * np.conj(M)).sum(-1)) ** 2 / float((np.abs(M) ** 2).sum()), norm, G
 
