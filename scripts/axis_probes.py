@@ -10,9 +10,9 @@ the minimum refined by a parabola through it and its neighbours:
   w(tau_p - c_k) exp(-2 pi i rho tau_p)`` with ``tau_p`` the pixel's coordinate along the trial axis (an exact sum
   over the pixels: no interpolation of the data, so the noise's share of the criterion does not depend on
   ``alpha``), ``w`` a cos^2 window of half-width ``rows / 2 - max shift - margin`` placed at each tilt's shift
-  ``c_k`` (content that leaves the detector along the axis stays out; ``c_k`` chosen for the least misfit), ``rho`` up to ``band``
-  cycles per pixel. The criterion is the relative misfit of ``F_k = a_k exp(-2 pi i rho c_k) M`` (a scale ``a_k``,
-  a shift ``c_k`` per tilt, one profile ``M``), fitted by alternation.
+  ``c_k`` (content that leaves the detector along the axis stays out; ``c_k`` chosen for the least misfit),
+  ``rho`` up to ``band`` cycles per pixel. The criterion is the relative misfit of ``F_k = a_k exp(-2 pi i rho c_k)
+  M`` (a scale ``a_k``, a shift ``c_k`` per tilt, one profile ``M``), fitted by alternation.
 - ``sirt``: the consistency of the stack with a reconstruction through the trial angle: ``rounds`` of nonnegative
   SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
   the cross-correlation start; the criterion is the last SIRT's relative residual.
