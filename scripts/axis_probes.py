@@ -25,11 +25,13 @@ the minimum refined by a parabola through it and its neighbours:
 
 The series: ``scripts/bench_alignment.py --projector scipy``'s (the Shepp-Logan blurred by one voxel, projected by
 ``scipy.ndimage.rotate``, every image turned by ``scipy.ndimage.rotate`` and shifted, Gaussian noise), with the
-shifts left out, only along the axis, or both ways.
+shifts left out, only along the axis, or both ways; ``--phantom blobs`` projects 40 Gaussian blobs in a slab
+instead (:func:`blobs`), a specimen whose slices' centres of mass wander along the axis.
 
     OMP_NUM_THREADS=1 python scripts/axis_probes.py                     # common lines, 32^3, a few seconds a row
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe sirt --series shifted --noise 0 0.02 --angles 3
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe valley --angles 3 --noise 0.02
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py --phantom blobs --series shifted --noise 0.02 --trials -1.5 1.5 0.25
 """
 from __future__ import annotations
 
@@ -60,8 +62,25 @@ def arguments():
     p.add_argument("--margin", type=float, default=3.0, help="common lines: window margin (px)")
     p.add_argument("--sirt-iters", type=int, default=100, help="sirt: SIRT iterations per round")
     p.add_argument("--reference-turn", type=float, default=2.0, help="valley: the reference's turn (deg)")
+    p.add_argument("--phantom", choices=("shepp-logan", "blobs"), default="shepp-logan",
+                   help="the specimen: bench_alignment's Shepp-Logan, or 40 Gaussian blobs in a slab (blobs)")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
+
+
+def blobs(T, seed: int) -> torch.Tensor:
+    """40 Gaussian blobs (width 1.5 cells, heights 0.5 - 1) at random in a slab ``|x|, |y| < 0.7``, ``|z| < 0.35``
+    of the half-extent: a specimen whose slices' centres of mass wander, as a real one's do."""
+    gen = np.random.default_rng(seed)
+    grid = torch.meshgrid(*T.domain.axes(), indexing="ij")
+    half = [float(a.abs().max()) for a in T.domain.axes()]
+    f = torch.zeros(T.domain.shape, dtype=torch.float64)
+    cell = T.domain.cell_sides[0]
+    for _ in range(40):
+        c = gen.uniform(-1, 1, 3) * np.array([0.7, 0.7, 0.35]) * half
+        r2 = sum((g - float(x)) ** 2 for g, x in zip(grid, c))
+        f += gen.uniform(0.5, 1) * torch.exp(-r2 / (2 * (1.5 * cell) ** 2))
+    return f
 
 
 # ---------------------------------------------------------------------------------------------------- common lines
@@ -192,6 +211,8 @@ def main():
     setup = types.SimpleNamespace(size=a.size, step=3.0, max_shift=4.0, seed=a.seed, blur=1.0, noise=0.0,
                                   template_turn=0.0, angles=[])
     T, _, target, _, true = bench.external(setup)
+    if a.phantom == "blobs":
+        target = blobs(T, a.seed)
     clean = bench.scipy_projections(target.numpy(), np.degrees(T.geometry.angles.numpy()), T.domain.cell_sides[2])
     along = true.numpy().copy()
     along[:, 0] = 0
@@ -202,7 +223,8 @@ def main():
         valley(T, target, bench.microscope(clean, a.angles[0], true.numpy(), a.noise[-1], a.seed), a.angles[0], true, a)
         return
     chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
-    print(f"{a.probe}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, trials {a.trials}")
+    print(f"{a.probe}, {a.phantom}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, "
+          f"trials {a.trials}")
     print("| series | noise | true angle (deg) | estimate (deg) | criterion at the true angle / at its minimum | s |")
     print("|---|---|---|---|---|---|")
     for name in chosen:
