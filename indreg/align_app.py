@@ -113,7 +113,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the stack's layout (the same for a tilt series: docs/file_formats.md)")
     p.add_argument("--tilt-axis-angle", type=float, help="degrees from Y, counter-clockwise (IMOD's); default: the "
                                                          ".mdoc's, else 0")
-    p.add_argument("--refine-axis", action="store_true", help="refine the tilt-axis angle by projection matching")
+    p.add_argument("--refine-axis", action="store_true",
+                   help="refine the tilt-axis angle by projection matching (not validated: it stays near its start, "
+                        "docs/alignment.md)")
     p.add_argument("--pixel-size", type=float, help="Angstrom per pixel (default: the MRC header's, else 1)")
     p.add_argument("--thickness", type=int, help="volume depth in pixels of the stack (default: X / 2)")
     p.add_argument("--background", default="auto", help="level subtracted for the estimation: auto (the images' "
@@ -338,6 +340,10 @@ def run(args) -> dict:
     level = _background(rotated, args.background)
     M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))
     mode = "shifts+axis" if args.refine_axis else "shifts"
+    if args.refine_axis:
+        log.warning("--refine-axis: the refined tilt-axis angle is not validated: projection matching's SIRT "
+                    "reconstruction takes up a turn of the axis, and the angle stays near its start "
+                    "(docs/alignment.md, issue #39); measure it beforehand where it matters")
     steps = levels(nx, ny, b, args.coarse_bin)
     history = []
     for i, bl in enumerate(steps):

@@ -132,6 +132,16 @@ def test_slabwise_sirt_equals_the_whole_volume_s():
     assert 0 < r_whole < 1
 
 
+@pytest.mark.slow
+def test_refine_axis_warns_that_it_is_not_validated(tmp_path, caplog):
+    """--refine-axis runs, and says that its angle is not validated (docs/alignment.md: it stays near its start)."""
+    _raw_series(tmp_path)
+    with caplog.at_level("WARNING", logger="indreg.align"):
+        assert main([str(tmp_path / "raw.mrc"), "--tilt-axis-angle", "91.5", "--refine-axis", "--out",
+                     str(tmp_path / "out"), "--rounds", "1", "--iters", "5", "--thickness", "16", "--bin", "1"]) == 0
+    assert any("refined tilt-axis angle is not validated" in m for m in caplog.messages)
+
+
 def test_memory_budget_and_errors(tmp_path, capsys):
     assert parse_bytes("8GiB") == 8 * 2**30 and parse_bytes("512M") == 512 * 2**20
     with pytest.raises(ValueError, match="--max-memory must be a size"):
