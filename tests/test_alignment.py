@@ -106,7 +106,8 @@ def test_quarter_turn_rotates_square_detector():
     assert torch.allclose(out, y.transpose(-1, -2).flip(-1), atol=1e-12)
 
 
-@pytest.mark.parametrize("interpolation,edge", [("cubic", "nearest"), ("linear", "zero")])
+@pytest.mark.parametrize("interpolation,edge", [pytest.param("cubic", "nearest", marks=pytest.mark.slow),
+                                                ("linear", "zero")])
 def test_gradcheck_in_image_shifts_and_angle(interpolation, edge):
     domain = ImageDomain((6, 5, 6), (-3., -2.5, -3.), (3., 2.5, 3.))
     T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-45, 45, 45, det_count=7))
@@ -123,7 +124,7 @@ def test_gradcheck_in_image_shifts_and_angle(interpolation, edge):
     assert torch.autograd.gradcheck(lambda f, s: op2.apply(f, s, op2.angle), (f2, s2))
 
 
-@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+@pytest.mark.parametrize("interpolation", ["linear", pytest.param("cubic", marks=pytest.mark.slow)])
 def test_recovers_shifts_and_axis_angle_3d(series, interpolation):
     T, f = series
     op = aligned(T, "shifts+axis", interpolation=interpolation)
@@ -190,6 +191,7 @@ def test_projection_matching_recovers_shifts_without_a_template():
         projection_matching(T, g, mode="none")
 
 
+@pytest.mark.slow
 def test_register_with_shifts_recovers_them_and_the_unshifted_ssim(tmp_path):
     T = _sinogram(48, 60)
     template = phantoms.get("shepp_logan_template", T.domain).double()
@@ -246,6 +248,7 @@ def test_app_writes_alignment_to_metrics_and_a_plot(tmp_path):
     assert "alignment" not in run_app(FAST, tmp_path / "plain")
 
 
+@pytest.mark.slow
 def test_app_resume_continues_the_alignment(tmp_path):
     import sys
     from pathlib import Path

@@ -17,6 +17,7 @@ def _policy(env_value, script=SCRIPT):
     return proc.stdout.strip().splitlines()[-1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("user, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE"), ("passive", "passive")])
 def test_wait_policy_set_before_torch(user, expected):
     assert _policy(user) == expected
@@ -28,6 +29,7 @@ def test_torch_imported_first_is_left_alone():
     assert _policy(None, script) == "None"
 
 
+@pytest.mark.slow
 def test_heap_allocator_policy_in_a_fresh_process():
     """glibc takes the heap-only policy (Linux); INDREG_MALLOC=system leaves the allocator alone; either way numbers
     are unchanged (only where memory comes from)."""
@@ -47,6 +49,7 @@ def test_heap_allocator_policy_in_a_fresh_process():
         assert runs[""][0] == "True"
 
 
+@pytest.mark.slow
 def test_system_allocator_inside_the_block_only():
     """Inside ``system_allocator()`` a freed large array goes back to the system (glibc's policy); after it the
     heap policy keeps freed arrays again (Linux, glibc)."""

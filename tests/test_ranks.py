@@ -3,6 +3,8 @@ which options may change on resume, and the learning app finds its configs witho
 import subprocess
 import sys
 
+import pytest
+
 import indreg
 from indreg import options, ranks
 from indreg.problems.slabs import SlabwiseRegistration
@@ -36,6 +38,7 @@ def test_options_that_may_change_on_resume_are_marked_in_the_table():
     assert _problem_config(plain) == {"solver": {"gamma": 1.0}, "deformation": {"sigma": 2}}
 
 
+@pytest.mark.slow
 def test_learning_app_finds_its_configs_without_the_registration_schema():
     code = ("import sys, indreg.learn.train as t; from indreg.conf import CONFIG_DIR; "
             "assert (CONFIG_DIR / 'train_momentum.yaml').is_file(); t.base_config([]); "

@@ -46,6 +46,7 @@ def _run(tmp_path, name, ranks):
     return [torch.load(tmp_path / f"{name}.{r}") for r in range(ranks)]
 
 
+@pytest.mark.slow
 def test_register_over_two_ranks_equals_one_process(tmp_path):
     (one,) = _run(tmp_path, "one", 1)
     ranks = _run(tmp_path, "two", 2)

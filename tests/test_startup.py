@@ -18,6 +18,7 @@ def _loaded(code: str, names) -> dict:
     return json.loads(proc.stdout.splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_the_run_modules_and_a_problem_import_nothing_late():
     code = ("import torch\nfrom indreg import metrics, run\nfrom indreg.experiments import runner, outputs, figures\n"
             "from indreg import ImageDomain, ParallelBeamGeometry, RayTransform, LDDMMDeformation\n"

@@ -89,6 +89,7 @@ def test_a_number_scales_the_template():
     assert torch.allclose(a.deformed, b.deformed, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_suite1_at_255_with_auto_matches_the_x1_run(caplog):
     """The README example (suite 1, 64^2) with the template at 0..255: a warning naming the scale before the run;
     with ``template_scale="auto"`` the fitted c = 0.9735 / 255 is taken as the unit factor 1 / 255, and the run

@@ -167,7 +167,7 @@ def test_directional_derivatives_match_central_differences(interpolation, ndim):
         assert abs(numeric - analytic) <= 1e-6 * abs(analytic), name
 
 
-@pytest.mark.parametrize("ndim", NDIM)
+@pytest.mark.parametrize("ndim", [2, pytest.param(3, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("interpolation", INTERP)
 def test_gradcheck(interpolation, ndim):
     dom, v, z, template, _ = random_problem(n=6 if ndim == 2 else 4, num_steps=2, seed=4, ndim=ndim)

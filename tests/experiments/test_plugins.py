@@ -85,6 +85,7 @@ def test_plugin_that_fails_to_import_is_one_line_and_not_registered(tmp_path, mo
     assert "broken_plugin:MODEL" not in indreg.options.MODELS
 
 
+@pytest.mark.slow
 def test_plugin_whose_build_raises_is_one_line_naming_the_model(tmp_path, monkeypatch):
     """A plug-in's build that raises (a KeyError here) is one ValueError naming the model and the error, the original
     chained; from the command line one line, no traceback; a syntax error's line is not repeated."""
@@ -130,6 +131,7 @@ SOURCE = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
     (tmp_path / "my_source.py").write_text(SOURCE)
     out = tmp_path / "run"
@@ -161,6 +163,7 @@ SOLVER = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path, monkeypatch):
     """``solver="module:SOLVER"`` / ``solver.name=module:SOLVER solver.my_beta=...``: nothing of indreg edited."""
     (tmp_path / "my_solver.py").write_text(SOLVER)
@@ -211,6 +214,7 @@ CORRECTION = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_plugin_correction_with_an_option_from_python_and_the_command_line(tmp_path, monkeypatch):
     """``import module`` / ``plugins=[module] data.count_every=...``: the chain runs it, nothing of indreg edited."""
     import importlib

@@ -13,6 +13,7 @@ DYN = ["experiment=suite_dynamic_2d", "phantom.size=24", "data.frames=3", "geome
        "logging.checkpoint_every=3", "logging.progress=false", "dtype=float64", "device=cpu"]
 
 
+@pytest.mark.slow
 def test_dynamic_run_outputs_and_resume(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="indreg")
     ref = run_app(DYN, tmp_path / "ref")

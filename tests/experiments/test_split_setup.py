@@ -30,7 +30,8 @@ def _rank(rank, world, store, tilt_axis, out):
         dist.destroy_process_group()
 
 
-@pytest.mark.parametrize("world, tilt_axis", [(2, "y"), (3, "y"), (3, "x")])
+@pytest.mark.parametrize("world, tilt_axis", [(2, "y"), pytest.param(3, "y", marks=pytest.mark.slow),
+                                              pytest.param(3, "x", marks=pytest.mark.slow)])
 def test_ranks_build_the_one_process_data(tmp_path, world, tilt_axis):
     out = tmp_path / "rank"
     mp.spawn(_rank, args=(world, tmp_path / "store", tilt_axis, out), nprocs=world)

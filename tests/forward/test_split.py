@@ -149,6 +149,7 @@ def _three_ranks_body(T, y, Ts):
             "divergence": gather_rows(divergence(g, Ts.domain), Ts), "tv": gather_rows(x, Ts), "history": hist}
 
 
+@pytest.mark.slow
 def test_three_ranks_halo_and_tv(tmp_path):
     mp.start_processes(_on_rank, args=(_three_ranks_body, 3, str(tmp_path / "store"), str(tmp_path)), nprocs=3,
                        start_method="spawn")

@@ -278,6 +278,7 @@ def _blocks_problem(scale):
     return T, y, 0.5 * scale ** 2
 
 
+@pytest.mark.slow
 def test_balanced_steps_reach_the_minimiser_of_a_long_equal_steps_run():
     """Well scaled (||T|| ~ ||grad||): 2000 balanced iterations land on the minimiser of 10000 equal-step ones
     (measured: 4e-15 relative in the image, 2e-16 in the objective; 20000 equal steps: 4e-16 and 0)."""
@@ -292,7 +293,7 @@ def test_balanced_steps_reach_the_minimiser_of_a_long_equal_steps_run():
     assert 0.8 * grad_norm < hist["opnorm"] * math.sqrt(sigma_p / sigma_q) < grad_norm
 
 
-@pytest.mark.parametrize("num_iter", [50, 200, 2000])
+@pytest.mark.parametrize("num_iter", [50, 200, pytest.param(2000, marks=pytest.mark.slow)])
 def test_balanced_steps_beat_equal_steps_on_a_badly_scaled_case(num_iter):
     """``T`` and ``y`` times 100 (``mu`` times 1e4): the same minimiser, ``||T||`` 100 times ``||grad||``. The balanced
     steps reach the scaled objective of the well-scaled case (measured: 0.3 % above it after 50 iterations, 4e-12

@@ -4,6 +4,8 @@ import importlib.util
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "learned_layers.py"
 
@@ -15,6 +17,7 @@ def _example():
     return module
 
 
+@pytest.mark.slow
 def test_the_loop_trains_the_unrolled_scheme():
     result = _example().main(n=16, steps=20, batch=4, num_samples=16)
     losses = result["losses"]
