@@ -47,7 +47,8 @@ def test_2d_experiment_keeps_float64():
     assert {exp.data.template_64.dtype, exp.target_64.dtype, exp.noisy_data_64.dtype} == {torch.float64}
 
 
-@pytest.mark.parametrize("overrides", [TINY_3D, SLABS_3D], ids=["whole", "slabwise"])
+@pytest.mark.parametrize("overrides", [pytest.param(TINY_3D, marks=pytest.mark.slow), SLABS_3D],
+                         ids=["whole", "slabwise"])
 def test_3d_outputs_equal_whole_float64_arrays(tmp_path, overrides):
     """The files and metrics of a 3D run equal what whole arrays give: the trajectory (written frame by frame) is
     the problem's ``image_trajectory`` of the saved momentum, bit for bit; SSIM / PSNR (float64 chunks) are
