@@ -14,7 +14,8 @@ smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in vo
 not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts are aligned first
 by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of
 the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held out for validation;
-registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
+registration (``--model``, default ``residual``: LDDMM plus a TV-regularised intensity residual whose weight the
+validation tilts choose) with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
 and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default ``none``: the template
 fixes the frame, the shifts carry the axis' offset and the data's translation against it) and
 ``align_interpolation=--align-interpolation`` (default ``cubic``, also for projection matching); the estimated
@@ -277,12 +278,13 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         align_rounds: int = 8,
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
-        quick: bool = False, model: str = "lddmm", interpolation: str = "reinterpolate") -> dict:
+        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate") -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests). ``model``: ``register``'s
-    (``"residual"``: LDDMM plus an intensity residual regularised by TV); ``interpolation``: the deformation's
+    (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
+    validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
     (``"reinterpolate"``, the paper's, as this page was measured)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
@@ -439,15 +441,22 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
 
 
 def label(name: str, m: dict) -> str:
-    """A volume's row label in :func:`table`: the registration's model, the baselines' chosen parameters."""
-    s = m["scores"][name]
-    if name == "registered":
-        return f"registered (`model=\"{m['registration']['model']}\"`)"
-    if name == "SIRT":
-        return f"SIRT ({s['iterations']} iterations)"
-    if name == "TV":
-        return f"TV (`mu` = {s['mu_relative']:g} x u)"
-    return name
+    """A volume's row label in :func:`table` (the parameters chosen on the validation tilts are in its last lines)."""
+    return {"registered": f"registered (`model=\"{m['registration']['model']}\"`)", "SIRT": "SIRT",
+            "TV": "TV"}.get(name, name)
+
+
+def chosen(m: dict) -> str:
+    """What the validation tilts chose in one run: the residual model's weight, SIRT's iterations, TV's weight."""
+    parts = []
+    if m["registration"].get("finish"):
+        parts.append(f"residual_tv {m['registration']['finish']['residual_tv']:.0e}")
+    s = m["scores"]
+    if "SIRT" in s:
+        parts.append(f"SIRT {s['SIRT']['iterations']} iterations")
+    if "TV" in s:
+        parts.append(f"TV mu = {s['TV']['mu_relative']:g} x u")
+    return ", ".join(parts)
 
 
 def table(runs: dict) -> str:
@@ -468,7 +477,7 @@ def table(runs: dict) -> str:
         if tv:
             lines.append(f"{stack}: registered / TV {reg['test_residual'] / tv['test_residual']:.2f} on the test "
                          f"tilts, {reg['validation_residual'] / tv['validation_residual']:.2f} on the validation "
-                         f"tilts")
+                         f"tilts; chosen on the validation tilts: {chosen(m)}")
     if {"raw", "aligned"} <= set(runs):
         ratio = runs["raw"]["scores"]["registered"]["test_residual"] / \
             runs["aligned"]["scores"]["registered"]["test_residual"]
@@ -504,8 +513,8 @@ def main(argv=None) -> None:
                    "--out/aligned) and print docs/real_data.md's table")
     p.add_argument("--reprint", action="store_true", help="with --table: print it from --out/raw and --out/aligned's "
                    "metrics.json, without running")
-    p.add_argument("--model", default="lddmm", help="register()'s model (residual: LDDMM plus a TV-regularised "
-                   "intensity residual)")
+    p.add_argument("--model", default="residual", help="register()'s model (residual, the default: LDDMM plus a "
+                   "TV-regularised intensity residual, its weight chosen on the validation tilts; lddmm)")
     p.add_argument("--interpolation", choices=("reinterpolate", "compose"), default="reinterpolate")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
