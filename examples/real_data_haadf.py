@@ -52,7 +52,7 @@ from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
 from indreg.forward.shift import AlignedOperator
 from indreg.run import count_halvings
-from indreg.forward.tv import intensity_scale, tv_weight_unit
+from indreg.forward.tv import intensity_scale
 from indreg.units import border_level, check_offset, prepare
 from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
 
@@ -386,7 +386,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"halvings")
     finish = getattr(result.problem, "finish_info", {})
     if finish:
-        unit = 0.5 * tv_weight_unit(result.problem.ray_transform, result.problem.data)   # the model's mu per tv_mu
+        unit = finish["unit"]   # the model's mu per residual_tv
         tried = {f"{mu / unit:.0e}": round(v, 4) for mu, v in finish["holdout_by_weight"].items()}
         say(f"  the residual's finish ({finish['iterations']} Chambolle-Pock iterations, TV anchored at the deformed "
             f"template): residual_tv {finish['residual_tv'] / unit:.0e} chosen by the held-out tilts of {tried}")

@@ -113,7 +113,8 @@ def test_auto_weight_is_chosen_by_the_held_out_angles():
     assert run.problem.finish_info["residual_tv"] == best
     assert run.holdout["holdout_residual"] == pytest.approx(tried[best], rel=1e-12)
     plain = lacking(residual_finish_iter=1)
-    unit = plain.problem.residual_tv / RESIDUAL_TV_FALLBACK
+    unit = plain.problem.mu_unit
+    assert plain.problem.residual_tv == pytest.approx(RESIDUAL_TV_FALLBACK * unit)
     assert list(plain.problem.finish_info["holdout_by_weight"]) == [pytest.approx(RESIDUAL_TV_FALLBACK * unit)]
 
 

@@ -36,16 +36,19 @@ __all__ = ["ResidualRegistration"]
 
 class ResidualRegistration(IndirectRegistration):
     """``min_{nu, r} E(nu, r)`` (module docstring); the iterate is ``x = (m, r)``, ``nu = K m``. Arguments as
-    :class:`IndirectRegistration`, and ``residual_tv`` (``mu >= 0``) and ``smoothing`` (``eps > 0``)."""
+    :class:`IndirectRegistration`, and ``residual_tv`` (``mu >= 0``), ``smoothing`` (``eps > 0``), the finish's
+    ``finish_iter``, ``mu_candidates`` (chosen among by the held-out angles) and ``mu_unit`` (what the weights were
+    relative to, for reports)."""
 
     iterate_names = ("momentum", "residual")
     output_kinds = {"deformation_part": "parts", "intensity_part": "parts"}
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, residual_tv: float,
-                 smoothing: float, tv_weight: float = 0.0, finish_iter: int = 0, mu_candidates: tuple = ()):
+                 smoothing: float, tv_weight: float = 0.0, finish_iter: int = 0, mu_candidates: tuple = (),
+                 mu_unit: float = 1.0):
         super().__init__(ray_transform, deformation, kernel, template, data, gamma, tv_weight)
         self.residual_tv = check_nonnegative(residual_tv, "residual_tv", template.dtype)
-        self.finish_iter, self.mu_candidates = int(finish_iter), tuple(mu_candidates)
+        self.finish_iter, self.mu_candidates, self.mu_unit = int(finish_iter), tuple(mu_candidates), float(mu_unit)
         self.finish_info: dict = {}
         self.smoothing = check_nonnegative(smoothing, "residual smoothing", template.dtype)
         if self.smoothing <= 0:
@@ -58,7 +61,7 @@ class ResidualRegistration(IndirectRegistration):
     def with_deformation(self, deformation) -> "ResidualRegistration":
         return ResidualRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
                                     self.gamma, self.residual_tv, self.smoothing, self.tv_weight, self.finish_iter,
-                                    self.mu_candidates)
+                                    self.mu_candidates, self.mu_unit)
 
     def zero_residual(self) -> torch.Tensor:
         return torch.zeros(self.image_domain.shape, dtype=self.template.dtype, device=self.template.device)
@@ -144,7 +147,7 @@ class ResidualRegistration(IndirectRegistration):
         I)`` fixed (``finish_iter`` Chambolle-Pock iterations from ``W + r``), ``mu`` the one of ``mu_candidates``
         whose ``f`` has the least residual on ``validation``'s angles (without validation or candidates:
         ``residual_tv``). ``x`` unchanged when ``finish_iter`` is 0 or that ``mu`` is 0. Records the choice in
-        ``finish_info``."""
+        ``finish_info`` (the weights also in ``mu_unit``, the unit they were given in)."""
         chosen = self.mu_candidates if validation is not None and self.mu_candidates else (self.residual_tv,)
         if self.finish_iter == 0 or max(chosen) <= 0:
             return x
@@ -158,7 +161,8 @@ class ResidualRegistration(IndirectRegistration):
                 tried[mu] = score
                 if best is None or score < best[1]:
                     best = (f, score, mu)
-        self.finish_info = {"residual_tv": best[2], "holdout_by_weight": tried, "iterations": self.finish_iter}
+        self.finish_info = {"residual_tv": best[2], "holdout_by_weight": tried, "iterations": self.finish_iter,
+                            "unit": self.mu_unit}
         return x[0], best[0] - W
 
     def hparams(self) -> dict:

@@ -346,7 +346,7 @@ def _residual(operator, template, data, kernel, o: dict) -> tuple:
     candidates = tuple(unit * c for c in RESIDUAL_TV_GRID) if auto else ()
     problem = ResidualRegistration(operator, W, kernel, template, data, o["gamma"], mu, smoothing,
                                    tv_weight=o["tv_weight"], finish_iter=o["residual_finish_iter"],
-                                   mu_candidates=candidates)
+                                   mu_candidates=candidates, mu_unit=unit)
     start = int(round(o["residual_start_fraction"] * o["max_iter"]))
     return problem, {ALGORITHM1: {"steps": {"residual": o["residual_step_size"]}, "frozen": {"residual": start}},
                      "torch": {}}
