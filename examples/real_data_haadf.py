@@ -14,7 +14,8 @@ smoothed, segmented SIRT reconstruction from the even tilts, reconstructed in vo
 not in the data's units, and turned by ``--misalign`` degrees; from the raw stack the even tilts are aligned first
 by ``indreg.alignment.projection_matching``, whose shifts keep the tilt axis' offset); the data: a sparse subset of
 the odd tilts within ``--max-angle`` (every ``--fit-every``-th), the odd tilts between them held out for validation;
-registration with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
+registration (``--model``, default ``residual``: LDDMM plus a TV-regularised intensity residual whose weight the
+validation tilts choose) with ``template_scale="auto"``, ``background="auto"``, ``holdout``, the default (relative) ``gamma``
 and step, and from the raw stack ``align=--align``, ``align_gauge=--align-gauge`` (default ``none``: the template
 fixes the frame, the shifts carry the axis' offset and the data's translation against it) and
 ``align_interpolation=--align-interpolation`` (default ``cubic``, also for projection matching); the estimated
@@ -258,22 +259,36 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ pipeline
+class Parts:
+    """CPU seconds (``time.process_time``) of the walk-through's parts: ``done(name)`` ends the part begun at
+    the last call."""
+
+    def __init__(self):
+        self.last, self.seconds = time.process_time(), {}
+
+    def done(self, name: str) -> None:
+        now = time.process_time()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.last
+        self.last = now
+
+
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
         stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_interpolation: str = "cubic",
         align_rounds: int = 8,
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
-        quick: bool = False, model: str = "lddmm", interpolation: str = "reinterpolate") -> dict:
+        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate") -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests). ``model``: ``register``'s
-    (``"residual"``: LDDMM plus an intensity residual regularised by TV); ``interpolation``: the deformation's
+    (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
+    validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
     (``"reinterpolate"``, the paper's, as this page was measured)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
-    t0 = time.process_time()
+    t0, parts = time.process_time(), Parts()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder), "stack": stack, "rescale": rescale}
 
@@ -313,6 +328,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"{hand['mirror_difference']:.1e} (relative): the data cannot tell the sign, only the handedness changes")
     metrics["handedness"] = hand
 
+    parts.done("reading, checks, binning")
     say("5. the template: an earlier scan (even tilts" + (", aligned by projection matching)" if stack == "raw"
                                                           else ")"))
     tilts = split_tilts(angles, fit_every, max_angle)
@@ -338,6 +354,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
                 etspy_frame(recorded[tilts["template"]], factor), angles[tilts["template"]])
         say(f"  the tilt axis lies {even[2] * factor:.2f} raw px off the detector's middle (across)")
 
+    parts.done("template (projection matching from the raw stack, SIRT)")
     say("6. the data and the units")
     rows = np.sort(np.concatenate([tilts["fit"], tilts["validation"]]))
     holdout = [int(i) for i in np.flatnonzero(np.isin(rows, tilts["validation"]))]
@@ -359,6 +376,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
                              align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
                              progress=True, **extra)
     reg_seconds = result.seconds
+    parts.done("registration (the alignment and the model's finish included)")
     halvings = count_halvings(result.history)
     say(f"  {result.status} after {result.iterations} iterations ({reg_seconds:.0f} s): template_scale "
         f"{result.units.template_scale:.4g}, background {result.units.background:.4g}, residual {result.residual:.4f}, "
@@ -366,7 +384,14 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         f"{result.holdout.get('holdout_best_residual', float('nan')):.4f} at iteration "
         f"{result.holdout.get('holdout_best_iteration')}), min Jacobian {result.min_jacobian:.3f}, {halvings} step "
         f"halvings")
-    metrics["registration"] = {"status": result.status, "iterations": result.iterations, "seconds": reg_seconds,
+    finish = getattr(result.problem, "finish_info", {})
+    if finish:
+        unit = finish["unit"]   # the model's mu per residual_tv
+        tried = {f"{mu / unit:.0e}": round(v, 4) for mu, v in finish["holdout_by_weight"].items()}
+        say(f"  the residual's finish ({finish['iterations']} Chambolle-Pock iterations, TV anchored at the deformed "
+            f"template): residual_tv {finish['residual_tv'] / unit:.0e} chosen by the held-out tilts of {tried}")
+        finish = {"residual_tv": finish["residual_tv"] / unit, "holdout_by_weight": tried}
+    metrics["registration"] = {"status": result.status, "finish": finish, "iterations": result.iterations, "seconds": reg_seconds,
                                "model": model, "interpolation": interpolation,
                                "sigma_nm": sigma, "num_steps": num_steps, "template_scale": result.units.template_scale,
                                "background": result.units.background, "scale_fit": result.units.scale_fit,
@@ -386,6 +411,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
             alignment_figure(ours, theirs, operator(domain, angles[rows]), factor, out / "alignment.png")
             say(f"  the fitted tilts' shifts against etspy's: {metrics['shifts_vs_etspy']}")
 
+    parts.done("units, the test tilts' shifts")
     base = {}
     if baselines_too:
         say("8. baselines from the same fit tilts" + (" (through the registration's shifts)" if result.alignment
@@ -395,6 +421,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
                          sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
                          tv_mus=(0.1,) if quick else (1.0, 10.0, 100.0, 1000.0), tv_iters=20 if quick else 200)
         metrics["baselines_cpu_seconds"] = time.process_time() - tb
+        parts.done("baselines (FBP, SIRT, TV, parameters chosen on the validation tilts)")
 
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
     volumes = {"template": (d.template * result.units.template_scale).numpy(),
@@ -405,10 +432,57 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
     figure(volumes, out / "figure.png", cell, metrics["scores"])
     save(volumes, domain, out)
-    metrics["cpu_seconds"] = time.process_time() - t0
+    parts.done("scores, figure, files")
+    metrics["cpu_seconds"], metrics["cpu_seconds_by_part"] = time.process_time() - t0, parts.seconds
+    say("  CPU seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in parts.seconds.items()))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
     say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['cpu_seconds']:.0f} s CPU in all")
     return metrics
+
+
+def label(name: str, m: dict) -> str:
+    """A volume's row label in :func:`table` (the parameters chosen on the validation tilts are in its last lines)."""
+    return {"registered": f"registered (`model=\"{m['registration']['model']}\"`)", "SIRT": "SIRT",
+            "TV": "TV"}.get(name, name)
+
+
+def chosen(m: dict) -> str:
+    """What the validation tilts chose in one run: the residual model's weight, SIRT's iterations, TV's weight."""
+    parts = []
+    if m["registration"].get("finish"):
+        parts.append(f"residual_tv {m['registration']['finish']['residual_tv']:.0e}")
+    s = m["scores"]
+    if "SIRT" in s:
+        parts.append(f"SIRT {s['SIRT']['iterations']} iterations")
+    if "TV" in s:
+        parts.append(f"TV mu = {s['TV']['mu_relative']:g} x u")
+    return ", ".join(parts)
+
+
+def table(runs: dict) -> str:
+    """docs/real_data.md's comparison table from the walk-through's metrics by stack (``{"raw": ..., "aligned":
+    ...}``): every volume's test and validation residual, then the registered volume's ratios to TV's and the raw
+    stack's test residual to the aligned one's."""
+    first = next(iter(runs.values()))
+    cols = [f"{stack}: {kind} ({len(m['tilts_deg'][kind])})" for stack, m in runs.items()
+            for kind in ("test", "validation")]
+    lines = ["| volume | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for name in first["scores"]:
+        cells = [f"{m['scores'][name][f'{kind}_residual']:.4f}" for m in runs.values() for kind in ("test",
+                                                                                                    "validation")]
+        lines.append(f"| {label(name, first)} | " + " | ".join(cells) + " |")
+    lines.append("")
+    for stack, m in runs.items():
+        reg, tv = m["scores"]["registered"], m["scores"].get("TV")
+        if tv:
+            lines.append(f"{stack}: registered / TV {reg['test_residual'] / tv['test_residual']:.2f} on the test "
+                         f"tilts, {reg['validation_residual'] / tv['validation_residual']:.2f} on the validation "
+                         f"tilts; chosen on the validation tilts: {chosen(m)}")
+    if {"raw", "aligned"} <= set(runs):
+        ratio = runs["raw"]["scores"]["registered"]["test_residual"] / \
+            runs["aligned"]["scores"]["registered"]["test_residual"]
+        lines.append(f"registered, raw / aligned stack on the test tilts: {ratio:.2f}")
+    return "\n".join(lines)
 
 
 def main(argv=None) -> None:
@@ -435,18 +509,35 @@ def main(argv=None) -> None:
                    "indreg's)")
     p.add_argument("--rescale", type=float, default=1.0, help="multiply every count by this (unit invariance)")
     p.add_argument("--no-baselines", action="store_true", help="skip FBP / SIRT / TV")
-    p.add_argument("--model", default="lddmm", help="register()'s model (residual: LDDMM plus a TV-regularised "
-                   "intensity residual)")
+    p.add_argument("--table", action="store_true", help="run the raw and the aligned stack (into --out/raw, "
+                   "--out/aligned) and print docs/real_data.md's table")
+    p.add_argument("--reprint", action="store_true", help="with --table: print it from --out/raw and --out/aligned's "
+                   "metrics.json, without running")
+    p.add_argument("--model", default="residual", help="register()'s model (residual, the default: LDDMM plus a "
+                   "TV-regularised intensity residual, its weight chosen on the validation tilts; lddmm)")
     p.add_argument("--interpolation", choices=("reinterpolate", "compose"), default="reinterpolate")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
     torch.set_num_threads(1)
-    folder = a.data if a.data is not None else fetch(a.cache)
-    run(folder, a.out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
-        max_angle=a.max_angle, fit_every=a.fit_every, stack=a.stack, align=a.align, align_gauge=a.align_gauge,
-        align_interpolation=a.align_interpolation,
-        rescale=a.rescale,
-        gamma_rel=a.gamma_rel, baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation)
+    if a.table:   # both stacks, then docs/real_data.md's table
+        runs = {stack: json.loads((a.out / stack / "metrics.json").read_text()) if a.reprint
+                else walk(fetch_once(a), a, a.out / stack, stack) for stack in ("raw", "aligned")}
+        say("\n" + table(runs))
+        return
+    walk(fetch_once(a), a, a.out, a.stack)
+
+
+def fetch_once(a: argparse.Namespace) -> Path:
+    """The data's folder: ``--data``, or the cache (downloaded there the first time)."""
+    return a.data if a.data is not None else fetch(a.cache)
+
+
+def walk(folder: Path, a: argparse.Namespace, out: Path, stack: str) -> dict:
+    """:func:`run` with the command line's options."""
+    return run(folder, out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
+               max_angle=a.max_angle, fit_every=a.fit_every, stack=stack, align=a.align, align_gauge=a.align_gauge,
+               align_interpolation=a.align_interpolation, rescale=a.rescale, gamma_rel=a.gamma_rel,
+               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation)
 
 
 if __name__ == "__main__":

@@ -7,11 +7,14 @@ behind. The numbers are read from the pages' text (not copied here). What it com
 - docs/cli.md, the first command (``indreg-register``, suite 1): its ``SSIM 0.8855`` against the same registration's
   SSIM (the README's block is suite 1 with the preset's options; the app runs the same);
 - docs/own_data.md, "The shipped example": ``SSIM ..., TV ..., FBP ...`` of ``indreg-register
-  experiment=own_data_example``, and the status line's "stalls at iteration ... of 200 (step ..., SSIM ...)".
+  experiment=own_data_example``, and the status line's "stalls at iteration ... of 200 (step ..., SSIM ...)";
+- docs/real_data.md, section 9: the table that ``examples/real_data_haadf.py --table`` prints, when
+  ``INDREG_HAADF_DIR`` names the HAADF files' folder (two registrations of minutes each; skipped without it).
 """
 import contextlib
 import io
 import json
+import os
 import re
 from pathlib import Path
 
@@ -94,3 +97,27 @@ def test_own_data_example_numbers(tmp_path):
     history = json.loads((tmp_path / "history.json").read_text())
     same(step, history[-1]["step_size"], f"{where}, the stalled step")
     same(stall_ssim, m["ssim"], f"{where}, SSIM when stalled")
+
+
+HAADF = os.environ.get("INDREG_HAADF_DIR")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAADF, reason="INDREG_HAADF_DIR not set (the etspy HAADF files; docs/real_data.md)")
+def test_real_data_table_is_what_its_command_prints(tmp_path):
+    """docs/real_data.md, section 9: the table and its ratio lines against ``examples/real_data_haadf.py --table``
+    (both stacks, the defaults; minutes)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("real_data_haadf", ROOT / "examples" / "real_data_haadf.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        example.main(["--data", HAADF, "--out", str(tmp_path), "--table"])
+    out = printed.getvalue()
+    table, ratios = out[out.index("| volume | raw: test"):].split("\n\n", 1)
+    text = page("docs/real_data.md")
+    assert table in text, f"docs/real_data.md, section 9: the table differs from the printed one:\n{table}"
+    for line in ratios.strip().splitlines():
+        assert line in text, f"docs/real_data.md, section 9: the page lacks the printed line {line!r}"

@@ -145,6 +145,19 @@ def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
     assert reg["residual"] <= m["scores"]["template"]["fit_residual"] + 1e-9
     assert set(m["scores"]) == {"template", "registered", "FBP", "SIRT", "TV"}
     assert all(np.isfinite(s["test_residual"]) for s in m["scores"].values())
+    assert set(m["cpu_seconds_by_part"]) >= {"registration (the alignment and the model's finish included)",
+                                             "baselines (FBP, SIRT, TV, parameters chosen on the validation tilts)"}
+    # docs/real_data.md's table (--table): a row per volume, both stacks' test and validation residuals, the ratios
+    lines = example.table({"raw": m, "aligned": m}).splitlines()
+    n = {k: len(m["tilts_deg"][k]) for k in ("test", "validation")}
+    assert lines[0] == "| volume | " + " | ".join(f"{s}: {k} ({n[k]})" for s in ("raw", "aligned") for k in n) + " |"
+    tv = m["scores"]["TV"]
+    assert lines[2 + list(m["scores"]).index("TV")].startswith(
+        f"| TV | {tv['test_residual']:.4f} | {tv['validation_residual']:.4f} |")
+    reg = m["scores"]["registered"]
+    assert lines[-3].startswith(f"raw: registered / TV {reg['test_residual'] / tv['test_residual']:.2f} on the test "
+                                "tilts") and lines[-3].endswith(f"TV mu = {tv['mu_relative']:g} x u")
+    assert lines[-1] == "registered, raw / aligned stack on the test tilts: 1.00"
 
 
 REAL = os.environ.get("INDREG_HAADF_DIR")

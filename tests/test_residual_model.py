@@ -72,8 +72,50 @@ def test_with_the_residual_frozen_it_is_lddmm():
     _, T, template, data = small(16)
     options = dict(max_iter=6, num_steps=3, sigma=4.0)
     ref = indreg.register(template, data, T, **options)
-    off = indreg.register(template, data, T, model="residual", residual_start_fraction=1.0, **options)
+    off = indreg.register(template, data, T, model="residual", residual_start_fraction=1.0, residual_finish_iter=0,
+                          **options)
     assert torch.equal(off.momentum, ref.momentum) and torch.equal(off.deformed, ref.deformed)
+
+
+def lacking(n=16, holdout=None, **options):
+    """V plus a block of +0.5 that J lacks, registered from J by the residual model (12 iterations)."""
+    domain = indreg.ImageDomain.paper(n)
+    T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(12, 24))
+    template, target = phantoms.get("j", domain), phantoms.get("v", domain).clone()
+    target[3:6, 3:6] += 0.5
+    return indreg.register(template, T(target), T, model="residual", max_iter=12, num_steps=3, holdout=holdout,
+                           **options)
+
+
+def test_the_finish_minimises_the_anchored_tv_with_the_deformation_fixed():
+    """The finish keeps the momentum and lowers ``(1/2)||T f - g||^2 + mu TV(f - W)`` (W fixed) from the loop's
+    iterate; its f is nonnegative."""
+    before, after = (lacking(residual_tv=1e-4, residual_finish_iter=k) for k in (0, 100))
+    assert torch.equal(after.momentum, before.momentum)
+    p = after.problem
+    assert p.finish_info["residual_tv"] == p.residual_tv and after.intensity_part.abs().max() > 0
+    assert float(after.deformed.min()) >= 0
+    e = {k: p.evaluate_iterate((r.momentum, r.intensity_part))
+         for k, r in (("before", before), ("after", after))}
+    total = {k: v["data_fit"] + v["residual_tv"] for k, v in e.items()}   # smoothed TV: eps 1 % of the unit
+    assert total["after"] < 0.5 * total["before"]
+
+
+def test_auto_weight_is_chosen_by_the_held_out_angles():
+    """``residual_tv="auto"`` with held-out angles: the finish tries the grid and keeps the weight with the least
+    held-out residual, which is the run's reported one; without held-out angles it uses the fallback."""
+    from indreg.registration.models import RESIDUAL_TV_FALLBACK, RESIDUAL_TV_GRID
+
+    run = lacking(holdout=4, residual_finish_iter=60)
+    tried = run.problem.finish_info["holdout_by_weight"]
+    assert len(tried) == len(RESIDUAL_TV_GRID) and len(set(tried.values())) == len(tried)
+    best = min(tried, key=tried.get)
+    assert run.problem.finish_info["residual_tv"] == best
+    assert run.holdout["holdout_residual"] == pytest.approx(tried[best], rel=1e-12)
+    plain = lacking(residual_finish_iter=1)
+    unit = plain.problem.mu_unit
+    assert plain.problem.residual_tv == pytest.approx(RESIDUAL_TV_FALLBACK * unit)
+    assert list(plain.problem.finish_info["holdout_by_weight"]) == [pytest.approx(RESIDUAL_TV_FALLBACK * unit)]
 
 
 @pytest.mark.slow

@@ -163,14 +163,17 @@ def _steps(T, dtype, device, num_iter: int, balanced: bool) -> tuple:
 
 
 def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: torch.Tensor | None = None,
-                      callback=None, nonneg: bool = False, opnorm_iter: int = 100, balanced: bool = True) -> tuple:
-    """Minimise ``||T x - y||^2 + mu TV(x)`` (module docstring) by Chambolle-Pock with ``K = [T; grad]``.
+                      callback=None, nonneg: bool = False, opnorm_iter: int = 100, balanced: bool = True,
+                      anchor: torch.Tensor | None = None) -> tuple:
+    """Minimise ``||T x - y||^2 + mu TV(x - a)`` (module docstring; ``a`` = ``anchor``, default 0) by Chambolle-Pock
+    with ``K = [T; grad]``.
 
     Splitting: ``E(x) = F1(T x) + F2(grad x) + G(x)`` with ``F1(z) = ||z - y||^2``, ``F2(w) = mu int |w|``,
-    ``G`` = 0 (or the indicator of ``x >= 0`` when ``nonneg``). Each iteration, for duals ``p`` (data) and ``q``
+    ``G`` = 0 (or the indicator of ``x >= 0`` when ``nonneg``); an anchor moves ``F2`` to ``mu int |w - grad a|``,
+    whose conjugate's prox is ``P_mu(. - sigma_q grad a)``. Each iteration, for duals ``p`` (data) and ``q``
     (vector field), a primal step ``tau``, dual steps ``sigma_p``, ``sigma_q`` and ``x_bar`` the extrapolated primal:
         ``p <- (p + sigma_p (T x_bar - y)) / (1 + sigma_p / 2)``        (prox of sigma_p F1^*)
-        ``q <- P_mu(q + sigma_q grad x_bar)``                            (projection on ``|q(x)| <= mu``)
+        ``q <- P_mu(q + sigma_q (grad x_bar - grad a))``                 (projection on ``|q(x)| <= mu``)
         ``x_new <- prox_G(x - tau (T^* p - div q))``,  ``x_bar = 2 x_new - x``.
     ``K x_bar`` is formed as ``2 K x_new - K x`` (linearity), so an iteration costs one ``T`` and one ``T^*``.
 
@@ -195,6 +198,7 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
         callback: called as ``callback(i, x)`` after iteration ``i`` (0-based).
         nonneg: constrain ``x >= 0``.  opnorm_iter: power iterations for each norm.
         balanced: the balanced steps (default) or the equal ones (above).
+        anchor: ``a``, shape ``T.domain.shape`` (a template-anchored TV: ``indreg.problems.residual``).
 
     Returns:
         ``(x, history)``: ``x`` ``(..., *T.domain.shape)``; ``history["objective"]`` float64 CPU tensor
@@ -212,10 +216,11 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     x = dom.zeros(*batch, dtype=y.dtype, device=y.device) if x0 is None else start_image(x0, batch, dom, y)
     tau, sigma_p, sigma_q, opnorm = _steps(T, y.dtype, y.device, check_int(opnorm_iter, "opnorm_iter", 1), balanced)
     vec = -dom.ndim - 1                               # the axis of the gradient's components
+    ga = 0.0 if anchor is None else gradient(check_tensor(anchor, "anchor", tuple(dom.shape)).to(y), dom)
 
     def energy(tx, gx):
         r = tx - y
-        return T.inner_data(r, r) + mu * dom.cell_volume * total(_magnitude(gx, vec).sum(dim=dom.dims), dom)
+        return T.inner_data(r, r) + mu * dom.cell_volume * total(_magnitude(gx - ga, vec).sum(dim=dom.dims), dom)
 
     tx, gx = T(x), gradient(x, dom)
     p, q = torch.zeros_like(tx), torch.zeros_like(gx)
@@ -223,7 +228,7 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     objective = torch.empty((num_iter,) + tuple(batch), dtype=torch.float64, device=y.device)
     for i in range(num_iter):
         p = (p + sigma_p * (tx_bar - y)) / (1.0 + sigma_p / 2.0)
-        q = q + sigma_q * gx_bar
+        q = q + sigma_q * (gx_bar - ga)
         q = q / torch.clamp(_magnitude(q, vec, keepdim=True) / mu, min=1.0)
         x_new = x - tau * (T.adjoint(p) - divergence(q, dom))
         if nonneg:

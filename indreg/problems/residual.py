@@ -14,6 +14,11 @@ of the residual, ``residual_tv``) absolute; ``TV_eps`` the smoothed isotropic TV
 (``eps`` = ``smoothing``, an intensity per length); the L2 gradient in ``r`` is the torch gradient divided by
 the cell volume. Algorithm 1's default step for ``r`` is ``1 / (||T||^2 + mu 4 d / (h^2 eps))`` (the data term's
 and the smoothed TV's curvature bounds, ``h`` the smallest cell side).
+
+The finish (:meth:`ResidualRegistration.finish`, run by ``indreg.run.build_result`` after the loop): with the
+deformation fixed, ``f = W(nu, I) + r`` is solved to its minimum by Chambolle-Pock (``tv_reconstruction`` with the
+anchor ``W``, ``f >= 0``, the exact TV), since gradient steps on a smoothed TV converge slowly; its weight is chosen
+among ``mu_candidates`` by the held-out angles when the run has them, as the TV baseline's weight is.
 """
 from __future__ import annotations
 
@@ -23,7 +28,7 @@ import torch
 
 from .._checks import check_nonnegative
 from ..forward.operator import operator_norm
-from ..forward.tv import total_variation
+from ..forward.tv import total_variation, tv_reconstruction
 from .lddmm import IndirectRegistration
 
 __all__ = ["ResidualRegistration"]
@@ -31,15 +36,20 @@ __all__ = ["ResidualRegistration"]
 
 class ResidualRegistration(IndirectRegistration):
     """``min_{nu, r} E(nu, r)`` (module docstring); the iterate is ``x = (m, r)``, ``nu = K m``. Arguments as
-    :class:`IndirectRegistration`, and ``residual_tv`` (``mu >= 0``) and ``smoothing`` (``eps > 0``)."""
+    :class:`IndirectRegistration`, and ``residual_tv`` (``mu >= 0``), ``smoothing`` (``eps > 0``), the finish's
+    ``finish_iter``, ``mu_candidates`` (chosen among by the held-out angles) and ``mu_unit`` (what the weights were
+    relative to, for reports)."""
 
     iterate_names = ("momentum", "residual")
     output_kinds = {"deformation_part": "parts", "intensity_part": "parts"}
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, residual_tv: float,
-                 smoothing: float, tv_weight: float = 0.0):
+                 smoothing: float, tv_weight: float = 0.0, finish_iter: int = 0, mu_candidates: tuple = (),
+                 mu_unit: float = 1.0):
         super().__init__(ray_transform, deformation, kernel, template, data, gamma, tv_weight)
         self.residual_tv = check_nonnegative(residual_tv, "residual_tv", template.dtype)
+        self.finish_iter, self.mu_candidates, self.mu_unit = int(finish_iter), tuple(mu_candidates), float(mu_unit)
+        self.finish_info: dict = {}
         self.smoothing = check_nonnegative(smoothing, "residual smoothing", template.dtype)
         if self.smoothing <= 0:
             raise ValueError(f"residual smoothing must be > 0 (the smoothed TV's eps), got {smoothing}")
@@ -50,7 +60,8 @@ class ResidualRegistration(IndirectRegistration):
 
     def with_deformation(self, deformation) -> "ResidualRegistration":
         return ResidualRegistration(self.ray_transform, deformation, self.kernel, self.template, self.data,
-                                    self.gamma, self.residual_tv, self.smoothing, self.tv_weight)
+                                    self.gamma, self.residual_tv, self.smoothing, self.tv_weight, self.finish_iter,
+                                    self.mu_candidates, self.mu_unit)
 
     def zero_residual(self) -> torch.Tensor:
         return torch.zeros(self.image_domain.shape, dtype=self.template.dtype, device=self.template.device)
@@ -130,6 +141,29 @@ class ResidualRegistration(IndirectRegistration):
 
     def for_line_search(self) -> "ResidualRegistration":
         return self.with_backward("exact") if self.deformation.backward == "paper" else self
+
+    def finish(self, x: tuple, validation=None) -> tuple:
+        """``(m, r')``: ``r' = f - W``, ``f = argmin_{f >= 0} (1/2)||T f - g||^2 + mu TV(f - W)`` with ``W = W(nu,
+        I)`` fixed (``finish_iter`` Chambolle-Pock iterations from ``W + r``), ``mu`` the one of ``mu_candidates``
+        whose ``f`` has the least residual on ``validation``'s angles (without validation or candidates:
+        ``residual_tv``). ``x`` unchanged when ``finish_iter`` is 0 or that ``mu`` is 0. Records the choice in
+        ``finish_info`` (the weights also in ``mu_unit``, the unit they were given in)."""
+        chosen = self.mu_candidates if validation is not None and self.mu_candidates else (self.residual_tv,)
+        if self.finish_iter == 0 or max(chosen) <= 0:
+            return x
+        with torch.no_grad():
+            W = self.deformed(x[0])
+            tried, best = {}, None
+            for mu in chosen:
+                f, _ = tv_reconstruction(self.ray_transform, self.data, 2 * mu, self.finish_iter, x0=W + x[1],
+                                         nonneg=True, anchor=W)   # its ||.||^2 + mu' TV: mu' = 2 mu
+                score = validation.residual(f) if validation is not None else float("nan")
+                tried[mu] = score
+                if best is None or score < best[1]:
+                    best = (f, score, mu)
+        self.finish_info = {"residual_tv": best[2], "holdout_by_weight": tried, "iterations": self.finish_iter,
+                            "unit": self.mu_unit}
+        return x[0], best[0] - W
 
     def hparams(self) -> dict:
         return {"residual_tv": self.residual_tv, "residual_smoothing": self.smoothing}

@@ -17,14 +17,14 @@ Built in:
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Union
 
 import torch
 
 from . import solver_registry  # noqa: F401  (the solvers a model's solver_options name)
 from .._checks import as_tensor
-from ..options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, boolean, choice,  # noqa: F401
-                      model, number, optional, register_model, solver_kind)
+from ..options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, auto_or, boolean,  # noqa: F401
+                      choice, model, number, optional, register_model, solver_kind)
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -340,9 +340,13 @@ def _residual(operator, template, data, kernel, o: dict) -> tuple:
                          backward=o["backward"] or "paper", interpolation=o["interpolation"])
     h = min(kernel.domain.cell_sides)
     smoothing = RESIDUAL_SMOOTHING * intensity_scale(operator, data) / h
-    mu = 0.5 * o["residual_tv"] * tv_weight_unit(operator, data)   # E's (1/2)||.||^2: half the TV baseline's mu
+    unit = 0.5 * tv_weight_unit(operator, data)   # E's (1/2)||.||^2: half the TV baseline's mu
+    auto = o["residual_tv"] in (None, "auto")
+    mu = unit * (RESIDUAL_TV_FALLBACK if auto else o["residual_tv"])
+    candidates = tuple(unit * c for c in RESIDUAL_TV_GRID) if auto else ()
     problem = ResidualRegistration(operator, W, kernel, template, data, o["gamma"], mu, smoothing,
-                                   tv_weight=o["tv_weight"])
+                                   tv_weight=o["tv_weight"], finish_iter=o["residual_finish_iter"],
+                                   mu_candidates=candidates, mu_unit=unit)
     start = int(round(o["residual_start_fraction"] * o["max_iter"]))
     return problem, {ALGORITHM1: {"steps": {"residual": o["residual_step_size"]}, "frozen": {"residual": start}},
                      "torch": {}}
@@ -357,14 +361,23 @@ def _check_residual(o: dict, label) -> None:
 
 #: The residual's TV smoothing eps, relative to the data's intensity unit per cell side.
 RESIDUAL_SMOOTHING = 0.01
+#: ``residual_tv="auto"``: the finish's weights (in the TV weight unit), the held-out angles choose; the joint
+#: iterations, and a run without held-out angles, use the fallback (docs/real_data.md, section 9).
+RESIDUAL_TV_GRID = (1e-6, 1e-5, 1e-4, 1e-3)
+RESIDUAL_TV_FALLBACK = 1e-4
 _RES = ("residual",)
 register_model(Model("residual", _residual, defaults=_interpolation, check=_check_residual,
                      doc="LDDMM plus an intensity residual regularised by TV (indreg.problems.residual): the template's "
                          "shape deformed, the intensities it cannot fit added",
                      options=(
-    Option("residual_tv", "deformation", "residual_tv", 1e-4, number(0.0),
+    Option("residual_tv", "deformation", "residual_tv", "auto", auto_or(number(0.0), "a number >= 0"),
            "the residual's TV weight relative to the TV weight unit (indreg.forward.tv_weight_unit: the TV "
-           "baseline's tv_mu; docs/real_data.md)", float, models=_RES),
+           "baseline's tv_mu); 'auto': the finish's weight chosen among 1e-6, 1e-5, 1e-4, 1e-3 by the held-out "
+           "angles (1e-4 without them, and in the joint iterations); docs/real_data.md", Union[str, float],
+           models=_RES),
+    Option("residual_finish_iter", "solver", "residual_finish_iter", 200, number(0, integer=True),
+           "Chambolle-Pock iterations of the finish: f = W + r solved with W fixed (TV anchored at W, f >= 0); "
+           "0: none", int, models=_RES),
     Option("residual_start_fraction", "solver", "residual_start_fraction", 0.5, _fraction,
            "Algorithm 1: the fraction of max_iter with the residual frozen at 0 (the deformation first)", float,
            solvers=(ALGORITHM1,), models=_RES),

@@ -485,9 +485,14 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
     ``validation`` if given, the summaries of the in-the-fit corrections around ``solver`` if given
     (``indreg.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
-    ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning."""
+    ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning.
+    A problem with a ``finish(x, validation)`` method (``indreg.problems.residual``) replaces the final iterate by
+    its result first."""
     units = units or Units()
     fitted = corrections.summaries(solver, problem)
+    finish = getattr(problem, "finish", None)   # a model's last step after the loop (model="residual")
+    if finish is not None and status != "failed":
+        state.iterate = finish(state.iterate, validation)
     x = state.iterate
     image = problem.reconstruction(x)
     with torch.no_grad():

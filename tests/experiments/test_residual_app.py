@@ -6,7 +6,7 @@ from experiment_helpers import FAST, compose, run_app
 
 def test_the_app_runs_the_residual_model(tmp_path):
     cfg = compose(["deformation.model=residual"])
-    assert cfg.deformation.residual_tv == 1e-4 and cfg.solver.residual_start_fraction == 0.5
+    assert cfg.deformation.residual_tv == "auto" and cfg.solver.residual_finish_iter == 200 and cfg.solver.residual_start_fraction == 0.5
     run_app(["deformation.model=residual", "solver.residual_start_fraction=0.5", *FAST], tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["status"] == "completed" and metrics["iterations"] == 10

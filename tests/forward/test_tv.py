@@ -205,6 +205,23 @@ def test_tv_reconstruction_errors():
         tv_reconstruction(zero, y, mu=1.0)
 
 
+def test_an_anchor_is_a_change_of_variables():
+    """``min ||T x - y||^2 + mu TV(x - a)`` is ``a + min ||T z - (y - T a)||^2 + mu TV(z)``: the same iterates moved by
+    ``a`` (from ``x0 = a``), the objective of ``x`` the one of ``z``; exact data of ``a`` leave ``x = a``."""
+    T = DenseOperator(DOM, (9, 7), scale=2.0)
+    g = torch.Generator().manual_seed(6)
+    a, y = torch.randn(DOM.shape, generator=g, dtype=torch.float64), torch.randn(9, 7, generator=g, dtype=torch.float64)
+    x, hx = tv_reconstruction(T, y, mu=0.5, num_iter=60, x0=a, anchor=a)
+    z, hz = tv_reconstruction(T, y - T(a), mu=0.5, num_iter=60)
+    torch.testing.assert_close(x, a + z, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(hx["objective"], hz["objective"], rtol=1e-9, atol=1e-10)
+    assert float(hx["objective"][-1]) == pytest.approx(float(energy(T, x - a, y - T(a), 0.5)), rel=1e-12)
+    still, _ = tv_reconstruction(T, T(a), mu=0.5, num_iter=20, x0=a, anchor=a)
+    torch.testing.assert_close(still, a, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="anchor"):
+        tv_reconstruction(T, y, mu=0.5, anchor=torch.zeros(3, 3, dtype=torch.float64))
+
+
 @pytest.fixture(scope="module")
 def suite1():
     """Suite 1 data: V at 64^2, the authors' 10 x 92 geometry, white noise at 4.87 dB (code convention), seed 0."""
