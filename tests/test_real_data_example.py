@@ -108,6 +108,7 @@ def test_compare_shifts_ignores_offset_and_object_translation(example):
     assert rms == pytest.approx(4 * np.sqrt(7 * 6) / 13)                    # 7 ones, 6 zeros
 
 
+@pytest.mark.slow
 def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
     """--stack raw: the template's tilts aligned by projection matching, the data by the registration; both
     recover the recorded drift (2 raw pixels per binned one) in the gauge."""
