@@ -541,4 +541,7 @@ def walk(folder: Path, a: argparse.Namespace, out: Path, stack: str) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (OSError, ValueError) as e:   # a missing file, a bad option or file: one line
+        sys.exit(f"real_data_haadf.py: error: {e}")

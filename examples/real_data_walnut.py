@@ -376,4 +376,7 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (OSError, ValueError) as e:   # a missing file, a bad option or file: one line
+        sys.exit(f"real_data_walnut.py: error: {e}")
