@@ -204,14 +204,23 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
     0.0300 aligned, against 0.0336 / 0.0313 at 1 x u and 0.0370 / 0.0396 at 1000 x u: docs/real_data.md, section
     8). Returns ``{name: (volume, info)}``."""
     out = {"FBP": (fbp(*unwarped(T_fit, y_fit)), {})}
+    return {**out, **tuned_sirt_tv(T_fit, y_fit, T_val, y_val, sirt_iters, tv_mus, tv_iters, bilinear(T_fit))}
+
+
+def tuned_sirt_tv(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters, tv_mus, tv_iters: int,
+                  T_sirt=None) -> dict:
+    """``{"SIRT": (volume, info), "TV": (volume, info)}``: nonnegative SIRT stopped at the iteration count of
+    ``sirt_iters`` (through ``T_sirt``, default ``T_fit``) and nonnegative TV at the weight of ``tv_mus`` (times the
+    data's intensity unit) whose volumes predict the validation data best: each baseline's parameter chosen on the
+    validation angles, as the registration's are."""
     best, x, done = None, None, 0
     for n in sirt_iters:
-        x, _ = sirt(bilinear(T_fit), y_fit, num_iter=n - done, x0=x, nonneg=True)
+        x, _ = sirt(T_fit if T_sirt is None else T_sirt, y_fit, num_iter=n - done, x0=x, nonneg=True)
         done, r = n, residual(T_val, x, y_val)
         say(f"    SIRT {n:4d} iterations: validation residual {r:.4f}")
         if best is None or r < best[1]["validation_residual"]:
             best = (x.clone(), {"iterations": n, "validation_residual": r})
-    out["SIRT"] = best
+    out = {"SIRT": best}
     u, best = intensity_scale(T_fit, y_fit), None
     for mu in tv_mus:
         x, _ = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True)

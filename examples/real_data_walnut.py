@@ -43,13 +43,12 @@ from scipy import ndimage
 
 import indreg
 from indreg.domain import ImageDomain
-from indreg.forward import FanBeamGeometry, RayTransform, sirt, tv_reconstruction
-from indreg.forward.tv import intensity_scale
+from indreg.forward import FanBeamGeometry, RayTransform, sirt
 from indreg.run import count_halvings
 from indreg.units import prepare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # the HAADF walk-through, whose scoring this reuses
-from real_data_haadf import residual, say, score  # noqa: E402
+from real_data_haadf import residual, say, score, tuned_sirt_tv  # noqa: E402
 
 __all__ = ["SDIST", "MEMBER", "SRC_MM", "DET_MM", "DETECTOR_MM", "STEP_DEG", "SIRT_ITERS", "TV_MUS", "TV_ITERS",
            "fetch", "read_sinogram", "bin_detector", "square_domain", "operator", "background_report", "orientation",
@@ -217,23 +216,7 @@ def baselines(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_iters
     """SIRT (nonnegative, iterations chosen by the validation angles) and TV (nonnegative, ``mu`` relative to the
     data's intensity unit, chosen by the validation angles) from the fit angles, as the HAADF walk-through's
     baselines (fan-beam FBP needs a full turn: none here). Returns ``{name: (image, info)}``."""
-    best, x, done = None, None, 0
-    for n in sirt_iters:
-        x, _ = sirt(T_fit, y_fit, num_iter=n - done, x0=x, nonneg=True)
-        done, r = n, residual(T_val, x, y_val)
-        say(f"    SIRT {n:4d} iterations: validation residual {r:.4f}")
-        if best is None or r < best[1]["validation_residual"]:
-            best = (x.clone(), {"iterations": n, "validation_residual": r})
-    out = {"SIRT": best}
-    u, best = intensity_scale(T_fit, y_fit), None
-    for mu in tv_mus:
-        x, _ = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True)
-        r = residual(T_val, x, y_val)
-        say(f"    TV mu = {mu:g} x {u:.4g}: validation residual {r:.4f}")
-        if best is None or r < best[1]["validation_residual"]:
-            best = (x, {"mu_relative": mu, "mu": mu * u, "iterations": tv_iters, "validation_residual": r})
-    out["TV"] = best
-    return out
+    return tuned_sirt_tv(T_fit, y_fit, T_val, y_val, sirt_iters, tv_mus, tv_iters)
 
 
 def figure(images: dict, path: Path, side_mm: float, scores: dict) -> None:
