@@ -47,11 +47,31 @@ def plugin(tmp_path, monkeypatch):
     return tmp_path
 
 
-
 def _tiny_suite1():
     """Suite 1 at 16^2 with 6 angles x 24 bins: the domain, the ray transform and the template J."""
     domain = indreg.ImageDomain.paper(16)
     return domain, indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(6, 24)), phantoms.get("j", domain)
+
+
+#: The app at 16^2, 3 time steps, nothing drawn or compared: what every command-line run of a plug-in adds.
+TINY_APP = ["phantom.size=16", "deformation.num_steps=3", "baseline.enabled=false", "logging.figure=false",
+            "logging.tensorboard=false", "device=cpu"]
+
+
+def _run_tiny_app(plugin_args: list, cwd, max_iter: int = 2) -> tuple:
+    """``(args, metrics)``: the app run in ``cwd`` with ``plugin_args`` first (the plug-in, then its option), then
+    :data:`TINY_APP`; ``args`` the whole command line, for the runs that change one of them."""
+    out = cwd / "run"
+    args = [*plugin_args, f"solver.max_iter={max_iter}", *TINY_APP, f"hydra.run.dir={out}"]
+    p = run_cli(args, cwd=cwd)   # the module is found in the working directory, as with python -m
+    assert p.returncode == 0, p.stderr[-2000:]
+    return args, json.loads((out / "metrics.json").read_text())
+
+
+def _refused_in_one_line(args: list, cwd, key: str) -> None:
+    p = run_cli(args, cwd=cwd)
+    assert p.returncode == 1 and key in p.stderr and len(p.stderr.strip().splitlines()) == 1
+
 
 def test_plugin_model_options_from_python(plugin):
     domain, T, template = _tiny_suite1()
@@ -64,17 +84,11 @@ def test_plugin_model_options_from_python(plugin):
 
 
 def test_plugin_model_options_from_the_command_line(plugin):
-    out = plugin / "run"
-    args = ["deformation.model=my_plugin:MODEL", "deformation.brightness=3", "deformation.extra_steps=2",
-            "phantom.size=16", "deformation.num_steps=3", "solver.max_iter=2", "baseline.enabled=false",
-            "logging.figure=false", "logging.tensorboard=false", "device=cpu", f"hydra.run.dir={out}"]
-    p = run_cli(args, cwd=plugin)   # the module is found in the working directory, as with python -m
-    assert p.returncode == 0, p.stderr[-2000:]
-    m = json.loads((out / "metrics.json").read_text())
+    args, m = _run_tiny_app(["deformation.model=my_plugin:MODEL", "deformation.brightness=3",
+                             "deformation.extra_steps=2"], plugin)
     assert m["hparams"]["brightness"] == 3.0 and m["hparams"]["extra_steps"] == 2 and m["status"] == "completed"
     assert m["config"]["name"] == "suite1_jv-MODEL"   # not filed as suite 1's run
-    bad = run_cli(args[:1] + ["deformation.brightness=-1"] + args[2:], cwd=plugin)
-    assert bad.returncode == 1 and "deformation.brightness" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    _refused_in_one_line(args[:1] + ["deformation.brightness=-1"] + args[2:], plugin, "deformation.brightness")
 
 
 def test_plugin_that_fails_to_import_is_one_line_and_not_registered(tmp_path, monkeypatch):
@@ -134,17 +148,10 @@ SOURCE = textwrap.dedent('''
 @pytest.mark.slow
 def test_plugin_source_with_a_key_of_its_own_from_the_command_line(tmp_path):
     (tmp_path / "my_source.py").write_text(SOURCE)
-    out = tmp_path / "run"
-    args = ["data.source=my_source:SOURCE", "data.my_gain=2", "phantom.size=16", "deformation.num_steps=3",
-            "solver.max_iter=2", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
-            "device=cpu", f"hydra.run.dir={out}"]
-    p = run_cli(args, cwd=tmp_path)
-    assert p.returncode == 0, p.stderr[-2000:]
-    m = json.loads((out / "metrics.json").read_text())
+    args, m = _run_tiny_app(["data.source=my_source:SOURCE", "data.my_gain=2"], tmp_path)
     assert m["hparams"]["template"] == "gain2" and m["config"]["data"]["my_gain"] == 2.0
     assert m["config"]["name"] == "SOURCE"
-    bad = run_cli(args[:1] + ["data.my_gain=-1"] + args[2:], cwd=tmp_path)
-    assert bad.returncode == 1 and "data.my_gain" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    _refused_in_one_line(args[:1] + ["data.my_gain=-1"] + args[2:], tmp_path, "data.my_gain")
 
 
 SOLVER = textwrap.dedent('''
@@ -178,17 +185,10 @@ def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path,
     finally:
         for key in ("my_adam", "my_solver:SOLVER"):
             indreg.options.SOLVERS.pop(key, None)
-    out = tmp_path / "run"
-    args = ["solver.name=my_solver:SOLVER", "solver.my_beta=0.5", "phantom.size=16", "deformation.num_steps=3",
-            "solver.max_iter=2", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
-            "device=cpu", f"hydra.run.dir={out}"]
-    p = run_cli(args, cwd=tmp_path)
-    assert p.returncode == 0, p.stderr[-2000:]
-    m = json.loads((out / "metrics.json").read_text())
+    args, m = _run_tiny_app(["solver.name=my_solver:SOLVER", "solver.my_beta=0.5"], tmp_path)
     assert m["status"] == "completed" and m["hparams"]["solver"] == "my_adam"
     assert m["config"]["solver"]["my_beta"] == 0.5
-    bad = run_cli(args[:1] + ["solver.my_beta=-1"] + args[2:], cwd=tmp_path)
-    assert bad.returncode == 1 and "solver.my_beta" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    _refused_in_one_line(args[:1] + ["solver.my_beta=-1"] + args[2:], tmp_path, "solver.my_beta")
 
 
 CORRECTION = textwrap.dedent('''
@@ -229,15 +229,7 @@ def test_plugin_correction_with_an_option_from_python_and_the_command_line(tmp_p
     finally:
         indreg.options.CORRECTIONS.pop("counted", None)
         sys.modules.pop("my_correction", None)
-    out = tmp_path / "run"
-    args = ["plugins=[my_correction]", "data.count_every=2", "phantom.size=16", "deformation.num_steps=3",
-            "solver.max_iter=5", "baseline.enabled=false", "logging.figure=false", "logging.tensorboard=false",
-            "device=cpu", f"hydra.run.dir={out}"]
-    p = run_cli(args, cwd=tmp_path)
-    assert p.returncode == 0, p.stderr[-2000:]
-    m = json.loads((out / "metrics.json").read_text())
+    args, m = _run_tiny_app(["plugins=[my_correction]", "data.count_every=2"], tmp_path, max_iter=5)
     assert m["status"] == "completed" and m["counted"] == {"refits": 3}
-    bad = run_cli(args[:1] + ["data.count_every=-1"] + args[2:], cwd=tmp_path)
-    assert bad.returncode == 1 and "data.count_every" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
-    missing = run_cli(["plugins=[no_such_module]"] + args[2:], cwd=tmp_path)
-    assert missing.returncode == 1 and "plugins" in missing.stderr and len(missing.stderr.strip().splitlines()) == 1
+    _refused_in_one_line(args[:1] + ["data.count_every=-1"] + args[2:], tmp_path, "data.count_every")
+    _refused_in_one_line(["plugins=[no_such_module]"] + args[2:], tmp_path, "plugins")
