@@ -8,12 +8,36 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:   # imported where used: the app's preflight checks numbers without loading torch
+    import torch
 
 
-FLOAT_DTYPES = (torch.float32, torch.float64)
+def _float_dtypes() -> tuple:
+    """``(torch.float32, torch.float64)``: the dtypes every operator supports."""
+    import torch
+
+    return torch.float32, torch.float64
+
+
+def __getattr__(name: str):
+    """``FLOAT_DTYPES`` (:func:`_float_dtypes`), made on first use: importing this module loads no torch."""
+    if name == "FLOAT_DTYPES":
+        return _float_dtypes()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _arrays() -> tuple:
+    """The array types a 0-dim value may come in: numpy arrays, and torch tensors once torch is loaded (none can
+    exist before)."""
+    torch = sys.modules.get("torch")
+    return (np.ndarray,) if torch is None else (torch.Tensor, np.ndarray)
+
+
 #: Largest integer parameter accepted (torch's index type, int64).
 INT_MAX = 2 ** 63 - 1
 
@@ -35,7 +59,7 @@ def check_dtype(x: torch.Tensor, name: str) -> None:
     """Check that a tensor is float32 or float64 (the dtypes every operator supports)."""
     if not x.is_floating_point():
         raise TypeError(f"{name} must have a floating dtype (float32 or float64), got {x.dtype}")
-    if x.dtype not in FLOAT_DTYPES:
+    if x.dtype not in _float_dtypes():
         raise TypeError(f"{name} must be float32 or float64, got {x.dtype}")
 
 
@@ -45,6 +69,8 @@ def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int
 
     ``finite=False`` skips the pass over the values, for intermediate results (residuals, deformed images)
     whose non-finite values the caller reports itself (a solver rejects a step with a non-finite objective)."""
+    import torch
+
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     check_dtype(x, name)
@@ -78,6 +104,8 @@ def check_same(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> No
 def broadcast_shapes(*shapes) -> torch.Size:
     """``torch.broadcast_shapes`` (the same result, ``RuntimeError`` when the shapes do not broadcast) without its
     first call's import of sympy (torch 2.13: about a second of CPU at every start of a process)."""
+    import torch
+
     out = [1] * max((len(s) for s in shapes), default=0)
     for shape in shapes:
         for i, n in enumerate(shape, len(out) - len(shape)):
@@ -89,7 +117,7 @@ def broadcast_shapes(*shapes) -> torch.Size:
 
 def _shown(value) -> str:
     """A short description of a refused value (arrays by shape and dtype, not by their entries)."""
-    if isinstance(value, (torch.Tensor, np.ndarray)):
+    if isinstance(value, _arrays()):
         return f"a {type(value).__name__} of shape {tuple(value.shape)} and dtype {value.dtype}"
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
@@ -108,7 +136,7 @@ def check_number(value, name: str, expected: str = "a real number") -> float:
 
     Any real number is accepted, nan and inf included (callers check the range)."""
     scalar = value
-    if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0:
+    if isinstance(value, _arrays()) and value.ndim == 0:
         scalar = value.item()
     if isinstance(scalar, (bool, np.bool_)) or not isinstance(scalar, numbers.Real):
         raise TypeError(f"{name} must be {expected}, got {_shown(value)}")
@@ -122,6 +150,8 @@ def check_finite_in(value, name: str, dtype: torch.dtype | None) -> float:
     """Check that a finite number stays finite, and nonzero if nonzero, when cast to the float ``dtype`` (e.g. a
     step size used as ``alpha`` of a float32 ``torch.add``: ``1e39`` overflows to inf, ``1e-50`` underflows to
     0). ``dtype=None`` checks nothing. Returns the float."""
+    import torch
+
     v = check_number(value, name)
     if dtype is None or not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         if dtype is None:
@@ -169,7 +199,7 @@ def check_bool(value, name: str) -> bool:
 
 def check_int(value, name: str, minimum: int) -> int:
     """Check that a parameter is an integer >= minimum (an integral float such as 4.0 is accepted)."""
-    scalar = value.item() if isinstance(value, (torch.Tensor, np.ndarray)) and value.ndim == 0 else value
+    scalar = value.item() if isinstance(value, _arrays()) and value.ndim == 0 else value
     integral = (isinstance(scalar, numbers.Real) and not isinstance(scalar, (bool, np.bool_))
                 and math.isfinite(scalar) and int(scalar) == scalar)
     if not integral:
@@ -184,6 +214,8 @@ def check_int(value, name: str, minimum: int) -> int:
 def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``x`` (tensor or array-like) as a real, finite tensor of ``shape`` in ``dtype`` / ``device``;
     errors name the argument."""
+    import torch
+
     if isinstance(x, torch.Tensor):
         t = x.detach()
     else:

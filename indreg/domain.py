@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-
-import torch
+from typing import TYPE_CHECKING
 
 from ._checks import check_int, check_number, check_tensor
+
+if TYPE_CHECKING:   # imported where used: the app's preflight reads a domain without loading torch
+    import torch
 
 
 AXES = "xyz"
@@ -104,19 +106,28 @@ class ImageDomain:
         """Cell area ``hx * hy`` (2D) or volume ``hx * hy * hz`` (3D): the weight of the L2 inner product."""
         return math.prod(self.cell_sides)
 
-    def axes(self, dtype=torch.float64, device=None) -> tuple:
-        """Cell-centre coordinates ``(x, y[, z])``, 1D tensors of lengths ``nx``, ``ny``[, ``nz``]."""
+    def axes(self, dtype=None, device=None) -> tuple:
+        """Cell-centre coordinates ``(x, y[, z])``, 1D tensors of lengths ``nx``, ``ny``[, ``nz``] (``dtype`` None:
+        float64)."""
+        import torch
+
+        dtype = torch.float64 if dtype is None else dtype
         return tuple(
             a + (torch.arange(n, dtype=dtype, device=device) + 0.5) * h
             for a, n, h in zip(self.min_pt, self.shape, self.cell_sides))
 
-    def points(self, dtype=torch.float64, device=None) -> torch.Tensor:
-        """Cell centres as a tensor ``(d, *shape)``: ``[0]`` holds x, ``[1]`` holds y, ``[2]`` holds z."""
+    def points(self, dtype=None, device=None) -> torch.Tensor:
+        """Cell centres as a tensor ``(d, *shape)``: ``[0]`` holds x, ``[1]`` holds y, ``[2]`` holds z (``dtype``
+        None: float64)."""
+        import torch
+
         return torch.stack(torch.meshgrid(*self.axes(dtype, device), indexing="ij"))
 
-    def zeros(self, *batch, dtype=torch.float64, device=None) -> torch.Tensor:
-        """An all-zero image ``(*batch, *shape)``."""
-        return torch.zeros(*batch, *self.shape, dtype=dtype, device=device)
+    def zeros(self, *batch, dtype=None, device=None) -> torch.Tensor:
+        """An all-zero image ``(*batch, *shape)`` (``dtype`` None: float64)."""
+        import torch
+
+        return torch.zeros(*batch, *self.shape, dtype=torch.float64 if dtype is None else dtype, device=device)
 
     def check_image(self, f, name: str = "image") -> torch.Tensor:
         """Validate an image ``(..., *shape)``: floating dtype, finite values, this domain's shape."""
@@ -136,6 +147,8 @@ class ImageDomain:
         ``grid_sample`` on a tensor ``(..., *shape)`` reads ``grid[..., 0]`` along the last axis, ``grid[..., 1]``
         along the one before, ... (the reverse of (x, y, z)), all normalised so that -1 and 1 are the edges.
         """
+        import torch
+
         lo = torch.tensor(self.min_pt, dtype=x.dtype, device=x.device)
         ext = torch.tensor(self.extent, dtype=x.dtype, device=x.device)
         u = 2.0 * (x - lo) / ext - 1.0

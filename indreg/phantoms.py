@@ -30,13 +30,15 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 from importlib import resources
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
-from scipy import ndimage
 
 from ._checks import broadcast_shapes, check_int
 from .domain import ImageDomain
+
+if TYPE_CHECKING:   # torch and scipy are imported where used: the app's preflight reads the names without them
+    import torch
 
 #: The frame ``[-16, 16]^2`` on which the raster phantoms are defined (the paper's image domain).
 RASTER_FRAME = ((-16.0, -16.0), (16.0, 16.0))
@@ -85,6 +87,8 @@ def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torc
         mapped onto ``[min_pt, max_pt]`` (module docstring); returns float64 ``(nx, ny)``. The integral of one
         ellipse over the domain is ``value * pi * a * b * extent_x * extent_y / 4`` up to the sub-sampling error.
     """
+    import torch
+
     s = check_int(supersample, "supersample", 1)
     nx, ny = domain.shape
     # sub-sample positions in normalised coordinates: cell (i, k) of the fine grid of (s nx) x (s ny) cells
@@ -96,6 +100,8 @@ def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torc
 
 def ellipse_values(ellipses, X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
     """The sum of the ellipses' values at the normalised points ``(X, Y)`` (``ellipse_phantom``'s rows)."""
+    import torch
+
     fine = torch.zeros_like(X)
     for row in ellipses:
         if len(row) != 6:
@@ -180,6 +186,8 @@ SWIRL_ANGLE, SWIRL_RADIUS, SWIRL_HEIGHT, BEND = 0.7, 0.45, 0.5, 0.12
 def ellipsoid_rotation(phi: float, theta: float, psi: float) -> torch.Tensor:
     """ZXZ Euler rotation (degrees) ``R`` of an ellipsoid: ``p`` is inside when ``|R (p - c) / axes| <= 1``.
     With ``theta = psi = 0`` it is the 2D ``R(phi) = [[cos, sin], [-sin, cos]]`` about z (module docstring)."""
+    import torch
+
     f, t, s = (math.radians(a) for a in (phi, theta, psi))
     cf, sf, ct, st, cs, ss = math.cos(f), math.sin(f), math.cos(t), math.sin(t), math.cos(s), math.sin(s)
     return torch.tensor([[cs * cf - ct * sf * ss, cs * sf + ct * cf * ss, ss * st],
@@ -189,6 +197,8 @@ def ellipsoid_rotation(phi: float, theta: float, psi: float) -> torch.Tensor:
 
 def _ellipsoids(rows) -> list:
     """Checked rows as ``(value, axes (3,), centre (3,), R (3, 3))``."""
+    import torch
+
     out = []
     for row in rows:
         if len(row) != 10:
@@ -205,6 +215,8 @@ def _ellipsoids(rows) -> list:
 def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
     """Sum of constant-valued ellipsoids at normalised points ``u`` ``(3, ...)`` (rows as
     ``SHEPP_LOGAN_3D_ELLIPSOIDS``); returns ``u.shape[1:]``."""
+    import torch
+
     out = torch.zeros(u.shape[1:], dtype=torch.float64)
     for value, axes, centre, rot in _ellipsoids(ellipsoids):
         q = torch.tensordot(rot, u - centre.view(3, *([1] * (u.dim() - 1))), dims=1)
@@ -221,6 +233,8 @@ def supersampled(domain: ImageDomain, fn, supersample: int = 2, rows: tuple | No
     made 64^3 take 5.8 s instead of 2.0 s. Returns float64 ``(nx, ny, nz)``; with ``rows = (axis, start, stop)``
     only the cells whose index along ``axis`` is in ``[start, stop)`` (that axis cut to ``stop - start``: those rows
     of the whole volume to rounding, e.g. one process's share of a tilt series' slices)."""
+    import torch
+
     s = check_int(supersample, "supersample", 1)
     if domain.ndim != 3:
         raise ValueError(f"a 3D phantom needs a 3D domain, got shape {domain.shape}")
@@ -275,6 +289,8 @@ def ellipsoid_line_integrals(ellipsoids, domain: ImageDomain, points: torch.Tens
     ``e = R (d / half_extent) / axes``) and the chord is ``2 sqrt(b^2 - |e|^2 (|q|^2 - 1)) / |e|^2``,
     ``b = q . e``, where the root is real (exact for any box, also non-cubic).
     """
+    import torch
+
     lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (domain.min_pt, domain.max_pt))
     mid, half = (lo + hi) / 2, (hi - lo) / 2
     u, e_u = (points.to(torch.float64) - mid) / half, directions.to(torch.float64) / half
@@ -291,6 +307,8 @@ def ellipsoid_tilt_series(ellipsoids, domain: ImageDomain, geometry) -> torch.Te
     """Exact tilt-series data ``(num_tilts, det_rows, det_cols)`` of ``ellipsoid_phantom(domain, ellipsoids)``
     for a resolved ``TiltSeriesGeometry`` (``TiltSeriesTransform(...).geometry``): the line through
     ``s_d w + t_j e_t`` along ``w_perp`` in the slice plane (``TiltSeriesGeometry``)."""
+    import torch
+
     u, v = geometry.slice_axes
     theta = geometry.angles[:, None, None]
     s = geometry.det_points[None, None, :]
@@ -311,6 +329,8 @@ def swirl_bend(u: torch.Tensor, inverse: bool = False) -> torch.Tensor:
     unit-triangular in suitable coordinates, so ``det D phi = 1`` everywhere (positive, volume-preserving), and
     both are inverted in closed form (``r`` and ``z`` are invariant): ``phi^-1 = S^-1 o B^-1`` (``inverse=True``).
     """
+    import torch
+
     def swirl(w, sign):
         alpha = sign * SWIRL_ANGLE * torch.exp(-(w[0] ** 2 + w[1] ** 2) / (2 * SWIRL_RADIUS ** 2)
                                                - w[2] ** 2 / (2 * SWIRL_HEIGHT ** 2))
@@ -361,6 +381,9 @@ def sample_raster(img: np.ndarray, domain: ImageDomain) -> torch.Tensor:
     Linear interpolation, zero beyond the frame (``scipy.ndimage.map_coordinates``, ``grid-constant``).
     On the raster's own grid the values are returned unchanged.
     """
+    import torch
+    from scipy import ndimage
+
     (lo, hi), n = RASTER_FRAME, img.shape
     if domain.shape == n and domain.min_pt == lo and domain.max_pt == hi:
         return torch.from_numpy(img.copy())

@@ -27,8 +27,10 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:   # imported where used: the app's preflight loads this module without torch
+    import torch
 
 __all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units",
            "border_level", "check_offset", "compare_units", "unit_factor", "data_term_scale", "noise_residual", "prepare"]
@@ -112,6 +114,8 @@ def border_level(data: torch.Tensor) -> float:
     """The median of the outermost ``max(1, n // 16)`` detector columns on each side (the last axis: bins of a
     sinogram, columns of a tilt series) over all angles (and rows): the level of the detector outside the
     object's shadow, 0 for projections of an object inside the field of view."""
+    import torch
+
     n = data.shape[-1]
     k = max(1, n // 16)
     border = torch.cat([data[..., :k].reshape(-1), data[..., n - k:].reshape(-1)]) if n > 1 else data.reshape(-1)
@@ -136,6 +140,8 @@ def check_offset(data: torch.Tensor, label: str) -> None:
 
 def compare_units(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
     """``(||T I|| / ||g||, c = <T I, g> / <T I, T I>)`` in the data inner product ``operator.inner_data``."""
+    import torch
+
     with torch.no_grad():
         TI = operator(template)
         tt = float(operator.inner_data(TI, TI).sum())
@@ -185,6 +191,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
     option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
     template whose projection does not resemble the data)."""
+    import torch
+
     units = Units()
     if background is None:
         check_offset(data, label("background"))
@@ -214,6 +222,8 @@ def data_term_scale(operator, data: torch.Tensor) -> float:
 def _check_nonzero(operator, data: torch.Tensor, why: str = "") -> float:
     """``||g||^2`` in ``operator.inner_data``; all-zero (or non-finite) data are a one-line ``ValueError`` (``why``:
     what the background did, appended)."""
+    import torch
+
     with torch.no_grad():
         gg = float(operator.inner_data(data, data).sum())
     if not (gg > 0 and math.isfinite(gg)):

@@ -8,8 +8,11 @@ seconds (user + system, less sensitive to other jobs than wall seconds) and the 
   and the registration stack), with ``python -c "import torch"`` for scale;
 - ``indreg-register --help``, ``indreg-train-momentum --help`` and ``indreg-align --help``, to their exit (as
   ``python -m``, the modules their console scripts run);
-- ``indreg-register`` (the default experiment, in a temporary run directory) to its first log line: the process
-  reports its own CPU seconds there and exits (:data:`FIRST_LINE`).
+- ``indreg-register kernel.sigma=-1`` to its one-line refusal (a bad option, refused before torch is imported);
+- ``indreg-register`` (the default experiment, in a temporary run directory) to its first log line, the first
+  INFO line from indreg a user sees (the run's plan, ``indreg.experiments.register.plan_line``, logged before torch
+  is imported): the process reports its own CPU seconds there and exits (:data:`FIRST_LINE`); the line is printed
+  below the table.
 
 Every command imports the indreg of this checkout (``PYTHONPATH``), or with ``--before DIR`` also that of the
 checkout ``DIR`` (an older commit: ``git worktree add DIR <commit>``), for a before / after table::
@@ -49,17 +52,30 @@ def to_exit(cmd: list, env: dict) -> tuple:
     return after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime, wall
 
 
+def to_refusal(cmd: list, env: dict) -> tuple:
+    """(CPU seconds, wall seconds) of ``cmd``, a command line the app refuses (exit status 1, one line on
+    stderr), run to its exit."""
+    before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run(cmd + [f"hydra.run.dir={tmp}/run"], capture_output=True, text=True, env=env, cwd=tmp)
+    after, wall = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter() - start
+    if proc.returncode != 1 or len(proc.stderr.strip().splitlines()) != 1:
+        raise RuntimeError(f"{' '.join(cmd)} was not refused with one line: {proc.stderr[-2000:]}")
+    return after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime, wall
+
+
 #: ``indreg-register`` that ends at its first log record of level INFO or above from indreg, writing its own CPU
-#: seconds to stderr (``cpu <seconds>``): the process measures itself, so no time passes between the line and the
-#: reading, however loaded the machine (the run would go on computing its baselines meanwhile).
+#: seconds and the line to stderr (``cpu <seconds>``, ``line <message>``): the process measures itself, so no time
+#: passes between the line and the reading, however loaded the machine (the run would go on meanwhile).
 FIRST_LINE = """
 import logging, os, sys, time
 make = logging.getLogRecordFactory()
 def first(name, level, *args, **kwargs):
+    record = make(name, level, *args, **kwargs)
     if level >= logging.INFO and name.startswith("indreg"):
-        os.write(2, f"cpu {time.process_time()}\\n".encode())
+        os.write(2, f"cpu {time.process_time()}\\nline {record.getMessage()}\\n".encode())
         os._exit(0)
-    return make(name, level, *args, **kwargs)
+    return record
 logging.setLogRecordFactory(first)
 sys.argv = ["indreg-register", *sys.argv[1:]]
 from indreg.experiments.register import main
@@ -67,8 +83,13 @@ main()
 """
 
 
+#: The first log line of the last run of :func:`to_first_line`, by checkout (``PYTHONPATH``).
+FIRST_LINES: dict = {}
+
+
 def to_first_line(cmd: list, env: dict) -> tuple:
-    """(CPU seconds, wall seconds) of ``cmd`` (:data:`FIRST_LINE`) until its first log line."""
+    """(CPU seconds, wall seconds) of ``cmd`` (:data:`FIRST_LINE`) until its first log line (kept in
+    :data:`FIRST_LINES`)."""
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         proc = subprocess.run(cmd + [f"hydra.run.dir={tmp}/run"], capture_output=True, text=True, cwd=tmp, env=env)
@@ -76,6 +97,7 @@ def to_first_line(cmd: list, env: dict) -> tuple:
     lines = [line for line in proc.stderr.splitlines() if line.startswith("cpu ")]
     if not lines:
         raise RuntimeError(f"{' '.join(cmd[:2])} ended without a log line: {proc.stderr[-2000:]}")
+    FIRST_LINES[env["PYTHONPATH"]] = next((ln[5:] for ln in proc.stderr.splitlines() if ln.startswith("line ")), "")
     return float(lines[-1].split()[1]), wall
 
 
@@ -89,6 +111,7 @@ def cases(root: Path) -> list:
             ("`indreg-register --help`", to_exit, register + ["--help"]),
             ("`indreg-train-momentum --help`", to_exit, train + ["--help"]),
             ("`indreg-align --help`", to_exit, [PYTHON, "-m", "indreg.align_app", "--help"]),
+            ("`indreg-register kernel.sigma=-1` to its one-line refusal", to_refusal, register + ["kernel.sigma=-1"]),
             ("`indreg-register` to its first log line", to_first_line, [PYTHON, "-c", FIRST_LINE])]
 
 
@@ -126,6 +149,8 @@ def main() -> None:
             cells += [f"{statistics.median(cpu):.2f}", f"{min(cpu):.2f}", f"{statistics.median(wall):.2f}"]
         print(f"| {label} | {' | '.join(cells)} |")
     print(f"\nload average after: {os.getloadavg()[0]:.1f}")
+    for name, root in zip(names, roots):
+        print(f"\n{name + ': ' if name else ''}first log line: {FIRST_LINES.get(str(root), '')}")
 
 
 if __name__ == "__main__":

@@ -74,3 +74,47 @@ def test_the_kernels_fft_length_is_scipys():
     from indreg.deform.kernel import fast_length
 
     assert [fast_length(n) for n in range(1, 5000)] == [scipy.fft.next_fast_len(n) for n in range(1, 5000)]
+
+
+#: ``indreg-register`` (``sys.argv[1:]`` its arguments) that prints, as one json line, the first log record of level
+#: INFO from indreg and whether torch was loaded then, and exits; or, if it exits first, whether torch was loaded.
+FIRST_LINE = """
+import json, logging, os, sys
+make = logging.getLogRecordFactory()
+def first(name, level, *args, **kwargs):
+    record = make(name, level, *args, **kwargs)
+    if level >= logging.INFO and name.startswith("indreg"):
+        print(json.dumps({"line": record.getMessage(), "torch": "torch" in sys.modules}), flush=True)
+        os._exit(0)
+    return record
+logging.setLogRecordFactory(first)
+sys.argv = ["indreg-register", *sys.argv[1:]]
+from indreg.experiments.register import main
+try:
+    main()
+except SystemExit as e:
+    print(json.dumps({"exit": e.code, "torch": "torch" in sys.modules}), flush=True)
+    raise
+"""
+
+
+def _first_line(tmp_path, *overrides) -> tuple:
+    """(the json line of :data:`FIRST_LINE`, stderr) of ``indreg-register overrides`` run in ``tmp_path``."""
+    proc = subprocess.run([sys.executable, "-c", FIRST_LINE, f"hydra.run.dir={tmp_path / 'run'}", *overrides],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
+
+
+def test_the_first_line_says_what_will_run_before_torch_is_imported(tmp_path):
+    seen, err = _first_line(tmp_path)
+    assert seen["torch"] is False, seen
+    assert seen["line"] == (f"suite1_jv: model lddmm, solver algorithm1 (200 iterations), data phantom j -> v (64^2 "
+                            f"cells, parallel geometry), float32 on device auto; run dir {tmp_path / 'run'}"), err
+
+
+def test_a_bad_option_is_refused_without_torch(tmp_path):
+    seen, err = _first_line(tmp_path, "kernel.sigma=-1")
+    assert seen == {"exit": 1, "torch": False}
+    assert err.strip() == ("indreg-register: error: invalid config value kernel.sigma=-1: expected None, 'auto' or "
+                           "a finite number > 0")
+    assert not (tmp_path / "run").exists()

@@ -10,20 +10,20 @@ from __future__ import annotations
 import logging
 from enum import Enum
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from ..io import conventions as _conventions
 from .._checks import is_finite_number
 from .. import phantoms
-from ..inputs import box_domain, make_geometry, make_operator, square_domain
-from ..inputs import load as load_inputs
 from ..io import DataFileError, check_file, read_angles
 from ..tilt_axis import check_tilt_axis
 from .errors import ConfigError
 from .sources import Data, Source, register_source
+
+if TYPE_CHECKING:   # torch and indreg.inputs (the operators) are imported where used: the app's preflight checks a
+    import torch    # source's config without them
 
 __all__ = ["FileConvention", "IntegerScale", "CONFIG_KEYS", "phantom_data", "file_data", "dynamic_data",
            "geometry_options", "make_data"]
@@ -45,6 +45,8 @@ CONFIG_KEYS = {"template": "data.template", "data": "data.sinogram", "target": "
 
 def _angles(g) -> Optional[torch.Tensor]:
     """``geometry.angles`` (a text-file path or a list, in ``geometry.angle_unit``) in radians, or None."""
+    import torch
+
     spec = _angle_spec(g)
     if spec is None:
         return None
@@ -93,6 +95,7 @@ def phantom_data(cfg: DictConfig) -> Data:
     (noise drawn with the run's seed), so the same config gives the same data on every device. Over the ranks of
     ``torchrun`` a tilt series is built by rows (``split_setup.simulated_rows``: each rank its share of the slices;
     the target on rank 0 only), the same values to rounding."""
+    from ..inputs import box_domain, make_geometry, make_operator, square_domain
     from ..ranks import default_group
     from . import split_setup
 
@@ -135,6 +138,8 @@ def file_data(cfg: DictConfig) -> Data:
     the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
     ``data.integer_scale`` say how to read them; ``data.alignment`` (a tilt series) another tool's alignment of the
     raw stack (``indreg.io.alignment_files``). No noise is added."""
+    from ..inputs import load as load_inputs
+
     d, g = cfg.data, cfg.geometry
     try:
         inputs = load_inputs(d.template, d.sinogram, g.kind.value, angles=_angle_spec(g),
@@ -156,6 +161,8 @@ def dynamic_data(cfg: DictConfig) -> Data:
     ``phantom.size^2`` cells of [-16, 16]^2, ``geometry.num_angles`` angles per frame (all frames together uniform
     on [0, pi)), ``geometry.det_count`` bins, noise at ``noise.snr_db`` per frame (seeded). The operator is a
     ``TimeSeriesOperator``; the target is the last frame, ``targets`` the true frames and template."""
+    import torch
+
     from ..dynamic import acquisition
     from ..forward import TimeSeriesOperator
 
@@ -201,16 +208,37 @@ def _check_dynamic(c: DictConfig, require) -> None:
             "frames)", g.kind.value)
 
 
-register_source(Source("phantom", phantom_data, check=_check_phantom, doc="the paper's phantoms, simulated data"))
+def _cells(p) -> str:
+    """The grid of the ``phantom`` group: ``64^2`` or ``nx x ny x nz``."""
+    shape = (p.size,) * p.ndim if p.thickness is None and p.rows is None else \
+        (p.size, p.rows or p.size, p.thickness or p.size)
+    return f"{p.size}^{p.ndim}" if len(set(shape)) == 1 else " x ".join(map(str, shape))
+
+
+def _describe_phantom(c: DictConfig) -> str:
+    return f"{c.phantom.template.value} -> {c.phantom.target.value} ({_cells(c.phantom)} cells, " \
+           f"{c.geometry.kind.value} geometry)"
+
+
+def _describe_files(c: DictConfig) -> str:
+    return f"{c.data.template} and {c.data.sinogram} ({c.geometry.kind.value} geometry)"
+
+
+def _describe_dynamic(c: DictConfig) -> str:
+    return f"{c.data.frames} frames of a breathing phantom ({c.phantom.size}^2 cells)"
+
+
+register_source(Source("phantom", phantom_data, check=_check_phantom, doc="the paper's phantoms, simulated data",
+                       describe=_describe_phantom))
 register_source(Source("files", file_data, check=_check_files, preflight=_files_exist, measured=True,
-                       doc="your own files (indreg.load)", options=(
+                       describe=_describe_files, doc="your own files (indreg.load)", options=(
     ("template", Optional[str], None), ("sinogram", Optional[str], None), ("target", Optional[str], None),
     ("half_width", float, 16.0),
     ("convention", FileConvention, FileConvention.indreg),      # skimage, astra, tomopy, imod, odl
     ("integer_scale", IntegerScale, IntegerScale.fraction),    # 8/16-bit pictures as fractions, or raw
     ("alignment", Optional[str], None))))   # a tilt series' IMOD .xf / AreTomo .aln, applied in the operator
 register_source(Source("dynamic", dynamic_data, check=_check_dynamic, doc="a breathing phantom measured over time",
-                       options=(
+                       describe=_describe_dynamic, options=(
     ("frames", int, 12),              # time points K (t_k = k / K)
     ("amplitude", float, 0.4),        # the breathing amplitude A (indreg.dynamic)
     ("template_known", bool, True))))  # false: the template is unknown (reconstructed with the motion)

@@ -51,7 +51,7 @@ from omegaconf import DictConfig
 from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
 from . import app_help, cli
 
-__all__ = ["main", "preflight", "run", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
+__all__ = ["main", "preflight", "run", "plan_line", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
 log = logging.getLogger(__name__)
 
@@ -98,13 +98,15 @@ def _task(cfg: DictConfig):
     128 + signal number after SIGINT / SIGTERM (checkpoint written)."""
     from hydra.core.hydra_config import HydraConfig
 
+    hc = HydraConfig.get()
+    _prefix_job_logs(hc)
+    log.info("%s", plan_line(cfg, Path(hc.runtime.output_dir)))   # the first line, before torch is imported
+
     from ..io import DataFileError
     from .checkpoint import CheckpointError
     from .config import ConfigError
     from .runner import run
 
-    hc = HydraConfig.get()
-    _prefix_job_logs(hc)
     try:
         result = run(cfg, hc.runtime.output_dir)
     except (ConfigError, DataFileError, CheckpointError) as e:  # user errors: one line, no traceback
@@ -121,6 +123,18 @@ def _task(cfg: DictConfig):
                     "data (data.template_scale=auto, data.background=auto) and the step (outputs in "
                     f"{hc.runtime.output_dir})")
     return result.get("ssim")
+
+
+def plan_line(cfg: DictConfig, out: Path) -> str:
+    """The run's first line: what will run (the run's name, model, solver, data, dtype and device) and where its
+    outputs go; from the config alone, so that it is logged before torch is imported."""
+    from .sources import describe
+
+    s = cfg.solver
+    solver = s.optimizer if s.name == "torch_optim" else s.name
+    resume = " (resume=true: from its checkpoint, if any)" if cfg.resume else ""
+    return (f"{cfg.name}: model {cfg.deformation.model}, solver {solver} ({s.max_iter} iterations), data "
+            f"{describe(cfg)}, {getattr(cfg.dtype, 'value', cfg.dtype)} on device {cfg.device}; run dir {out.resolve()}{resume}")
 
 
 #: The figures a finished run may write, in the order the last line names them.

@@ -33,16 +33,19 @@ from __future__ import annotations
 import importlib
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
-import torch
 from omegaconf import DictConfig
 
 from .._files import DataFileError
 from ..domain import ImageDomain
-from ..inputs import RegistrationInputs
 from ..options import add_to_registry
 from .errors import ConfigError
+
+if TYPE_CHECKING:   # imported where used: the app's preflight checks a source's config without torch
+    import torch
+
+    from ..inputs import RegistrationInputs
 
 __all__ = ["Data", "Source", "SOURCES", "register_source", "get", "resolve", "load", "data_fields", "check_files",
            "is_measured"]
@@ -90,7 +93,8 @@ class Source:
     default); ``check(cfg, require)``: its values' checks before the run, ``require(ok, key, expected, value)``
     raising a one-line error naming the key; ``preflight(cfg)``: what else must hold before the run directory is
     made (files exist); ``measured``: the data are measured, not simulated (the paper's presets' absolute weights
-    then give way to the relative ones, ``indreg.units``)."""
+    then give way to the relative ones, ``indreg.units``); ``describe(cfg) -> str``: the data in a few words, for
+    the run's first line (:func:`describe`; from the config alone, nothing read)."""
     name: str
     load: Callable
     options: tuple = ()
@@ -98,6 +102,7 @@ class Source:
     preflight: Optional[Callable] = None
     measured: bool = False
     doc: str = ""
+    describe: Optional[Callable] = None
 
 
 def register_source(source: Source) -> Source:
@@ -160,6 +165,8 @@ def _type_name(kind) -> str:
 
 def load(cfg: DictConfig) -> Data:
     """The data of ``cfg.data.source`` (:func:`get`)."""
+    from ..inputs import RegistrationInputs
+
     source = get(cfg.data.source)
     with calling(source, "load"):
         data = source.load(cfg)
@@ -177,6 +184,15 @@ def check_files(cfg: DictConfig) -> None:
     if source.preflight is not None:
         with calling(source, "preflight"):
             source.preflight(cfg)
+
+
+def describe(cfg: DictConfig) -> str:
+    """``data.source`` and, if it has :attr:`Source.describe`, its few words (``phantom j -> v, 64^2 cells, ...``)."""
+    source = get(cfg.data.source)
+    if source.describe is None:
+        return source.name
+    with calling(source, "describe"):
+        return f"{source.name} {source.describe(cfg)}"
 
 
 def is_measured(name: str) -> bool:

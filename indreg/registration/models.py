@@ -17,14 +17,16 @@ Built in:
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Optional, Union
-
-import torch
+from typing import TYPE_CHECKING, Any, Callable, Optional, Union
 
 from . import solver_registry  # noqa: F401  (the solvers a model's solver_options name)
 from .._checks import as_tensor
 from ..options import (ALGORITHM1, MODELS, TORCH, Model, Option, OptionError, anything, auto_or, boolean,  # noqa: F401
                       choice, model, number, optional, register_model, solver_kind)
+
+if TYPE_CHECKING:   # imported where used: the app's preflight loads this module without torch
+    import torch
+
 
 def get(name: str) -> Model:
     """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
@@ -102,6 +104,8 @@ def _source_masks(mask, template: torch.Tensor, data: torch.Tensor, operator, do
     """``(source_mask, uniform_region)``: ``source_mask`` None, ``"template"`` (the template's support,
     ``template_support``), ``"data"`` (that and where the data show mass the template lacks, ``_data_only_support``:
     the ``uniform_region`` when not empty, else None) or an array."""
+    import torch
+
     from ..problems.metamorphosis import template_support
 
     if mask is None:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import inspect
 
-import torch
 
 from ..options import (ALGORITHM1, FAST, SOLVERS, TORCH, OptionError, Solver, register_solver,  # noqa: F401
                       solver, solver_kind)
@@ -71,6 +70,8 @@ register_solver(Solver(FAST, _fast, check=_check_fast, doc="coarse to fine (Mult
 # ---------------------------------------------------------------------------------------------------- torch.optim
 def _optimizers() -> dict:
     """``torch.optim``'s optimizer classes by lower-case name."""
+    import torch
+
     return {name.lower(): cls for name, cls in vars(torch.optim).items()
             if isinstance(cls, type) and issubclass(cls, torch.optim.Optimizer) and cls is not torch.optim.Optimizer}
 
