@@ -187,12 +187,16 @@ def check_files(cfg: DictConfig) -> None:
 
 
 def describe(cfg: DictConfig) -> str:
-    """``data.source`` and, if it has :attr:`Source.describe`, its few words (``phantom j -> v, 64^2 cells, ...``)."""
+    """``data.source`` and, if it has :attr:`Source.describe`, its few words (``phantom j -> v (64^2 cells, ...)``);
+    a plug-in's ``describe`` that raises leaves the name alone (the line only informs: its ``load`` reports)."""
     source = get(cfg.data.source)
     if source.describe is None:
         return source.name
-    with calling(source, "describe"):
-        return f"{source.name} {source.describe(cfg)}"
+    try:
+        with calling(source, "describe"):
+            return f"{source.name} {source.describe(cfg)}"
+    except ConfigError:
+        return source.name
 
 
 def is_measured(name: str) -> bool:
