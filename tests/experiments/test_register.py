@@ -41,6 +41,9 @@ def test_console_entry_point_end_to_end(tmp_path):
         assert np.load(out / f"{name}.npy").shape == shape, name
     assert (out / "figure.png").stat().st_size > 10_000
     assert (out / ".hydra" / "config.yaml").is_file()
+    first, second = [line.split(" - ", 1)[-1] for line in (out / "register.log").read_text().splitlines()[:2]]
+    assert first.startswith("suite1_jv: model lddmm, solver algorithm1 (10 iterations), data phantom j -> v")
+    assert second.startswith("suite1_jv | IndirectRegistration(")   # the problem built: the second line
 
     ea = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
     ea.Reload()
