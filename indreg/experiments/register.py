@@ -36,7 +36,8 @@ measured data without a target have no ``target.npy`` / ``data_clean.npy`` and n
 relative data misfit, is always in metrics.json).
 
 This module is the entry point and the Hydra task; it imports no torch until a run starts (``--help`` answers at
-once). The run itself: :mod:`indreg.experiments.runner` (loop, resume, signals), :mod:`.baselines`, :mod:`.outputs`
+once), and neither do the preflight's checks: a bad command line is refused, and the run's first line (its plan,
+:func:`plan_line`) is logged, before torch is imported. The run itself: :mod:`indreg.experiments.runner` (loop, resume, signals), :mod:`.baselines`, :mod:`.outputs`
 and :mod:`.run_figures`. ``run``, ``CONFIG_DIR`` and ``_CONFIG_NAME`` are also served from here (the latter two
 with the config schema registered, for callers that compose the config themselves).
 """
