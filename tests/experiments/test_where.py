@@ -14,7 +14,7 @@ from experiment_helpers import compose
 def test_first_line_names_the_run_model_solver_data_and_run_dir(tmp_path):
     assert plan_line(compose(), tmp_path) == (
         f"suite1_jv: model lddmm, solver algorithm1 (200 iterations), data phantom j -> v (64^2 cells, parallel "
-        f"geometry), float32 on device auto; run dir {tmp_path}")
+        f"geometry), float32 on device auto; run dir {tmp_path.resolve()}")
     line = plan_line(compose(["experiment=own_data_example", "solver=lbfgs", "solver.max_iter=7", "dtype=float64",
                               "resume=true"]), tmp_path)
     assert line.startswith("own_data_example: model lddmm, solver lbfgs (7 iterations), data files "
