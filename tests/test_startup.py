@@ -118,3 +118,26 @@ def test_a_bad_option_is_refused_without_torch(tmp_path):
     assert err.strip() == ("indreg-register: error: invalid config value kernel.sigma=-1: expected None, 'auto' or "
                            "a finite number > 0")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_every_presets_checks_and_first_line_need_no_torch(tmp_path):
+    """Every ``experiment=`` preset passes the preflight and gets its first line without torch (the solvers that
+    read their classes' options in their checks, ``solver=fast`` and torch.optim's, are not among the presets)."""
+    code = f"""
+import sys
+from pathlib import Path
+from indreg.conf import CONFIG_DIR
+from indreg.experiments import cli, register
+names = sorted(p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml"))
+for name in names:
+    argv = [f"experiment={{name}}", "hydra.run.dir={tmp_path / 'run'}"]
+    register.preflight(argv)
+    line = register.plan_line(cli.job_config(cli.compose(CONFIG_DIR, "config", argv)), Path("{tmp_path}"))
+    assert ": model " in line and "; run dir {tmp_path.resolve()}" in line, line
+print(len(names), "torch" in sys.modules)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    count, torch_loaded = proc.stdout.split()
+    assert int(count) >= 10 and torch_loaded == "False", proc.stdout

@@ -290,10 +290,10 @@ def _spatiotemporal(operator, template, data, kernel, o: dict) -> tuple:
 
 
 def _check_spatiotemporal(o: dict, label) -> None:
-    from ..problems.spatiotemporal import time_indices
-
     _backward_in(("autograd", "exact"))(o, label)
     if isinstance(o["times"], (list, tuple)):   # their number is checked against the data's frames at setup
+        from ..problems.spatiotemporal import time_indices   # (it imports torch: only when times are given)
+
         try:
             time_indices(o["times"], o["num_steps"], len(o["times"]))
         except ValueError as e:
