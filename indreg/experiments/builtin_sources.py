@@ -22,8 +22,10 @@ from ..tilt_axis import check_tilt_axis
 from .errors import ConfigError
 from .sources import Data, Source, register_source
 
-if TYPE_CHECKING:   # torch and indreg.inputs (the operators) are imported where used: the app's preflight checks a
-    import torch    # source's config without them
+# torch and indreg.inputs (the operators) are imported where used: the app's preflight checks a source's config
+# without them.
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["FileConvention", "IntegerScale", "CONFIG_KEYS", "phantom_data", "file_data", "dynamic_data",
            "geometry_options", "make_data"]

@@ -37,8 +37,8 @@ relative data misfit, is always in metrics.json).
 
 This module is the entry point and the Hydra task; it imports no torch until a run starts (``--help`` answers at
 once), and neither do the preflight's checks: a bad command line is refused, and the run's first line (its plan,
-:func:`plan_line`) is logged, before torch is imported. The run itself: :mod:`indreg.experiments.runner` (loop, resume, signals), :mod:`.baselines`, :mod:`.outputs`
-and :mod:`.run_figures`. ``run``, ``CONFIG_DIR`` and ``_CONFIG_NAME`` are also served from here (the latter two
+:func:`plan_line`) is logged, before torch is imported. The run itself: :mod:`indreg.experiments.runner` (loop,
+resume, signals), :mod:`.baselines`, :mod:`.outputs` and :mod:`.run_figures`. ``run``, ``CONFIG_DIR`` and ``_CONFIG_NAME`` are also served from here (the latter two
 with the config schema registered, for callers that compose the config themselves).
 """
 from __future__ import annotations
@@ -133,9 +133,10 @@ def plan_line(cfg: DictConfig, out: Path) -> str:
 
     s = cfg.solver
     solver = s.optimizer if s.name == "torch_optim" else s.name
+    dtype = getattr(cfg.dtype, "value", cfg.dtype)
     resume = " (resume=true: from its checkpoint, if any)" if cfg.resume else ""
     return (f"{cfg.name}: model {cfg.deformation.model}, solver {solver} ({s.max_iter} iterations), data "
-            f"{describe(cfg)}, {getattr(cfg.dtype, 'value', cfg.dtype)} on device {cfg.device}; run dir {out.resolve()}{resume}")
+            f"{describe(cfg)}, {dtype} on device {cfg.device}; run dir {out.resolve()}{resume}")
 
 
 #: The figures a finished run may write, in the order the last line names them.

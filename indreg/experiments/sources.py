@@ -48,7 +48,7 @@ if TYPE_CHECKING:   # imported where used: the app's preflight checks a source's
     from ..inputs import RegistrationInputs
 
 __all__ = ["Data", "Source", "SOURCES", "register_source", "get", "resolve", "load", "data_fields", "check_files",
-           "is_measured"]
+           "describe", "is_measured"]
 
 #: The entry-point group of installed sources (``data.source=<entry point name>``).
 ENTRY_POINTS = "indreg.sources"

@@ -15,9 +15,7 @@ points without editing this file.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-import sys
 from typing import Any, Callable, Dict, Optional
-
 
 from .checks import (ALGORITHM1, FAST, TORCH, OptionError, anything, auto_or, boolean, choice,  # noqa: F401
                             holdout, mapping, number, optional)
@@ -438,9 +436,8 @@ def relative(o: dict, scale: float, intensity: Callable[[], float]) -> dict:
 
 
 def _given(o: Option, value) -> bool:
-    """Whether ``value`` differs from the option's default (arrays count as given; a tensor means torch is loaded)."""
-    torch = sys.modules.get("torch")
-    if (torch is not None and isinstance(value, torch.Tensor)) or hasattr(value, "__array__"):
+    """Whether ``value`` differs from the option's default (arrays, numpy's or torch's, count as given)."""
+    if hasattr(value, "__array__"):
         return True
     return value is not o.default and value != o.default
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import inspect
 
-
 from ..options import (ALGORITHM1, FAST, SOLVERS, TORCH, OptionError, Solver, register_solver,  # noqa: F401
                       solver, solver_kind)
 
