@@ -34,8 +34,8 @@ from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
            "MIN_PROJECTIONS", "SCALE_ROUNDS", "SCALE_TOL", "AlignmentSolver", "aligned", "angle_uncertainty",
-           "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary", "plot_shifts", "projection_matching", "summary",
-           "turn_projection", "wrap"]
+           "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary", "plot_shifts",
+           "projection_matching", "summary", "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 

@@ -188,8 +188,8 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
     option in messages (the app: its config key). ``aligned_scale(template, data) -> c`` (the alignment's
     ``indreg.alignment.fit_scale``, when ``align`` is on) replaces the plain ``c`` for a fitted ``template_scale``:
-    data that drift against the template's projection bias the plain fit (docs/units.md). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
-    template whose projection does not resemble the data)."""
+    data that drift against the template's projection bias the plain fit (docs/units.md). Raises ValueError when
+    ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data)."""
     units = Units()
     if background is None:
         check_offset(data, label("background"))
