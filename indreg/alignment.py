@@ -33,9 +33,9 @@ from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
-           "MIN_PROJECTIONS", "AlignmentSolver", "aligned", "angle_uncertainty", "coarse_shifts", "estimate",
-           "find_aligned", "gauge", "operator_summary", "plot_shifts", "projection_matching", "summary",
-           "turn_projection", "wrap"]
+           "MIN_PROJECTIONS", "SCALE_ROUNDS", "SCALE_TOL", "AlignmentSolver", "aligned", "angle_uncertainty",
+           "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary", "plot_shifts",
+           "projection_matching", "summary", "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -57,6 +57,9 @@ GN_ITERATIONS = 15
 GN_MAX_STEP = 1.0
 #: Gauss-Newton stops when no shift moved more than this (px) and the angle not more than this (deg).
 GN_TOL = 1e-3
+#: :func:`fit_scale`: at most this many rounds (shifts, then scale), stopping when the scale moved by less than
+#: ``SCALE_TOL`` (relative).
+SCALE_ROUNDS, SCALE_TOL = 8, 1e-4
 #: Above this standard error (deg, :func:`angle_uncertainty`) the tilt-axis angle is reported as undetermined.
 MAX_ANGLE_SE_DEG = 0.2
 
@@ -244,6 +247,36 @@ def _gram(columns: list, K: int, c: int) -> torch.Tensor:
     glob = torch.einsum("ikp,jkp->ij", flat[c:], flat[c:])
     H = torch.block_diag(*block)
     return torch.cat([torch.cat([H, cross], dim=1), torch.cat([cross.T, glob], dim=1)])
+
+
+def _scale(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
+           angle: torch.Tensor) -> float:
+    """``c = <S P, g> / <S P, S P>`` (the data inner product, :func:`indreg.units.compare_units`'s fit) through the
+    alignment ``(shifts, angle)``."""
+    SP = op.warp(projection, shifts, angle)
+    den = float(op.inner_data(SP, SP).sum())
+    return float(op.inner_data(SP, data).sum()) / den if den > 0 else math.nan
+
+
+def fit_scale(op: AlignedOperator, template: torch.Tensor, data: torch.Tensor, rounds: int = SCALE_ROUNDS,
+              tol: float = SCALE_TOL) -> tuple:
+    """The template's least-squares scale through the alignment that matches its projection to the data: ``min_{c,
+    s, alpha} ||c S_{s, alpha} T I - g||^2``, where the plain fit ``<T I, g> / <T I, T I>`` is biased by the data's
+    drift (:func:`indreg.units.compare_units`). Alternating minimisation, so the objective never increases: the
+    start of the first in-fit estimate (:func:`_first_start`: the cross-correlation peaks, scale-free, or ``op``'s
+    given alignment), then ``rounds`` times ``c`` in closed form and the alignment of ``c T I`` (:func:`estimate`,
+    the angle too with ``"shifts+axis"``), until ``c`` moves by less than ``tol`` (relative).
+    Returns ``(c, shifts, angle, rounds done)``; ``op`` is left as it was."""
+    with torch.no_grad():
+        P, g = op.operator(template).detach().double(), data.detach().double()
+        s, a = _first_start(op, P, g), op.angle.double()
+        c, done = _scale(op, P, g, s, a), 0
+        while done < rounds and math.isfinite(c) and c > 0:
+            s, a, _ = estimate(op, c * P, g, s, a, op.mode == "shifts+axis")
+            c, previous, done = _scale(op, P, g, s, a), c, done + 1
+            if abs(c - previous) <= tol * abs(previous):
+                break
+    return c, s, a, done
 
 
 def turn_projection(operator, image: torch.Tensor) -> torch.Tensor:

@@ -67,7 +67,9 @@ class Units:
     (``template_scale="fit"``, ``indreg.intensity``: both fitted with the deformation); ``background``: the offset
     subtracted from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
     ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
-    ``T.inner_data``); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
+    ``T.inner_data``), with ``align`` and a fitted ``template_scale`` the fit through the shifts that align the
+    template's projection to the data (:func:`prepare`'s ``aligned_scale``) and ``scale_fit_unaligned`` the plain one
+    (NaN when there was none); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:
     the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`);
     ``target_units``: ``"data"`` or ``"template"`` (as given), the units of a ground truth, where SSIM / PSNR
@@ -77,6 +79,7 @@ class Units:
     background: float = 0.0
     projection_ratio: float = math.nan
     scale_fit: float = math.nan
+    scale_fit_unaligned: float = math.nan
     data_scale: float = math.nan
     noise_residual: float = math.nan
     target_units: str = "data"
@@ -181,7 +184,7 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
 
 
 def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
-            label=lambda name: name) -> tuple:
+            label=lambda name: name, aligned_scale=None) -> tuple:
     """Bring template and data to one unit before the run: ``(template, data, Units)``.
 
     ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is subtracted from the data; without it
@@ -189,8 +192,10 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
     the template; without a scale a warning names both numbers when either is outside
     ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
-    option in messages (the app: its config key). Raises ValueError when ``"auto"`` finds no positive ``c`` (a
-    template whose projection does not resemble the data)."""
+    option in messages (the app: its config key). ``aligned_scale(template, data) -> c`` (the alignment's
+    ``indreg.alignment.fit_scale``, when ``align`` is on) replaces the plain ``c`` for a fitted ``template_scale``:
+    data that drift against the template's projection bias the plain fit (docs/units.md). Raises ValueError when
+    ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data)."""
     import torch
 
     units = Units()
@@ -204,6 +209,11 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
                    f"; {label('background')}={background!r} subtracted {units.background:.4g} from every value")
     if template is not None:   # None: unknown (reconstructed by the model), no units to compare
         units.projection_ratio, units.scale_fit = compare_units(template, units.apply(None, data)[1], operator)
+        if aligned_scale is not None and template_scale in ("auto", "fit", "fit+offset"):
+            units.scale_fit_unaligned = units.scale_fit
+            units.scale_fit = aligned_scale(template, units.apply(None, data)[1])
+            log.info("the template's scale fitted through the alignment of its projection to the data: c = %.6g "
+                     "(%.6g without it)", units.scale_fit, units.scale_fit_unaligned)
         units.template_scale = _template_factor(template_scale, units, label("template_scale"))
     template, data = units.apply(template, data)
     if template is not None and not bool(torch.isfinite(template).all()):

@@ -8,8 +8,8 @@ import torch
 
 import indreg
 from indreg import ImageDomain, phantoms
-from indreg.alignment import (MAX_ANGLE_SE_DEG, aligned, angle_uncertainty, coarse_shifts, estimate, gauge, plot_shifts,
-                              projection_matching)
+from indreg.alignment import (MAX_ANGLE_SE_DEG, aligned, angle_uncertainty, coarse_shifts, estimate, fit_scale, gauge,
+                              plot_shifts, projection_matching)
 from indreg.forward import (FanBeamGeometry, ParallelBeamGeometry, RayTransform, TiltSeriesGeometry,
                             TiltSeriesTransform)
 from indreg.forward.operator import adjointness
@@ -212,6 +212,47 @@ def test_register_with_shifts_recovers_them_and_the_unshifted_ssim(tmp_path):
     assert unaligned.ssim < r.ssim - 0.01
     plot_shifts(r.alignment, tmp_path / "alignment.png")
     assert (tmp_path / "alignment.png").stat().st_size > 0
+
+
+def _cost_at(op, P, g, c, s, a) -> float:
+    return float((c * op.warp(P, s, a) - g).pow(2).sum())
+
+
+@pytest.mark.parametrize("kind", ["offset+translation", "none"])
+def test_fit_scale_recovers_the_scale_of_drifted_data(kind):
+    """A template in other units (x 0.5) and data that drift by up to 6 px: the plain least-squares factor
+    <T I, g> / <T I, T I> is biased low by the drift (more than 5 %), the fit through the alignment recovers 2 and
+    the shifts; every round lowers ||c S_s T I - g|| (alternating minimisation) and op is left as it was."""
+    T = _sinogram(48, 60)
+    f = phantoms.get("shepp_logan", T.domain).double()
+    op = aligned(T, "shifts", gauge=kind)
+    true = _random_shifts(T, 6.0, 1)
+    g = op.warp(T(f), true, op.angle)
+    plain = indreg.units.compare_units(0.5 * f, g, T)[1]
+    c, s, a, rounds = fit_scale(op, 0.5 * f, g)
+    assert plain < 0.95 * 2 and c == pytest.approx(2.0, rel=1e-4), (plain, c)
+    assert float((s - true).abs().max()) < 0.01 and 1 <= rounds < 8
+    assert float(op.shifts.abs().max()) == 0 and not getattr(op, "started", False)
+    costs = [_cost_at(op, T(0.5 * f), g, *fit_scale(op, 0.5 * f, g, rounds=k)[:3]) for k in (0, 1, 2)]
+    assert costs[0] > costs[1] >= costs[2], costs
+
+
+def test_register_fits_template_scale_through_the_alignment():
+    """register(template_scale='auto', align='shifts') on drifted data fits the template's factor through the
+    alignment (the plain one kept as units.scale_fit_unaligned); without align, or with a given factor, the units
+    are as before: the plain fit, no alignment of the scale."""
+    T = _sinogram(32, 20)
+    target = phantoms.get("shepp_logan", T.domain).double()
+    data = AlignedOperator(T, _random_shifts(T, 4.0, 7))(target)
+    options = dict(num_steps=2, max_iter=1, sigma=3.0)
+    plain = indreg.units.compare_units(0.5 * target, data, T)[1]
+    r = indreg.register(0.5 * target, data, T, align="shifts", template_scale="auto", **options)
+    assert r.units.template_scale == pytest.approx(2.0, rel=1e-3) and r.units.scale_fit == r.units.template_scale
+    assert r.units.scale_fit_unaligned == plain < 1.9
+    off = indreg.register(0.5 * target, data, T, template_scale="auto", **options)
+    assert off.units.scale_fit == off.units.template_scale == plain and math.isnan(off.units.scale_fit_unaligned)
+    given = indreg.register(0.5 * target, data, T, align="shifts", template_scale=2.0, **options)
+    assert given.units.scale_fit == plain and math.isnan(given.units.scale_fit_unaligned)
 
 
 def test_errors(series):

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 from ..options import CORRECTIONS, Correction, Option, OptionError, choice, register_correction
 
-__all__ = ["Correction", "CORRECTIONS", "Fit", "register_correction", "chain", "data_model", "summaries"]
+__all__ = ["Correction", "CORRECTIONS", "Fit", "register_correction", "aligned_scale", "chain", "data_model",
+           "summaries"]
 
 
 @dataclass
@@ -95,6 +96,24 @@ def _align(solver, fit: Fit):
     from ..alignment import wrap
 
     return wrap(solver, fit.operator, fit.data, fit.label("align"))
+
+
+def aligned_scale(operator):
+    """``indreg.units.prepare``'s ``aligned_scale`` for the data model ``operator`` (after :func:`data_model`): the
+    template's scale fitted jointly with the alignment of its projection to the data (``indreg.alignment.fit_scale``),
+    whose shifts then start the first in-fit estimate; None when ``operator`` has no alignment to estimate."""
+    from ..alignment import fit_scale
+    from ..forward.shift import AlignedOperator
+
+    if not isinstance(operator, AlignedOperator) or not hasattr(operator, "mode"):   # none, or a fixed alignment
+        return None
+
+    def fit(template, data) -> float:
+        c, operator.shifts, operator.angle, _ = fit_scale(operator, template, data)
+        operator.started = True
+        return c
+
+    return fit
 
 
 def _plot_shifts(summary: dict, path) -> None:

@@ -132,12 +132,13 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if model.defaults is not None:   # the model's own rules for options left None
         model.defaults(o)
     names = {option.name: option for option in opts.all_options()}
+    modelled = corrections.data_model(operator, o, lambda name: label(names[name]))   # e.g. T_s (alignment)
     template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
-                                    lambda name: label(names[name]))
+                                    lambda name: label(names[name]), corrections.aligned_scale(modelled))
     if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
         units.locate_target(template, o["target"])
     probe = orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))
-    operator = corrections.data_model(operator, o, lambda name: label(names[name]))   # e.g. T_s (alignment)
+    operator = modelled
     fit = corrections.Fit(o, lambda name: label(names[name]), operator, data, units)
     validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
