@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MAX_SE_DEG", "SCAN_DEG", "AxisEstimate", "conditions", "estimate_axis_angle", "noise_level",
-           "support_columns"]
+__all__ = ["MAX_SE_DEG", "MIN_TILTS", "SCAN_DEG", "AxisEstimate", "condition_misfit", "estimate_axis_angle",
+           "noise_level", "support_columns"]
 
 log = logging.getLogger("indreg")
 
@@ -46,6 +46,10 @@ log = logging.getLogger("indreg")
 MAX_SE_DEG = 0.2
 #: The scan: trial angles from ``-SCAN_DEG`` to ``SCAN_DEG`` every degree, then every quarter around the least.
 SCAN_DEG = 10.0
+#: Columns whose mean over the rows is below this fraction of the largest count as beyond the specimen.
+FLOOR = 0.002
+#: Fewest tilts whose specimen stays inside the detector.
+MIN_TILTS = 6
 #: Alternations of the shifts' Gauss-Newton step and the linear model's fit per trial angle.
 SHIFT_ROUNDS = 8
 
@@ -86,22 +90,24 @@ def noise_level(stack: np.ndarray) -> float:
     return float(1.4826 * mad / math.sqrt(1.25))
 
 
-def support_columns(stack: np.ndarray, sigma: float, margin: int = 2, level: float = 3.0) -> tuple:
+def support_columns(stack: np.ndarray, sigma: float, margin: int = 2, level: float = 3.0,
+                    floor: float = FLOOR) -> tuple:
     """Every tilt's specimen across the axis: the first and last columns whose mean over the rows exceeds
-    ``level`` times its noise (``sigma / sqrt(rows)``) and 1 % of the image's largest column mean, widened by
-    ``margin`` columns, ``(first, last)`` ``(tilts,)`` each; and which tilts' specimen runs off the detector's sides
-    (it reaches the outermost column): a row's moments need the whole row, so those are left out. The columns
+    ``level`` times its noise (``sigma / sqrt(rows)``) and ``floor`` times the image's largest column mean,
+    widened by ``margin`` columns, ``(first, last)`` ``(tilts,)`` each; and which tilts' specimen runs off the
+    detector's sides (it comes within ``margin`` columns of the outermost one): a row's moments need the whole row,
+    so those are left out. The columns
     beyond the specimen carry noise only: leaving them out of the sums keeps the conditions and drops their
     noise."""
     a = np.asarray(stack, dtype=np.float64)
     rows, cols = a.shape[1:]
     means = a.mean(axis=1)                                                       # (tilts, columns)
-    bar = np.maximum(level * sigma / math.sqrt(rows), 0.01 * means.max(1))
+    bar = np.maximum(level * sigma / math.sqrt(rows), floor * means.max(1))
     above = means > bar[:, None]
     any_above = above.any(1)
     first = np.where(any_above, above.argmax(1), 0)
     last = np.where(any_above, cols - 1 - above[:, ::-1].argmax(1), cols - 1)
-    outside = (first <= 0) | (last >= cols - 1) | ~any_above
+    outside = (first < margin) | (last > cols - 1 - margin) | ~any_above
     return np.maximum(first - margin, 0), np.minimum(last + margin, cols - 1), outside
 
 
@@ -133,12 +139,14 @@ class _Setup:
     half: float                 # window half-length (px)
     taper: float
     sigma: float
+    orders: int = 2
 
 
-def _design(theta: np.ndarray) -> list:
-    """The conditions' designs over the tilts, orders 0, 1, 2."""
+def _design(theta: np.ndarray, orders: int) -> list:
+    """The conditions' designs over the tilts, orders ``0 .. orders``: order ``n`` is spanned by ``cos^(n-j)
+    sin^j``, ``j = 0 .. n``."""
     c, s = np.cos(theta), np.sin(theta)
-    return [np.ones((len(theta), 1)), np.stack([c, s], 1), np.stack([c * c, c * s, s * s], 1)]
+    return [np.stack([c ** (n - j) * s ** j for j in range(n + 1)], 1) for n in range(orders + 1)]
 
 
 def _transforms(S: _Setup, alpha: float, c: np.ndarray, d: np.ndarray, derivatives: bool = False) -> tuple:
@@ -149,7 +157,7 @@ def _transforms(S: _Setup, alpha: float, c: np.ndarray, d: np.ndarray, derivativ
     v = (-sa * S.s + ca * S.t)[None, :] - d[:, None]
     w, dw = _window(v, S.half, S.taper)
     phase = np.exp(-2j * np.pi * v[..., None] * S.freqs)                  # (tilts, pixels, freqs)
-    powers = np.stack([np.ones_like(u), u, u * u], 1)                     # (tilts, 3, pixels)
+    powers = np.stack([u ** n for n in range(S.orders + 1)], 1)           # (tilts, orders + 1, pixels)
     weighted = powers * (S.images * w)[:, None]
     G = np.einsum("knp,kpf->knf", weighted, phase, optimize=True)
     basis2 = (powers * (w * S.mask)[:, None]) ** 2
@@ -157,7 +165,7 @@ def _transforms(S: _Setup, alpha: float, c: np.ndarray, d: np.ndarray, derivativ
                                      np.einsum("knp,kpf->knf", basis2, phase.imag ** 2, optimize=True)]))
     if not derivatives:
         return G, sd
-    lower = np.stack([np.zeros_like(u), np.ones_like(u), 2 * u], 1) * (S.images * w)[:, None]
+    lower = np.stack([n * u ** max(n - 1, 0) for n in range(S.orders + 1)], 1) * (S.images * w)[:, None]
     dG_dc = -np.einsum("knp,kpf->knf", lower, phase, optimize=True)
     moved = powers * (S.images * dw)[:, None]
     dG_dd = (-np.einsum("knp,kpf->knf", moved, phase, optimize=True)
@@ -176,7 +184,7 @@ def _model_fit(S: _Setup, G: np.ndarray, sd: np.ndarray) -> tuple:
     ``rho = 0``) are left out (residual 0)."""
     y, residual, fitted = _parts(G), np.zeros((2,) + G.shape), 0
     ok = sd > 1e-300
-    for n, X in enumerate(_design(S.theta)):
+    for n, X in enumerate(_design(S.theta, S.orders)):
         for part in range(2):
             for f in range(G.shape[2]):
                 keep = ok[part, :, n, f]
@@ -193,7 +201,7 @@ def _model_fit(S: _Setup, G: np.ndarray, sd: np.ndarray) -> tuple:
 def _gauge(S: _Setup, c: np.ndarray, d: np.ndarray) -> tuple:
     """``c`` less its least-squares ``cos theta, sin theta`` part (a translation of the specimen), ``d`` less its
     mean."""
-    X = _design(S.theta)[1]
+    X = _design(S.theta, 1)[1]
     return c - X @ np.linalg.lstsq(X, c, rcond=None)[0], d - d.mean()
 
 
@@ -211,7 +219,7 @@ def _shift_step(S: _Setup, alpha: float, c: np.ndarray, d: np.ndarray) -> tuple:
     return _gauge(S, c + step[:, 0], d + step[:, 1])
 
 
-def conditions(S: _Setup, alpha_deg: float, c: np.ndarray, d: np.ndarray, rounds: int = SHIFT_ROUNDS) -> tuple:
+def _conditions(S: _Setup, alpha_deg: float, c: np.ndarray, d: np.ndarray, rounds: int = SHIFT_ROUNDS) -> tuple:
     """``chi2`` of the conditions at the trial angle with the shifts fitted from ``(c, d)`` (``rounds`` Gauss-Newton
     steps, each with the linear model re-fitted), the number of degrees of freedom, and the shifts."""
     alpha = math.radians(alpha_deg)
@@ -249,57 +257,82 @@ def _quadratic_minimum(x: np.ndarray, y: np.ndarray) -> tuple:
     return float(-a1 / (2 * a2)), float(2 * a2)
 
 
-def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 1.0, scan_deg: float = SCAN_DEG,
-                        sigma: float | None = None) -> AxisEstimate:
-    """The tilt-axis angle of ``stack`` ``(tilts, rows, columns)`` (module Convention) from the Helgason-Ludwig
-    conditions of orders 0, 1, 2, with per-tilt shifts across and along the axis; ``tilt_angles`` in radians.
-    ``band``: the highest frequency along the axis (cycles per pixel); ``margin``: rows kept from the window's ends
-    beyond the shifts and the trial turn (px); ``scan_deg``: the trial angles' range; ``sigma``: the noise's
-    standard deviation (default :func:`noise_level`). Tilts whose specimen runs off the detector across the axis
-    are left out (:func:`support_columns`)."""
+def _prepare(stack, tilt_angles, band: float, margin: float, scan_deg: float, sigma, orders: int,
+             support: bool = True) -> tuple:
+    """The checked stack's :class:`_Setup` (the specimen's columns, or with ``support=False`` every tilt and
+    column; the window along the axis; the frequencies) and which tilts it uses; one-line errors for a bad
+    stack."""
     a = np.asarray(stack, dtype=np.float64)
     theta = np.asarray(tilt_angles, dtype=np.float64).reshape(-1)
     if a.ndim != 3:
         raise ValueError(f"stack must be (tilts, rows, columns), got shape {a.shape}")
     if len(theta) != len(a):
         raise ValueError(f"tilt_angles has {len(theta)} angles, the stack {len(a)} tilts")
+    if not np.isfinite(a).all():
+        raise ValueError("stack has non-finite values")
     sigma = noise_level(a) if sigma is None else float(sigma)
     sigma = max(sigma, 1e-9 * float(np.abs(a).max()), 1e-300)
     first, last, outside = support_columns(a, sigma)
+    if not support:
+        first, last, outside = 0 * first, 0 * last + a.shape[2] - 1, np.zeros_like(outside)
     used = ~outside
-    if used.sum() < 6:
-        raise ValueError(f"the tilt-axis angle needs at least 6 tilts whose specimen stays inside the detector, "
-                         f"{int(used.sum())} of {len(a)} do")
+    if used.sum() < MIN_TILTS:
+        raise ValueError(f"the tilt-axis angle needs at least {MIN_TILTS} tilts whose specimen stays inside the "
+                         f"detector across the axis, {int(used.sum())} of {len(a)} do")
     rows, cols = a.shape[1:]
     s, t = _frame((rows, cols))
     columns = np.arange(cols)[None, :]
     mask = np.broadcast_to(((columns >= first[:, None]) & (columns <= last[:, None]))[:, None, :], a.shape)
     masked = (a * mask)[used].reshape(int(used.sum()), -1)
     S = _Setup(masked, mask[used].reshape(len(masked), -1).astype(np.float64), s, t, theta[used], np.zeros(1), 1.0,
-               1.0, sigma)
+               1.0, sigma, orders)
     _, d0 = _start(S, 0.0)
     half = rows / 2 - np.abs(d0).max() - 0.5 * cols * math.sin(math.radians(scan_deg)) - margin
     if half < 4:
         raise ValueError(f"the stack has too few rows ({rows}) for the window along the tilt axis")
     S.half, S.taper = half, max(2.0, 0.25 * half)
     S.freqs = np.arange(0.0, band + 1e-12, 1.0 / (2 * half))
+    return S, used
+
+
+def condition_misfit(stack, tilt_angles, alpha_deg: float, shifts_px, band: float = 0.25, margin: float = 1.0,
+                     orders: int = 2) -> float:
+    """The conditions' relative misfit ``||G - fit|| / ||G||`` (each ``G`` weighted alike) at the trial angle
+    ``alpha_deg`` with the shifts ``shifts_px`` ``(tilts, 2)`` (across, along the trial axis, px) held, over every
+    tilt and the whole rows: 0 to rounding for an exact, noise-free series at its true angle and shifts whose
+    specimen lies within the detector."""
+    S, used = _prepare(stack, tilt_angles, band, margin, SCAN_DEG, None, orders, support=False)
+    shifts = np.asarray(shifts_px, dtype=np.float64)[used]
+    G, sd = _transforms(S, math.radians(alpha_deg), shifts[:, 0], shifts[:, 1])
+    residual, _ = _model_fit(S, G, sd)
+    return float(np.sqrt((residual ** 2).sum() / ((_parts(G) / np.where(sd > 0, sd, np.inf)) ** 2).sum()))
+
+
+def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 1.0, scan_deg: float = SCAN_DEG,
+                        sigma: float | None = None, orders: int = 2) -> AxisEstimate:
+    """The tilt-axis angle of ``stack`` ``(tilts, rows, columns)`` (module Convention) from the Helgason-Ludwig
+    conditions of orders ``0 .. orders``, with per-tilt shifts across and along the axis; ``tilt_angles`` in
+    radians. ``band``: the highest frequency along the axis (cycles per pixel); ``margin``: rows kept from the
+    window's ends beyond the shifts and the trial turn (px); ``scan_deg``: the trial angles' range (every degree,
+    then every quarter within one degree of the least, a parabola fitted there); ``sigma``: the noise's standard
+    deviation (default :func:`noise_level`). Tilts whose specimen runs off the detector across the axis are left
+    out (:func:`support_columns`)."""
+    S, used = _prepare(stack, tilt_angles, band, margin, scan_deg, sigma, orders)
     coarse = np.arange(-scan_deg, scan_deg + 1e-9, 1.0)
-    chi2, shifts = _scan(S, coarse)
+    chi2, _ = _scan(S, coarse)
     best = int(np.argmin(chi2))
     fine = coarse[best] + np.arange(-1.0, 1.0 + 1e-9, 0.25)
     fine_chi2, fine_shifts = _scan(S, fine)
-    x = np.concatenate([coarse, fine])
-    y = np.concatenate([chi2, fine_chi2])
     angle, curvature = _quadratic_minimum(fine, fine_chi2)
-    chi2_min, dof, c, d = conditions(S, angle, *fine_shifts[int(np.argmin(fine_chi2))])
+    chi2_min, dof, c, d = _conditions(S, angle, *fine_shifts[int(np.argmin(fine_chi2))])
     interior = abs(angle) < scan_deg and abs(angle - coarse[best]) <= 1.0
     inflation = max(1.0, chi2_min / max(dof, 1))
     se = math.sqrt(2 / curvature * inflation) if interior and curvature > 0 else math.inf
-    out_shifts = np.full((len(a), 2), np.nan)
-    out_shifts[used] = np.stack([c, d], 1)
+    shifts = np.full((len(used), 2), np.nan)
+    shifts[used] = np.stack([c, d], 1)
+    x, y = np.concatenate([coarse, fine]), np.concatenate([chi2, fine_chi2])
     order = np.argsort(x)
-    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), out_shifts, used,
-                        (x[order], y[order]))
+    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), shifts, used, (x[order], y[order]))
 
 
 def _scan(S: _Setup, trials: np.ndarray) -> tuple:
@@ -307,7 +340,7 @@ def _scan(S: _Setup, trials: np.ndarray) -> tuple:
     values and the fitted shifts."""
     values, shifts = [], []
     for alpha in trials:
-        value, _, c, d = conditions(S, float(alpha), *_start(S, math.radians(alpha)))
+        value, _, c, d = _conditions(S, float(alpha), *_start(S, math.radians(alpha)))
         values.append(value)
         shifts.append((c, d))
     return np.array(values), shifts
