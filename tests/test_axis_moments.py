@@ -90,3 +90,28 @@ def test_bad_input_is_one_line():
         estimate_axis_angle(np.zeros((5, 16, 16)), THETA[:4])
     with pytest.raises(ValueError, match="at least 6 tilts"):
         estimate_axis_angle(np.ones((len(THETA), 16, 16)), THETA)
+
+
+@pytest.mark.slow
+def test_register_holds_the_angle_from_the_stack(caplog):
+    """``align="shifts+axis"`` takes the angle from the stack before the fit and holds it (a series turned by
+    scipy, as a microscope's tilted axis is); the summary says where it came from."""
+    import torch
+
+    import indreg
+    from indreg import ImageDomain
+    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+
+    domain = ImageDomain.paper(SIZE, ndim=3)
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-60, 60, 6, det_count=SIZE, det_min=-16., det_max=16.))
+    assert np.allclose(T.geometry.angles.numpy(), THETA)
+    x, y, z = torch.meshgrid(*domain.axes(), indexing="ij")
+    f = sum(h * torch.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * w * w))
+            for c, w, h in zip(*blobs(12, 3)))
+    g = torch.from_numpy(turned_by_scipy(T(f).numpy(), -3.0, random_shifts(2), 0.01, 4))
+    with caplog.at_level("INFO", logger="indreg"):
+        r = indreg.register(f, g, T, align="shifts+axis", num_steps=2, max_iter=1, sigma=3.0)
+    assert r.alignment["axis_angle_source"] == "stack" and r.alignment["axis_angle_determined"] is True
+    assert abs(r.alignment["axis_angle_deg"] + 3.0) < 0.2
+    assert r.alignment["axis_angle_deg"] == r.alignment["axis_angle_stack_deg"]
+    assert any("moment conditions" in m for m in caplog.messages)
