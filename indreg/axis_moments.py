@@ -47,7 +47,7 @@ MAX_SE_DEG = 0.2
 #: The scan: trial angles from ``-SCAN_DEG`` to ``SCAN_DEG`` every degree, then every quarter around the least.
 SCAN_DEG = 10.0
 #: Columns whose mean over the rows is below this fraction of the largest count as beyond the specimen.
-FLOOR = 0.002
+FLOOR = 0.01
 #: Fewest tilts whose specimen stays inside the detector.
 MIN_TILTS = 6
 #: Alternations of the shifts' Gauss-Newton step and the linear model's fit per trial angle.
@@ -95,8 +95,8 @@ def support_columns(stack: np.ndarray, sigma: float, margin: int = 2, level: flo
     """Every tilt's specimen across the axis: the first and last columns whose mean over the rows exceeds
     ``level`` times its noise (``sigma / sqrt(rows)``) and ``floor`` times the image's largest column mean,
     widened by ``margin`` columns, ``(first, last)`` ``(tilts,)`` each; and which tilts' specimen runs off the
-    detector's sides (it comes within ``margin`` columns of the outermost one): a row's moments need the whole row,
-    so those are left out. The columns
+    detector's sides (it reaches the outermost column): a row's moments need the whole row, so those are left
+    out. The columns
     beyond the specimen carry noise only: leaving them out of the sums keeps the conditions and drops their
     noise."""
     a = np.asarray(stack, dtype=np.float64)
@@ -107,7 +107,7 @@ def support_columns(stack: np.ndarray, sigma: float, margin: int = 2, level: flo
     any_above = above.any(1)
     first = np.where(any_above, above.argmax(1), 0)
     last = np.where(any_above, cols - 1 - above[:, ::-1].argmax(1), cols - 1)
-    outside = (first < margin) | (last > cols - 1 - margin) | ~any_above
+    outside = (first <= 0) | (last >= cols - 1) | ~any_above
     return np.maximum(first - margin, 0), np.minimum(last + margin, cols - 1), outside
 
 
