@@ -14,8 +14,11 @@ and summed along the beam, every tilt image then turned about its centre by each
 is the swirled and bent phantom, turned about the beam by ``--template-turn`` degrees. One registration without
 alignment on the unturned, unshifted stack, then ``align="shifts+axis"`` on every turned one.
 
-Prints a table: the projector, the series, the shifts' RMS error (px, across / along the axis, in the gauge), the
-angle's error (deg), SSIM, relative residual and seconds of each run.
+Prints a table: the projector, the template's turn about the beam (deg), the series, the shifts' RMS error (px,
+across / along the axis, in the gauge), the angle's error (deg), its standard error, where the angle came from
+(``stack``: the moment conditions of the stack before the fit, then held; ``fit``: estimated in the fit, the stack
+not determining it; ``indreg.alignment.stack_angle``) with the stack estimate's standard error, SSIM, relative
+residual and seconds of each run.
 
     OMP_NUM_THREADS=1 python scripts/bench_alignment.py            # 64^3, 100 iterations, velocity_factor 2
     python scripts/bench_alignment.py --size 32 --iterations 30    # a quick look
@@ -130,22 +133,31 @@ def main():
     print(f"{a.size}^3, {T.range_shape[0]} tilts, shifts up to {a.max_shift} px, projector {a.projector}, "
           f"template turned {a.template_turn} deg, {a.iterations} iterations, velocity_factor {a.velocity_factor}, "
           f"{torch.get_num_threads()} thread(s)")
-    print("| projector | series | align | shifts RMS error across / along (px) | axis angle error (deg) | "
-          "angle s.e. (deg) | SSIM | residual | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| projector | template turned (deg) | series | align | shifts RMS error across / along (px) | "
+          "axis angle error (deg) | angle s.e. (deg) | angle from (stack s.e., deg) | SSIM | residual | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, data, align, angle in runs:
         t0 = time.perf_counter()
         r = indreg.register(template, data, T, align=align, **options)
         seconds = time.perf_counter() - t0
-        errors = "- | - | -"
+        errors = "- | - | - | -"
         if r.alignment:
             rms = (torch.tensor(r.alignment["shifts_px"], dtype=torch.float64) - true).pow(2).mean(0).sqrt()
             se = r.alignment.get("axis_angle_se_deg")
             errors = (f"{rms[0]:.3f} / {rms[1]:.3f} | "
                       + (f"{r.alignment['axis_angle_deg'] - angle:+.3f} | " if align == "shifts+axis" else "- | ")
-                      + (f"{se:.3f}" if se is not None else ("-" if align != "shifts+axis" else "inf")))
-        print(f"| {a.projector} | {name} | {align} | {errors} | {r.ssim:.4f} | {r.residual:.4f} | {seconds:.0f} |",
-              flush=True)
+                      + (f"{se:.3f}" if se is not None else ("-" if align != "shifts+axis" else "inf"))
+                      + f" | {source(r.alignment)}")
+        print(f"| {a.projector} | {a.template_turn:g} | {name} | {align} | {errors} | {r.ssim:.4f} | "
+              f"{r.residual:.4f} | {seconds:.0f} |", flush=True)
+
+
+def source(alignment: dict) -> str:
+    """Where the angle came from, with the stack estimate's standard error (``inf``: flat; ``-``: not run)."""
+    if "axis_angle_source" not in alignment:
+        return "-"
+    se = alignment.get("axis_angle_stack_se_deg", "-")
+    return f"{alignment['axis_angle_source']} ({se if se in ('-', None) else f'{se:.3f}'})".replace("None", "inf")
 
 
 if __name__ == "__main__":
