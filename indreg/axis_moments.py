@@ -31,7 +31,6 @@ Convention:
 """
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass, field
 
@@ -40,7 +39,6 @@ import numpy as np
 __all__ = ["MAX_SE_DEG", "MIN_TILTS", "SCAN_DEG", "AxisEstimate", "condition_misfit", "estimate_axis_angle",
            "noise_level", "support_columns"]
 
-log = logging.getLogger("indreg")
 
 #: Above this standard error (deg) the angle is reported as not determined by the data.
 MAX_SE_DEG = 0.2

@@ -64,7 +64,7 @@ def arguments():
     p.add_argument("--reference-turn", type=float, default=2.0, help="valley: the reference's turn (deg)")
     p.add_argument("--phantom", choices=("shepp-logan", "blobs"), default="shepp-logan",
                    help="the specimen: bench_alignment's Shepp-Logan, or 40 Gaussian blobs in a slab (blobs)")
-    p.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the Shepp-Logan phantom (voxels; 0: sharp)")
+    p.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the Shepp-Logan (voxels; 0: sharp)")
     p.add_argument("--orders", type=int, default=2, help="moments: highest order of the conditions")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
