@@ -17,6 +17,9 @@ the minimum refined by a parabola through it and its neighbours:
   SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
   the cross-correlation start; the criterion is the last SIRT's relative residual.
 
+- ``moments``: ``indreg.axis_moments.estimate_axis_angle`` (the Helgason-Ludwig conditions of every detector row,
+  orders ``0 .. --orders``, exact sums over the pixels, the shifts fitted, a chi-square scanned over the angle), its
+  estimate, standard error, chi-square per degree of freedom and the tilts it used.
 - ``valley`` (not a scan): the data's least-squares misfit ``(1/2) ||S_{s, alpha} T(turn_beta f) - g||^2`` (shifts
   re-fitted by ``indreg.alignment.estimate``) against the object ``f`` turned about the beam by ``--reference-turn``
   (as a deformation that took up a turn), then by ``beta`` (``scipy.ndimage.rotate``, cubic), at the truth
@@ -32,6 +35,7 @@ instead (:func:`blobs`), a specimen whose slices' centres of mass wander along t
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe sirt --series shifted --noise 0 0.02 --angles 3
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe valley --angles 3 --noise 0.02
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --phantom blobs --series shifted --noise 0.02 --trials -1.5 1.5 0.25
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe moments --series shifted --noise 0.02 --size 64 --blur 0
 """
 from __future__ import annotations
 
