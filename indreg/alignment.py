@@ -332,12 +332,12 @@ def _bilinear(op: AlignedOperator) -> AlignedOperator:
 def stack_angle(op: AlignedOperator, data: torch.Tensor):
     """The tilt-axis angle of ``data`` from the stack alone, by the moment conditions of every detector row
     (``indreg.axis_moments.estimate_axis_angle``): no reconstruction, so no turn of the object about the beam can
-    take part of it up. ``None`` where it does not apply: pixels not square, a given alignment (an imported one,
-    per-tilt matrices), or a stack the estimator refuses (a one-line reason in the log)."""
+    take part of it up. ``None`` where it does not apply: pixels not square, a given alignment (imported shifts, an
+    angle, per-tilt matrices), or a stack the estimator refuses (a one-line reason in the log)."""
     from .axis_moments import estimate_axis_angle
 
     _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
-    if getattr(op, "started", False) or op.matrices is not None:
+    if getattr(op, "started", False) or op.matrices is not None or float(op.angle) != 0:
         return None
     if abs(det_cell / row_cell - 1) > 1e-6:
         log.info("tilt-axis angle from the stack: skipped (pixels %.4g x %.4g are not square)", det_cell, row_cell)
