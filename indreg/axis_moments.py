@@ -25,14 +25,16 @@ Convention:
     - Noise: ``sigma`` from the data (:func:`noise_level`: each pixel less its four neighbours' mean, a robust
       spread); every ``G`` is divided by its standard deviation, so the criterion ``chi2(alpha)`` (the shifts and
       the linear model fitted) is a chi-square; the angle's standard error is ``sqrt(2 / chi2''(alpha))``, times
-      ``sqrt(chi2 / dof)`` where the conditions fit worse than the noise.
+      ``sqrt(chi2 / dof)`` where the conditions fit worse than the noise, combined with the spread of the slope of
+      pure noise's criterion over the curvature (the rows, and the noise summed into them, move with the trial
+      angle: :func:`_noise_slopes`).
     - Shifts: ``c_k`` keeps the axis' offset (orthogonal to ``cos theta_k, sin theta_k`` only, which a translation
       of the specimen explains), ``d_k`` mean zero.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -46,6 +48,8 @@ MAX_SE_DEG = 0.2
 SCAN_DEG = 10.0
 #: Columns whose mean over the rows is below this fraction of the largest count as beyond the specimen.
 FLOOR = 0.01
+#: Pure-noise scans whose slopes measure how the criterion's noise moves with the trial angle.
+NOISE_REPLICAS = 4
 #: Fewest tilts whose specimen stays inside the detector.
 MIN_TILTS = 6
 #: Alternations of the shifts' Gauss-Newton step and the linear model's fit per trial angle.
@@ -325,12 +329,30 @@ def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 
     chi2_min, dof, c, d = _conditions(S, angle, *fine_shifts[int(np.argmin(fine_chi2))])
     interior = abs(angle) < scan_deg and abs(angle - coarse[best]) <= 1.0
     inflation = max(1.0, chi2_min / max(dof, 1))
-    se = math.sqrt(2 / curvature * inflation) if interior and curvature > 0 else math.inf
+    se = math.inf
+    if interior and curvature > 0:
+        wander = _noise_slopes(S, fine, fine_shifts, angle).std(ddof=1) / curvature
+        se = math.sqrt(2 / curvature * inflation + wander ** 2)
     shifts = np.full((len(used), 2), np.nan)
     shifts[used] = np.stack([c, d], 1)
     x, y = np.concatenate([coarse, fine]), np.concatenate([chi2, fine_chi2])
     order = np.argsort(x)
     return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), shifts, used, (x[order], y[order]))
+
+
+def _noise_slopes(S: _Setup, trials: np.ndarray, shifts: list, angle: float) -> np.ndarray:
+    """The slope at ``angle`` of the criterion of pure noise (``sigma`` white, on the specimen's columns; the
+    shifts held at the data's), :data:`NOISE_REPLICAS` times (seeded): the part of the criterion that moves with the
+    trial angle because the rows, and the noise summed into them, do; its spread over the curvature adds to the
+    standard error."""
+    gen = np.random.default_rng(0)
+    slopes = []
+    for _ in range(NOISE_REPLICAS):
+        N = replace(S, images=S.sigma * gen.standard_normal(S.images.shape) * S.mask)
+        values = [_conditions(N, float(a), c, d, rounds=0)[0] for a, (c, d) in zip(trials, shifts)]
+        a2, a1, _ = np.polyfit(trials, values, 2)
+        slopes.append(2 * a2 * angle + a1)
+    return np.array(slopes)
 
 
 def _scan(S: _Setup, trials: np.ndarray) -> tuple:
