@@ -70,6 +70,10 @@ def arguments():
                    help="the specimen: bench_alignment's Shepp-Logan, or 40 Gaussian blobs in a slab (blobs)")
     p.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the Shepp-Logan (voxels; 0: sharp)")
     p.add_argument("--orders", type=int, default=2, help="moments: highest order of the conditions")
+    p.add_argument("--projector", choices=("scipy", "astra"), default="scipy",
+                   help="what projects the volume: scipy.ndimage.rotate (bench_alignment's), or ASTRA's CPU projector "
+                        "slice by slice (scripts/astra_projections.py, run by --astra-python)")
+    p.add_argument("--astra-python", default=".venv/bin/python", help="a Python with astra-toolbox and numpy")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
 
@@ -212,7 +216,8 @@ def moments_table(T, clean: np.ndarray, shifts: dict, a) -> None:
     theta = T.geometry.angles.numpy()
     chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
     print(f"moments (orders 0-{a.orders}, band {a.band}), {a.phantom}" + (f" blurred {a.blur:g}" if a.phantom ==
-          "shepp-logan" else "") + f", {a.size}^3, {len(theta)} tilts over +-60 deg, shifts up to 4 px")
+          "shepp-logan" else "") + f", {a.size}^3, projector {a.projector}, {len(theta)} tilts over +-60 deg, shifts "
+          "up to 4 px")
     print("| series | noise | true angle (deg) | estimate (deg) | error (deg) | s.e. (deg) | chi2 / dof | tilts | s |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in chosen:
@@ -238,11 +243,13 @@ def minimum(trials: np.ndarray, values: list) -> float:
 def main():
     a = arguments()
     setup = types.SimpleNamespace(size=a.size, step=3.0, max_shift=4.0, seed=a.seed, blur=a.blur, noise=0.0,
-                                  template_turn=0.0, angles=[])
+                                  projector="scipy", template_turn=0.0, angles=[])
     T, _, target, _, true = bench.external(setup)
     if a.phantom == "blobs":
         target = blobs(T, a.seed)
-    clean = bench.scipy_projections(target.numpy(), np.degrees(T.geometry.angles.numpy()), T.domain.cell_sides[2])
+    tilts = np.degrees(T.geometry.angles.numpy())
+    clean = (bench.scipy_projections(target.numpy(), tilts, T.domain.cell_sides[2]) if a.projector == "scipy" else
+             bench.astra_projections(target.numpy(), tilts, T.domain.cell_sides[2], a.astra_python))
     along = true.numpy().copy()
     along[:, 0] = 0
     shifts = {SERIES[0]: 0 * along, SERIES[1]: along, SERIES[2]: true.numpy()}
