@@ -11,9 +11,10 @@ series, ``align="shifts"`` on the shifted one, ``align="shifts+axis"`` on the sh
 of Gaussian blur: a band-limited specimen) turned about the tilt axis by ``scipy.ndimage.rotate`` (cubic splines)
 and summed along the beam (``--projector astra``: projected by ASTRA's CPU projector slice by slice,
 ``scripts/astra_projections.py`` run by ``--astra-python``, a Python with ``astra-toolbox``), every tilt image then
-turned about its centre by each angle of ``--angles`` and shifted (``scipy.ndimage.rotate`` and ``shift``, cubic), Gaussian noise of ``--noise`` times the largest datum; the template
-is the swirled and bent phantom, turned about the beam by ``--template-turn`` degrees. One registration without
-alignment on the unturned, unshifted stack, then ``align="shifts+axis"`` on every turned one.
+turned about its centre by each angle of ``--angles`` and shifted (``scipy.ndimage.rotate`` and ``shift``, cubic),
+Gaussian noise of ``--noise`` times the largest datum; the template is the swirled and bent phantom, turned about the
+beam by ``--template-turn`` degrees. One registration without alignment on the unturned, unshifted stack, then
+``align="shifts+axis"`` on every turned one.
 
 Prints a table: the projector, the template's turn about the beam (deg), the series, the shifts' RMS error (px,
 across / along the axis, in the gauge), the angle's error (deg), its standard error, where the angle came from
