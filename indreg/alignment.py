@@ -339,6 +339,9 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor):
     _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
     if getattr(op, "started", False) or op.matrices is not None or float(op.angle) != 0:
         return None
+    if data.numel() != K * R * D:
+        log.info("tilt-axis angle from the stack: skipped (data of shape %s, not one stack)", tuple(data.shape))
+        return None
     if abs(det_cell / row_cell - 1) > 1e-6:
         log.info("tilt-axis angle from the stack: skipped (pixels %.4g x %.4g are not square)", det_cell, row_cell)
         return None
