@@ -33,9 +33,9 @@ from .forward.shift import INTERPOLATIONS, AlignedOperator, projection_frame
 from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
-           "MIN_PROJECTIONS", "SCALE_ROUNDS", "SCALE_TOL", "AlignmentSolver", "aligned", "angle_uncertainty",
-           "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary", "plot_shifts",
-           "projection_matching", "summary", "turn_projection", "wrap"]
+           "MIN_PROJECTIONS", "SCALE_ROUNDS", "SCALE_TOL", "STACK_ANGLE", "AlignmentSolver", "aligned",
+           "angle_uncertainty", "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary",
+           "plot_shifts", "projection_matching", "stack_angle", "summary", "turn_projection", "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -62,6 +62,9 @@ GN_TOL = 1e-3
 SCALE_ROUNDS, SCALE_TOL = 8, 1e-4
 #: Above this standard error (deg, :func:`angle_uncertainty`) the tilt-axis angle is reported as undetermined.
 MAX_ANGLE_SE_DEG = 0.2
+#: ``"shifts+axis"`` first estimates the angle from the stack alone (:func:`stack_angle`) and, where that
+#: determines it, holds it in the fit; ``False``: the angle is estimated in the fit only (docs/alignment.md).
+STACK_ANGLE = True
 
 
 # ---------------------------------------------------------------------------------------------------- the model
@@ -359,6 +362,49 @@ def _bilinear(op: AlignedOperator) -> AlignedOperator:
 
 
 # ---------------------------------------------------------------------------------------------------- in the fit
+def stack_angle(op: AlignedOperator, data: torch.Tensor):
+    """The tilt-axis angle of ``data`` from the stack alone, by the moment conditions of every detector row
+    (``indreg.axis_moments.estimate_axis_angle``): no reconstruction, so no turn of the object about the beam can
+    take part of it up. ``None`` where it does not apply: pixels not square, a given alignment (imported shifts, an
+    angle, per-tilt matrices), or a stack the estimator refuses (a one-line reason in the log)."""
+    from .axis_moments import estimate_axis_angle
+
+    _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
+    if getattr(op, "started", False) or op.matrices is not None or float(op.angle) != 0:
+        return None
+    if data.numel() != K * R * D:
+        log.info("tilt-axis angle from the stack: skipped (data of shape %s, not one stack)", tuple(data.shape))
+        return None
+    if abs(det_cell / row_cell - 1) > 1e-6:
+        log.info("tilt-axis angle from the stack: skipped (pixels %.4g x %.4g are not square)", det_cell, row_cell)
+        return None
+    try:
+        return estimate_axis_angle(data.detach().double().cpu().reshape(K, R, D).numpy(),
+                                   op.operator.geometry.angles.double().cpu().numpy(), scan_deg=MAX_ANGLE_DEG)
+    except ValueError as e:
+        log.info("tilt-axis angle from the stack: skipped (%s)", e)
+        return None
+
+
+def _hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
+    """Estimate the angle from the stack (:func:`stack_angle`) and set it on ``op``: ``True`` (hold it in the fit)
+    where the data determine it; else a warning, and the fit estimates it."""
+    estimate_ = stack_angle(op, data) if STACK_ANGLE else None
+    op.stack_estimate = estimate_
+    if estimate_ is None:
+        return False
+    log.info(estimate_.describe())
+    if estimate_.determined:
+        op.angle = torch.tensor(math.radians(estimate_.angle_deg), dtype=torch.float64)
+        op.angle_se = estimate_.se_deg
+        return True
+    se = f"{estimate_.se_deg:.3f}" if math.isfinite(estimate_.se_deg) else "inf"
+    log.warning("tilt-axis angle not determined by the data (s.e. %s deg from the stack's moment conditions): it "
+                "is estimated in the fit, where a turn of the object about the beam can take part of it up; measure "
+                "it beforehand and rotate the stack, or use align='shifts'", se)
+    return False
+
+
 class AlignmentSolver(RefitSolver):
     """A solver that re-estimates the alignment of ``operator`` (an ``AlignedOperator`` in ``inner.problem``) every
     ``every`` iterations from the image of the current iterate, then takes ``inner``'s step.
@@ -385,6 +431,8 @@ class AlignmentSolver(RefitSolver):
             P = op.operator(image)
             start = op.shifts
             if not op.records:   # first estimate: the given alignment, else the cross-correlation peak
+                if self.axis and _hold_stack_angle(op, self.data):
+                    self.axis, op.held = False, True
                 start = _first_start(op, P, self.data)
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
             if self.axis:
@@ -405,7 +453,8 @@ class AlignmentSolver(RefitSolver):
     def state_dict(self) -> dict:
         return dict(self.inner.state_dict(), alignment_shifts=self.operator.shifts.clone(),
                     alignment_angle=float(self.operator.angle), alignment_records=list(self.operator.records),
-                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)))
+                    alignment_angle_se=float(getattr(self.operator, "angle_se", math.inf)),
+                    alignment_angle_held=bool(getattr(self.operator, "held", False)))
 
     def load_state_dict(self, d: dict) -> None:
         d = dict(d)
@@ -413,6 +462,8 @@ class AlignmentSolver(RefitSolver):
         self.operator.angle = torch.tensor(float(d.pop("alignment_angle")), dtype=torch.float64)
         self.operator.records = list(d.pop("alignment_records"))
         self.operator.angle_se = float(d.pop("alignment_angle_se", math.inf))
+        self.operator.held = bool(d.pop("alignment_angle_held", False))
+        self.axis = self.operator.mode == "shifts+axis" and not self.operator.held
         self.inner.load_state_dict(d)
 
 
@@ -444,8 +495,13 @@ def operator_summary(op: AlignedOperator, every: int = ALIGN_EVERY) -> dict:
            "every": every, "at_bound": getattr(op, "at_bound", 0)}
     if not fixed and op.mode == "shifts+axis" and op.records:
         se = getattr(op, "angle_se", math.inf)
+        stack = getattr(op, "stack_estimate", None)
+        out["axis_angle_source"] = "stack" if getattr(op, "held", False) else "fit"
+        if stack is not None:
+            out["axis_angle_stack_deg"] = stack.angle_deg
+            out["axis_angle_stack_se_deg"] = stack.se_deg if math.isfinite(stack.se_deg) else None
         out["axis_angle_se_deg"] = se if math.isfinite(se) else None
-        out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG
+        out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG and (stack is None or stack.determined)
         if se > MAX_ANGLE_SE_DEG:
             log.warning("the tilt-axis angle is not determined by the data: %.3f deg with a standard error of %s deg "
                         "(above %g; the data cannot tell a turn of the axis from a turn of the object about the "

@@ -17,6 +17,9 @@ the minimum refined by a parabola through it and its neighbours:
   SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
   the cross-correlation start; the criterion is the last SIRT's relative residual.
 
+- ``moments``: ``indreg.axis_moments.estimate_axis_angle`` (the Helgason-Ludwig conditions of every detector row,
+  orders ``0 .. --orders``, exact sums over the pixels, the shifts fitted, a chi-square scanned over the angle), its
+  estimate, standard error, chi-square per degree of freedom and the tilts it used.
 - ``valley`` (not a scan): the data's least-squares misfit ``(1/2) ||S_{s, alpha} T(turn_beta f) - g||^2`` (shifts
   re-fitted by ``indreg.alignment.estimate``) against the object ``f`` turned about the beam by ``--reference-turn``
   (as a deformation that took up a turn), then by ``beta`` (``scipy.ndimage.rotate``, cubic), at the truth
@@ -32,6 +35,7 @@ instead (:func:`blobs`), a specimen whose slices' centres of mass wander along t
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe sirt --series shifted --noise 0 0.02 --angles 3
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe valley --angles 3 --noise 0.02
     OMP_NUM_THREADS=1 python scripts/axis_probes.py --phantom blobs --series shifted --noise 0.02 --trials -1.5 1.5 0.25
+    OMP_NUM_THREADS=1 python scripts/axis_probes.py --probe moments --series shifted --noise 0.02 --size 64 --blur 0
 """
 from __future__ import annotations
 
@@ -50,7 +54,7 @@ SERIES = ("turned", "turned, shifted along", "turned, shifted")
 
 def arguments():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--probe", choices=("common-lines", "sirt", "valley"), default="common-lines")
+    p.add_argument("--probe", choices=("common-lines", "sirt", "valley", "moments"), default="common-lines")
     p.add_argument("--size", type=int, default=32, help="volume side (cells)")
     p.add_argument("--angles", type=float, nargs="+", default=[3.0, -1.0], help="true tilt-axis angles (deg)")
     p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.02], help="noise std / largest datum")
@@ -64,6 +68,12 @@ def arguments():
     p.add_argument("--reference-turn", type=float, default=2.0, help="valley: the reference's turn (deg)")
     p.add_argument("--phantom", choices=("shepp-logan", "blobs"), default="shepp-logan",
                    help="the specimen: bench_alignment's Shepp-Logan, or 40 Gaussian blobs in a slab (blobs)")
+    p.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the Shepp-Logan (voxels; 0: sharp)")
+    p.add_argument("--orders", type=int, default=2, help="moments: highest order of the conditions")
+    p.add_argument("--projector", choices=("scipy", "astra"), default="scipy",
+                   help="what projects the volume: scipy.ndimage.rotate (bench_alignment's), or ASTRA's CPU projector "
+                        "slice by slice (scripts/astra_projections.py, run by --astra-python)")
+    p.add_argument("--astra-python", default=".venv/bin/python", help="a Python with astra-toolbox and numpy")
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
 
@@ -197,6 +207,30 @@ def valley(T, f: torch.Tensor, stack: np.ndarray, angle: float, true: torch.Tens
               flush=True)
 
 
+# ---------------------------------------------------------------------------------------------------- moments
+def moments_table(T, clean: np.ndarray, shifts: dict, a) -> None:
+    """The Helgason-Ludwig estimate (``indreg.axis_moments.estimate_axis_angle``, its own scan: every degree over
+    +-10, then every quarter around the least) on every chosen series, noise level and angle."""
+    from indreg.axis_moments import estimate_axis_angle
+
+    theta = T.geometry.angles.numpy()
+    chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
+    print(f"moments (orders 0-{a.orders}, band {a.band}), {a.phantom}" + (f" blurred {a.blur:g}" if a.phantom ==
+          "shepp-logan" else "") + f", {a.size}^3, projector {a.projector}, {len(theta)} tilts over +-60 deg, shifts "
+          "up to 4 px")
+    print("| series | noise | true angle (deg) | estimate (deg) | error (deg) | s.e. (deg) | chi2 / dof | tilts | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in chosen:
+        for level in a.noise:
+            for angle in a.angles:
+                stack = bench.microscope(clean, angle, shifts[name], level, a.seed)
+                t0 = time.perf_counter()
+                e = estimate_axis_angle(stack, theta, band=a.band, orders=a.orders)
+                print(f"| {name} | {level:g} | {angle:+g} | {e.angle_deg:+.3f} | {e.angle_deg - angle:+.3f} | "
+                      f"{e.se_deg:.3f} | {e.chi2_per_dof:.2f} | {int(e.tilts_used.sum())} | "
+                      f"{time.perf_counter() - t0:.0f} |", flush=True)
+
+
 # ---------------------------------------------------------------------------------------------------- the table
 def minimum(trials: np.ndarray, values: list) -> float:
     """The trial angle at the criterion's minimum, refined by a parabola through its neighbours."""
@@ -208,12 +242,14 @@ def minimum(trials: np.ndarray, values: list) -> float:
 
 def main():
     a = arguments()
-    setup = types.SimpleNamespace(size=a.size, step=3.0, max_shift=4.0, seed=a.seed, blur=1.0, noise=0.0,
-                                  template_turn=0.0, angles=[])
+    setup = types.SimpleNamespace(size=a.size, step=3.0, max_shift=4.0, seed=a.seed, blur=a.blur, noise=0.0,
+                                  projector="scipy", template_turn=0.0, angles=[])
     T, _, target, _, true = bench.external(setup)
     if a.phantom == "blobs":
         target = blobs(T, a.seed)
-    clean = bench.scipy_projections(target.numpy(), np.degrees(T.geometry.angles.numpy()), T.domain.cell_sides[2])
+    tilts = np.degrees(T.geometry.angles.numpy())
+    clean = (bench.scipy_projections(target.numpy(), tilts, T.domain.cell_sides[2]) if a.projector == "scipy" else
+             bench.astra_projections(target.numpy(), tilts, T.domain.cell_sides[2], a.astra_python))
     along = true.numpy().copy()
     along[:, 0] = 0
     shifts = {SERIES[0]: 0 * along, SERIES[1]: along, SERIES[2]: true.numpy()}
@@ -221,6 +257,9 @@ def main():
         print(f"valley, {a.size}^3, {T.range_shape[0]} tilts, turned {a.angles[0]:+g} deg and shifted, noise "
               f"{a.noise[-1]:g}, reference turned {a.reference_turn:+g} deg")
         valley(T, target, bench.microscope(clean, a.angles[0], true.numpy(), a.noise[-1], a.seed), a.angles[0], true, a)
+        return
+    if a.probe == "moments":
+        moments_table(T, clean, shifts, a)
         return
     chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
     print(f"{a.probe}, {a.phantom}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, "
