@@ -34,8 +34,9 @@ from .solvers.state import RefitSolver
 
 __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "ALIGN_EVERY", "MAX_SHIFT_FRACTION", "MAX_ANGLE_DEG", "MAX_ANGLE_SE_DEG",
            "MIN_PROJECTIONS", "SCALE_ROUNDS", "SCALE_TOL", "STACK_ANGLE", "AlignmentSolver", "aligned",
-           "angle_uncertainty", "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "operator_summary",
-           "plot_shifts", "projection_matching", "stack_angle", "summary", "turn_projection", "wrap"]
+           "angle_uncertainty", "coarse_shifts", "estimate", "find_aligned", "fit_scale", "gauge", "hold_stack_angle",
+           "operator_summary", "plot_shifts", "projection_matching", "stack_angle", "summary", "turn_projection",
+           "wrap"]
 
 log = logging.getLogger("indreg")
 
@@ -268,14 +269,15 @@ def fit_scale(op: AlignedOperator, template: torch.Tensor, data: torch.Tensor, r
     drift (:func:`indreg.units.compare_units`). Alternating minimisation, so the objective never increases: the
     start of the first in-fit estimate (:func:`_first_start`: the cross-correlation peaks, scale-free, or ``op``'s
     given alignment), then ``rounds`` times ``c`` in closed form and the alignment of ``c T I`` (:func:`estimate`,
-    the angle too with ``"shifts+axis"``), until ``c`` moves by less than ``tol`` (relative).
+    the angle too with ``"shifts+axis"`` unless the stack's angle is held: :func:`hold_stack_angle`), until ``c``
+    moves by less than ``tol`` (relative).
     Returns ``(c, shifts, angle, rounds done)``; ``op`` is left as it was."""
     with torch.no_grad():
         P, g = op.operator(template).detach().double(), data.detach().double()
         s, a = _first_start(op, P, g), op.angle.double()
         c, done = _scale(op, P, g, s, a), 0
         while done < rounds and math.isfinite(c) and c > 0:
-            s, a, _ = estimate(op, c * P, g, s, a, op.mode == "shifts+axis")
+            s, a, _ = estimate(op, c * P, g, s, a, op.mode == "shifts+axis" and not getattr(op, "held", False))
             c, previous, done = _scale(op, P, g, s, a), c, done + 1
             if abs(c - previous) <= tol * abs(previous):
                 break
@@ -386,9 +388,19 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor):
         return None
 
 
+def hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
+    """Estimate the angle from the stack (:func:`stack_angle`), once per operator, before anything else fits the
+    alignment (the template's scale, :func:`fit_scale`, or the first in-fit estimate), and set it on ``op``:
+    ``True`` (``op.held``: hold it in the fit) where the data determine it; else a warning, and the fit estimates
+    it."""
+    if op.mode != "shifts+axis":
+        return False
+    if not hasattr(op, "stack_estimate"):
+        op.held = _hold_stack_angle(op, data)
+    return bool(getattr(op, "held", False))
+
+
 def _hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
-    """Estimate the angle from the stack (:func:`stack_angle`) and set it on ``op``: ``True`` (hold it in the fit)
-    where the data determine it; else a warning, and the fit estimates it."""
     estimate_ = stack_angle(op, data) if STACK_ANGLE else None
     op.stack_estimate = estimate_
     if estimate_ is None:
@@ -431,8 +443,8 @@ class AlignmentSolver(RefitSolver):
             P = op.operator(image)
             start = op.shifts
             if not op.records:   # first estimate: the given alignment, else the cross-correlation peak
-                if self.axis and _hold_stack_angle(op, self.data):
-                    self.axis, op.held = False, True
+                if self.axis and hold_stack_angle(op, self.data):
+                    self.axis = False
                 start = _first_start(op, P, self.data)
             op.shifts, op.angle, op.at_bound = estimate(op, P, self.data, start, op.angle, self.axis)
             if self.axis:

@@ -92,7 +92,7 @@ def test_bad_input_is_one_line():
         estimate_axis_angle(np.ones((len(THETA), 16, 16)), THETA)
 
 
-def register_turned(specimen: tuple, alpha: float, caplog):
+def register_turned(specimen: tuple, alpha: float, caplog, **options):
     """``indreg.register(..., align="shifts+axis")`` (one iteration) on the volume of ``specimen``'s blobs
     projected by indreg's ``TiltSeriesTransform`` (32^3, the tilts of ``THETA``), every image turned by scipy so that
     the axis lies at ``alpha``, shifted and with 1 % noise; the template is the volume itself."""
@@ -110,14 +110,16 @@ def register_turned(specimen: tuple, alpha: float, caplog):
             for c, w, h in zip(*specimen))
     g = torch.from_numpy(turned_by_scipy(T(f).numpy(), alpha, random_shifts(2), 0.01, 4))
     with caplog.at_level("INFO", logger="indreg"):
-        return indreg.register(f, g, T, align="shifts+axis", num_steps=2, max_iter=1, sigma=3.0)
+        return indreg.register(f, g, T, align="shifts+axis", num_steps=2, max_iter=1, sigma=3.0, **options)
 
 
 @pytest.mark.slow
-def test_register_holds_the_angle_from_the_stack(caplog):
+@pytest.mark.parametrize("options", [{}, {"template_scale": "auto"}], ids=["plain", "scale-fitted"])
+def test_register_holds_the_angle_from_the_stack(caplog, options):
     """``align="shifts+axis"`` takes the angle from the stack before the fit and holds it (a series turned by
-    scipy, as a microscope's tilted axis is); the summary says where it came from."""
-    r = register_turned(blobs(12, 3), -3.0, caplog)
+    scipy, as a microscope's tilted axis is), also through the template's scale fitted with the alignment (which
+    comes first and must not fit the angle itself); the summary says where it came from."""
+    r = register_turned(blobs(12, 3), -3.0, caplog, **options)
     assert r.alignment["axis_angle_source"] == "stack" and r.alignment["axis_angle_determined"] is True
     assert abs(r.alignment["axis_angle_deg"] + 3.0) < 0.2
     assert r.alignment["axis_angle_deg"] == r.alignment["axis_angle_stack_deg"]

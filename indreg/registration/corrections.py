@@ -102,13 +102,14 @@ def aligned_scale(operator):
     """``indreg.units.prepare``'s ``aligned_scale`` for the data model ``operator`` (after :func:`data_model`): the
     template's scale fitted jointly with the alignment of its projection to the data (``indreg.alignment.fit_scale``),
     whose shifts then start the first in-fit estimate; None when ``operator`` has no alignment to estimate."""
-    from ..alignment import fit_scale
+    from ..alignment import fit_scale, hold_stack_angle
     from ..forward.shift import AlignedOperator
 
     if not isinstance(operator, AlignedOperator) or not hasattr(operator, "mode"):   # none, or a fixed alignment
         return None
 
     def fit(template, data) -> float:
+        hold_stack_angle(operator, data)   # the stack's own angle first: it needs no template
         c, operator.shifts, operator.angle, _ = fit_scale(operator, template, data)
         operator.started = True
         return c
