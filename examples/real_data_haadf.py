@@ -221,9 +221,10 @@ def tuned_sirt_tv(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_i
         if best is None or r < best[1]["validation_residual"]:
             best = (x.clone(), {"iterations": n, "validation_residual": r})
     out = {"SIRT": best}
-    u, best = intensity_scale(T_fit, y_fit), None
-    for mu in tv_mus:
-        x, _ = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True)
+    u, best, norms = intensity_scale(T_fit, y_fit), None, None
+    for mu in tv_mus:   # the steps' norms from the first weight's run (the same operator)
+        x, history = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True, norms=norms)
+        norms = history["norms"]
         r = residual(T_val, x, y_val)
         say(f"    TV mu = {mu:g} x {u:.4g}: validation residual {r:.4f}")
         if best is None or r < best[1]["validation_residual"]:
