@@ -270,16 +270,21 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 
 # ------------------------------------------------------------------------------------------------ pipeline
 class Parts:
-    """CPU seconds (``time.process_time``) of the walk-through's parts: ``done(name)`` ends the part begun at
-    the last call."""
+    """CPU seconds (``time.process_time``, all threads) and wall seconds (``time.perf_counter``) of the
+    walk-through's parts: ``done(name)`` ends the part begun at the last call."""
 
     def __init__(self):
-        self.last, self.seconds = time.process_time(), {}
+        self.last, self.seconds, self.wall = (time.process_time(), time.perf_counter()), {}, {}
 
     def done(self, name: str) -> None:
-        now = time.process_time()
-        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.last
+        now = (time.process_time(), time.perf_counter())
+        self.seconds[name] = self.seconds.get(name, 0.0) + now[0] - self.last[0]
+        self.wall[name] = self.wall.get(name, 0.0) + now[1] - self.last[1]
         self.last = now
+
+    def line(self) -> str:
+        """``name wall s (CPU s)`` per part."""
+        return ", ".join(f"{k} {self.wall[k]:.0f} s ({v:.0f} CPU)" for k, v in self.seconds.items())
 
 
 def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
@@ -288,17 +293,18 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         align_rounds: int = 8,
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
-        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate") -> dict:
+        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate",
+        dtype: str = "float64") -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests). ``model``: ``register``'s
     (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
     validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
-    (``"reinterpolate"``, the paper's, as this page was measured)."""
+    (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
-    t0, parts = time.process_time(), Parts()
+    t0, wall0, parts = time.process_time(), time.perf_counter(), Parts()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder), "stack": stack, "rescale": rescale}
 
@@ -381,7 +387,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     sigma = sigma_cells * cell
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             model=model, interpolation=interpolation,
+                             model=model, interpolation=interpolation, dtype=dtype,
                              template_scale="auto", background="auto", holdout=holdout, align=align,
                              align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
                              progress=True, **extra)
@@ -444,9 +450,12 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     save(volumes, domain, out)
     parts.done("scores, figure, files")
     metrics["cpu_seconds"], metrics["cpu_seconds_by_part"] = time.process_time() - t0, parts.seconds
-    say("  CPU seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in parts.seconds.items()))
+    metrics["wall_seconds"], metrics["wall_seconds_by_part"] = time.perf_counter() - wall0, parts.wall
+    metrics["threads"] = torch.get_num_threads()
+    say(f"  seconds per part, wall (CPU, {metrics['threads']} thread(s)): {parts.line()}")
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
-    say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['cpu_seconds']:.0f} s CPU in all")
+    say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['wall_seconds']:.0f} s wall, "
+        f"{metrics['cpu_seconds']:.0f} s CPU in all")
     return metrics
 
 
@@ -526,9 +535,14 @@ def main(argv=None) -> None:
     p.add_argument("--model", default="residual", help="register()'s model (residual, the default: LDDMM plus a "
                    "TV-regularised intensity residual, its weight chosen on the validation tilts; lddmm)")
     p.add_argument("--interpolation", choices=("reinterpolate", "compose"), default="reinterpolate")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="the registration's")
+    p.add_argument("--threads", type=int, help="torch's CPU threads (default: torch's, OMP_NUM_THREADS or the cores)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
-    torch.set_num_threads(1)
+    if a.threads is not None:
+        if a.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {a.threads}")
+        torch.set_num_threads(a.threads)
     if a.table:   # both stacks, then docs/real_data.md's table
         runs = {stack: json.loads((a.out / stack / "metrics.json").read_text()) if a.reprint
                 else walk(fetch_once(a), a, a.out / stack, stack) for stack in ("raw", "aligned")}
@@ -547,7 +561,7 @@ def walk(folder: Path, a: argparse.Namespace, out: Path, stack: str) -> dict:
     return run(folder, out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
                max_angle=a.max_angle, fit_every=a.fit_every, stack=stack, align=a.align, align_gauge=a.align_gauge,
                align_interpolation=a.align_interpolation, rescale=a.rescale, gamma_rel=a.gamma_rel,
-               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation)
+               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation, dtype=a.dtype)
 
 
 if __name__ == "__main__":
