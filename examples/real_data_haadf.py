@@ -157,22 +157,23 @@ def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, ite
 
 
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic") -> tuple:
+                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic",
+                  dtype: torch.dtype = torch.float64) -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
     turned by ``misalign`` degrees about the beam (a specimen mounted differently). With ``align_rounds`` the
-    tilts are aligned first (:func:`align_template_scan`). Returns ``(template, sirt volume, the alignment's
-    (shifts (px), angle (deg), axis offset (px)) or None)``."""
+    tilts are aligned first (:func:`align_template_scan`); SIRT runs in ``dtype``. Returns ``(template, sirt volume,
+    the alignment's (shifts (px), angle (deg), axis offset (px)) or None)``."""
     from skimage.filters import threshold_multiotsu
 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
-    T, y, found = operator(unit, angles), torch.from_numpy(data), None
+    T, y, found = operator(unit, angles), torch.from_numpy(data).to(dtype), None
     if align_rounds:
         x, found = align_template_scan(T, y, angles, align_rounds, iters, interpolation)
     else:
         x, _ = sirt(T, y, num_iter=iters, nonneg=True)
-    v = ndimage.gaussian_filter(x.numpy(), smooth)
+    v = ndimage.gaussian_filter(x.double().numpy(), smooth)
     thresholds = threshold_multiotsu(v, classes=classes)
     labels = np.digitize(v, thresholds)
     means = [0.0] + [float(v[labels == k].mean()) for k in range(1, classes)]
@@ -182,7 +183,7 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     say(f"  SIRT of {len(angles)} even tilts on unit voxels ({iters} iterations), phases at {thresholds.round(1)}: "
         f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; "
         f"turned by {misalign:g} deg")
-    return template, x.numpy(), found
+    return template, x.double().numpy(), found
 
 
 # ------------------------------------------------------------------------------------------------ baselines
@@ -294,14 +295,15 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate",
-        dtype: str = "float64") -> dict:
+        dtype: str = "float32") -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests). ``model``: ``register``'s
     (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
     validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
-    (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's."""
+    (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's, the template
+    scan's SIRT and projection matching's, the baselines' (the scores are in float64)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
     t0, wall0, parts = time.process_time(), time.perf_counter(), Parts()
@@ -354,7 +356,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     template, sirt_even, even = make_template(
         turned[tilts["template"]] - level, angles[tilts["template"]], domain.shape, misalign,
         iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0,
-        interpolation=align_interpolation)
+        interpolation=align_interpolation, dtype=getattr(torch, dtype))
     recorded = read_etspy_shifts(folder)
     if even is not None:
         metrics["template_alignment"] = {"shifts_px": even[0].tolist(), "axis_angle_deg": even[1]}
@@ -433,7 +435,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         say("8. baselines from the same fit tilts" + (" (through the registration's shifts)" if result.alignment
                                                       else ""))
         tb = time.process_time()
-        base = baselines(T["fit"], Y["fit"], T["validation"], Y["validation"],
+        base = baselines(T["fit"], Y["fit"].to(getattr(torch, dtype)), T["validation"],
+                         Y["validation"].to(getattr(torch, dtype)),
                          sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
                          tv_mus=(0.1,) if quick else (1.0, 10.0, 100.0, 1000.0), tv_iters=20 if quick else 200)
         metrics["baselines_cpu_seconds"] = time.process_time() - tb
@@ -442,7 +445,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
     volumes = {"template": (d.template * result.units.template_scale).numpy(),
                "registered": result.deformed.double().numpy(),
-               **{k: v[0].numpy() for k, v in base.items()}}
+               **{k: v[0].double().numpy() for k, v in base.items()}}
     metrics["scores"] = score(volumes, T, Y, {k: v[1] for k, v in base.items()})
 
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
@@ -535,7 +538,8 @@ def main(argv=None) -> None:
     p.add_argument("--model", default="residual", help="register()'s model (residual, the default: LDDMM plus a "
                    "TV-regularised intensity residual, its weight chosen on the validation tilts; lddmm)")
     p.add_argument("--interpolation", choices=("reinterpolate", "compose"), default="reinterpolate")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="the registration's")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="the registration's, the "
+                   "template scan's and the baselines' (float32: the table's numbers as float64's, at half the time)")
     p.add_argument("--threads", type=int, help="torch's CPU threads (default: torch's, OMP_NUM_THREADS or the cores)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
