@@ -54,6 +54,17 @@ def test_kept_weights_are_the_recomputed_ones_until_the_alignment_changes(series
     assert torch.equal(op(f.float()), fresh()(f.float()))                      # another dtype: its own weights
 
 
+def test_weights_beyond_the_bound_are_not_kept(series, monkeypatch):
+    from indreg.forward import shift
+    f = torch.rand(series.domain.shape, generator=torch.Generator().manual_seed(8), dtype=F64)
+    op = AlignedOperator(series, _alignment(9, integer=False)[0], 0.0, "cubic")
+    monkeypatch.setattr(shift, "KEEP_BYTES", 0)
+    first = op(f)
+    assert getattr(op, "_kept", None) is None and torch.equal(op(f), first)
+    monkeypatch.setattr(shift, "KEEP_BYTES", 2 ** 28)
+    assert torch.equal(op(f), first) and op._kept is not None
+
+
 def test_kept_weights_leave_the_gradient_in_the_shifts(series):
     f = torch.rand(series.domain.shape, generator=torch.Generator().manual_seed(3), dtype=F64)
     op = AlignedOperator(series, _alignment(4, integer=False)[0], 0.0, "cubic")

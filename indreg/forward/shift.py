@@ -35,11 +35,16 @@ from .._checks import check_tensor
 from .algebra import OperatorAlgebra
 from .operator import check_data_pair, check_operator
 
-__all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "cubic_kernel", "cubic_slope", "projection_frame"]
+__all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "KEEP_BYTES", "cubic_kernel", "cubic_slope",
+           "projection_frame"]
 
 #: ``S``'s interpolation and what it takes beyond the detector (module Convention); the first are the defaults.
 INTERPOLATIONS = ("linear", "cubic")
 EDGES = ("nearest", "zero")
+#: Largest size of the interpolation's indices and weights an operator keeps between calls (``AlignedOperator``):
+#: 16 int64 indices and 16 weights per detector pixel with the cubic kernel (10 tilts of 128^2 pixels in
+#: float64: 40 MiB); beyond it they are recomputed per call, as they are while they take part in a gradient.
+KEEP_BYTES = 2 ** 28
 
 
 def cubic_kernel(x: torch.Tensor) -> torch.Tensor:
@@ -224,8 +229,9 @@ class AlignedOperator(OperatorAlgebra):
             return kept[4]
         with torch.no_grad():
             weights = self._weights(self.shifts, self.angle, like)
-        self._kept = (key, self.shifts.clone(), self.angle.clone(),
-                      None if self.matrices is None else self.matrices.clone(), weights)
+        if sum(t.numel() * t.element_size() for t in weights) <= KEEP_BYTES:
+            self._kept = (key, self.shifts.clone(), self.angle.clone(),
+                          None if self.matrices is None else self.matrices.clone(), weights)
         return weights
 
     def _flat(self, y: torch.Tensor) -> torch.Tensor:
