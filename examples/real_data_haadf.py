@@ -42,11 +42,11 @@ import sys
 import time
 from pathlib import Path
 
+import indreg   # first: it sets OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (indreg._openmp; 2 threads)
 import numpy as np
 import torch
 from scipy import ndimage
 
-import indreg
 from indreg import alignment
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
