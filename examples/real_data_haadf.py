@@ -306,6 +306,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
     scan's SIRT and projection matching's, the baselines' (the scores are in float64)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
     t0, wall0, parts = time.process_time(), time.perf_counter(), Parts()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder), "stack": stack, "rescale": rescale}

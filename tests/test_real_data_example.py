@@ -212,6 +212,11 @@ def test_scale_bar_is_round_and_at_most_a_third_of_the_width(example):
     assert example.scale_bar_nm(30.0) == 10 and example.scale_bar_nm(3.0) == 1 and example.scale_bar_nm(1.4) == 0.2
 
 
+def test_bad_dtype_is_refused(example, stand_in, tmp_path):
+    with pytest.raises(ValueError, match="dtype must be 'float32' or 'float64', got 'float16'"):
+        example.run(stand_in, tmp_path, dtype="float16")
+
+
 def test_bad_thread_count_is_one_line(stand_in):
     """``--threads 0``: the script's one-line error, no traceback."""
     import sys
