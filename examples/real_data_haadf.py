@@ -42,11 +42,11 @@ import sys
 import time
 from pathlib import Path
 
+import indreg   # first: it sets OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (indreg._openmp; 2 threads)
 import numpy as np
 import torch
 from scipy import ndimage
 
-import indreg
 from indreg import alignment
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
@@ -157,22 +157,23 @@ def align_template_scan(T, y: torch.Tensor, angles: np.ndarray, rounds: int, ite
 
 
 def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: float, iters: int = 50,
-                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic") -> tuple:
+                  smooth: float = 0.5, classes: int = 5, align_rounds: int = 0, interpolation: str = "cubic",
+                  dtype: torch.dtype = torch.float64) -> tuple:
     """An "earlier scan": SIRT of ``data`` (background removed) on unit voxels (as IMOD / astra reconstruct, so
     its intensities are per voxel length, not per nm), smoothed by ``smooth`` voxels, segmented into ``classes``
     phases (multi-Otsu: vacuum, the rod's dim part, its bright bands) with each phase's mean, smoothed again;
     turned by ``misalign`` degrees about the beam (a specimen mounted differently). With ``align_rounds`` the
-    tilts are aligned first (:func:`align_template_scan`). Returns ``(template, sirt volume, the alignment's
-    (shifts (px), angle (deg), axis offset (px)) or None)``."""
+    tilts are aligned first (:func:`align_template_scan`); SIRT runs in ``dtype``. Returns ``(template, sirt volume,
+    the alignment's (shifts (px), angle (deg), axis offset (px)) or None)``."""
     from skimage.filters import threshold_multiotsu
 
     unit = ImageDomain(shape, tuple(-n / 2 for n in shape), tuple(n / 2 for n in shape))
-    T, y, found = operator(unit, angles), torch.from_numpy(data), None
+    T, y, found = operator(unit, angles), torch.from_numpy(data).to(dtype), None
     if align_rounds:
         x, found = align_template_scan(T, y, angles, align_rounds, iters, interpolation)
     else:
         x, _ = sirt(T, y, num_iter=iters, nonneg=True)
-    v = ndimage.gaussian_filter(x.numpy(), smooth)
+    v = ndimage.gaussian_filter(x.double().numpy(), smooth)
     thresholds = threshold_multiotsu(v, classes=classes)
     labels = np.digitize(v, thresholds)
     means = [0.0] + [float(v[labels == k].mean()) for k in range(1, classes)]
@@ -182,7 +183,7 @@ def make_template(data: np.ndarray, angles: np.ndarray, shape: tuple, misalign: 
     say(f"  SIRT of {len(angles)} even tilts on unit voxels ({iters} iterations), phases at {thresholds.round(1)}: "
         f"{[int((labels == k).sum()) for k in range(classes)]} voxels, means {np.round(means, 1)}; "
         f"turned by {misalign:g} deg")
-    return template, x.numpy(), found
+    return template, x.double().numpy(), found
 
 
 # ------------------------------------------------------------------------------------------------ baselines
@@ -221,9 +222,10 @@ def tuned_sirt_tv(T_fit, y_fit: torch.Tensor, T_val, y_val: torch.Tensor, sirt_i
         if best is None or r < best[1]["validation_residual"]:
             best = (x.clone(), {"iterations": n, "validation_residual": r})
     out = {"SIRT": best}
-    u, best = intensity_scale(T_fit, y_fit), None
-    for mu in tv_mus:
-        x, _ = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True)
+    u, best, norms = intensity_scale(T_fit, y_fit), None, None
+    for mu in tv_mus:   # the steps' norms from the first weight's run (the same operator)
+        x, history = tv_reconstruction(T_fit, y_fit, mu=mu * u, num_iter=tv_iters, nonneg=True, norms=norms)
+        norms = history["norms"]
         r = residual(T_val, x, y_val)
         say(f"    TV mu = {mu:g} x {u:.4g}: validation residual {r:.4f}")
         if best is None or r < best[1]["validation_residual"]:
@@ -269,35 +271,44 @@ def score(volumes: dict, T: dict, Y: dict, chosen: dict) -> dict:
 
 # ------------------------------------------------------------------------------------------------ pipeline
 class Parts:
-    """CPU seconds (``time.process_time``) of the walk-through's parts: ``done(name)`` ends the part begun at
-    the last call."""
+    """CPU seconds (``time.process_time``, all threads) and wall seconds (``time.perf_counter``) of the
+    walk-through's parts: ``done(name)`` ends the part begun at the last call."""
 
     def __init__(self):
-        self.last, self.seconds = time.process_time(), {}
+        self.last, self.seconds, self.wall = (time.process_time(), time.perf_counter()), {}, {}
 
     def done(self, name: str) -> None:
-        now = time.process_time()
-        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.last
+        now = (time.process_time(), time.perf_counter())
+        self.seconds[name] = self.seconds.get(name, 0.0) + now[0] - self.last[0]
+        self.wall[name] = self.wall.get(name, 0.0) + now[1] - self.last[1]
         self.last = now
 
+    def line(self) -> str:
+        """``name wall s (CPU s)`` per part."""
+        return ", ".join(f"{k} {self.wall[k]:.0f} s ({v:.0f} CPU)" for k, v in self.seconds.items())
 
-def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 100, sigma_cells: float = 3.0,
+
+def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 60, sigma_cells: float = 3.0,
         num_steps: int = 10, misalign: float = 5.0, fit_every: int = 2, max_angle: float = 40.0,
         stack: str = "raw", align: str = "shifts", align_gauge: str = "none", align_interpolation: str = "cubic",
         align_rounds: int = 8,
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
-        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate") -> dict:
+        quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate",
+        dtype: str = "float32") -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
     invariance). ``quick``: fewer SIRT / TV iterations and candidates (the tests). ``model``: ``register``'s
     (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
     validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
-    (``"reinterpolate"``, the paper's, as this page was measured)."""
+    (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's, the template
+    scan's SIRT and projection matching's, the baselines' (the scores are in float64)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
-    t0, parts = time.process_time(), Parts()
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    t0, wall0, parts = time.process_time(), time.perf_counter(), Parts()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder), "stack": stack, "rescale": rescale}
 
@@ -347,7 +358,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     template, sirt_even, even = make_template(
         turned[tilts["template"]] - level, angles[tilts["template"]], domain.shape, misalign,
         iters=20 if quick else 50, smooth=smooth, classes=classes, align_rounds=align_rounds if stack == "raw" else 0,
-        interpolation=align_interpolation)
+        interpolation=align_interpolation, dtype=getattr(torch, dtype))
     recorded = read_etspy_shifts(folder)
     if even is not None:
         metrics["template_alignment"] = {"shifts_px": even[0].tolist(), "axis_angle_deg": even[1]}
@@ -380,7 +391,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     sigma = sigma_cells * cell
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
     result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             model=model, interpolation=interpolation,
+                             model=model, interpolation=interpolation, dtype=dtype,
                              template_scale="auto", background="auto", holdout=holdout, align=align,
                              align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
                              progress=True, **extra)
@@ -426,7 +437,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
         say("8. baselines from the same fit tilts" + (" (through the registration's shifts)" if result.alignment
                                                       else ""))
         tb = time.process_time()
-        base = baselines(T["fit"], Y["fit"], T["validation"], Y["validation"],
+        base = baselines(T["fit"], Y["fit"].to(getattr(torch, dtype)), T["validation"],
+                         Y["validation"].to(getattr(torch, dtype)),
                          sirt_iters=(10, 25) if quick else (10, 25, 50, 100, 200),
                          tv_mus=(0.1,) if quick else (1.0, 10.0, 100.0, 1000.0), tv_iters=20 if quick else 200)
         metrics["baselines_cpu_seconds"] = time.process_time() - tb
@@ -435,7 +447,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     say("9. scores on the test tilts (used by none of them; no ground truth exists)")
     volumes = {"template": (d.template * result.units.template_scale).numpy(),
                "registered": result.deformed.double().numpy(),
-               **{k: v[0].numpy() for k, v in base.items()}}
+               **{k: v[0].double().numpy() for k, v in base.items()}}
     metrics["scores"] = score(volumes, T, Y, {k: v[1] for k, v in base.items()})
 
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
@@ -443,9 +455,12 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 1
     save(volumes, domain, out)
     parts.done("scores, figure, files")
     metrics["cpu_seconds"], metrics["cpu_seconds_by_part"] = time.process_time() - t0, parts.seconds
-    say("  CPU seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in parts.seconds.items()))
+    metrics["wall_seconds"], metrics["wall_seconds_by_part"] = time.perf_counter() - wall0, parts.wall
+    metrics["threads"] = torch.get_num_threads()
+    say(f"  seconds per part, wall (CPU, {metrics['threads']} thread(s)): {parts.line()}")
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
-    say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['cpu_seconds']:.0f} s CPU in all")
+    say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['wall_seconds']:.0f} s wall, "
+        f"{metrics['cpu_seconds']:.0f} s CPU in all")
     return metrics
 
 
@@ -509,7 +524,9 @@ def main(argv=None) -> None:
                    help="how the shifts move a projection image (cubic: no blur at fractional shifts)")
     p.add_argument("--size", type=int, default=64, help="detector pixels after binning (divides 256)")
     p.add_argument("--depth", type=int, default=64, help="voxels along the beam")
-    p.add_argument("--iters", type=int, default=100)
+    p.add_argument("--iters", type=int, default=60, help="the registration's iterations (60: docs/real_data.md, "
+                   "section 9, as 100 to 0.0003 on every registered residual, at 2/3 of the time; the page's earlier "
+                   "runs used 100)")
     p.add_argument("--sigma", type=float, default=3.0, help="kernel width in voxels")
     p.add_argument("--misalign", type=float, default=5.0, help="template turned by this many degrees")
     p.add_argument("--max-angle", type=float, default=40.0, help="fit and validation tilts within +-this (deg)")
@@ -525,9 +542,15 @@ def main(argv=None) -> None:
     p.add_argument("--model", default="residual", help="register()'s model (residual, the default: LDDMM plus a "
                    "TV-regularised intensity residual, its weight chosen on the validation tilts; lddmm)")
     p.add_argument("--interpolation", choices=("reinterpolate", "compose"), default="reinterpolate")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="the registration's, the "
+                   "template scan's and the baselines' (float32: the table's numbers as float64's, at half the time)")
+    p.add_argument("--threads", type=int, help="torch's CPU threads (default: torch's, OMP_NUM_THREADS or the cores)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
-    torch.set_num_threads(1)
+    if a.threads is not None:
+        if a.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {a.threads}")
+        torch.set_num_threads(a.threads)
     if a.table:   # both stacks, then docs/real_data.md's table
         runs = {stack: json.loads((a.out / stack / "metrics.json").read_text()) if a.reprint
                 else walk(fetch_once(a), a, a.out / stack, stack) for stack in ("raw", "aligned")}
@@ -546,7 +569,7 @@ def walk(folder: Path, a: argparse.Namespace, out: Path, stack: str) -> dict:
     return run(folder, out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
                max_angle=a.max_angle, fit_every=a.fit_every, stack=stack, align=a.align, align_gauge=a.align_gauge,
                align_interpolation=a.align_interpolation, rescale=a.rescale, gamma_rel=a.gamma_rel,
-               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation)
+               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation, dtype=a.dtype)
 
 
 if __name__ == "__main__":

@@ -170,20 +170,8 @@ def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Ten
 def _jacobian(op: AlignedOperator, projection: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor,
               axis: bool) -> list:
     """Directional derivatives of ``S P`` along every shift component (all projections at once: projection ``k``
-    depends on ``s_k`` only) and along the angle."""
-    from torch.func import jvp
-
-    def model(s, a):
-        return op.warp(projection, s, a)
-
-    columns = []
-    for c in range(op.components):
-        ds = torch.zeros_like(shifts)
-        ds[:, c] = 1
-        columns.append(jvp(model, (shifts, angle), (ds, torch.zeros_like(angle)))[1])
-    if axis:
-        columns.append(jvp(model, (shifts, angle), (torch.zeros_like(shifts), torch.ones_like(angle)))[1])
-    return columns
+    depends on ``s_k`` only) and along the angle (``AlignedOperator.warp_derivatives``)."""
+    return op.warp_derivatives(projection, shifts, angle, axis)[1]
 
 
 def _normal_equations(columns: list, residual: torch.Tensor, K: int, c: int, axis: bool) -> tuple:
@@ -221,8 +209,8 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     a = angle.double().to(P.device).clamp(-amax, amax)
     cost, damping = _cost(op, P, g, s, a), 1e-6
     for _ in range(iterations):
-        residual = op.warp(P, s, a) - g
-        H, b = _normal_equations(_jacobian(op, P, s, a, axis), residual, K, c, axis)
+        warped, columns = op.warp_derivatives(P, s, a, axis)
+        H, b = _normal_equations(columns, warped - g, K, c, axis)
         while damping < 1e8:
             step = -torch.linalg.solve(H + damping * torch.diag(H.diagonal().clamp_min(1e-12)), b)
             step = step * min(1.0, GN_MAX_STEP / max(float(step[:K * c].abs().max()), 1e-30))

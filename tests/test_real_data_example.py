@@ -148,6 +148,8 @@ def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
     assert all(np.isfinite(s["test_residual"]) for s in m["scores"].values())
     assert set(m["cpu_seconds_by_part"]) >= {"registration (the alignment and the model's finish included)",
                                              "baselines (FBP, SIRT, TV, parameters chosen on the validation tilts)"}
+    assert set(m["wall_seconds_by_part"]) == set(m["cpu_seconds_by_part"]) and m["threads"] >= 1
+    assert sum(m["wall_seconds_by_part"].values()) <= m["wall_seconds"] + 1e-6
     # docs/real_data.md's table (--table): a row per volume, both stacks' test and validation residuals, the ratios
     lines = example.table({"raw": m, "aligned": m}).splitlines()
     n = {k: len(m["tilts_deg"][k]) for k in ("test", "validation")}
@@ -208,3 +210,17 @@ def test_fetch_unpacks_the_wheel_once(example, stand_in, tmp_path, monkeypatch):
 def test_scale_bar_is_round_and_at_most_a_third_of_the_width(example):
     assert example.scale_bar_nm(64 * 3.36) == 50        # 215 nm wide: 50 nm
     assert example.scale_bar_nm(30.0) == 10 and example.scale_bar_nm(3.0) == 1 and example.scale_bar_nm(1.4) == 0.2
+
+
+def test_bad_dtype_is_refused(example, stand_in, tmp_path):
+    with pytest.raises(ValueError, match="dtype must be 'float32' or 'float64', got 'float16'"):
+        example.run(stand_in, tmp_path, dtype="float16")
+
+
+def test_bad_thread_count_is_one_line(stand_in):
+    """``--threads 0``: the script's one-line error, no traceback."""
+    import sys
+    run = subprocess.run([sys.executable, str(EXAMPLE), "--data", str(stand_in), "--threads", "0"],
+                         capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(EXAMPLE.parents[1])})
+    assert run.returncode != 0 and run.stderr.strip().splitlines() == [
+        "real_data_haadf.py: error: --threads must be >= 1, got 0"]

@@ -35,11 +35,16 @@ from .._checks import check_tensor
 from .algebra import OperatorAlgebra
 from .operator import check_data_pair, check_operator
 
-__all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "cubic_kernel", "projection_frame"]
+__all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "KEEP_BYTES", "cubic_kernel", "cubic_slope",
+           "projection_frame"]
 
 #: ``S``'s interpolation and what it takes beyond the detector (module Convention); the first are the defaults.
 INTERPOLATIONS = ("linear", "cubic")
 EDGES = ("nearest", "zero")
+#: Largest size of the interpolation's indices and weights an operator keeps between calls (``AlignedOperator``):
+#: 16 int64 indices and 16 weights per detector pixel with the cubic kernel (10 tilts of 128^2 pixels in
+#: float64: 40 MiB); beyond it they are recomputed per call, as they are while they take part in a gradient.
+KEEP_BYTES = 2 ** 28
 
 
 def cubic_kernel(x: torch.Tensor) -> torch.Tensor:
@@ -54,6 +59,19 @@ def cubic_kernel(x: torch.Tensor) -> torch.Tensor:
 def _linear_kernel(x: torch.Tensor) -> torch.Tensor:
     """The hat ``1 - |x|``, its derivative at 0 taken from the right (as the cell index ``floor`` is)."""
     return torch.where(x >= 0, 1 - x, 1 + x).clamp_min(0)
+
+
+def cubic_slope(x: torch.Tensor) -> torch.Tensor:
+    """The derivative of :func:`cubic_kernel` (0 at 0 and beyond 2; continuous at 1)."""
+    a = x.abs()
+    inner = torch.where(a <= 1, (4.5 * a - 5) * a, torch.where(a < 2, (-1.5 * a + 5) * a - 4, torch.zeros_like(a)))
+    return torch.sign(x) * inner
+
+
+def _linear_slope(x: torch.Tensor) -> torch.Tensor:
+    """The derivative of :func:`_linear_kernel` as autograd takes it: -1 from 0 (included) to 1 (included), +1 from
+    -1 (included) to 0, 0 beyond."""
+    return torch.where(torch.where(x >= 0, 1 - x, 1 + x) >= 0, torch.where(x >= 0, -1.0, 1.0), 0.0).to(x.dtype)
 
 
 def projection_frame(operator) -> tuple:
@@ -84,6 +102,11 @@ def _check_matrices(matrices, count: int, components: int) -> torch.Tensor:
         raise ValueError(f"matrices: projection {int(det.argmin())} has a singular matrix (|det| "
                          f"{float(det.min()):.3g})")
     return m
+
+
+def _same(a, b) -> bool:
+    """Whether two optional tensors are both None or equal."""
+    return a is b or (a is not None and b is not None and torch.equal(a, b))
 
 
 class AlignedOperator(OperatorAlgebra):
@@ -137,37 +160,97 @@ class AlignedOperator(OperatorAlgebra):
     def _weights(self, shifts, angle, like) -> tuple:
         """Flat neighbour indices and weights ``(n, K, rows * columns)``: ``n = 16`` (cubic) or 4 (linear)
         neighbours, clamped to the detector (``edge="nearest"``) or weighted zero outside it."""
-        row, col = self._points(shifts, angle, like)
+        return self._taps(*self._points(shifts, angle, like))[:2]
+
+    def _taps(self, row: torch.Tensor, col: torch.Tensor, slopes: bool = False) -> tuple:
+        """``(index, weight, row_slope, column_slope)`` of the points ``(row, col)`` (:meth:`_weights`); with
+        ``slopes`` also every weight's derivative along the point's row and column coordinate (else None)."""
         r0, c0 = torch.floor(row.detach()), torch.floor(col.detach())
         fr, fc = row - r0, col - c0
         cubic = self.interpolation == "cubic"
-        kernel, taps = (cubic_kernel, (-1, 0, 1, 2)) if cubic else (_linear_kernel, (0, 1))
+        kernel, slope, taps = (cubic_kernel, cubic_slope, (-1, 0, 1, 2)) if cubic else \
+            (_linear_kernel, _linear_slope, (0, 1))
         row_taps = (0,) if self.rows == 1 else taps   # a sinogram's one row: its points lie on it
-        index, weight = [], []
+        index, weight, d_row, d_col = [], [], [], []
         for dr in row_taps:
             wr, r = kernel(fr - dr), r0 + dr
             for dc in taps:
-                w, c = wr * kernel(fc - dc), c0 + dc
-                if self.edge == "zero":
-                    w = w * ((r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns))
+                wc, c = kernel(fc - dc), c0 + dc
+                w = wr * wc
+                inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.columns) if self.edge == "zero" else None
+                if inside is not None:
+                    w = w * inside
                 index.append((r.clamp(0, self.rows - 1) * self.columns + c.clamp(0, self.columns - 1)).long())
                 weight.append(w)
+                if slopes:
+                    d_row.append(slope(fr - dr) * wc if inside is None else slope(fr - dr) * wc * inside)
+                    d_col.append(wr * slope(fc - dc) if inside is None else wr * slope(fc - dc) * inside)
+        shape = (len(index), self.num_projections, -1)
+        stacked = [torch.stack(t).reshape(shape) if t else None for t in (index, weight, d_row, d_col)]
+        return tuple(stacked)
+
+    def warp_derivatives(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor, axis: bool = False) \
+            -> tuple:
+        """``(S y, columns)``: ``S y`` (:meth:`warp`) and its derivatives (the same shape) along every shift
+        component, all projections at once (projection ``k`` moves with ``s_k`` only), and with ``axis`` along the
+        angle: Gauss-Newton's Jacobian columns (``indreg.alignment``), from the kernels' derivatives (one set of
+        weights for all, where forward-mode autograd through :meth:`warp` recomputes them per column)."""
+        from torch.func import jvp
+
+        def points(s, a):
+            return self._points(s, a, y)
+
+        directions = []
+        for c in range(self.components):
+            ds = torch.zeros_like(shifts)
+            ds[:, c] = 1
+            directions.append((ds, torch.zeros_like(angle)))
+        if axis:
+            directions.append((torch.zeros_like(shifts), torch.ones_like(angle)))
+        moves = [jvp(points, (shifts, angle), d)[1] for d in directions]   # d(row), d(col) per direction
+        index, weight, d_row, d_col = self._taps(*self._points(shifts, angle, y), slopes=True)
         K = self.num_projections
-        return torch.stack(index).reshape(len(index), K, -1), torch.stack(weight).reshape(len(index), K, -1)
+        warped = self._gather(y, index, weight)
+        columns = [self._gather(y, index, d_row * m_row.reshape(1, K, -1) + d_col * m_col.reshape(1, K, -1))
+                   for m_row, m_col in moves]
+        return warped, columns
+
+    def _current_weights(self, like: torch.Tensor) -> tuple:
+        """:meth:`_weights` at the operator's own ``shifts``, ``angle`` (and ``matrices``, interpolation, edge), in
+        ``like``'s dtype and device, kept until one of them changes: the operator applied again at the same
+        alignment (every iteration of a fit between two estimates, a baseline's solver) reuses them, bit for bit.
+        Recomputed, not kept, while the shifts or the angle require a gradient."""
+        if self.shifts.requires_grad or self.angle.requires_grad:
+            return self._weights(self.shifts, self.angle, like)
+        key = (like.dtype, like.device, self.interpolation, self.edge)
+        kept = getattr(self, "_kept", None)
+        if kept is not None and kept[0] == key and torch.equal(kept[1], self.shifts) and \
+                torch.equal(kept[2], self.angle) and _same(kept[3], self.matrices):
+            return kept[4]
+        with torch.no_grad():
+            weights = self._weights(self.shifts, self.angle, like)
+        if sum(t.numel() * t.element_size() for t in weights) <= KEEP_BYTES:
+            self._kept = (key, self.shifts.clone(), self.angle.clone(),
+                          None if self.matrices is None else self.matrices.clone(), weights)
+        return weights
 
     def _flat(self, y: torch.Tensor) -> torch.Tensor:
         return y.reshape(*y.shape[:y.dim() - len(self.range_shape)], self.num_projections, -1)
 
     def warp(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
         """``S y``: data ``(..., *range_shape)`` sampled at the moved points (module docstring)."""
-        index, weight = self._weights(shifts, angle, y)
+        return self._gather(y, *self._weights(shifts, angle, y))
+
+    def warp_transpose(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+        """``S^T y``: the exact transpose of :meth:`warp` (scatter-add of the same weights)."""
+        return self._scatter(y, *self._weights(shifts, angle, y))
+
+    def _gather(self, y: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
         flat = self._flat(y)
         out = sum(w * flat.gather(-1, i.expand(flat.shape)) for i, w in zip(index, weight))
         return out.reshape(y.shape)
 
-    def warp_transpose(self, y: torch.Tensor, shifts: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-        """``S^T y``: the exact transpose of :meth:`warp` (scatter-add of the same weights)."""
-        index, weight = self._weights(shifts, angle, y)
+    def _scatter(self, y: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
         flat = self._flat(y)
         out = flat.new_zeros(flat.shape)
         for i, w in zip(index, weight):
@@ -180,13 +263,15 @@ class AlignedOperator(OperatorAlgebra):
         return self.warp(self.operator(f), shifts, angle)
 
     def __call__(self, f: torch.Tensor) -> torch.Tensor:
-        """``T_s f`` at the current ``shifts`` and ``angle``: images ``(..., *domain.shape)`` -> data."""
-        return self.apply(f, self.shifts, self.angle)
+        """``T_s f`` at the current ``shifts`` and ``angle``: images ``(..., *domain.shape)`` -> data (the
+        interpolation's weights kept between calls at the same alignment, :meth:`_current_weights`)."""
+        y = self.operator(f)
+        return self._gather(y, *self._current_weights(y))
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         """L2 adjoint ``T^* S^T y``."""
         y = check_tensor(y, "data", self.range_shape, finite=False)
-        return self.operator.adjoint(self.warp_transpose(y, self.shifts, self.angle))
+        return self.operator.adjoint(self._scatter(y, *self._current_weights(y)))
 
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
         """``T``'s data inner product."""
