@@ -207,6 +207,16 @@ def valley(T, f: torch.Tensor, stack: np.ndarray, angle: float, true: torch.Tens
               flush=True)
 
 
+def series_stacks(clean: np.ndarray, shifts: dict, a):
+    """``(series, noise level, true angle, stack)`` for every chosen series, noise level and angle: ``clean``'s
+    images turned by the angle and shifted as the series says (``bench.microscope``)."""
+    chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
+    for name in chosen:
+        for level in a.noise:
+            for angle in a.angles:
+                yield name, level, angle, bench.microscope(clean, angle, shifts[name], level, a.seed)
+
+
 # ---------------------------------------------------------------------------------------------------- moments
 def moments_table(T, clean: np.ndarray, shifts: dict, a) -> None:
     """The Helgason-Ludwig estimate (``indreg.axis_moments.estimate_axis_angle``, its own scan: every degree over
@@ -214,21 +224,17 @@ def moments_table(T, clean: np.ndarray, shifts: dict, a) -> None:
     from indreg.axis_moments import estimate_axis_angle
 
     theta = T.geometry.angles.numpy()
-    chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
     print(f"moments (orders 0-{a.orders}, band {a.band}), {a.phantom}" + (f" blurred {a.blur:g}" if a.phantom ==
           "shepp-logan" else "") + f", {a.size}^3, projector {a.projector}, {len(theta)} tilts over +-60 deg, shifts "
           "up to 4 px")
     print("| series | noise | true angle (deg) | estimate (deg) | error (deg) | s.e. (deg) | chi2 / dof | tilts | s |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for name in chosen:
-        for level in a.noise:
-            for angle in a.angles:
-                stack = bench.microscope(clean, angle, shifts[name], level, a.seed)
-                t0 = time.perf_counter()
-                e = estimate_axis_angle(stack, theta, band=a.band, orders=a.orders)
-                print(f"| {name} | {level:g} | {angle:+g} | {e.angle_deg:+.3f} | {e.angle_deg - angle:+.3f} | "
-                      f"{e.se_deg:.3f} | {e.chi2_per_dof:.2f} | {int(e.tilts_used.sum())} | "
-                      f"{time.perf_counter() - t0:.0f} |", flush=True)
+    for name, level, angle, stack in series_stacks(clean, shifts, a):
+        t0 = time.perf_counter()
+        e = estimate_axis_angle(stack, theta, band=a.band, orders=a.orders)
+        print(f"| {name} | {level:g} | {angle:+g} | {e.angle_deg:+.3f} | {e.angle_deg - angle:+.3f} | "
+              f"{e.se_deg:.3f} | {e.chi2_per_dof:.2f} | {int(e.tilts_used.sum())} | "
+              f"{time.perf_counter() - t0:.0f} |", flush=True)
 
 
 # ---------------------------------------------------------------------------------------------------- the table
@@ -261,22 +267,18 @@ def main():
     if a.probe == "moments":
         moments_table(T, clean, shifts, a)
         return
-    chosen = [s for s in SERIES if a.series == "all" or s.split(", ")[-1].replace(" ", "-") == a.series]
     print(f"{a.probe}, {a.phantom}, {a.size}^3, {T.range_shape[0]} tilts over +-60 deg, shifts up to 4 px, "
           f"trials {a.trials}")
     print("| series | noise | true angle (deg) | estimate (deg) | criterion at the true angle / at its minimum | s |")
     print("|---|---|---|---|---|---|")
-    for name in chosen:
-        for level in a.noise:
-            for angle in a.angles:
-                stack = bench.microscope(clean, angle, shifts[name], level, a.seed)
-                trials = angle + np.arange(a.trials[0], a.trials[1] + 1e-9, a.trials[2])
-                t0 = time.perf_counter()
-                values = [common_lines(stack, x, a) if a.probe == "common-lines" else sirt_consistency(T, stack, x, a)
-                          for x in trials]
-                at_true = values[int(np.argmin(np.abs(trials - angle)))]
-                print(f"| {name} | {level:g} | {angle:+g} | {minimum(trials, values):+.3f} | "
-                      f"{at_true:.3e} / {min(values):.3e} | {time.perf_counter() - t0:.0f} |", flush=True)
+    for name, level, angle, stack in series_stacks(clean, shifts, a):
+        trials = angle + np.arange(a.trials[0], a.trials[1] + 1e-9, a.trials[2])
+        t0 = time.perf_counter()
+        values = [common_lines(stack, x, a) if a.probe == "common-lines" else sirt_consistency(T, stack, x, a)
+                  for x in trials]
+        at_true = values[int(np.argmin(np.abs(trials - angle)))]
+        print(f"| {name} | {level:g} | {angle:+g} | {minimum(trials, values):+.3f} | "
+              f"{at_true:.3e} / {min(values):.3e} | {time.perf_counter() - t0:.0f} |", flush=True)
 
 
 if __name__ == "__main__":
