@@ -383,22 +383,18 @@ def hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
     it."""
     if op.mode != "shifts+axis":
         return False
-    if not hasattr(op, "stack_estimate"):
-        op.held = _hold_stack_angle(op, data)
-    return bool(getattr(op, "held", False))
-
-
-def _hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
-    estimate_ = stack_angle(op, data) if STACK_ANGLE else None
-    op.stack_estimate = estimate_
-    if estimate_ is None:
+    if hasattr(op, "stack_estimate"):   # estimated before (or off: None)
+        return bool(getattr(op, "held", False))
+    e = op.stack_estimate = stack_angle(op, data) if STACK_ANGLE else None
+    op.held = e is not None and e.determined
+    if e is None:
         return False
-    log.info(estimate_.describe())
-    if estimate_.determined:
-        op.angle = torch.tensor(math.radians(estimate_.angle_deg), dtype=torch.float64)
-        op.angle_se = estimate_.se_deg
+    log.info(e.describe())
+    if op.held:
+        op.angle = torch.tensor(math.radians(e.angle_deg), dtype=torch.float64)
+        op.angle_se = e.se_deg
         return True
-    se = f"{estimate_.se_deg:.3f}" if math.isfinite(estimate_.se_deg) else "inf"
+    se = f"{e.se_deg:.3f}" if math.isfinite(e.se_deg) else "inf"
     log.warning("tilt-axis angle not determined by the data (s.e. %s deg from the stack's moment conditions): it "
                 "is estimated in the fit, where a turn of the object about the beam can take part of it up; measure "
                 "it beforehand and rotate the stack, or use align='shifts'", se)
