@@ -356,8 +356,9 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor):
     """The tilt-axis angle of ``data`` from the stack alone, by the moment conditions of every detector row
     (``indreg.axis_moments.estimate_axis_angle``): no reconstruction, so no turn of the object about the beam can
     take part of it up. ``None`` where it does not apply: pixels not square, a given alignment (imported shifts, an
-    angle, per-tilt matrices), or a stack the estimator refuses (a one-line reason in the log)."""
-    from .axis_moments import estimate_axis_angle
+    angle, per-tilt matrices); :meth:`~indreg.axis_moments.AxisEstimate.refused` (not determined, with the reason)
+    for a stack that cannot tell the angle (too few tilts whose specimen stays on the detector, too few rows)."""
+    from .axis_moments import AxisEstimate, estimate_axis_angle
 
     _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
     if getattr(op, "started", False) or op.matrices is not None or float(op.angle) != 0:
@@ -372,8 +373,7 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor):
         return estimate_axis_angle(data.detach().double().cpu().reshape(K, R, D).numpy(),
                                    op.operator.geometry.angles.double().cpu().numpy(), scan_deg=MAX_ANGLE_DEG)
     except ValueError as e:
-        log.info("tilt-axis angle from the stack: skipped (%s)", e)
-        return None
+        return AxisEstimate.refused(str(e), K)
 
 
 def hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
@@ -394,10 +394,10 @@ def hold_stack_angle(op: AlignedOperator, data: torch.Tensor) -> bool:
         op.angle = torch.tensor(math.radians(e.angle_deg), dtype=torch.float64)
         op.angle_se = e.se_deg
         return True
-    se = f"{e.se_deg:.3f}" if math.isfinite(e.se_deg) else "inf"
-    log.warning("tilt-axis angle not determined by the data (s.e. %s deg from the stack's moment conditions): it "
-                "is estimated in the fit, where a turn of the object about the beam can take part of it up; measure "
-                "it beforehand and rotate the stack, or use align='shifts'", se)
+    why = e.reason or (f"s.e. {e.se_deg:.3f} deg" if math.isfinite(e.se_deg) else "s.e. inf deg")
+    log.warning("tilt-axis angle not determined by the data (%s, from the stack's moment conditions): it is "
+                "estimated in the fit, where a turn of the object about the beam can take part of it up; measure it "
+                "beforehand and rotate the stack, or use align='shifts'", why)
     return False
 
 
@@ -494,7 +494,7 @@ def operator_summary(op: AlignedOperator, every: int = ALIGN_EVERY) -> dict:
         stack = getattr(op, "stack_estimate", None)
         out["axis_angle_source"] = "stack" if getattr(op, "held", False) else "fit"
         if stack is not None:
-            out["axis_angle_stack_deg"] = stack.angle_deg
+            out["axis_angle_stack_deg"] = stack.angle_deg if math.isfinite(stack.angle_deg) else None
             out["axis_angle_stack_se_deg"] = stack.se_deg if math.isfinite(stack.se_deg) else None
         out["axis_angle_se_deg"] = se if math.isfinite(se) else None
         out["axis_angle_determined"] = se <= MAX_ANGLE_SE_DEG and (stack is None or stack.determined)

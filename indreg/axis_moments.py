@@ -30,6 +30,8 @@ Convention:
       angle: :func:`_noise_slopes`).
     - Shifts: ``c_k`` keeps the axis' offset (orthogonal to ``cos theta_k, sin theta_k`` only, which a translation
       of the specimen explains), ``d_k`` mean zero.
+    - Scales (``scales=True``, the default): tilt ``k``'s ``G`` is ``a_k`` times the conditions (an exposure or a
+      signal that changes with the path length), ``a_k`` fitted by least squares against them, mean 1.
 """
 from __future__ import annotations
 
@@ -64,7 +66,9 @@ class AxisEstimate:
     flat or has no interior minimum); ``determined``: ``se_deg <= MAX_SE_DEG``; ``chi2_per_dof``: the criterion at
     the minimum over its degrees of freedom (about 1 when the conditions fit to the noise); ``shifts_px``
     ``(tilts, 2)`` across / along; ``tilts_used``: which tilts entered (those whose specimen stays inside the
-    detector across the axis, :func:`support_columns`); ``scan``: the trial angles and their ``chi2``."""
+    detector across the axis, :func:`support_columns`); ``scan``: the trial angles and their ``chi2``; ``reason``:
+    why the stack could not be used, where it could not (:meth:`refused`: no angle, not determined); ``scales``
+    ``(tilts,)``: every tilt's fitted intensity scale (mean 1 over the tilts used; ``None``: not fitted)."""
     angle_deg: float
     se_deg: float
     determined: bool
@@ -72,9 +76,19 @@ class AxisEstimate:
     shifts_px: np.ndarray
     tilts_used: np.ndarray
     scan: tuple = field(repr=False)
+    reason: str = ""
+    scales: np.ndarray | None = field(default=None, repr=False)
+
+    @classmethod
+    def refused(cls, reason: str, tilts: int) -> "AxisEstimate":
+        """No estimate: the stack cannot tell the angle (``reason``, e.g. too few tilts on the detector)."""
+        return cls(math.nan, math.inf, False, math.nan, np.full((tilts, 2), np.nan), np.zeros(tilts, bool),
+                   (np.zeros(0), np.zeros(0)), reason)
 
     def describe(self) -> str:
         """One line for the log."""
+        if self.reason:
+            return f"tilt-axis angle from the stack's moment conditions: not estimated ({self.reason})"
         se = f"{self.se_deg:.3f}" if math.isfinite(self.se_deg) else "inf"
         state = "" if self.determined else " (not determined by the data)"
         return (f"tilt-axis angle from the stack's moment conditions: {self.angle_deg:.3f} deg, s.e. {se} deg"
@@ -142,6 +156,7 @@ class _Setup:
     taper: float
     sigma: float
     orders: int = 2
+    scales: np.ndarray | None = None    # (tilts,) per-tilt intensity scales (exposure), mean 1; None: not fitted
 
 
 def _design(theta: np.ndarray, orders: int) -> list:
@@ -180,11 +195,14 @@ def _parts(z: np.ndarray) -> np.ndarray:
     return np.stack([z.real, z.imag])
 
 
-def _model_fit(S: _Setup, G: np.ndarray, sd: np.ndarray) -> tuple:
-    """The weighted least-squares fit of the conditions per order, ``rho`` and part: the whitened residual
-    ``(2, tilts, 3, freqs)`` and the number of fitted coefficients. Parts with no variance (the imaginary part at
-    ``rho = 0``) are left out (residual 0)."""
+def _model_fit(S: _Setup, G: np.ndarray, sd: np.ndarray, model: bool = False) -> tuple:
+    """The weighted least-squares fit of the conditions per order, ``rho`` and part, each tilt's ``G`` scaled by its
+    intensity scale (``S.scales``: ``G_k = a_k x model``): the whitened residual ``(2, tilts, 3, freqs)``, the number
+    of fitted coefficients and, with ``model``, the fitted conditions (unscaled, ``(2, tilts, 3, freqs)``). Parts
+    with no variance (the imaginary part at ``rho = 0``) are left out (residual 0)."""
+    a = np.ones(len(S.theta)) if S.scales is None else S.scales
     y, residual, fitted = _parts(G), np.zeros((2,) + G.shape), 0
+    values = np.zeros((2,) + G.shape)
     ok = sd > 1e-300
     for n, X in enumerate(_design(S.theta, S.orders)):
         for part in range(2):
@@ -193,11 +211,25 @@ def _model_fit(S: _Setup, G: np.ndarray, sd: np.ndarray) -> tuple:
                 if keep.sum() <= X.shape[1]:
                     continue
                 wgt = 1.0 / sd[part, keep, n, f]
-                A, b = X[keep] * wgt[:, None], y[part, keep, n, f] * wgt
+                A, b = X[keep] * (a[keep] * wgt)[:, None], y[part, keep, n, f] * wgt
                 coef = np.linalg.lstsq(A, b, rcond=None)[0]
                 residual[part, keep, n, f] = b - A @ coef
+                values[part, keep, n, f] = X[keep] @ coef
                 fitted += X.shape[1]
-    return residual, fitted
+    return (residual, fitted, values) if model else (residual, fitted)
+
+
+def _scale_step(S: _Setup, G: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Every tilt's intensity scale by weighted least squares against the fitted conditions (the model held),
+    normalised to mean 1 (the overall scale is the model's)."""
+    _, _, m = _model_fit(S, G, sd, model=True)
+    ok = sd > 1e-300
+    w = np.where(ok, 1.0 / np.where(ok, sd, 1.0) ** 2, 0.0)
+    y = _parts(G)
+    num, den = (w * y * m).sum(axis=(0, 2, 3)), (w * m * m).sum(axis=(0, 2, 3))
+    a = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    a = np.clip(a, 1e-3, None)
+    return a / a.mean()
 
 
 def _gauge(S: _Setup, c: np.ndarray, d: np.ndarray) -> tuple:
@@ -225,16 +257,24 @@ def _conditions(S: _Setup, alpha_deg: float, c: np.ndarray, d: np.ndarray, round
     """``chi2`` of the conditions at the trial angle with the shifts fitted from ``(c, d)`` (``rounds`` Gauss-Newton
     steps, each with the linear model re-fitted), the number of degrees of freedom, and the shifts."""
     alpha = math.radians(alpha_deg)
+    if S.scales is not None:
+        S.scales = np.ones(len(c))
     for _ in range(rounds):
         c_new, d_new = _shift_step(S, alpha, c, d)
         moved = max(np.abs(c_new - c).max(), np.abs(d_new - d).max())
         c, d = c_new, d_new
+        if S.scales is not None:
+            G, sd = _transforms(S, alpha, c, d)
+            scales = _scale_step(S, G, sd)
+            moved = max(moved, np.abs(scales - S.scales).max())
+            S.scales = scales
         if moved < 1e-3:
             break
     G, sd = _transforms(S, alpha, c, d)
     residual, fitted = _model_fit(S, G, sd)
     data = int((sd > 1e-300).sum())
-    return float((residual ** 2).sum()), data - fitted - 2 * len(c), c, d
+    scales = 0 if S.scales is None else len(c) - 1
+    return float((residual ** 2).sum()), data - fitted - 2 * len(c) - scales, c, d
 
 
 def _start(S: _Setup, alpha: float) -> tuple:
@@ -311,15 +351,17 @@ def condition_misfit(stack, tilt_angles, alpha_deg: float, shifts_px, band: floa
 
 
 def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 1.0, scan_deg: float = SCAN_DEG,
-                        sigma: float | None = None, orders: int = 2) -> AxisEstimate:
+                        sigma: float | None = None, orders: int = 2, scales: bool = True) -> AxisEstimate:
     """The tilt-axis angle of ``stack`` ``(tilts, rows, columns)`` (module Convention) from the Helgason-Ludwig
     conditions of orders ``0 .. orders``, with per-tilt shifts across and along the axis; ``tilt_angles`` in
     radians. ``band``: the highest frequency along the axis (cycles per pixel); ``margin``: rows kept from the
     window's ends beyond the shifts and the trial turn (px); ``scan_deg``: the trial angles' range (every degree,
     then every quarter within one degree of the least, a parabola fitted there); ``sigma``: the noise's standard
     deviation (default :func:`noise_level`). Tilts whose specimen runs off the detector across the axis are left
-    out (:func:`support_columns`)."""
+    out (:func:`support_columns`). ``scales``: fit an intensity scale per tilt too (exposure, a signal that changes
+    with the path length), alternating with the shifts; ``False``: every tilt's scale 1."""
     S, used = _prepare(stack, tilt_angles, band, margin, scan_deg, sigma, orders)
+    S.scales = np.ones(len(S.theta)) if scales else None
     coarse = np.arange(-scan_deg, scan_deg + 1e-9, 1.0)
     chi2, _ = _scan(S, coarse)
     best = int(np.argmin(chi2))
@@ -333,11 +375,15 @@ def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 
     if interior and curvature > 0:
         wander = _noise_slopes(S, fine, fine_shifts, angle).std(ddof=1) / curvature
         se = math.sqrt(2 / curvature * inflation + wander ** 2)
-    shifts = np.full((len(used), 2), np.nan)
+    shifts, tilt_scales = np.full((len(used), 2), np.nan), None
     shifts[used] = np.stack([c, d], 1)
+    if S.scales is not None:
+        tilt_scales = np.full(len(used), np.nan)
+        tilt_scales[used] = S.scales
     x, y = np.concatenate([coarse, fine]), np.concatenate([chi2, fine_chi2])
     order = np.argsort(x)
-    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), shifts, used, (x[order], y[order]))
+    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), shifts, used, (x[order], y[order]),
+                        scales=tilt_scales)
 
 
 def _noise_slopes(S: _Setup, trials: np.ndarray, shifts: list, angle: float) -> np.ndarray:

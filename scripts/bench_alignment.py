@@ -13,7 +13,8 @@ and summed along the beam (``--projector astra``: projected by ASTRA's CPU proje
 ``scripts/astra_projections.py`` run by ``--astra-python``, a Python with ``astra-toolbox``), every tilt image then
 turned about its centre by each angle of ``--angles`` and shifted (``scipy.ndimage.rotate`` and ``shift``, cubic),
 Gaussian noise of ``--noise`` times the largest datum; the template is the swirled and bent phantom, turned about the
-beam by ``--template-turn`` degrees. One registration without alignment on the unturned, unshifted stack, then
+beam by ``--template-turn`` degrees. ``--phantom beads``: the specimen also carries ``--beads`` gold beads (the
+fiducials of electron tomography, :func:`specimen`), which the template does not. One registration without alignment on the unturned, unshifted stack, then
 ``align="shifts+axis"`` on every turned one.
 
 Prints a table: the projector, the template's turn about the beam (deg), the series, the shifts' RMS error (px,
@@ -25,6 +26,8 @@ residual and seconds of each run.
     OMP_NUM_THREADS=1 python scripts/bench_alignment.py            # 64^3, 100 iterations, velocity_factor 2
     python scripts/bench_alignment.py --size 32 --iterations 30    # a quick look
     python scripts/bench_alignment.py --projector scipy --size 32 --angles 0.5 -0.5 3 -3 --template-turn 4
+    OMP_NUM_THREADS=1 python scripts/bench_alignment.py --projector scipy --phantom beads --size 64 --step 3 \
+        --max-shift 4 --iterations 60                                # issue #39's table (docs/alignment.md)
 """
 from __future__ import annotations
 
@@ -60,6 +63,9 @@ def arguments():
     p.add_argument("--template-turn", type=float, default=0.0, help="template turned about the beam (deg)")
     p.add_argument("--blur", type=float, default=1.0, help="Gaussian blur of the phantom (voxels; scipy)")
     p.add_argument("--noise", type=float, default=0.02, help="noise std / largest datum (scipy)")
+    p.add_argument("--phantom", choices=("shepp-logan", "beads"), default="shepp-logan",
+                   help="the specimen (scipy, astra): the Shepp-Logan alone, or with gold beads the template lacks")
+    p.add_argument("--beads", type=int, default=20, help="gold beads in the specimen (--phantom beads)")
     return p.parse_args()
 
 
@@ -128,12 +134,31 @@ def microscope(stack: np.ndarray, axis_deg: float, shifts: np.ndarray, level: fl
     return out + level * np.abs(out).max() * rng.standard_normal(out.shape)
 
 
+#: A gold bead (``--phantom beads``): its value (the skull's is 1) and radius (normalised frame: 1.6 voxels at 64^3).
+BEAD_VALUE, BEAD_RADIUS = 4.0, 0.05
+
+
+def specimen(a) -> tuple:
+    """The ellipsoids of the target: the 3D Shepp-Logan, with ``--phantom beads`` also ``--beads`` gold beads (the
+    fiducial markers of electron tomography, dense against the specimen) at random (seeded) within ``|x| < 0.5``,
+    ``|y| < 0.7``, ``|z| < 0.5`` of the half-extent, so every bead stays on the detector at every tilt."""
+    if a.phantom == "shepp-logan":
+        return phantoms.SHEPP_LOGAN_3D_ELLIPSOIDS
+    gen = np.random.default_rng(a.seed + 1)
+    beads = [(BEAD_VALUE, BEAD_RADIUS, BEAD_RADIUS, BEAD_RADIUS, *(gen.uniform(-1, 1, 3) * [0.5, 0.7, 0.5]), 0, 0, 0)
+             for _ in range(a.beads)]
+    return phantoms.SHEPP_LOGAN_3D_ELLIPSOIDS + tuple(beads)
+
+
 def external(a) -> tuple:
-    """Data made outside indreg (``--projector scipy``)."""
+    """Data made outside indreg (``--projector scipy`` or ``astra``): the target the specimen's ellipsoids, the
+    template the Shepp-Logan's deformed by suite ET-3D's swirl and bend, both blurred (an atlas has no gold: the
+    beads are in the data only)."""
     from scipy import ndimage
 
     domain, T = geometry(a)
-    target = torch.from_numpy(ndimage.gaussian_filter(phantoms.get("shepp_logan_3d", domain).double().numpy(),
+    rows = specimen(a)
+    target = torch.from_numpy(ndimage.gaussian_filter(phantoms.ellipsoid_phantom(domain, rows).double().numpy(),
                                                       a.blur))
     template = ndimage.gaussian_filter(phantoms.get("shepp_logan_3d_swirl", domain).double().numpy(), a.blur)
     if a.template_turn:
@@ -153,7 +178,8 @@ def main():
     T, template, target, runs, true = (simulated if a.projector == "indreg" else external)(a)
     options = dict(sigma=3.0, num_steps=10, gamma=1e-6, step_size=0.1, max_iter=a.iterations,
                    velocity_factor=a.velocity_factor, interpolation="compose", target=target)
-    print(f"{a.size}^3, {T.range_shape[0]} tilts, shifts up to {a.max_shift} px, projector {a.projector}, "
+    specimen_name = "" if a.projector == "indreg" else f"{a.phantom}{f' ({a.beads})' if a.phantom == 'beads' else ''}, "
+    print(f"{a.size}^3, {specimen_name}{T.range_shape[0]} tilts, shifts up to {a.max_shift} px, projector {a.projector}, "
           f"template turned {a.template_turn} deg, {a.iterations} iterations, velocity_factor {a.velocity_factor}, "
           f"{torch.get_num_threads()} thread(s)")
     print("| projector | template turned (deg) | series | align | shifts RMS error across / along (px) | "

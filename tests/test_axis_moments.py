@@ -74,6 +74,22 @@ def test_estimate_on_a_series_turned_by_scipy(alpha):
     assert e.determined and e.se_deg <= MAX_SE_DEG
 
 
+def test_estimate_with_a_scale_per_tilt():
+    """Every tilt's intensity scaled (an exposure that grows with the path length, and 10 % at random): the scales
+    are fitted with the shifts, so the angle stays right and the scales come back; with every scale held at 1 the
+    conditions misfit (chi-square per degree of freedom)."""
+    alpha, shifts = -3.0, random_shifts(2)
+    exposure = np.random.default_rng(7).uniform(0.9, 1.1, len(THETA)) / np.cos(THETA) ** 0.5
+    clean = exact_series(blobs(12, 3), 0.0, np.zeros_like(shifts)) * exposure[:, None, None]
+    stack = turned_by_scipy(clean, alpha, shifts, 0.01, 4)
+    e = estimate_axis_angle(stack, THETA)
+    assert abs(e.angle_deg - alpha) < 0.2 and e.determined
+    used = e.tilts_used
+    assert np.abs(e.scales[used] - exposure[used] / exposure[used].mean()).max() < 0.03
+    held = estimate_axis_angle(stack, THETA, scales=False)
+    assert held.scales is None and held.chi2_per_dof > 3 * e.chi2_per_dof
+
+
 def test_a_round_specimen_is_not_determined():
     """A ball on the axis looks alike at every turn of the axis: the criterion is flat."""
     ball = (np.zeros((1, 3)), np.array([4.0]), np.array([1.0]))
@@ -133,3 +149,29 @@ def test_register_warns_when_the_stack_does_not_determine_the_angle(caplog):
     r = register_turned((np.zeros((1, 3)), np.array([4.0]), np.array([1.0])), 2.0, caplog)
     assert r.alignment["axis_angle_source"] == "fit" and r.alignment["axis_angle_determined"] is False
     assert any("tilt-axis angle not determined by the data (s.e." in m for m in caplog.messages)
+
+
+def test_register_warns_when_too_few_tilts_tell_the_angle(caplog):
+    """Five tilts (fewer than ``MIN_TILTS``): the stack's conditions cannot be used, the run says why in the same
+    words as for a flat criterion, and the angle the fit ends at is reported as not determined, whatever its own
+    standard error."""
+    import torch
+
+    import indreg
+    from indreg import ImageDomain
+    from indreg.axis_moments import MIN_TILTS
+    from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
+
+    domain = ImageDomain.paper(SIZE, ndim=3)
+    T = TiltSeriesTransform(domain, TiltSeriesGeometry.uniform(-24, 24, 12, det_count=SIZE, det_min=-16., det_max=16.))
+    assert T.range_shape[0] < MIN_TILTS
+    x, y, z = torch.meshgrid(*domain.axes(), indexing="ij")
+    f = sum(h * torch.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * w * w))
+            for c, w, h in zip(*blobs(12, 3)))
+    g = torch.from_numpy(turned_by_scipy(T(f).numpy(), -2.0, random_shifts(2)[:T.range_shape[0]], 0.01, 4))
+    with caplog.at_level("INFO", logger="indreg"):
+        r = indreg.register(f, g, T, align="shifts+axis", num_steps=2, max_iter=1, sigma=3.0)
+    assert r.alignment["axis_angle_source"] == "fit" and r.alignment["axis_angle_determined"] is False
+    assert r.alignment["axis_angle_stack_deg"] is None
+    assert any(f"tilt-axis angle not determined by the data (the tilt-axis angle needs at least {MIN_TILTS} tilts"
+               in m for m in caplog.messages)
