@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from indreg.axis_moments import MAX_SE_DEG, condition_misfit, estimate_axis_angle
+from indreg.axis_moments import MAX_SE_DEG, binned, condition_misfit, estimate_axis_angle
 
 SIZE = 32
 THETA = np.radians(np.arange(-60, 60.1, 6.0))
@@ -88,6 +88,31 @@ def test_estimate_with_a_scale_per_tilt():
     assert np.abs(e.scales[used] - exposure[used] / exposure[used].mean()).max() < 0.03
     held = estimate_axis_angle(stack, THETA, scales=False)
     assert held.scales is None and held.chi2_per_dof > 3 * e.chi2_per_dof
+
+
+def test_binned_keeps_the_centre_and_the_counts_per_pixel():
+    stack = np.random.default_rng(0).standard_normal((3, 11, 9))
+    b = binned(stack, 2)
+    assert b.shape == (3, 5, 4)
+    assert np.allclose(b[:, 0, 0], stack[:, 0:2, 0:2].mean(axis=(1, 2)))       # one row and one column left out at
+    assert np.allclose(b[:, -1, -1], stack[:, 8:10, 6:8].mean(axis=(1, 2)))     # the end: (11 - 10) // 2 = 0 before
+    assert binned(stack, 1) is stack
+
+
+def test_a_large_stack_is_binned_for_the_estimate():
+    """A 64-pixel series estimated within a 32-pixel bound: binned by 2, the angle as from the full stack's
+    specimen, the shifts given back in the stack's own pixels."""
+    alpha, shifts = -3.0, 2 * random_shifts(2)
+    specimen = blobs(12, 3, reach=16.0, widths=(3.0, 5.0))
+    stack = turned_by_scipy(exact_series(specimen, 0.0, np.zeros_like(shifts), size=64), alpha, shifts, 0.01, 4)
+    e = estimate_axis_angle(stack, THETA, max_pixels=32)
+    assert e.binning == 2 and "binned by 2" in e.describe()
+    assert abs(e.angle_deg - alpha) < 0.2 and e.determined
+    a = math.radians(alpha)
+    frame = np.stack([math.cos(a) * shifts[:, 0] + math.sin(a) * shifts[:, 1],
+                      -math.sin(a) * shifts[:, 0] + math.cos(a) * shifts[:, 1]], 1)
+    along = e.shifts_px[e.tilts_used, 1] - frame[e.tilts_used, 1]
+    assert np.sqrt(((along - along.mean()) ** 2).mean()) < 0.1      # along the axis, less the common offset (px)
 
 
 def test_a_round_specimen_is_not_determined():
