@@ -115,6 +115,34 @@ def test_a_large_stack_is_binned_for_the_estimate():
     assert np.sqrt(((along - along.mean()) ** 2).mean()) < 0.1      # along the axis, less the common offset (px)
 
 
+def test_the_shifts_derivatives_are_the_transforms_finite_differences():
+    """The Gauss-Newton step's ``dG/dc`` and ``dG/dd`` (one phase for every tilt, the tilt's shift along the axis a
+    factor of its own) against central differences of ``G``; the noise's standard deviations against the direct
+    sums ``sigma^2 sum (u^n w)^2 cos^2 / sin^2``."""
+    from indreg.axis_moments import _prepare, _transforms, _window
+
+    stack = turned_by_scipy(exact_series(blobs(12, 3), 0.0, np.zeros((len(THETA), 2))), 1.0, random_shifts(2), 0.01, 4)
+    S, _ = _prepare(stack, THETA, 0.25, 1.0, 10.0, None, 2)
+    gen = np.random.default_rng(1)
+    c, d, alpha, h = gen.uniform(-1, 1, len(S.theta)), gen.uniform(-1, 1, len(S.theta)), 0.02, 1e-5
+    G, sd, dG_dc, dG_dd = _transforms(S, alpha, c, d, derivatives=True)
+    for k in (0, 7, len(c) - 1):
+        e = np.zeros_like(c)
+        e[k] = h
+        fd_c = (_transforms(S, alpha, c + e, d)[0] - _transforms(S, alpha, c - e, d)[0]) / (2 * h)
+        fd_d = (_transforms(S, alpha, c, d + e)[0] - _transforms(S, alpha, c, d - e)[0]) / (2 * h)
+        assert np.abs(fd_c[k] - dG_dc[k]).max() < 1e-6 * np.abs(dG_dc[k]).max()
+        assert np.abs(fd_d[k] - dG_dd[k]).max() < 1e-6 * np.abs(dG_dd[k]).max()
+    u = (math.cos(alpha) * S.s + math.sin(alpha) * S.t)[None] - c[:, None]
+    v = (-math.sin(alpha) * S.s + math.cos(alpha) * S.t)[None] - d[:, None]
+    w = _window(v, S.half, S.taper)[0] * S.mask
+    x = -2 * np.pi * v[..., None] * S.freqs
+    for n in range(3):
+        basis2 = (u ** n * w)[..., None] ** 2
+        assert np.allclose(sd[0, :, n], S.sigma * np.sqrt((basis2 * np.cos(x) ** 2).sum(1)), rtol=1e-9)
+        assert np.allclose(sd[1, :, n], S.sigma * np.sqrt((basis2 * np.sin(x) ** 2).sum(1)), rtol=1e-9, atol=1e-12)
+
+
 def test_a_round_specimen_is_not_determined():
     """A ball on the axis looks alike at every turn of the axis: the criterion is flat."""
     ball = (np.zeros((1, 3)), np.array([4.0]), np.array([1.0]))
