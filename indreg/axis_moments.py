@@ -389,11 +389,7 @@ def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 
     with the path length), alternating with the shifts; ``False``: every tilt's scale 1. ``max_pixels``: a stack
     larger along either image axis is binned first (:func:`binned`, the smallest factor that brings it within;
     ``None``: never)."""
-    factor = 1
-    a = np.asarray(stack)
-    if max_pixels is not None and a.ndim == 3:
-        factor = max(1, -(-max(a.shape[1:]) // int(max_pixels)))
-        a, sigma = binned(a, factor), None if sigma is None else sigma / factor
+    a, sigma, factor = _within(np.asarray(stack), max_pixels, sigma)
     S, used = _prepare(a, tilt_angles, band, margin, scan_deg, sigma, orders)
     S.scales = np.ones(len(S.theta)) if scales else None
     coarse = np.arange(-scan_deg, scan_deg + 1e-9, 1.0)
@@ -409,15 +405,28 @@ def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 
     if interior and curvature > 0:
         wander = _noise_slopes(S, fine, fine_shifts, angle).std(ddof=1) / curvature
         se = math.sqrt(2 / curvature * inflation + wander ** 2)
-    shifts, tilt_scales = np.full((len(used), 2), np.nan), None
-    shifts[used] = factor * np.stack([c, d], 1)
-    if S.scales is not None:
-        tilt_scales = np.full(len(used), np.nan)
-        tilt_scales[used] = S.scales
     x, y = np.concatenate([coarse, fine]), np.concatenate([chi2, fine_chi2])
     order = np.argsort(x)
-    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1), shifts, used, (x[order], y[order]),
-                        scales=tilt_scales, binning=factor)
+    return AxisEstimate(angle, se, se <= MAX_SE_DEG, chi2_min / max(dof, 1),
+                        _every_tilt(factor * np.stack([c, d], 1), used), used, (x[order], y[order]),
+                        scales=None if S.scales is None else _every_tilt(S.scales, used), binning=factor)
+
+
+def _within(stack: np.ndarray, max_pixels: int | None, sigma: float | None) -> tuple:
+    """``stack`` binned by the smallest factor that brings it within ``max_pixels`` along each image axis
+    (:func:`binned`; ``None``: as it is), the noise's ``sigma`` with it (a block mean of ``f^2`` pixels), the
+    factor."""
+    if max_pixels is None or stack.ndim != 3:
+        return stack, sigma, 1
+    factor = max(1, -(-max(stack.shape[1:]) // int(max_pixels)))
+    return binned(stack, factor), None if sigma is None else sigma / factor, factor
+
+
+def _every_tilt(values: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Per-tilt ``values`` of the tilts ``used`` placed among all tilts, ``nan`` at the others."""
+    out = np.full((len(used),) + values.shape[1:], np.nan)
+    out[used] = values
+    return out
 
 
 def _noise_slopes(S: _Setup, trials: np.ndarray, shifts: list, angle: float) -> np.ndarray:
