@@ -2,7 +2,7 @@
 with the aligned stack (MRC, pixel size in the header) and a quick reconstruction (SIRT or TV through the alignment;
 MRC, and OME-Zarr with ``--zarr``), by projection matching (``indreg.alignment.projection_matching``).
 
-    indreg-align series.mrc [--angles series.tlt] [--tilt-axis-angle 85.3] [--refine-axis] [--max-memory 8GiB]
+    indreg-align series.mrc [--angles series.tlt] [--tilt-axis-angle 85.3] [--axis-from-stack] [--max-memory 8GiB]
 
 Convention:
     - The stack is read as stored (``indreg.io.read_tilt_series``: sections = tilts, ``(Y, X)`` images, angles from
@@ -10,7 +10,10 @@ Convention:
       MRC header.
     - The tilt axis' angle in the images (``--tilt-axis-angle``, degrees from Y counter-clockwise, IMOD's; else the
       ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
-      operator (``AlignedOperator``'s per-tilt maps); ``--refine-axis`` refines the angle by projection matching.
+      operator (``AlignedOperator``'s per-tilt maps); ``--axis-from-stack`` replaces that rest by the stack's own
+      estimate (``indreg.axis_moments.estimate_axis_angle``: no reconstruction takes part of it up) where the data
+      determine it, and keeps it in the rounds; ``--refine-axis`` refines the angle by projection matching (not
+      validated).
     - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
       projections are about 0 outside the object), coarse to fine: ``--rounds`` rounds binned by ``--coarse-bin``
       (``--bin`` times a power of 2, by default the largest that leaves images of at least ``COARSE_SIZE``
@@ -113,6 +116,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the stack's layout (the same for a tilt series: docs/file_formats.md)")
     p.add_argument("--tilt-axis-angle", type=float, help="degrees from Y, counter-clockwise (IMOD's); default: the "
                                                          ".mdoc's, else 0")
+    p.add_argument("--axis-from-stack", action="store_true",
+                   help="estimate the tilt axis' rest (after --tilt-axis-angle's quarter turns, within 10 degrees) "
+                        "from the stack's moment conditions and use it where the data determine it (docs/alignment.md)")
     p.add_argument("--refine-axis", action="store_true",
                    help="refine the tilt-axis angle by projection matching (not validated: it stays near its start, "
                         "docs/alignment.md)")
@@ -182,6 +188,30 @@ def _background(stack: np.ndarray, spec: str) -> float:
         return float(spec)
     except ValueError:
         raise ValueError(f"--background must be auto, none or a number, got {spec!r}") from None
+
+
+def _stack_rest(stack: np.ndarray, radians: np.ndarray, rest: float) -> tuple:
+    """``--axis-from-stack``: the tilt axis' angle in the quarter-turned ``stack`` (less its background) from its
+    moment conditions where they determine it, else ``rest`` with a warning; and a record of the estimate."""
+    from .axis_moments import SCAN_DEG, estimate_axis_angle
+
+    if abs(rest) >= SCAN_DEG - 1:
+        log.warning("--axis-from-stack: the given angle is %.2f deg from a quarter turn, beyond the estimate's scan "
+                    "(+-%g): kept", rest, SCAN_DEG - 1)
+        return rest, {"estimated": False, "reason": "beyond the scan"}
+    try:
+        e = estimate_axis_angle(stack, radians)
+    except ValueError as err:
+        log.warning("--axis-from-stack: not estimated (%s): the given angle kept", err)
+        return rest, {"estimated": False, "reason": str(err)}
+    log.info("--axis-from-stack: %s", e.describe())
+    record = {"estimated": True, "rest_deg": e.angle_deg, "se_deg": e.se_deg if math.isfinite(e.se_deg) else None,
+              "determined": e.determined, "given_rest_deg": rest}
+    if not e.determined:
+        log.warning("--axis-from-stack: the tilt-axis angle is not determined by the data (%s): the given angle "
+                    "kept", e.describe())
+        return rest, record
+    return e.angle_deg, record
 
 
 def _rotation(deg: float) -> np.ndarray:
@@ -338,6 +368,11 @@ def run(args) -> dict:
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
     level = _background(rotated, args.background)
+    from_stack = None
+    if args.axis_from_stack:   # binned first (the estimate's bound, axis_moments.MAX_PIXELS): no full-size copy
+        from .axis_moments import MAX_PIXELS
+
+        rest, from_stack = _stack_rest(_bin(rotated, -(-max(ny, nx) // MAX_PIXELS))[0] - level, radians, rest)
     M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))
     mode = "shifts+axis" if args.refine_axis else "shifts"
     if args.refine_axis:
@@ -394,7 +429,7 @@ def run(args) -> dict:
                "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
                "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
                "rounds": [r for h_ in history for r in h_["rounds"]],
-               "alignment": record["files"], "reconstruction": args.recon}
+               "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack}
     summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel),
                                 **summary))
     return summary

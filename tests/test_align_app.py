@@ -161,3 +161,23 @@ def test_help_is_fast():
     r = subprocess.run([sys.executable, "-m", "indreg.align_app", "--help"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0 and "--max-memory" in r.stdout
+
+
+@pytest.mark.slow
+def test_axis_from_stack_finds_the_axis(tmp_path, caplog):
+    """The axis given 1.5 degrees off (91.5 for 93): --axis-from-stack takes the rest from the stack's moment
+    conditions, so the .xf's rotation is the true axis' and the record says where it came from."""
+    theta, D = _raw_series(tmp_path)
+    out = tmp_path / "out"
+    with caplog.at_level("INFO", logger="indreg.align"):
+        assert main([str(tmp_path / "raw.mrc"), "--tilt-axis-angle", "91.5", "--axis-from-stack", "--out", str(out),
+                     "--rounds", "3", "--iters", "20", "--thickness", "16", "--bin", "1"]) == 0
+    s = json.loads((out / "align.json").read_text())
+    assert s["axis_from_stack"]["determined"] is True and s["axis_from_stack"]["given_rest_deg"] == 1.5
+    xf = np.loadtxt(out / "alignment.xf")
+    rotation = np.degrees(np.arctan2(xf[:, 2] - xf[:, 1], xf[:, 0] + xf[:, 3]))
+    np.testing.assert_allclose(rotation, -AXIS, atol=0.2)
+    assert abs(s["axis_angle_deg"] - AXIS) < 0.2
+    error = _gauge(xf[:, 4:], theta) - _gauge(D, theta)
+    assert np.sqrt((error ** 2).mean()) < 0.2, error
+    assert any("--axis-from-stack: tilt-axis angle from the stack's moment conditions" in m for m in caplog.messages)
