@@ -117,7 +117,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tilt-axis-angle", type=float, help="degrees from Y, counter-clockwise (IMOD's); default: the "
                                                          ".mdoc's, else 0")
     p.add_argument("--axis-from-stack", action="store_true",
-                   help="estimate the tilt axis' rest (after --tilt-axis-angle's quarter turns, within 10 degrees) "
+                   help="estimate the tilt axis' rest (after --tilt-axis-angle's quarter turns, within 9 degrees) "
                         "from the stack's moment conditions and use it where the data determine it (docs/alignment.md)")
     p.add_argument("--refine-axis", action="store_true",
                    help="refine the tilt-axis angle by projection matching (not validated: it stays near its start, "
@@ -165,12 +165,12 @@ def _read(args) -> tuple:
 def _bin(stack: np.ndarray, b: int) -> tuple:
     """``stack`` binned by ``b`` (block means; the remainder cropped, its larger half at the end) and the offset
     ``delta`` (x, y) of the binned centred coordinates: ``x = b x_b + delta``."""
-    K, ny, nx = stack.shape
+    from .axis_moments import binned
+
+    _, ny, nx = stack.shape
     (ry, rx), (ly, lx) = (ny % b, nx % b), (ny % b // 2, nx % b // 2)
-    s = stack[:, ly:ny - (ry - ly), lx:nx - (rx - lx)]
-    out = s.reshape(K, s.shape[1] // b, b, s.shape[2] // b, b).mean(axis=(2, 4))
     delta = np.array([(2 * lx - rx) / 2, (2 * ly - ry) / 2])
-    return np.ascontiguousarray(out, dtype=np.float32), delta
+    return np.array(binned(stack, b), dtype=np.float32), delta        # a copy: callers subtract in place
 
 
 def _background(stack: np.ndarray, spec: str) -> float:
@@ -369,10 +369,10 @@ def run(args) -> dict:
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
     level = _background(rotated, args.background)
     from_stack = None
-    if args.axis_from_stack:   # binned first (the estimate's bound, axis_moments.MAX_PIXELS): no full-size copy
-        from .axis_moments import MAX_PIXELS
+    if args.axis_from_stack:   # binned first (the estimate's bound), so no full-size copy less the background
+        from .axis_moments import binned_within
 
-        rest, from_stack = _stack_rest(_bin(rotated, -(-max(ny, nx) // MAX_PIXELS))[0] - level, radians, rest)
+        rest, from_stack = _stack_rest(binned_within(rotated)[0] - level, radians, rest)
     M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))
     mode = "shifts+axis" if args.refine_axis else "shifts"
     if args.refine_axis:

@@ -40,8 +40,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["MAX_PIXELS", "MAX_SE_DEG", "MIN_TILTS", "SCAN_DEG", "AxisEstimate", "binned", "condition_misfit",
-           "estimate_axis_angle", "noise_level", "support_columns"]
+__all__ = ["MAX_PIXELS", "MAX_SE_DEG", "MIN_TILTS", "SCAN_DEG", "AxisEstimate", "binned", "binned_within",
+           "condition_misfit", "estimate_axis_angle", "noise_level", "support_columns"]
 
 
 #: Above this standard error (deg) the angle is reported as not determined by the data.
@@ -412,14 +412,20 @@ def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 
                         scales=None if S.scales is None else _every_tilt(S.scales, used), binning=factor)
 
 
+def binned_within(stack: np.ndarray, max_pixels: int = MAX_PIXELS) -> tuple:
+    """``stack`` ``(tilts, rows, columns)`` binned by the smallest factor that brings it within ``max_pixels``
+    along each image axis (:func:`binned`), and the factor."""
+    factor = max(1, -(-max(stack.shape[1:]) // int(max_pixels)))
+    return binned(stack, factor), factor
+
+
 def _within(stack: np.ndarray, max_pixels: int | None, sigma: float | None) -> tuple:
-    """``stack`` binned by the smallest factor that brings it within ``max_pixels`` along each image axis
-    (:func:`binned`; ``None``: as it is), the noise's ``sigma`` with it (a block mean of ``f^2`` pixels), the
-    factor."""
+    """:func:`binned_within` (``max_pixels=None``: as it is), the noise's ``sigma`` with it (a block mean of
+    ``f^2`` pixels), the factor."""
     if max_pixels is None or stack.ndim != 3:
         return stack, sigma, 1
-    factor = max(1, -(-max(stack.shape[1:]) // int(max_pixels)))
-    return binned(stack, factor), None if sigma is None else sigma / factor, factor
+    stack, factor = binned_within(stack, max_pixels)
+    return stack, None if sigma is None else sigma / factor, factor
 
 
 def _every_tilt(values: np.ndarray, used: np.ndarray) -> np.ndarray:

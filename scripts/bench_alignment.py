@@ -14,8 +14,8 @@ and summed along the beam (``--projector astra``: projected by ASTRA's CPU proje
 turned about its centre by each angle of ``--angles`` and shifted (``scipy.ndimage.rotate`` and ``shift``, cubic),
 Gaussian noise of ``--noise`` times the largest datum; the template is the swirled and bent phantom, turned about the
 beam by ``--template-turn`` degrees. ``--phantom beads``: the specimen also carries ``--beads`` gold beads (the
-fiducials of electron tomography, :func:`specimen`), which the template does not. One registration without alignment on the unturned, unshifted stack, then
-``align="shifts+axis"`` on every turned one.
+fiducials of electron tomography, :func:`specimen`), which the template does not. One registration without
+alignment on the unturned, unshifted stack, then ``align="shifts+axis"`` on every turned one.
 
 Prints a table: the projector, the template's turn about the beam (deg), the series, the shifts' RMS error (px,
 across / along the axis, in the gauge), the angle's error (deg), its standard error, where the angle came from
