@@ -19,7 +19,7 @@ import torch
 
 from indreg import alignment, io
 from indreg.domain import ImageDomain
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.operator import AlignedOperator
 
 __all__ = ["WHEEL", "MEMBERS", "ALIGNED_KEY", "SHIFTS_KEY", "PIXEL_NM", "TILT_AXIS_ANGLE", "say", "fetch", "read_raw",
            "read_aligned", "read_etspy_shifts", "bin_stack", "scale_bar_nm", "figure", "save", "etspy_frame",

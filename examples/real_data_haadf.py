@@ -29,7 +29,7 @@ etspy's; from the raw stack), the volumes as ``.npy`` and ``.mrc`` (voxel size i
 
 Convention: the stack as stored is ``(tilt, row, column)`` with the tilt axis along the columns' index (the
 image's X; the acquisition log says "Tilt Axis Angle: 90"); indreg's layout has it along the rows
-(``tilt_axis_angle=90`` turns it, ``indreg.tilt_axis``). Volumes ``(nx, ny, nz)``: y the tilt axis (the rod's
+(``tilt_axis_angle=90`` turns it, ``indreg.alignment.tilt_axis``). Volumes ``(nx, ny, nz)``: y the tilt axis (the rod's
 length), z the beam at tilt 0; the domain is in nm.
 """
 from __future__ import annotations
@@ -50,11 +50,11 @@ from scipy import ndimage
 from indreg import alignment
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform, fbp, sirt, tv_reconstruction
-from indreg.forward.shift import AlignedOperator
-from indreg.run import count_halvings
+from indreg.alignment.operator import AlignedOperator
+from indreg.registration.run import count_halvings
 from indreg.forward.tv import intensity_scale
 from indreg.units import border_level, check_offset, prepare
-from indreg.tilt_axis import align_tilt_axis, check_tilt_axis
+from indreg.alignment.tilt_axis import align_tilt_axis, check_tilt_axis
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
 from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, alignment_figure,  # noqa
@@ -67,7 +67,7 @@ log = logging.getLogger("indreg")
 
 # ------------------------------------------------------------------------------------------------ checks
 def axis_checks(raw: np.ndarray, aligned) -> dict:
-    """The tilt-axis check (``indreg.tilt_axis.check_tilt_axis``) of the stacks as stored (the check subtracts
+    """The tilt-axis check (``indreg.alignment.tilt_axis.check_tilt_axis``) of the stacks as stored (the check subtracts
     the level of the images' outer frame: an offset would add the same to every profile and hide their
     differences)."""
     stacks = {"raw": raw} if aligned is None else {"raw": raw, "aligned": aligned}
@@ -239,10 +239,9 @@ def shifts_of(T, x: torch.Tensor, y: torch.Tensor, angle: float, gauge: str, int
     """The shifts of the tilts ``y`` against the projection of ``x`` (cross-correlation, then
     ``indreg.alignment.estimate`` with the angle kept), in the registration's ``gauge``: for tilts no fit saw."""
     A = AlignedOperator(T, angle=angle, interpolation=interpolation)
-    A.gauge = gauge
     P = T(x)
-    start = alignment.gauge(A, alignment.coarse_shifts(A, P, y))
-    return alignment.estimate(A, P, y, start, A.angle)[0].numpy()
+    start = alignment.gauge(A, alignment.coarse_shifts(A, P, y), gauge)
+    return alignment.estimate(A, P, y, start, A.angle, kind=gauge)[0].numpy()
 
 
 def aligned_operators(result, T: dict, Y: dict, rows: np.ndarray, tilts: dict) -> dict:

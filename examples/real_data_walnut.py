@@ -44,7 +44,7 @@ from scipy import ndimage
 import indreg
 from indreg.domain import ImageDomain
 from indreg.forward import FanBeamGeometry, RayTransform, sirt
-from indreg.run import count_halvings
+from indreg.registration.run import count_halvings
 from indreg.units import prepare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # the HAADF walk-through, whose scoring this reuses

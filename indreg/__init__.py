@@ -5,9 +5,9 @@ point answering ``--help``) does not load torch; ``from indreg import register``
 """
 from __future__ import annotations
 
-from . import _lazy, _moved, _openmp
+from . import _lazy, _openmp
 
-_moved.install()     # modules moved into subpackages keep their old names (indreg.writers: indreg.io.writers)
+_lazy.install_deprecated()   # renamed modules: the old names that stay warn until they go (indreg._lazy)
 _openmp.configure()  # before torch loads OpenMP: idle threads sleep instead of spinning (see indreg._openmp)
 
 #: public name -> the submodule that defines it
@@ -30,7 +30,7 @@ _HOME = {
 __all__ = ["ImageDomain", "ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "LinearOperator",
            "TiltSeriesGeometry", "TiltSeriesTransform", "ImageOperator", "compose", "stack", "restrict",
            "GaussianKernel", "LDDMMDeformation", "CoarseVelocityDeformation", "IndirectRegistration", "Algorithm1",
-           "TorchOptimSolver", "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl", "models",
+           "TorchOptimSolver", "MultilevelSolver", "RegistrationProblem", "SolverState", "StepControl",
            "MetamorphosisDeformation", "MetamorphosisRegistration", "MetamorphosisDescent", "MetamorphosisTorchOptim",
            "GeodesicShooting", "ShootingResult", "IndirectShootingLoss", "register", "RegistrationResult",
            "load", "RegistrationInputs",

@@ -1,4 +1,4 @@
-"""Callbacks of the registration loop (``indreg.run.RegistrationLoop``), composable with ``&`` like ODL's.
+"""Callbacks of the registration loop (``indreg.registration.run.RegistrationLoop``), composable with ``&`` like ODL's.
 
 A :class:`Callback` sees the loop at four moments: :meth:`~Callback.begin` (before the first step),
 :meth:`~Callback.before` (before every step), :meth:`~Callback.after` (after every step, with the solver's report
@@ -131,7 +131,7 @@ def as_callback(value, label: str = "callback") -> Optional[Callback]:
 
 
 class HeldOut(Callback):
-    """Validation on held-out angles (``indreg.validation.Validation``): every ``loop.every`` iterations the
+    """Validation on held-out angles (``indreg.evaluation.validation.Validation``): every ``loop.every`` iterations the
     held-out residual of the current reconstruction goes into ``info`` and the history as ``holdout_residual``
     (put it first in a chain, so that the callbacks after it see it); ``early_stopped`` when the validation's
     patience has run out."""

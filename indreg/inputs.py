@@ -13,7 +13,7 @@ Geometries (``geometry=``)::
     fan_flat     2D fan beam, flat detector (FanBeamGeometry: src_radius, det_radius)
     tilt_series  3D single-axis tilt series of electron tomography (TiltSeriesGeometry: tilt_axis); the stack is
                  rotated so that its tilt axis runs along the detector rows (``tilt_axis_angle``, or the
-                 ``.mdoc`` next to it) and checked for consistency (``indreg.tilt_axis``)
+                 ``.mdoc`` next to it) and checked for consistency (``indreg.alignment.tilt_axis``)
 
 Convention:
     - 2D: template ``(n, n)`` on ``[-half_width, half_width]^2`` (square, so that the cells are square), data
@@ -25,12 +25,12 @@ Convention:
       a line, IMOD ``.tlt``) or a list, in ``angle_unit``; without it, the ``.tlt`` / ``.rawtlt`` next to the
       data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
     - ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
-      (``indreg.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
+      (``indreg.io.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
       series takes ``indreg`` or ``imod`` (IMOD's stack layout is indreg's; ``imod`` negates the angles, IMOD's
       sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as
       ``fraction`` of their full scale (default) or ``raw``. The log says how each file was read and warns when the
-      template's projection fits the data better read another way (:func:`indreg.conventions.orientation_hint`;
-      the readings no convention makes are probed before the run: ``indreg.orientation``).
+      template's projection fits the data better read another way (:func:`indreg.io.orientation.orientation_hint`;
+      the readings no convention makes are probed before the run: ``indreg.io.orientation``).
     - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
       agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
       tilt series gets columns as wide as the voxels, centred on the tilt axis.
@@ -52,12 +52,12 @@ import numpy as np
 import torch
 
 from . import io
-from .io import conventions
+from .io import conventions, orientation
 from ._checks import check_positive
 from .domain import AXES, ImageDomain
 from .forward import FanBeamGeometry, ParallelBeamGeometry, TiltSeriesGeometry
 from .io import DataFileError
-from .tilt_axis import TiltAxisCheck, align_tilt_axis, check_tilt_axis
+from .alignment.tilt_axis import TiltAxisCheck, align_tilt_axis, check_tilt_axis
 
 log = logging.getLogger("indreg")
 
@@ -80,7 +80,7 @@ class RegistrationInputs:
     ``geometry`` is the operator's (detector extent resolved); ``target`` is ``None`` without a ground truth;
     ``label`` names the template (its file name, ``"array"`` for an array). A tilt series also has
     ``tilt_axis_angle`` (the rotation applied, degrees; None: none) and ``tilt_axis`` (the consistency check of the
-    data as returned, ``indreg.tilt_axis.TiltAxisCheck``)."""
+    data as returned, ``indreg.alignment.tilt_axis.TiltAxisCheck``)."""
     template: torch.Tensor
     data: torch.Tensor
     operator: object
@@ -111,14 +111,14 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     ``tilt_series`` (rotation about ``tilt_axis``, ``"x"``, ``"y"`` or ``"z"``, the volume's axis).
     ``tilt_axis_angle`` (tilt series): the angle of the tilt axis in the detector image, degrees from the image's
     Y towards -X (counterclockwise; IMOD / SerialEM's), the stack is rotated by its opposite before anything else
-    (``indreg.tilt_axis.align_tilt_axis``: exact for multiples of 90, interpolated otherwise); None: the
+    (``indreg.alignment.tilt_axis.align_tilt_axis``: exact for multiples of 90, interpolated otherwise); None: the
     ``.mdoc`` next to a stack file (``name.mrc.mdoc`` or ``name.mdoc``, its ``TiltAxisAngle`` / ``Tilt axis
-    angle``), else no rotation. The rotated stack is then checked (``indreg.tilt_axis.check_tilt_axis``): a
+    angle``), else no rotation. The rotated stack is then checked (``indreg.alignment.tilt_axis.check_tilt_axis``): a
     stack whose axis still runs along X is an error when an angle was given (by the argument or the ``.mdoc``)
     and a warning otherwise. ``det_min`` / ``det_max``: the
     detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
     (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``). ``alignment`` (tilt series): an
-    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.io.alignment_files``): its shifts and per-tilt maps
+    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.alignment.files``): its shifts and per-tilt maps
     become the operator's own (an ``AlignedOperator``; ``register(..., align=...)`` refines them), its tilt angles
     (the ``.aln``'s, or the ``.xf``'s ``.tlt`` unless ``angles`` is given) the geometry's, its dark frames are left
     out, and the stack is not rotated (the file's maps hold the tilt axis' angle).
@@ -179,7 +179,7 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
         _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
     operator = T
     if alignment is not None:
-        from .io.alignment_files import to_operator
+        from .alignment.files import to_operator
         operator = to_operator(T, alignment)
     label = io.split_path(template)[0].name if _is_path(template) else "array"
     return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=operator,
@@ -298,7 +298,7 @@ def _align(g: np.ndarray, data, angle, key: dict) -> tuple:
 
 def _aligned_stack(g: np.ndarray, alignment, angles, unit: str, ndim: int, tilt_axis_angle, key: dict) -> tuple:
     """The raw stack's frames that ``alignment`` (a file) covers, their angles (radians) and the alignment."""
-    from .io.alignment_files import read_alignment
+    from .alignment.files import read_alignment
 
     if ndim != 3:
         raise ValueError(f"alignment applies to a tilt series ({key['geometry']}=tilt_series)")
@@ -342,7 +342,7 @@ def _array(value, name: str, ndim: int) -> np.ndarray:
 
 
 def _convention(name, integer_scale, geometry: str, key: dict) -> conventions.Convention:
-    """The :class:`~indreg.conventions.Convention` ``name``, checked against the geometry; ``integer_scale`` checked."""
+    """The :class:`~indreg.io.conventions.Convention` ``name``, checked against the geometry; ``integer_scale`` checked."""
     conv = conventions.get_convention(name, key["convention"])
     if integer_scale not in conventions.INTEGER_SCALES:
         raise ValueError(f"{key['integer_scale']} must be one of {', '.join(conventions.INTEGER_SCALES)}, got "
@@ -382,14 +382,14 @@ def _check_orientation(f: np.ndarray, g: np.ndarray, radians: np.ndarray, conv, 
     picture = _is_path(template) and io.split_path(template)[0].suffix.lower() in io.PICTURE
     stored_f = np.rot90(f) if picture else conventions.image_from_indreg(f, conv)
     stored_g = g.T if conv.sinogram == "bin_angle" else g
-    scores = conventions.orientation_scores(stored_f, stored_g, conventions.angles_from_indreg(radians, conv),
-                                            half_width, det_min, det_max, picture)
-    hint = conventions.orientation_hint(scores, conv)
+    scores = orientation.orientation_scores(stored_f, stored_g, conventions.angles_from_indreg(radians, conv),
+                                           half_width, det_min, det_max, picture)
+    hint = orientation.orientation_hint(scores, conv)
     if hint is not None:
         log.warning("%s: %s; set %s accordingly", _where(key["template"], template), hint, key["convention"])
         return
-    hint = conventions.flip_hint(f, g, conventions.angles_from_indreg(radians, conv), conv, half_width, det_min,
-                                 det_max)
+    hint = orientation.flip_hint(f, g, conventions.angles_from_indreg(radians, conv), conv, half_width, det_min,
+                                det_max)
     if hint is not None:
         log.warning("%s: %s", _where(key["template"], template), hint)
 

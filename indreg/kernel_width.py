@@ -14,7 +14,7 @@ a larger deformation) it reaches 0.941 where sigma 6 and 8 reach 0.966 and 0.968
 ``sigma="auto"``: each width of :func:`candidates` (``AUTO_FRACTIONS`` of the box's side) registers the data with
 every ``AUTO_HOLDOUT``-th angle held out (or the run's own ``holdout``), with the run's other options; the one
 whose reconstruction predicts the held-out angles best (least held-out residual on the curve,
-``indreg.validation``) is used for the run. Its cost: ``len(AUTO_FRACTIONS)`` registrations before the run.
+``indreg.evaluation.validation``) is used for the run. Its cost: ``len(AUTO_FRACTIONS)`` registrations before the run.
 """
 from __future__ import annotations
 

@@ -33,7 +33,8 @@ if TYPE_CHECKING:   # imported where used: the app's preflight loads this module
     import torch
 
 __all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units",
-           "border_level", "check_offset", "compare_units", "unit_factor", "data_term_scale", "noise_residual", "prepare"]
+           "apply_units", "border_level", "check_offset", "compare_units", "data_term_scale", "measure", "noise_residual",
+           "prepare", "unit_factor"]
 
 log = logging.getLogger("indreg")
 
@@ -64,11 +65,11 @@ class Units:
     """What :func:`prepare` found and did, for the result (``result.units``) and metrics.json.
 
     ``template_scale``: the factor applied to the template (1.0: none), ``template_offset`` the offset added to it
-    (``template_scale="fit"``, ``indreg.intensity``: both fitted with the deformation); ``background``: the offset
+    (``template_scale="fit"``, ``indreg.registration.intensity``: both fitted with the deformation); ``background``: the offset
     subtracted from the data (0.0: none); ``projection_ratio`` = ``||T I|| / ||g||`` and ``scale_fit`` = the least-squares
     ``c = <T I, g> / <T I, T I>`` of the template as given and the data after the background (data inner product
     ``T.inner_data``), with ``align`` and a fitted ``template_scale`` the fit through the shifts that align the
-    template's projection to the data (:func:`prepare`'s ``aligned_scale``) and ``scale_fit_unaligned`` the plain one
+    template's projection to the data (:meth:`fit_through_alignment`) and ``scale_fit_unaligned`` the plain one
     (NaN when there was none); ``data_scale``: ``S = ||g||^2_data / L^2`` of the fitted data (:func:`data_term_scale`),
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:
     the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`);
@@ -108,6 +109,13 @@ class Units:
         if self.target_units != "template":
             return image
         return (image - self.template_offset) / self.template_scale
+
+    def fit_through_alignment(self, c: float) -> None:
+        """Take ``c``, the template's scale fitted through the alignment of its projection to the data
+        (``indreg.alignment.fit.fit_scale``), as ``scale_fit``; the plain fit becomes ``scale_fit_unaligned``."""
+        self.scale_fit_unaligned, self.scale_fit = self.scale_fit, c
+        log.info("the template's scale fitted through the alignment of its projection to the data: c = %.6g "
+                 "(%.6g without it)", c, self.scale_fit_unaligned)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -166,7 +174,7 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
             raise ValueError(f"{key}={template_scale!r} found no positive scale: c = <T I, g> / <T I, T I> = "
                              f"{units.scale_fit:.4g}; the template's projection does not resemble the data: check "
                              f"both, or give {key}=<number>")
-        if template_scale != "auto":   # a start: refitted with the deformation (indreg.intensity)
+        if template_scale != "auto":   # a start: refitted with the deformation (indreg.registration.intensity)
             return units.scale_fit
         c = unit_factor(units.scale_fit)
         log.info("template scaled by %.6g (%s='auto': the fitted c = %.6g%s; ||T I|| / ||g|| was %.4g)", c, key,
@@ -184,20 +192,46 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
 
 
 def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
-            label=lambda name: name, aligned_scale=None) -> tuple:
-    """Bring template and data to one unit before the run: ``(template, data, Units)``.
+            label=lambda name: name) -> tuple:
+    """Bring template and data to one unit before the run: :func:`measure`, then :func:`apply_units`.
 
-    ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is subtracted from the data; without it
-    a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
-    template's projection with the data, and ``template_scale`` (None, ``"auto"``: ``c``, or a number) multiplies
-    the template; without a scale a warning names both numbers when either is outside
-    ``[1/UNIT_RANGE, UNIT_RANGE]`` (a template None, unknown, is returned as it is). ``label(name)`` names the
-    option in messages (the app: its config key). ``aligned_scale(template, data) -> c`` (the alignment's
-    ``indreg.alignment.fit_scale``, when ``align`` is on) replaces the plain ``c`` for a fitted ``template_scale``:
-    data that drift against the template's projection bias the plain fit (docs/units.md). Raises ValueError when
-    ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data)."""
-    import torch
+    Returns
+    -------
+    tuple
+        ``(template, data, Units)``.
+    """
+    units = measure(template, data, operator, background, label)
+    return apply_units(template, data, units, template_scale, label)
 
+
+def measure(template: torch.Tensor, data: torch.Tensor, operator, background=None, label=lambda name: name) -> Units:
+    """What the inputs' units are, before anything is applied.
+
+    ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is the offset to subtract from the data;
+    without it a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
+    template's projection with the data (a template None, unknown, is not compared).
+
+    Parameters
+    ----------
+    template, data : torch.Tensor
+        The template (``operator.domain.shape``, or None) and the data (``operator.range_shape``).
+    operator : LinearOperator
+        The forward operator.
+    background : None, "auto" or float
+        The data's offset.
+    label : callable
+        ``label(name)`` names an option in messages (the app: its config key).
+
+    Returns
+    -------
+    Units
+        ``background``, ``projection_ratio`` and ``scale_fit`` set.
+
+    Raises
+    ------
+    ValueError
+        All-zero data (after the background).
+    """
     units = Units()
     if background is None:
         check_offset(data, label("background"))
@@ -209,11 +243,29 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
                    f"; {label('background')}={background!r} subtracted {units.background:.4g} from every value")
     if template is not None:   # None: unknown (reconstructed by the model), no units to compare
         units.projection_ratio, units.scale_fit = compare_units(template, units.apply(None, data)[1], operator)
-        if aligned_scale is not None and template_scale in ("auto", "fit", "fit+offset"):
-            units.scale_fit_unaligned = units.scale_fit
-            units.scale_fit = aligned_scale(template, units.apply(None, data)[1])
-            log.info("the template's scale fitted through the alignment of its projection to the data: c = %.6g "
-                     "(%.6g without it)", units.scale_fit, units.scale_fit_unaligned)
+    return units
+
+
+def apply_units(template: torch.Tensor, data: torch.Tensor, units: Units, template_scale=None,
+                label=lambda name: name) -> tuple:
+    """The template's factor for ``template_scale`` (None, ``"auto"``: ``units.scale_fit``, ``"fit"`` /
+    ``"fit+offset"``: its start, or a number; without a scale a warning names both of :func:`compare_units`'s
+    numbers when either is outside ``[1/UNIT_RANGE, UNIT_RANGE]``), then :meth:`Units.apply`.
+
+    Returns
+    -------
+    tuple
+        ``(template, data, units)``, ``units.template_scale`` set.
+
+    Raises
+    ------
+    ValueError
+        ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data), or the
+        factor makes the template non-finite.
+    """
+    import torch
+
+    if template is not None:
         units.template_scale = _template_factor(template_scale, units, label("template_scale"))
     template, data = units.apply(template, data)
     if template is not None and not bool(torch.isfinite(template).all()):

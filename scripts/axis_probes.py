@@ -17,7 +17,7 @@ the minimum refined by a parabola through it and its neighbours:
   SIRT and a re-fit of the shifts (``indreg.alignment.estimate``, gauge ``"translation"``), each trial angle from
   the cross-correlation start; the criterion is the last SIRT's relative residual.
 
-- ``moments``: ``indreg.axis_moments.estimate_axis_angle`` (the Helgason-Ludwig conditions of every detector row,
+- ``moments``: ``indreg.alignment.moments.estimate_axis_angle`` (the Helgason-Ludwig conditions of every detector row,
   orders ``0 .. --orders``, exact sums over the pixels, the shifts fitted, a chi-square scanned over the angle), its
   estimate, standard error, chi-square per degree of freedom and the tilts it used.
 - ``valley`` (not a scan): the data's least-squares misfit ``(1/2) ||S_{s, alpha} T(turn_beta f) - g||^2`` (shifts
@@ -168,19 +168,19 @@ def common_lines(stack: np.ndarray, alpha_deg: float, a) -> float:
 # ---------------------------------------------------------------------------------------------------- SIRT
 def sirt_consistency(T, stack: np.ndarray, alpha_deg: float, a, rounds: int = 3) -> float:
     """The SIRT-consistency criterion at the trial angle (module docstring)."""
-    from indreg.alignment import _first_start, aligned, estimate
+    from indreg.alignment import aligned, estimate, first_start
     from indreg.forward.sirt import sirt
 
     data = torch.from_numpy(stack)
-    op = aligned(T, "shifts", "probe", "translation")
+    op, state = aligned(T, "shifts", "probe", "translation")
     op.angle = torch.tensor(math.radians(alpha_deg), dtype=torch.float64)
     for r in range(rounds + 1):
         x, history = sirt(op, data, num_iter=a.sirt_iters, nonneg=True)
         if r == rounds:
             return float(history["data_residual"][-1] / op.inner_data(data, data).sqrt())
         P = op.operator(x)
-        start = _first_start(op, P, data) if r == 0 else op.shifts
-        op.shifts, _, _ = estimate(op, P, data, start, op.angle, False)
+        start = first_start(op, state, P, data) if r == 0 else op.shifts
+        op.shifts, _, _ = estimate(op, P, data, start, op.angle, False, kind=state.gauge)
 
 
 # ---------------------------------------------------------------------------------------------------- the valley
@@ -193,7 +193,7 @@ def valley(T, f: torch.Tensor, stack: np.ndarray, angle: float, true: torch.Tens
     def turned(x: np.ndarray, beta: float) -> np.ndarray:
         return ndimage.rotate(x, beta, axes=(0, 1), reshape=False, order=3, mode="nearest")
 
-    g, op = torch.from_numpy(stack), aligned(T, "shifts+axis", "probe")
+    g, (op, _) = torch.from_numpy(stack), aligned(T, "shifts+axis", "probe")
     reference = turned(f.numpy(), a.reference_turn)
     print("| alpha (deg) | beta (deg) | where | misfit |")
     print("|---|---|---|---|")
@@ -219,9 +219,9 @@ def series_stacks(clean: np.ndarray, shifts: dict, a):
 
 # ---------------------------------------------------------------------------------------------------- moments
 def moments_table(T, clean: np.ndarray, shifts: dict, a) -> None:
-    """The Helgason-Ludwig estimate (``indreg.axis_moments.estimate_axis_angle``, its own scan: every degree over
+    """The Helgason-Ludwig estimate (``indreg.alignment.moments.estimate_axis_angle``, its own scan: every degree over
     +-10, then every quarter around the least) on every chosen series, noise level and angle."""
-    from indreg.axis_moments import estimate_axis_angle
+    from indreg.alignment.moments import estimate_axis_angle
 
     theta = T.geometry.angles.numpy()
     print(f"moments (orders 0-{a.orders}, band {a.band}), {a.phantom}" + (f" blurred {a.blur:g}" if a.phantom ==

@@ -54,7 +54,7 @@ def main():
     np.savetxt(d / "raw.tlt", degrees, fmt="%.3f")
     del stack
     timer = ["/usr/bin/time", "-v"] if Path("/usr/bin/time").exists() else []
-    r = subprocess.run(timer + [sys.executable, "-m", "indreg.align_app", str(d / "raw.mrc"), "--out",
+    r = subprocess.run(timer + [sys.executable, "-m", "indreg.alignment.app", str(d / "raw.mrc"), "--out",
                                 str(d / "out")] + a.rest, capture_output=True, text=True)
     print(r.stderr[-6000:], r.stdout)
     s = json.loads((d / "out/align.json").read_text())

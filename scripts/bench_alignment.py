@@ -42,7 +42,7 @@ import indreg
 from indreg import ImageDomain, noise, phantoms
 from indreg.alignment import gauge
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.operator import AlignedOperator
 
 
 def arguments():

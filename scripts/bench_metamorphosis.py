@@ -305,7 +305,7 @@ def main(argv=None):
     p.add_argument("--step", type=float, default=0.02)
     p.add_argument("--taus", type=float, nargs="*", default=[], help="quality: absolute tau values")
     p.add_argument("--tau-rels", type=float, nargs="*", default=[0.01], help="quality: tau_rel values")
-    p.add_argument("--start-fractions", type=float, nargs="*", default=[indreg.models.RELATIVE_DEFAULTS[
+    p.add_argument("--start-fractions", type=float, nargs="*", default=[indreg.registration.models.RELATIVE_DEFAULTS[
         "source_start_fraction"]], help="quality: source_start_fraction values")
     p.add_argument("--masks", nargs="*", default=["data"], choices=("data", "template", "none"),
                    help="quality: source_mask values (none: no mask)")

@@ -88,7 +88,7 @@ def fbp_static(d):
 
 
 def run_registration(d, template, iters, **options) -> dict:
-    """One spatiotemporal run through the shared loop (``indreg.run``), scored every 5 iterations."""
+    """One spatiotemporal run through the shared loop (``indreg.registration.run``), scored every 5 iterations."""
     t0 = time.process_time()
     curve = []
     holder = {}
@@ -97,14 +97,14 @@ def run_registration(d, template, iters, **options) -> dict:
         if "problem" in holder and info["iteration"] % 5 == 0:
             curve.append((info["iteration"], scores(holder["problem"].all_frames(state.iterate), d)["ssim"]))
 
-    setup = indreg.run.setup(template, list(d.data), d.operators, model="spatiotemporal", times=d.times,
+    setup = indreg.registration.run.setup(template, list(d.data), d.operators, model="spatiotemporal", times=d.times,
                              max_iter=iters, **{**COMMON, **options})
     holder["problem"] = setup.problem
-    state = indreg.run.initial_state(setup.problem)
-    loop = indreg.run.RegistrationLoop(setup.problem, setup.solver, state, iters, callback=callback)
+    state = indreg.registration.run.initial_state(setup.problem)
+    loop = indreg.registration.run.RegistrationLoop(setup.problem, setup.solver, state, iters, callback=callback)
     status = loop.run()
     cpu = time.process_time() - t0
-    r = indreg.run.build_result(setup.problem, state, loop.history, loop.seconds, status)
+    r = indreg.registration.run.build_result(setup.problem, state, loop.history, loop.seconds, status)
     out = dict(scores(r.frames, d), **motion_error(r, d), cpu_per_iteration=cpu / max(r.iterations, 1),
                iterations=r.iterations, status=r.status, warnings=r.warnings)
     if template is None:

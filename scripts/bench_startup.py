@@ -110,7 +110,7 @@ def cases(root: Path) -> list:
             ("`python -c \"from indreg import register\"`", to_exit, [PYTHON, "-c", "from indreg import register"]),
             ("`indreg-register --help`", to_exit, register + ["--help"]),
             ("`indreg-train-momentum --help`", to_exit, train + ["--help"]),
-            ("`indreg-align --help`", to_exit, [PYTHON, "-m", "indreg.align_app", "--help"]),
+            ("`indreg-align --help`", to_exit, [PYTHON, "-m", "indreg.alignment.app", "--help"]),
             ("`indreg-register kernel.sigma=-1` to its one-line refusal", to_refusal, register + ["kernel.sigma=-1"]),
             ("`indreg-register` to its first log line", to_first_line, [PYTHON, "-c", FIRST_LINE])]
 

@@ -16,7 +16,7 @@ import torch
 
 import indreg
 from indreg import noise, phantoms
-from indreg.run import count_halvings
+from indreg.registration.run import count_halvings
 
 
 def case(name: str, lam: float = 1.0):

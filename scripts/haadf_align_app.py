@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from indreg.align_app import _bin, _operator, _residual, main as align
-from indreg.io.alignment_files import read_xf
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.app import _bin, _operator, _residual, main as align
+from indreg.alignment.files import read_xf
+from indreg.alignment.operator import AlignedOperator
 from indreg.forward.sirt import sirt
 
 SHIFTS_KEY = "/Experiments/__unnamed__/metadata/Tomography/_sig_shifts/data"   # (tilts, [row, col]), raw px
@@ -31,7 +31,7 @@ def etspy_shifts(folder: Path) -> np.ndarray:
 
 
 def binned_operator(stack_b, radians, nz, M_raw, d_raw, b, delta):
-    """The binned, quarter-turned series' operator with a raw-frame alignment (``indreg.align_app``'s frames)."""
+    """The binned, quarter-turned series' operator with a raw-frame alignment (``indreg.alignment.app``'s frames)."""
     Q = np.round(np.array([[0.0, -1.0], [1.0, 0.0]]))        # R(90): raw = Q rotated
     M = Q.T @ M_raw
     d = (d_raw @ Q - np.einsum("kij,j->ki", np.eye(2) - M, delta)) / b

@@ -4,7 +4,7 @@ true SSIM peaks (issue #21: the two should agree within 20 %).
 Each suite runs its preset (``indreg-register experiment=<preset>``, the problem built as the app builds it) with
 more angles (``geometry.num_angles``, the paper's partition), ``validation.holdout=k`` (every k-th angle left out
 of the fit) and a longer run (``solver.max_iter``); every ``--every`` iterations the loop records the held-out
-residual (``indreg.run.RegistrationLoop``'s validation) and, outside the registration, the SSIM of the deformed
+residual (``indreg.registration.run.RegistrationLoop``'s validation) and, outside the registration, the SSIM of the deformed
 template against the ground truth (never given to the solver).
 
     python scripts/holdout_study.py                                   # suites 1 and 3
@@ -60,7 +60,7 @@ def study(suite: str, angles: int, holdout: int, max_iter: int, every: int, extr
     from indreg import metrics
     from indreg.callbacks import Callback
     from indreg.experiments.build import build, seed_everything
-    from indreg.run import RegistrationLoop, initial_state
+    from indreg.registration.run import RegistrationLoop, initial_state
 
     cfg = compose([f"experiment={SUITES[suite]}", "device=cpu", f"geometry.num_angles={angles}",
                    f"validation.holdout={holdout}", f"solver.max_iter={max_iter}", *extra])

@@ -2,7 +2,7 @@
 layout read with the default convention, its angles in the opposite sense, its detector reversed; 3D: a tilt series
 of suite ET-3D turned by 180 degrees, given tilt_axis_angle=180 when it is not turned, its angles in the opposite
 sense, its columns reversed), each with its right reading. Prints, per case, what ``indreg.load`` and the probe
-before the run (``indreg.orientation``) say, and with ``--register`` the SSIM of the registration against the
+before the run (``indreg.io.orientation``) say, and with ``--register`` the SSIM of the registration against the
 ground truth (the run with ``orientation="warn"``, so that a refused reading still runs).
 
     python scripts/orientation_probes.py [--register] [--size3d 32] [--iter3d 40]
@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 import indreg
-from indreg import conventions, orientation, phantoms
+from indreg import phantoms
+from indreg.io import conventions, orientation
 from indreg.io import read_angles, read_image
-from indreg.tilt_axis import align_tilt_axis
+from indreg.alignment.tilt_axis import align_tilt_axis
 
 
 def data_path(name: str) -> str:

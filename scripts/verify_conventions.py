@@ -1,4 +1,4 @@
-"""Check ``indreg.load(..., convention=...)`` against the other tools themselves (``indreg.conventions``).
+"""Check ``indreg.load(..., convention=...)`` against the other tools themselves (``indreg.io.conventions``).
 
 For each tool: a phantom (scikit-image's Shepp-Logan picture plus an off-centre blob, no mirror symmetry) is
 projected by the tool's own forward operator in its own convention, saved as the tool saves it, and loaded with
@@ -66,7 +66,7 @@ def compare(folder: Path, template: np.ndarray, data: np.ndarray, name: str, **l
     """``(rel, flipped)`` of the tool's data saved as .npy and loaded with ``convention=name``."""
     np.save(folder / "t.npy", template)
     np.save(folder / "s.npy", data)
-    np.save(folder / "f.npy", np.flip(data, -1 if indreg.conventions.CONVENTIONS[name].sinogram == "angle_bin" else 0))
+    np.save(folder / "f.npy", np.flip(data, -1 if indreg.io.conventions.CONVENTIONS[name].sinogram == "angle_bin" else 0))
     d, f = (indreg.load(folder / "t.npy", folder / s, convention=name, **load) for s in ("s.npy", "f.npy"))
     return relative(d.operator(d.template), d.data), relative(f.operator(f.template), f.data)
 
@@ -190,7 +190,7 @@ def check_imod(folder: Path, register: bool) -> list:
     tilts = THETA - 60.0
     geometry = indreg.TiltSeriesGeometry(torch.from_numpy(-np.deg2rad(tilts)), n, -8.0, 8.0, angle_unit="rad")
     g = indreg.TiltSeriesTransform(domain, geometry)(torch.from_numpy(f)).numpy() / h     # (tilt, Y, X), IMOD's
-    indreg.writers.write_tilt_series(folder / "ts.mrc", g, tilts)
+    indreg.io.writers.write_tilt_series(folder / "ts.mrc", g, tilts)
     with mrcfile.new(folder / "rec.mrc", overwrite=True) as mrc:
         mrc.set_data(np.ascontiguousarray(f.transpose(1, 2, 0)[j:j + 1]).astype(np.float32))   # (Y, Z, X): section j
     with mrcfile.new(folder / "row.mrc", overwrite=True) as mrc:

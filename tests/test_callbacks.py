@@ -31,7 +31,7 @@ def setup():
     domain = indreg.ImageDomain.paper(16)
     T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 24))
     template, target = phantoms.get("j", domain).double(), phantoms.get("v", domain).double()
-    return indreg.run.setup(template, T(target), T, num_steps=3, max_iter=6, holdout=4)
+    return indreg.registration.run.setup(template, T(target), T, num_steps=3, max_iter=6, holdout=4)
 
 
 def test_composition_flattens_and_runs_in_order():
@@ -46,9 +46,9 @@ def test_composition_flattens_and_runs_in_order():
 def test_loop_calls_every_callback_and_the_first_status_wins(setup, caplog):
     log = []
     chain = Recorder("a", log, stop_at=3) & Recorder("b", log, stop_at=2)
-    state = indreg.run.initial_state(setup.problem)
+    state = indreg.registration.run.initial_state(setup.problem)
     with caplog.at_level("INFO", logger="indreg"):
-        loop = indreg.run.RegistrationLoop(setup.problem, setup.solver, state, 6, every=2, callbacks=chain,
+        loop = indreg.registration.run.RegistrationLoop(setup.problem, setup.solver, state, 6, every=2, callbacks=chain,
                                            validation=setup.validation)
         status = loop.run()
     assert status == "stopped" and state.iteration == 2          # b stopped at 2; a still ran at 2
@@ -62,7 +62,7 @@ def test_end_runs_when_a_step_raises(setup):
             raise RuntimeError("boom")
 
     log = []
-    loop = indreg.run.RegistrationLoop(setup.problem, setup.solver, indreg.run.initial_state(setup.problem), 6,
+    loop = indreg.registration.run.RegistrationLoop(setup.problem, setup.solver, indreg.registration.run.initial_state(setup.problem), 6,
                                        callbacks=Recorder("r", log) & Boom())
     with pytest.raises(RuntimeError, match="boom"):
         loop.run()
@@ -72,7 +72,7 @@ def test_end_runs_when_a_step_raises(setup):
 def test_user_callback_and_held_out_are_callbacks(setup):
     seen = []
     cb = UserCallback(lambda state, info: seen.append(state.iteration) or state.iteration == 2)
-    loop = indreg.run.RegistrationLoop(setup.problem, setup.solver, indreg.run.initial_state(setup.problem), 6,
+    loop = indreg.registration.run.RegistrationLoop(setup.problem, setup.solver, indreg.registration.run.initial_state(setup.problem), 6,
                                        every=1, callbacks=HeldOut(setup.validation) & cb)
     assert loop.run() == "stopped" and seen == [1, 2]
     assert all(torch.isfinite(torch.tensor(h["holdout_residual"])) for h in loop.history)

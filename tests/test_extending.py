@@ -26,7 +26,7 @@ def toy(tmp_path_factory):
     finally:
         sys.path.remove(str(folder))
         sys.modules.pop("toy_extending", None)
-        indreg.models.MODELS.pop("brightness", None)
+        indreg.registration.models.MODELS.pop("brightness", None)
         indreg.options.SOLVERS.pop("heavy_ball", None)
         indreg.options.CORRECTIONS.pop("data_offset", None)
 
@@ -112,11 +112,11 @@ def test_toy_correction_finds_the_offset_and_resumes(toy):
     assert "data_offset" not in indreg.register(*args, num_steps=3, max_iter=1).corrections
     with pytest.raises(ValueError, match="offset_every must be an integer >= 0"):
         indreg.register(*args, offset_every=-1, max_iter=1)
-    s = indreg.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
-    state = indreg.run.initial_state(s.problem)
+    s = indreg.registration.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
+    state = indreg.registration.run.initial_state(s.problem)
     s.solver.step(state)
     saved = s.solver.state_dict()
-    again = indreg.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
+    again = indreg.registration.run.setup(*args, offset_every=2, num_steps=3, max_iter=4)
     again.solver.load_state_dict(saved)
     assert again.solver.offset == s.solver.offset and torch.equal(again.problem.data, s.problem.data)
 

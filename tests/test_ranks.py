@@ -30,7 +30,7 @@ def test_problems_declare_whether_they_split_over_ranks():
 def test_options_that_may_change_on_resume_are_marked_in_the_table():
     from indreg.experiments.runner import _problem_config
 
-    import indreg.models  # noqa: F401  (the models' options)
+    import indreg.registration.models  # noqa: F401  (the models' options)
     marked = {o.config_key for o in options.all_options() if o.resumable}
     assert marked == {"solver.max_iter", "deformation.slab_size", "deformation.max_memory",
                       "deformation.distributed"}
@@ -40,7 +40,7 @@ def test_options_that_may_change_on_resume_are_marked_in_the_table():
 
 @pytest.mark.slow
 def test_learning_app_finds_its_configs_without_the_registration_schema():
-    code = ("import sys, indreg.learn.train as t; from indreg.conf import CONFIG_DIR; "
+    code = ("import sys, indreg.learn.train as t; from indreg.learn.conf import CONFIG_DIR; "
             "assert (CONFIG_DIR / 'train_momentum.yaml').is_file(); t.base_config([]); "
             "print('indreg.experiments.config' in sys.modules, 'indreg.problems.slabs' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

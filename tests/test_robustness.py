@@ -18,11 +18,11 @@ def setup():
     domain = indreg.ImageDomain.paper(16)
     T = indreg.RayTransform(domain, indreg.ParallelBeamGeometry.paper(8, 24))
     template, target = phantoms.get("j", domain).double(), phantoms.get("v", domain).double()
-    return indreg.run.setup(template, T(target), T, num_steps=3, max_iter=4)
+    return indreg.registration.run.setup(template, T(target), T, num_steps=3, max_iter=4)
 
 
 def _loop(setup, callbacks):
-    return indreg.run.RegistrationLoop(setup.problem, setup.solver, indreg.run.initial_state(setup.problem), 4,
+    return indreg.registration.run.RegistrationLoop(setup.problem, setup.solver, indreg.registration.run.initial_state(setup.problem), 4,
                                        callbacks=callbacks)
 
 
@@ -107,7 +107,7 @@ def test_algorithm1_every_halving_trial_overflows_ends_failed_with_the_iterate_k
     from indreg.solvers import Algorithm1
 
     solver = Algorithm1(setup.problem, step_halving=True, max_halvings=3, max_iter=2)
-    state = indreg.run.initial_state(setup.problem)
+    state = indreg.registration.run.initial_state(setup.problem)
     start = [x.clone() for x in state.iterate]
     solver.report(state)   # the iterate's own evaluation is finite
     evaluate = solver._evaluate

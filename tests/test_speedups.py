@@ -14,7 +14,7 @@ from torch.func import jvp
 
 from indreg.domain import ImageDomain
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
-from indreg.forward.shift import AlignedOperator, cubic_kernel, cubic_slope
+from indreg.alignment.operator import AlignedOperator, cubic_kernel, cubic_slope
 from indreg.forward.tv import tv_reconstruction
 
 F64 = torch.float64
@@ -55,7 +55,7 @@ def test_kept_weights_are_the_recomputed_ones_until_the_alignment_changes(series
 
 
 def test_weights_beyond_the_bound_are_not_kept(series, monkeypatch):
-    from indreg.forward import shift
+    from indreg.alignment import operator as shift
     f = torch.rand(series.domain.shape, generator=torch.Generator().manual_seed(8), dtype=F64)
     op = AlignedOperator(series, _alignment(9, integer=False)[0], 0.0, "cubic")
     monkeypatch.setattr(shift, "KEEP_BYTES", 0)

@@ -20,7 +20,7 @@ def _loaded(code: str, names) -> dict:
 
 @pytest.mark.slow
 def test_the_run_modules_and_a_problem_import_nothing_late():
-    code = ("import torch\nfrom indreg import metrics, run\nfrom indreg.experiments import runner, outputs, figures\n"
+    code = ("import torch\nfrom indreg import metrics\nfrom indreg.registration import run\nfrom indreg.experiments import runner, outputs, figures\n"
             "from indreg import ImageDomain, ParallelBeamGeometry, RayTransform, LDDMMDeformation\n"
             "d = ImageDomain.paper(16); T = RayTransform(d, ParallelBeamGeometry.paper(4, 20))\n"
             "y = T(torch.rand(16, 16, dtype=torch.float64)); T.inner_data(y, y)\n"
@@ -34,7 +34,7 @@ def test_the_run_modules_and_a_problem_import_nothing_late():
 HEAVY = ("torch", "matplotlib", "tensorboard", "scipy", "skimage", "indreg.experiments.config")
 
 
-@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry", "indreg.align_app"])
+@pytest.mark.parametrize("module", ["indreg.experiments.register", "indreg.learn.entry", "indreg.alignment.app"])
 def test_help_imports_nothing_heavy(module):
     code = (f"import sys\nsys.argv = ['prog', '--help']\nfrom {module} import main\n"
             "try:\n    main()\nexcept SystemExit:\n    pass")
@@ -42,13 +42,13 @@ def test_help_imports_nothing_heavy(module):
 
 
 def test_the_light_modules_import_nothing_heavy():
-    code = "import indreg, indreg.experiments.cli, indreg.experiments.app_help, indreg.learn"
+    code = "import indreg, indreg.experiments.cli, indreg.learn"
     assert _loaded(code, HEAVY) == dict.fromkeys(HEAVY, False)
 
 
 def test_the_light_entry_point_names_the_trainings_config():
-    from indreg.experiments.config import CONFIG_DIR
     from indreg.learn import entry, train
+    from indreg.learn.conf import CONFIG_DIR
 
     assert (entry._CONFIG, entry._CONFIG_NAME) == (CONFIG_DIR, train.CONFIG_NAME)
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import indreg
-from indreg import io, metrics, phantoms, run
+from indreg import io, metrics, phantoms
+from indreg.registration import run
 from indreg.forward import intensity_scale, tv_reconstruction
 from indreg.solvers.state import StepControl, problems, rounding_tolerance
 
@@ -324,7 +325,7 @@ def test_poor_fit_counts_the_held_out_residual_and_needs_a_finished_run():
 
 
 def test_fit_intensity_solves_the_normal_equations():
-    from indreg.intensity import fit_intensity
+    from indreg.registration.intensity import fit_intensity
 
     g0 = torch.Generator().manual_seed(0)
     P, Q = torch.rand(7, 9, generator=g0, dtype=torch.float64), torch.ones(7, 9, dtype=torch.float64)

@@ -6,8 +6,8 @@ no float64 copy of a fine array: its source's arrays (template, data, target, no
 truths) are cast to the run's dtype on the CPU once loaded, so that the figures of merit, baselines and figures
 read them there (``indreg.metrics`` compares volumes in float64 chunks). Simulated data are
 generated device- and dtype-independently (noise drawn on the CPU with the run's seed), so the same config gives
-the same data everywhere. Kernel, deformation, objective and solver are built by :func:`indreg.run.setup`, the
-same code as ``indreg.register`` (``indreg.run.setup``).
+the same data everywhere. Kernel, deformation, objective and solver are built by :func:`indreg.registration.run.setup`, the
+same code as ``indreg.register`` (``indreg.registration.run.setup``).
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from .config import ConfigError, registration_values
 @dataclass
 class Experiment:
     """Everything a run needs: the source's ``data`` (:class:`sources.Data`, on the CPU), the ``setup``
-    (``indreg.run.Setup``: problem, solver, resolved options, units, validation) and the inputs as the run uses
+    (``indreg.registration.run.Setup``: problem, solver, resolved options, units, validation) and the inputs as the run uses
     them: ``template`` in the run's dtype / device, ``template_64`` / ``noisy_data_64`` on the CPU for metrics,
     baselines and figures (both through ``setup.units.apply``, the one transformation of the inputs). Images:
     ``data`` and the ``_64`` arrays in float64; volumes: in the run's dtype (:func:`fine_arrays_in`).
@@ -63,7 +63,7 @@ def seed_everything(seed: int) -> None:
 
 
 def build(cfg: DictConfig) -> Experiment:
-    """The data source's data and operator, then kernel, problem and solver (``indreg.run.setup``, the same code
+    """The data source's data and operator, then kernel, problem and solver (``indreg.registration.run.setup``, the same code
     as ``indreg.register``, with the config's registration options; errors name the config key)."""
     dtype = getattr(torch, cfg.dtype.value)
     device = run.resolve_device(cfg.device)

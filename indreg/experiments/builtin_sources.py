@@ -18,7 +18,7 @@ from ..io import conventions as _conventions
 from .._checks import is_finite_number
 from .. import phantoms
 from ..io import DataFileError, check_file, read_angles
-from ..tilt_axis import check_tilt_axis
+from ..alignment.tilt_axis import check_tilt_axis
 from .errors import ConfigError
 from .sources import Data, Source, register_source
 
@@ -32,7 +32,7 @@ __all__ = ["FileConvention", "IntegerScale", "CONFIG_KEYS", "phantom_data", "fil
 
 log = logging.getLogger("indreg.experiments.sources")
 
-#: data=files: the tool whose layout, angles, units and detector centre the files follow (indreg.conventions).
+#: data=files: the tool whose layout, angles, units and detector centre the files follow (indreg.io.conventions).
 FileConvention = Enum("FileConvention", {name: name for name in _conventions.CONVENTIONS}, type=str)
 IntegerScale = Enum("IntegerScale", {name: name for name in _conventions.INTEGER_SCALES}, type=str)
 
@@ -139,7 +139,7 @@ def file_data(cfg: DictConfig) -> Data:
     template and a sinogram, or (``geometry=tilt_series``) a template volume and a tilt series; ``det_count`` is
     the data's width (``geometry.det_count`` / ``num_angles``, if set, must agree); ``data.convention`` and
     ``data.integer_scale`` say how to read them; ``data.alignment`` (a tilt series) another tool's alignment of the
-    raw stack (``indreg.io.alignment_files``). No noise is added."""
+    raw stack (``indreg.alignment.files``). No noise is added."""
     from ..inputs import load as load_inputs
 
     d, g = cfg.data, cfg.geometry

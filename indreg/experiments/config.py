@@ -139,7 +139,7 @@ def _unknown_keys(node, schema, prefix: str = "") -> list:
 
 def validate(cfg: DictConfig, registration: bool = True) -> None:
     """Range checks the schema's types cannot express; raises :class:`ConfigError` naming the key. ``registration``
-    False leaves the registration options to ``indreg.run.setup`` (the run resolves them there once, with the same
+    False leaves the registration options to ``indreg.registration.run.setup`` (the run resolves them there once, with the same
     messages)."""
     c = cfg
     unknown = _unknown_keys(cfg, OmegaConf.structured(RegisterConfig))

@@ -1,7 +1,7 @@
 """The final outputs of a run in its directory: arrays, ``metrics.json``, ``history.json``, the figures, and the
 log's headline (``finish``); a failed run's record (``failed``).
 
-Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.run.build_result`` (images ``(nx, ny)``,
+Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.registration.run.build_result`` (images ``(nx, ny)``,
 volumes ``(nx, ny, nz)``, a model's stacks with a leading axis, e.g. frames ``(K, nx, ny)``); SSIM / PSNR use the
 target's data range; a stack's figures of merit are the means over its first axis.
 
@@ -142,7 +142,7 @@ def failed(out: Path, history: list) -> dict:
 
 def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: str) -> dict:
     """Final outputs: arrays, metrics.json, history.json, figure.png, TensorBoard images and hparams, from the
-    result that ``indreg.register`` would return (``indreg.run.build_result``).
+    result that ``indreg.register`` would return (``indreg.registration.run.build_result``).
 
     Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
     data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (e.g. a source and

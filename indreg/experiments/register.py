@@ -22,7 +22,7 @@ a sweep resumable: rerun the same command with ``resume=true``. See configs/READ
 
 A run builds the problem (:mod:`indreg.experiments.build`: data from the ``data`` source, then the same setup as
 ``indreg.register``), computes the FBP and TV baselines from the same data, then runs the loop shared with
-``indreg.register`` (``indreg.run.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
+``indreg.register`` (``indreg.registration.run.RegistrationLoop``) for ``solver.max_iter`` iterations: scalars to TensorBoard
 every iteration; a progress line (``iteration i/total``, it/s, ETA), SSIM / PSNR (with a target) and the deformed
 template every ``logging.every``; a checkpoint every ``logging.checkpoint_every`` and on SIGINT / SIGTERM (then
 the process exits with 128 + signal number). ``resume=true`` continues from ``<run dir>/checkpoint.pt`` and ends
@@ -50,7 +50,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
-from . import app_help, cli
+from . import cli
 
 __all__ = ["main", "preflight", "run", "plan_line", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
 
@@ -203,7 +203,7 @@ def main() -> None:
     cli.refuse_loading_flags(argv, PROG)   # --experimental-rerun and its prefixes: exit 2
     if any(a in _PRINT_ONLY for a in argv):
         _stand_in_schema()
-        if app_help.answers(argv) and app_help.print_help(_CONFIG, _CONFIG_FILE, argv):
+        if cli.answers(argv) and cli.print_help(_CONFIG, _CONFIG_FILE, argv):
             return
     else:
         use_heap_allocator()

@@ -1,5 +1,5 @@
 """The figures of a run (``figure.png``, ``parts.png``, ``frames.png``, ``frames.gif``) and TensorBoard's final
-images, from its result (:func:`indreg.run.build_result`), built with :mod:`indreg.experiments.figures`.
+images, from its result (:func:`indreg.registration.run.build_result`), built with :mod:`indreg.experiments.figures`.
 
 Convention: as :mod:`indreg.experiments.figures` (images ``(nx, ny)``, axis 0 = x; volumes ``(nx, ny, nz)``); panels
 of images are drawn on the domain's extent in its units (``ImageDomain.min_pt`` / ``max_pt``), named by

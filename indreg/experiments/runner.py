@@ -170,7 +170,7 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     """Run (or resume) the experiment of ``cfg`` writing into ``output_dir``; returns ``metrics.json``'s dict.
 
     The dict has ``status``: ``completed`` (``max_iter`` reached), ``converged`` (``solver.grad_tol``),
-    ``stalled`` (step halving collapsed the step: ``indreg.run.STALL_WINDOW``), ``diverged`` (finished with a
+    ``stalled`` (step halving collapsed the step: ``indreg.registration.run.STALL_WINDOW``), ``diverged`` (finished with a
     relative data residual >= 1), ``failed`` (a non-finite objective or gradient: ``metrics.json`` and
     ``history.json`` hold the status, the iteration and the warning; the checkpoint keeps the last finite iterate),
     ``early_stopped`` (``validation.patience`` held-out evaluations without a new minimum), ``stopped``

@@ -80,7 +80,7 @@ _DATA_DOC = """Where template and data come from: ``source`` is a built-in sourc
     ``phantom`` (default): the ``phantom`` group's template and target, data simulated with the ``geometry`` and
     ``noise`` groups. ``files``: ``template`` and ``sinogram`` (and optionally ``target``) read from files
     (``indreg.io``), on the domain ``[-half_width, half_width]^2`` with the template's (square) pixel grid, in
-    another tool's ``convention`` (``indreg.conventions``: layout, angles, units, detector centre) and with 8- /
+    another tool's ``convention`` (``indreg.io.conventions``: layout, angles, units, detector centre) and with 8- /
     16-bit pictures as fractions of their full scale (``integer_scale: fraction``, or ``raw``).
     ``dynamic``: the breathing phantom of ``indreg.dynamic`` measured at ``frames`` time points (``amplitude``;
     ``template_known: false`` hands the run no template: ``deformation=spatiotemporal`` reconstructs it).
@@ -99,7 +99,7 @@ class GeometryConfig:
     ``tilt_min``, ``tilt_min + tilt_step``, ..., ``tilt_max`` (in ``angle_unit``); ``det_count`` columns per
     detector row, one row per slice along the tilt axis (docs/tilt_series.md); ``tilt_axis_angle``: the angle of
     the tilt axis in a measured stack's images (degrees from Y, counterclockwise; null: the ``.mdoc``'s, else 0),
-    the stack is rotated by its opposite (``indreg.tilt_axis``)."""
+    the stack is rotated by its opposite (``indreg.alignment.tilt_axis``)."""
     kind: GeometryKind = GeometryKind.parallel
     num_angles: Optional[int] = 10
     det_count: Optional[int] = 92
@@ -156,7 +156,7 @@ class LoggingConfig:
 
 
 _GROUP_DOCS = {
-    "deformation": "Deformation: the model (``indreg.models``: lddmm, metamorphosis, spatiotemporal or a plug-in "
+    "deformation": "Deformation: the model (``indreg.registration.models``: lddmm, metamorphosis, spatiotemporal or a plug-in "
                    "``module:attribute``), time steps N, group action, backward, interpolation, and the model's own "
                    "options.",
     "kernel": "Kernel: the Gaussian RKHS kernel width sigma (physical units).",
@@ -164,7 +164,7 @@ _GROUP_DOCS = {
               "weights, steps and iterations (``indreg.options``). ``step_size`` is Algorithm 1's, ``lr`` "
               "torch.optim's: each is used only by its solver, so an ``experiment=`` preset never changes an "
               "optimizer's learning rate.",
-    "validation": "Validation without a ground truth (``indreg.validation``): ``holdout`` angles (every k-th, or a "
+    "validation": "Validation without a ground truth (``indreg.evaluation.validation``): ``holdout`` angles (every k-th, or a "
                   "list of indices) are left out of the fit and their relative residual is evaluated every "
                   "``logging.every`` iterations; ``patience``: early stopping after that many evaluations without a "
                   "new minimum.",

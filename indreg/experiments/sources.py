@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 
 from omegaconf import DictConfig
 
-from .._files import DataFileError
+from ..io._files import DataFileError
 from ..domain import ImageDomain
 from ..options import add_to_registry
 from .errors import ConfigError
@@ -60,7 +60,7 @@ SOURCES: dict = {}
 class Data:
     """What a source provides (float64, CPU). ``target_64`` / ``clean_64`` / ``snr_db`` are ``None`` when
     unknown (measured data). ``label``: a short name of the template for hparams and titles. ``report``: numbers
-    of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.tilt_axis``).
+    of the data for metrics.json (a tilt series: ``tilt_axis_angle`` and the tilt-axis check's, ``indreg.alignment.tilt_axis``).
     ``paper``: the paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``,
     ``psnr_paper``). ``template_known`` False: the run gets no template (a model that reconstructs it, e.g.
     ``spatiotemporal``; ``template_64`` is then only shown). ``targets``: ground truths of the model's outputs by

@@ -47,7 +47,7 @@ class TimeSeriesOperator(StackedOperator):
 
 def as_time_series(operator, data) -> tuple:
     """A sequence of operators becomes a :class:`TimeSeriesOperator` and a sequence of data one stacked tensor
-    ``(K, *R)`` (arrays / tensors in their common dtype, integers as float64; ``indreg.run.setup`` casts it);
+    ``(K, *R)`` (arrays / tensors in their common dtype, integers as float64; ``indreg.registration.run.setup`` casts it);
     anything else is returned as given."""
     import functools
 

@@ -1,5 +1,5 @@
-"""Reading templates, sinograms and tilt angles from files; writing result images (``indreg.writers``; angle
-files: ``indreg.angle_files``; both re-exported here).
+"""Reading templates, sinograms and tilt angles from files; writing result images (``indreg.io.writers``; angle
+files: ``indreg.io.angle_files``; both re-exported here).
 
 Convention:
     - Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y),
@@ -9,7 +9,7 @@ Convention:
       (``read_volume``, ``write_volume``); 2D MRC images and tilt-series stacks are taken as stored.
     - Array formats (``.npy``, ``.npz``, ``.h5``/``.hdf5``, ``.mrc``/``.st``/``.ali``) hold indreg's arrays
       as they are: images ``(x, y)``, sinograms ``(angle, bin)``; another tool's layout is converted with
-      ``convention=`` (``indreg.conventions``: ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``).
+      ``convention=`` (``indreg.io.conventions``: ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``).
     - Picture formats (``.png``, ``.tif``/``.tiff``) are read as displayed (rows top to bottom, columns
       left to right). An image is turned upright for indreg, ``f = np.rot90(displayed, k=-1)``, so that
       ``np.rot90(f)`` (how indreg shows images) is the displayed picture: x to the right, y up.
@@ -254,7 +254,7 @@ def read_image(path, *, name: str = "template", ndim: int = 2, convention="indre
 
     Convention:
         - ``.npy``/``.npz``/``.h5``/``.mrc`` arrays are in ``convention``'s layout (``indreg``: already
-          ``(x, y)``; ``indreg.conventions``); an MRC file may also hold one section ``(1, nx, ny)``.
+          ``(x, y)``; ``indreg.io.conventions``); an MRC file may also hold one section ``(1, nx, ny)``.
         - ``.png``/``.tif`` pictures are read as displayed and rotated, ``f = np.rot90(displayed, k=-1)``,
           so that ``np.rot90(f)`` shows the picture upright (x to the right, y up), whatever the convention.
         - 8- / 16-bit pictures: fractions of 255 / 65535 (``integer_scale="fraction"``) or their values (``"raw"``);

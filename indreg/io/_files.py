@@ -1,4 +1,4 @@
-"""Shared by the file modules (``indreg.io``, ``indreg.angle_files``, ``indreg.writers``): the one-line error of
+"""Shared by the file modules (``indreg.io``, ``indreg.io.angle_files``, ``indreg.io.writers``): the one-line error of
 a bad file and the ``file.npz:key`` path syntax.
 
 Convention:

@@ -131,7 +131,7 @@ def mdoc_for(stack_path) -> Path | None:
 def read_tilt_axis_angle(mdoc, *, name: str = "mdoc") -> float | None:
     """The tilt axis angle (degrees) of an ``.mdoc`` file: the first ``TiltAxisAngle = a`` or ``Tilt axis angle =
     a`` (also inside a ``[T = ...]`` title line), ``None`` when the file has none. The angle is IMOD's and
-    SerialEM's: from the image's Y axis to the tilt axis, counterclockwise positive (``indreg.tilt_axis``).
+    SerialEM's: from the image's Y axis to the tilt axis, counterclockwise positive (``indreg.alignment.tilt_axis``).
 
     Raises:
         DataFileError: the file cannot be read.

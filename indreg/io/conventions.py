@@ -25,9 +25,8 @@ Convention:
       shifted by half a pixel for even ``n``, scikit-image's centre).
     - Arrays handed to ``indreg.load`` follow the same ``image`` and ``sinogram`` layouts as array files. Angles
       are radians here (``angle_unit`` is converted before).
-    - The orientation check (:func:`orientation_scores`, :func:`orientation_hint`, :func:`flip_hint`) projects the
-      template as each convention reads it (or mirrored) on a copy of at most 64^2 pixels and 18 angles and
-      correlates the projection with the data; a reading better by :data:`MARGIN` is named in a warning.
+    - Which convention the files follow is probed at load by ``indreg.io.orientation`` (``orientation_scores``,
+      ``orientation_hint``, ``flip_hint``), the one home of orientation probing.
 """
 from __future__ import annotations
 
@@ -40,8 +39,7 @@ from ..domain import ImageDomain
 
 __all__ = ["Convention", "CONVENTIONS", "INTEGER_SCALES", "get_convention", "image_to_indreg", "image_from_indreg",
            "sinogram_layout", "sinogram_units", "sinogram_to_indreg", "sinogram_from_indreg", "angles_to_indreg",
-           "angles_from_indreg", "domain_for", "detector_for", "describe_image", "describe_sinogram",
-           "orientation_scores", "orientation_hint", "flip_hint"]
+           "angles_from_indreg", "domain_for", "detector_for", "describe_image", "describe_sinogram"]
 
 #: How 8- and 16-bit pictures are read: ``fraction`` of the full scale (value / 255, / 65535) or ``raw`` values.
 INTEGER_SCALES = ("fraction", "raw")
@@ -187,115 +185,3 @@ def describe_sinogram(convention) -> str:
     if c.bins != "fit":
         parts.append("one pixel a bin, " + ("bin det_count // 2 on the axis" if c.bins == "index" else "centred"))
     return f"read as {'; '.join(parts)} (convention {c.name})"
-
-
-# --- orientation check ------------------------------------------------------------------------------------------
-
-#: A convention whose reading fits the data better by this much correlation is named in a warning.
-MARGIN = 0.1
-#: Readings within this correlation of the best are named with it (ASTRA's picture and IMOD's section with its
-#: angles are one reading: the displayed picture is the section mirrored, and the mirror negates the angles).
-TIE = 0.01
-#: The check runs on at most this many pixels a side and angles (block means, evenly chosen rows): milliseconds.
-CHECK_PIXELS, CHECK_ANGLES = 64, 18
-
-
-def _correlation(a, b) -> float:
-    a, b = (np.asarray(v, dtype=np.float64).ravel() for v in (a, b))
-    a, b = a - a.mean(), b - b.mean()
-    norm = float(np.linalg.norm(a) * np.linalg.norm(b))
-    return float(a @ b) / norm if norm > 0 else 0.0
-
-
-def _distinct() -> dict:
-    """One convention per distinct reading (``odl`` reads as ``indreg``, ``tomopy`` as ``astra``): ``{first: names}``."""
-    groups: dict = {}
-    for c in CONVENTIONS.values():
-        key = (c.image, c.sinogram, c.angle_sense, c.angle_offset, c.pixel_units, c.bins)
-        groups.setdefault(key, []).append(c.name)
-    return {names[0]: names for names in groups.values()}
-
-
-def _fit(stored_f, stored_g, radians, convention, half_width: float, det_min, det_max, picture: bool):
-    """``(correlation, transposed)`` of the parallel-beam projection of the template, read in ``convention``, with
-    the data read so, on a coarse copy of the problem; the data are taken transposed (``transposed=True``) if their
-    rows are then not one per angle, and ``None`` is returned if neither way fits."""
-    import torch
-    import torch.nn.functional as F
-
-    from ..forward import ParallelBeamGeometry, RayTransform
-
-    c = get_convention(convention)
-    g, transposed = sinogram_layout(stored_g, c), False
-    if g.shape[0] != radians.size:
-        g, transposed = np.ascontiguousarray(g.T), True
-    if g.shape[0] != radians.size:
-        return None
-    rows = np.unique(np.linspace(0, radians.size - 1, min(radians.size, CHECK_ANGLES)).round().astype(int))
-    f = torch.as_tensor(image_to_indreg(stored_f, c, picture))
-    n = f.shape[0]
-    m = min(n, CHECK_PIXELS)
-    small = F.interpolate(f[None, None], size=(m, m), mode="area")[0, 0] if m < n else f
-    lo, hi = detector_for(c, g.shape[1], 2.0 * half_width / n, det_min, det_max)
-    geometry = ParallelBeamGeometry(angles=torch.as_tensor(angles_to_indreg(radians[rows], c)),
-                                    det_count=g.shape[1], det_min=lo, det_max=hi)
-    projection = RayTransform(domain_for(c, m, half_width), geometry)(small.contiguous())
-    return _correlation(projection.numpy(), g[rows]), transposed
-
-
-def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=None, det_max=None,
-                       picture: bool = False) -> dict:
-    """``{convention: (correlation, transposed)}`` of the template's projection with the data, each read in that
-    convention (``transposed``: the sinogram only fits transposed from that convention's layout).
-
-    ``stored_f``, ``stored_g``: the arrays as stored (a picture's as displayed, with ``picture=True``),
-    ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any."""
-    scores = {}
-    for name in _distinct():
-        if picture and CONVENTIONS[name].angle_sense < 0:   # no tool of the other sense writes pictures: a picture
-            continue                                         # upside down is flip_hint's
-        score = _fit(stored_f, stored_g, np.asarray(radians), name, half_width, det_min, det_max, picture)
-        if score is not None:
-            scores[name] = score
-    return scores
-
-
-def orientation_hint(scores: dict, current) -> str | None:
-    """A one-line hint naming the convention whose reading fits the data clearly better than ``current``'s."""
-    c = get_convention(current)
-    own = next(name for name, names in _distinct().items() if c.name in names)
-    best = max(scores, key=lambda name: scores[name][0], default=own)
-    if own not in scores or best == own or scores[best][0] < scores[own][0] + MARGIN:
-        return None
-    tied = [name for name in scores if scores[name][0] >= scores[best][0] - TIE]   # no telling them apart here
-    names = " or ".join(n for name in sorted(tied, key=lambda k: -scores[k][0]) for n in _distinct()[name])
-    listed = ", ".join(f"{name} {value:.2f}" for name, (value, _) in sorted(scores.items(), key=lambda kv: -kv[1][0]))
-    layout = "(bins, angles)" if CONVENTIONS[best].sinogram == "bin_angle" else "(angles, bins)"
-    swapped = f", with the sinogram's axes swapped ({best}'s is {layout})" if scores[best][1] else ""
-    return (f"read as convention {c.name}, the template's projection correlates {scores[own][0]:.2f} with the "
-            f"data; read as {names}, {scores[best][0]:.2f} ({listed}): the files probably follow {names}{swapped}")
-
-
-#: Mirror images no convention makes: a picture saved upside down, an array saved transposed.
-_FLIPS = {"flipped along y (np.flip(f, 1): a picture upside down?)": lambda f: f[:, ::-1],
-          "flipped along x (np.flip(f, 0))": lambda f: f[::-1],
-          "transposed (f.T)": lambda f: f.T}
-
-
-def flip_hint(f, g, radians, convention, half_width: float, det_min=None, det_max=None) -> str | None:
-    """A one-line hint when the template ``f`` (indreg's layout, as read in ``convention``) fits the data ``g``
-    clearly better mirrored (:data:`_FLIPS`); ``radians``: the angles as given; ``None`` otherwise."""
-    c = get_convention(convention)
-    stored_g = g.T if c.sinogram == "bin_angle" else g
-
-    def score(image):
-        stored = image_from_indreg(np.ascontiguousarray(image), c)
-        return _fit(stored, stored_g, np.asarray(radians), c, half_width, det_min, det_max, False)
-
-    own = score(f)
-    scores = {name: score(flip(f)) for name, flip in _FLIPS.items()}
-    best = max(scores, key=lambda name: scores[name][0])
-    if own is None or scores[best][0] < own[0] + MARGIN:
-        return None
-    return (f"the template's projection correlates {own[0]:.2f} with the data, {scores[best][0]:.2f} with the "
-            f"template {best}: check the template's orientation")

@@ -4,12 +4,10 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 __all__ = ["main"]
 
-_CONFIG = Path(__file__).resolve().parents[1] / "conf"   # = indreg.experiments.config.CONFIG_DIR
-_CONFIG_NAME = "train_momentum"                         # = indreg.learn.train.CONFIG_NAME
+from .conf import CONFIG_DIR as _CONFIG, CONFIG_NAME as _CONFIG_NAME
 #: Hydra's flags that only print text; ``--experimental-rerun`` (it unpickles a file) is left to train.main.
 _PRINT_ONLY = ("--help", "-h", "--hydra-help")
 
@@ -20,9 +18,9 @@ def main() -> None:
     if any(a in _PRINT_ONLY for a in argv) and not any(a.startswith("--experimental-rerun") for a in argv):
         import hydra
 
-        from ..experiments import app_help
+        from ..experiments import cli
 
-        if app_help.answers(argv) and app_help.print_help(_CONFIG, _CONFIG_NAME, argv):
+        if cli.answers(argv) and cli.print_help(_CONFIG, _CONFIG_NAME, argv):
             return
 
         hydra.main(version_base="1.3", config_path=str(_CONFIG), config_name=_CONFIG_NAME)(_task)()

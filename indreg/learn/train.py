@@ -15,7 +15,7 @@ when they start; the loss: ``2 E`` of Algorithm 1's objective at ``m_K`` plus ``
 squared distance of the deformed template to the target, or the indirect loss at the initial momentum). The benchmark
 (``indreg.learn.benchmark``) then scores every scheme in and out of distribution (``eval.ood``).
 
-Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/conf/train_momentum.yaml``),
+Entry point: ``indreg-train-momentum [key=value ...]`` (Hydra config ``indreg/learn/conf/train_momentum.yaml``),
 ``torchrun --standalone --nproc_per_node=2 -m indreg.learn.train ...`` for DDP.
 
 Batches: step ``s`` draws a global batch of ``batch_size * world_size`` distinct samples from a generator
@@ -54,8 +54,10 @@ from ..experiments import checkpoint as ckpt
 from ..forward.geometry import ParallelBeamGeometry
 from ..forward.ray_transform import RayTransform
 from ..metrics import ssim
+from ..options import check_value
 from ..phantoms import ndim as get_phantom_ndim
 from . import benchmark as bench
+from .conf import CONFIG_DIR, CONFIG_NAME
 from .dataset import SyntheticDeformationDataset
 from .loss import IndirectShootingLoss
 from .unet import MomentumUNet
@@ -66,7 +68,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 RESUME_HINT = "delete it or run without train.resume=true"
 INITS = ("oneshot", "zero")
 SPACES = ("velocity", "initial")     # model=unrolled: UnrolledDescent | UnrolledMomentum
-MODEL_DIR = Path(__file__).resolve().parent / "conf" / "model"      # the options of model=<name>
+MODEL_DIR = CONFIG_DIR / "model"      # the options of model=<name>
 
 
 # ------------------------------------------------------------------ set-up
@@ -158,6 +160,10 @@ def _check_numbers(cfg) -> None:
     """Counts are integers >= 1 (``model.steps`` >= 0), rates and sizes finite and > 0, ``data.snr_db`` finite:
     ``model.lr=0`` would divide by zero, ``data.num_train=0`` leave no batch, a NaN poison every sample."""
     d, t = cfg.data, cfg.train
+    for name, key, value in (("sigma", "kernel.sigma", cfg.kernel.sigma), ("num_steps", "shooting.num_steps",
+                             cfg.shooting.num_steps), ("action", "shooting.action", cfg.shooting.action)):
+        check_value(name, value, key)   # the registration's option table: one check per option
+    check_positive(cfg.kernel.sigma, "kernel.sigma")   # a number here: no 'auto' or None in the training
     for key in ("num_train", "num_val"):
         check_int(d[key], f"data.{key}", 1)
     check_finite(d.snr_db, "data.snr_db")
@@ -411,7 +417,6 @@ def train(cfg, run_dir) -> dict:
 
 
 PROG = "indreg-train-momentum"
-CONFIG_NAME = "train_momentum"
 
 
 def _task(cfg) -> None:
@@ -432,8 +437,6 @@ def base_config(overrides=()):
     gets no keys (the composition then names the options)."""
     from omegaconf import OmegaConf
 
-    from ..conf import CONFIG_DIR
-
     cfg = OmegaConf.load(CONFIG_DIR / f"{CONFIG_NAME}.yaml")
     cfg.pop("hydra")
     cfg.pop("defaults")
@@ -445,14 +448,13 @@ def base_config(overrides=()):
 
 def main() -> None:
     """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
-    ``indreg/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
+    ``indreg/learn/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
     ``--experimental-rerun`` and its prefixes, which unpickle a file, exit 2)."""
     import sys
 
     import hydra
 
     from ..experiments import cli
-    from ..conf import CONFIG_DIR
 
     cli.refuse_loading_flags(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))

@@ -9,7 +9,7 @@ option given with a non-default value to a solver or model it does not apply to 
 the app drops such values silently, because its presets set them for their own solver (a preset's
 ``solver.step_size`` is Algorithm 1's and must not become an optimizer's ``lr``).
 
-Models add their own options (``indreg.models.Model.options``), so a new model's options reach both entry
+Models add their own options (``indreg.registration.models.Model.options``), so a new model's options reach both entry
 points without editing this file.
 """
 from __future__ import annotations
@@ -69,7 +69,7 @@ class Option:
 
 
 # ---------------------------------------------------------------------------------------------------- models
-# The registry of deformation models lives here, below ``indreg.models`` (which fills it), so that checking an
+# The registry of deformation models lives here, below ``indreg.registration.models`` (which fills it), so that checking an
 # option never imports the models' code.
 MODELS: dict = {}
 
@@ -148,14 +148,14 @@ class Solver:
 
 def register_solver(entry: Solver) -> Solver:
     """Add ``entry`` to the solver registry (a name already there is replaced)."""
-    return add_to_registry(SOLVERS, entry, Solver, "register_solver takes an indreg.solver_registry.Solver")
+    return add_to_registry(SOLVERS, entry, Solver, "register_solver takes an indreg.registration.solver_registry.Solver")
 
 
 def solver(name: str) -> Solver:
     """The registered solver serving ``name`` (its own name, or one a family accepts); ``"package.module:attribute"``
     imports a ``Solver`` (or a module that registers it) and registers it under that name, as :func:`model`."""
     if isinstance(name, str) and name not in SOLVERS and ":" in name:
-        _import(name, SOLVERS, Solver, "solver", "indreg.solver_registry.Solver")
+        _import(name, SOLVERS, Solver, "solver", "indreg.registration.solver_registry.Solver")
     found = _serving(name)
     if found is None:
         raise ValueError(f"solver must be {solver_names()} or 'package.module:attribute', got {name!r}")
@@ -184,27 +184,47 @@ def solver_kind(name: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------- corrections
-# The registry of in-the-fit corrections (``indreg.corrections``: the protocol and the built-in alignment and
-# intensity fit; a plug-in's own module), here for the same reason.
+# The registry of in-the-fit corrections (``indreg.registration.corrections``: the protocol; the built-in alignment,
+# ``indreg.alignment.correction``, and intensity fit; a plug-in's own module), here for the same reason.
 CORRECTIONS: dict = {}
 
 
 @dataclass(frozen=True)
 class Correction:
-    """A correction of the data model re-estimated in the fit, in a chain around the solver (``indreg.corrections``
-    has the protocol in full). ``wrap(solver, fit) -> solver``: ``solver`` itself where the options leave the
-    correction off, else an ``indreg.solvers.state.RefitSolver`` around it (``fit``: an ``indreg.corrections.Fit``, the
-    run's options, data model, data and units). ``options``: its own ``Option``s (keywords of ``register()``,
-    config keys); ``model(operator, options, label) -> operator``: the data model it estimates, set before the
-    problem is built (the alignment's ``T_s``); ``check(options, label)``: checks across options;
-    ``plot(summary, path)``: the app's figure of its summary (``<name>.png``); ``fixed(problem) -> dict``: the
-    summary of a part of the data model that is in the problem but not re-estimated (an imported alignment used as
-    it is), ``{}`` when there is none."""
+    """A correction of the data model re-estimated in the fit, in a chain around the solver
+    (``indreg.registration.corrections`` has the protocol in full).
+
+    Parameters
+    ----------
+    name : str
+        Its name: ``result.corrections[name]``, metrics.json's entry, the figure ``<name>.png``.
+    wrap : callable
+        ``wrap(solver, fit) -> solver``: ``solver`` itself where the options leave the correction off, else an
+        ``indreg.solvers.state.RefitSolver`` around it (``fit``: an ``indreg.registration.corrections.Fit``).
+    options : tuple of Option
+        Its own options (keywords of ``register()``, config keys).
+    doc : str
+        One line for listings.
+    model : callable, optional
+        ``model(fit)``: puts the data model it estimates in place before the problem is built (sets
+        ``fit.operator``, e.g. the alignment's ``T_s``) and may keep its state in ``fit.states[name]``.
+    start : callable, optional
+        ``start(fit, template, data)``: once the units are measured, before the template's factor is set (may
+        update ``fit.units``; the alignment fits the template's scale through it).
+    check : callable, optional
+        ``check(options, label)``: checks across options.
+    plot : callable, optional
+        ``plot(summary, path)``: the app's figure of its summary.
+    fixed : callable, optional
+        ``fixed(problem) -> dict``: the summary of a part of the data model that is in the problem but not
+        re-estimated (an imported alignment used as it is), ``{}`` when there is none.
+    """
     name: str
     wrap: Callable
     options: tuple = ()
     doc: str = ""
     model: Optional[Callable] = None
+    start: Optional[Callable] = None
     check: Optional[Callable] = None
     plot: Optional[Callable] = None
     fixed: Optional[Callable] = None
@@ -213,12 +233,13 @@ class Correction:
 def register_correction(entry: Correction) -> Correction:
     """Add ``entry`` to the chain of corrections, after those registered before it (a name already there is
     replaced in place)."""
-    return add_to_registry(CORRECTIONS, entry, Correction, "register_correction takes an indreg.corrections.Correction")
+    return add_to_registry(CORRECTIONS, entry, Correction,
+                           "register_correction takes an indreg.registration.corrections.Correction")
 
 
 def add_to_registry(registry: dict, entry, cls: type, expected: str):
     """``registry[entry.name] = entry`` (a name already there is replaced) for an instance of ``cls``; else a
-    one-line TypeError (``expected``: e.g. "register_model takes an indreg.models.Model"). Returns ``entry``."""
+    one-line TypeError (``expected``: e.g. "register_model takes an indreg.registration.models.Model"). Returns ``entry``."""
     if not isinstance(entry, cls):
         raise TypeError(f"{expected}, got {type(entry).__name__}")
     registry[entry.name] = entry
@@ -227,7 +248,7 @@ def add_to_registry(registry: dict, entry, cls: type, expected: str):
 
 def register_model(model: Model) -> Model:
     """Add ``model`` to the registry (a name already there is replaced)."""
-    return add_to_registry(MODELS, model, Model, "register_model takes an indreg.models.Model")
+    return add_to_registry(MODELS, model, Model, "register_model takes an indreg.registration.models.Model")
 
 
 def model(name: str) -> Model:
@@ -242,7 +263,7 @@ def model(name: str) -> Model:
 
 
 def _import(path: str, registry: Optional[dict] = None, cls: type = Model, what: str = "model",
-            public: str = "indreg.models.Model") -> None:
+            public: str = "indreg.registration.models.Model") -> None:
     """Import ``path`` (``package.module:attribute``), an instance of ``cls``, into ``registry`` under ``path`` and its
     own name; one-line ValueError (nothing the failed import registered stays) when it cannot."""
     import importlib
@@ -316,7 +337,7 @@ CORE = (
            "the deformation's backward; None: the model's default (LDDMM paper, metamorphosis adjoint)",
            Optional[str], app_default="paper"),
     Option("model", "deformation", "model", "lddmm", lambda v, label: _model(v, label),
-           "the deformation model: a name in indreg.models or 'package.module:attribute'", str),
+           "the deformation model: a name in indreg.registration.models or 'package.module:attribute'", str),
     Option("gamma", "solver", "gamma", None, optional(_nonneg),
            "regularisation weight (absolute, the paper's); None: gamma_rel S (S = ||g||^2 / L^2, indreg.units)",
            Optional[float]),
@@ -329,7 +350,7 @@ CORE = (
            "intensity unit x the box side squared: the TV baseline's convention; with tv_weight 0)", Optional[float]),
     Option("solver", "solver", "name", ALGORITHM1, lambda v, label: _solver(v, label),
            "'algorithm1', 'fast' (coarse to fine), a torch.optim name or a registered solver "
-           "(indreg.solver_registry; 'package.module:attribute')", str),
+           "(indreg.registration.solver_registry; 'package.module:attribute')", str),
     Option("max_iter", "solver", "max_iter", 200, number(0, integer=True), "iterations", int, resumable=True),
     Option("step_size", "solver", "step_size", None, optional(_positive),
            "Algorithm 1's step (absolute, the paper's); None: step_rel / S (S = ||g||^2 / L^2, indreg.units)",
@@ -370,19 +391,22 @@ def _callback(v, label):
     return v
 
 
+#: The values of ``template_scale`` that fit the template's factor (and offset) with the deformation
+#: (``indreg.registration.intensity``).
+TEMPLATE_FITS = ("fit", "fit+offset")
 #: How the inputs are brought to one unit before the run (``indreg.units.prepare``): the app's ``data.*`` keys.
 INPUTS = (
     Option("template_scale", "data", "template_scale", None,
-           auto_or(_positive, "a finite number > 0", ("auto", "fit", "fit+offset")),
+           auto_or(_positive, "a finite number > 0", ("auto",) + TEMPLATE_FITS),
            "the template's intensity factor: None (a warning if ||T I|| / ||g|| is outside [1/3, 3]), 'auto' "
            "(the least-squares c = <T I, g> / <T I, T I>), 'fit' / 'fit+offset' (a factor, and an offset, fitted "
-           "with the deformation: model lddmm with the geometric action; indreg.intensity) or a number",
+           "with the deformation: model lddmm with the geometric action; indreg.registration.intensity) or a number",
            Optional[Any]),
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None, 'auto' (the median of the outermost detector columns) or "
            "a number", Optional[Any]),
     Option("orientation", "data", "orientation", "check", choice(("check", "warn", "off")),
-           "the orientation probe before the run (indreg.orientation): 'check' (a warning when the template's "
+           "the orientation probe before the run (indreg.io.orientation): 'check' (a warning when the template's "
            "projection fits the data clearly better read another way: detector reversed, angles in the opposite "
            "sense, a stack turned; an error when by far), 'warn' (a warning only) or 'off'", str),
 )
@@ -408,6 +432,31 @@ def all_options() -> tuple:
             seen.add(o.name)
             out.append(o)
     return tuple(out)
+
+
+def check_value(name: str, value, label: str):
+    """``value`` checked as the option ``name`` (the one check of a value that another app reads under its own key).
+
+    Parameters
+    ----------
+    name : str
+        The option's name in the table (``register()``'s keyword), e.g. ``"sigma"``.
+    value : object
+        The value to check.
+    label : str
+        The key as the user named it, for the message (e.g. ``"kernel.sigma"``).
+
+    Returns
+    -------
+    object
+        The value, normalised.
+
+    Raises
+    ------
+    OptionError
+        One line naming ``label``, the value and what was expected.
+    """
+    return next(o for o in all_options() if o.name == name).check(value, label)
 
 
 def defaults() -> dict:

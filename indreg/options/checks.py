@@ -14,7 +14,7 @@ from typing import Callable
 __all__ = ["OptionError", "number", "choice", "boolean", "optional", "mapping", "auto_or", "anything", "holdout",
            "ALGORITHM1", "FAST", "TORCH"]
 
-#: The built-in solvers' registry names (``indreg.solver_registry``): the options of the table name them; ``TORCH``
+#: The built-in solvers' registry names (``indreg.registration.solver_registry``): the options of the table name them; ``TORCH``
 #: is the family of the torch.optim optimizers (``register()`` names each by its class name: ``"lbfgs"``, ...).
 ALGORITHM1, FAST, TORCH = "algorithm1", "fast", "torch"
 
@@ -93,7 +93,7 @@ def anything(v, label):
 
 def holdout(v, label):
     """None, an integer k >= 2 (every k-th angle) or a non-empty list of distinct indices >= 0 (their range is
-    checked against the data by ``indreg.validation.holdout_rows``)."""
+    checked against the data by ``indreg.evaluation.validation.holdout_rows``)."""
     if v is None:
         return None
     if hasattr(v, "tolist") and not isinstance(v, (bool, str)):   # numpy / torch indices

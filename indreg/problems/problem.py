@@ -4,8 +4,8 @@ A *registration problem* is an objective ``E(x)`` over an iterate ``x = (x_0, x_
 first entry is the momentum ``m`` of the velocity field ``nu = K m``. LDDMM (``IndirectRegistration``) has
 ``x = (m,)``; metamorphosis (``MetamorphosisRegistration``) has ``x = (m, s)``, ``s`` the source iterate. Solvers
 (``Algorithm1``, ``TorchOptimSolver``), step control (``StepControl``), the run loop and the result builder
-(``indreg.run``) only use the members below, so a new model is a new subclass and one registry entry
-(``indreg.models``), with no change to any of them.
+(``indreg.registration.run``) only use the members below, so a new model is a new subclass and one registry entry
+(``indreg.registration.models``), with no change to any of them.
 
 Members a subclass implements:
 

@@ -15,7 +15,7 @@ of the residual, ``residual_tv``) absolute; ``TV_eps`` the smoothed isotropic TV
 the cell volume. Algorithm 1's default step for ``r`` is ``1 / (||T||^2 + mu 4 d / (h^2 eps))`` (the data term's
 and the smoothed TV's curvature bounds, ``h`` the smallest cell side).
 
-The finish (:meth:`ResidualRegistration.finish`, run by ``indreg.run.build_result`` after the loop): with the
+The finish (:meth:`ResidualRegistration.finish`, run by ``indreg.registration.run.build_result`` after the loop): with the
 deformation fixed, ``f = W(nu, I) + r`` is solved to its minimum by Chambolle-Pock (``tv_reconstruction`` with the
 anchor ``W``, ``f >= 0``, the exact TV), since gradient steps on a smoothed TV converge slowly; its weight is chosen
 among ``mu_candidates`` by the held-out angles when the run has them, as the TV baseline's weight is.

@@ -1,8 +1,8 @@
 """One call from Python: ``indreg.register(template, data, operator, **options) -> RegistrationResult``.
 
 It validates the options (``indreg.options``: the same table as the app's config), builds the kernel of V, the
-model's objective (``indreg.models``: the built-in ones or one you register) and a solver, runs the
-shared loop and returns the reconstruction with the deformation and a report (``indreg.run``). The
+model's objective (``indreg.registration.models``: the built-in ones or one you register) and a solver, runs the
+shared loop and returns the reconstruction with the deformation and a report (``indreg.registration.run``). The
 ``indreg-register`` app runs the same code, adding checkpoints, TensorBoard, figures and files.
 
 Convention:

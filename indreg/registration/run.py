@@ -1,7 +1,7 @@
 """One run of a registration, shared by ``indreg.register`` and the ``indreg-register`` app.
 
 :func:`setup` validates the inputs and the options (``indreg.options``), builds the kernel, the model's problem
-(``indreg.models``) and the solver; :class:`RegistrationLoop` iterates the solver (history, warnings, progress);
+(``indreg.registration.models``) and the solver; :class:`RegistrationLoop` iterates the solver (history, warnings, progress);
 :func:`build_result` assembles a :class:`RegistrationResult` from the final iterate. Nothing here depends on the
 model or on the operator type: a problem is used only through ``indreg.solvers.RegistrationProblem``'s protocol.
 The app adds checkpoints, TensorBoard, figures and files around the same three steps.
@@ -25,11 +25,11 @@ import torch
 
 from .. import metrics, options as opts
 from . import corrections, models
-from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.run.as_tensor)
-from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.run.relative_residual)
+from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration.run.as_tensor)
+from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
 from ..kernel_width import default_sigma
 from ..solvers.state import rounding_tolerance
-from ..units import Units, data_term_scale, noise_residual, prepare
+from ..units import Units, apply_units, data_term_scale, measure, noise_residual
 
 log = logging.getLogger("indreg")
 
@@ -66,7 +66,7 @@ def resolve_device(device, template=None) -> torch.device:
 
 # ---------------------------------------------------------------------------------------------------- setup
 def make_solver(problem, o: dict, solver_options: dict):
-    """The registered solver of ``o["solver"]`` (``indreg.solver_registry``) on ``problem``, built with the model's
+    """The registered solver of ``o["solver"]`` (``indreg.registration.solver_registry``) on ``problem``, built with the model's
     ``solver_options`` under its name; a model's ``solver_options["wrap"]`` (a function of the solver) then wraps
     it."""
     entry = opts.solver(o["solver"])
@@ -78,8 +78,8 @@ def make_solver(problem, o: dict, solver_options: dict):
 @dataclass
 class Setup:
     """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
-    did to the inputs, ``validation``: the held-out angles (``indreg.validation.Validation``) when ``holdout``
-    is set, else None, and ``orientation``: the orientation probe's warning (``indreg.orientation.check``), ``""``
+    did to the inputs, ``validation``: the held-out angles (``indreg.evaluation.validation.Validation``) when ``holdout``
+    is set, else None, and ``orientation``: the orientation probe's warning (``indreg.io.orientation.check``), ``""``
     for none."""
     problem: object
     solver: object
@@ -94,16 +94,16 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
 
     The inputs are first brought to one unit (:func:`prepare`: ``template_scale``, ``background``); with
     ``holdout`` the problem is then built on the operator and the prepared data restricted to the kept angles
-    (``indreg.validation.split``) and the held-out ones become ``Setup.validation``.
+    (``indreg.evaluation.validation.split``) and the held-out ones become ``Setup.validation``.
     ``label`` / ``strict``: as ``indreg.options.resolve`` (the app names config keys and drops options of another
     solver). Errors: ``OptionError`` (a bad option), TypeError / ValueError (a bad input), naming it."""
-    from .. import orientation
+    from ..io import orientation
     from .._checks import check_finite_in
     from ..deform import GaussianKernel
     from ..forward.operator import check_operator
     from ..forward.time_series import as_time_series
     from ..forward.tv import tv_weight_unit
-    from ..validation import split
+    from ..evaluation.validation import split
 
     o = opts.resolve(options, label, strict)
     if o["sigma"] == "auto":   # chosen from held-out angles first, then the run (indreg.kernel_width)
@@ -132,14 +132,16 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     if model.defaults is not None:   # the model's own rules for options left None
         model.defaults(o)
     names = {option.name: option for option in opts.all_options()}
-    modelled = corrections.data_model(operator, o, lambda name: label(names[name]))   # e.g. T_s (alignment)
-    template, data, units = prepare(template, data, operator, o["template_scale"], o["background"],
-                                    lambda name: label(names[name]), corrections.aligned_scale(modelled))
+    key = lambda name: label(names[name])   # noqa: E731  (the option as the user named it)
+    fit = corrections.Fit(o, key, operator)
+    corrections.data_model(fit)   # e.g. T_s (alignment)
+    fit.units = measure(template, data, operator, o["background"], key)
+    corrections.start(fit, template, fit.units.apply(None, data)[1])   # e.g. the scale through the alignment
+    template, data, units = apply_units(template, data, fit.units, o["template_scale"], key)
     if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
         units.locate_target(template, o["target"])
-    probe = orientation.check(template, data, operator, o["orientation"], label(names["orientation"]))
-    operator = modelled
-    fit = corrections.Fit(o, lambda name: label(names[name]), operator, data, units)
+    probe = orientation.check(template, data, operator, o["orientation"], key("orientation"))
+    operator, fit.data = fit.operator, data
     validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
@@ -238,7 +240,7 @@ class RegistrationLoop:
     app adds TensorBoard, evaluation, checkpoints and its stop requests so, ``indreg.register(callback=...)`` the
     user's: ``callback`` here, after ``callbacks`` (``indreg.callbacks.as_callback``: a function
     ``callback(state, info)`` returning True stops the loop, ``stopped``; a ``Callback``; a list of them).
-    ``validation`` (``indreg.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in
+    ``validation`` (``indreg.evaluation.validation.Validation``, from ``holdout``) puts ``indreg.callbacks.HeldOut`` first in
     the chain (the held-out residual every ``every`` iterations, in ``info``, the history and the log line; early
     stopping). ``run()`` returns the status: ``completed``, ``converged``, ``stalled`` (:data:`STALL_WINDOW`),
     ``failed`` (a non-finite objective or gradient; the state keeps the last iterate the solver accepted),
@@ -375,7 +377,7 @@ class RegistrationResult:
     tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (on the fitted
     data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
     ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
-    step, ``indreg.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
+    step, ``indreg.registration.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
     ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
     non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
     ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
@@ -386,7 +388,7 @@ class RegistrationResult:
     ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
     iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
     ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
-    ``corrections``: the final estimates of the in-the-fit corrections by name (``indreg.corrections``:
+    ``corrections``: the final estimates of the in-the-fit corrections by name (``indreg.registration.corrections``:
     ``alignment``, ``intensity``, a plug-in's), those that ran.
     ``poor_fit``: the warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a
     layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
@@ -458,7 +460,7 @@ def final_status(status: str, residual: float) -> str:
 def poor_fit(status: str, residual: float, noise: float, history: list, held_out: Optional[float] = None,
              orientation: str = "") -> str:
     """The poor-fit warning of a finished run (:data:`POOR_FIT`), ``""`` for none; the larger of the fitted and the
-    ``held_out`` residual counts. ``orientation``: the probe's warning before the run (``indreg.orientation``), which
+    ``held_out`` residual counts. ``orientation``: the probe's warning before the run (``indreg.io.orientation``), which
     makes any finished run a poor fit (the residual cannot tell: a mis-read run may end below the right reading's).
     The status stays what it was: the warning is the word that goes with it."""
     if status not in ("completed", "converged", "stalled", "early_stopped"):
@@ -485,7 +487,7 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
     ``validation`` if given, the summaries of the in-the-fit corrections around ``solver`` if given
-    (``indreg.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
+    (``indreg.registration.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
     ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning.
     A problem with a ``finish(x, validation)`` method (``indreg.problems.residual``) replaces the final iterate by
     its result first."""

@@ -4,7 +4,7 @@ never imports a solver).
 
 A solver is a :class:`Solver`: its name, its own options (``indreg.options.Option`` with ``solvers=(name,)``; they
 join ``register()``'s keywords and the app's config schema) and ``build(problem, options, model_kwargs) -> solver``,
-``model_kwargs`` the model's ``solver_options[name]``. ``indreg.run`` names none of them, so a new solver is its
+``model_kwargs`` the model's ``solver_options[name]``. ``indreg.registration.run`` names none of them, so a new solver is its
 module and one :func:`register_solver` call (``docs/extending.md``); the app takes a plug-in by its import path,
 ``solver.name=package.module:SOLVER``.
 

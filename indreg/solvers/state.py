@@ -144,7 +144,7 @@ class IterativeSolver:
     max_iter: int
     grad_tol: float
     #: Whether the solver halves its steps (step control): the run loop then watches for a collapsed step
-    #: (status ``stalled``, ``indreg.run.STALL_WINDOW``).
+    #: (status ``stalled``, ``indreg.registration.run.STALL_WINDOW``).
     halves_steps: bool = False
 
     def reported_step(self) -> float:
@@ -193,9 +193,9 @@ class RefitSolver:
     :meth:`summary` the final one to the result (``result.corrections[name]``). Checkpoints: a subclass's
     ``state_dict`` is ``inner``'s with its own entries added, ``load_state_dict`` pops them and hands the rest on.
     Everything else (step sizes, step halving, status, ...) is ``inner``'s. Subclasses: ``indreg.alignment``'s and
-    ``indreg.intensity``'s (the in-the-fit corrections of ``indreg.corrections``)."""
+    ``indreg.registration.intensity``'s (the in-the-fit corrections of ``indreg.registration.corrections``)."""
 
-    #: the correction's name (``indreg.corrections``): the key of its summary in the result and metrics.json
+    #: the correction's name (``indreg.registration.corrections``): the key of its summary in the result and metrics.json
     name = ""
 
     def __init__(self, inner, every: int):

@@ -1,11 +1,11 @@
-"""``--help`` composed once (indreg.experiments.app_help) prints Hydra's own ``--help`` text, for both apps, with
+"""``--help`` composed once (indreg.experiments.cli.print_help) prints Hydra's own ``--help`` text, for both apps, with
 and without overrides; anything else goes to Hydra."""
 import sys
 
 import hydra
 import pytest
 
-from indreg.experiments import app_help, register
+from indreg.experiments import cli as app_help, register
 from indreg.learn import entry
 
 

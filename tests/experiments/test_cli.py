@@ -39,7 +39,7 @@ def _register_error(capsys, argv) -> str:
 
 
 def _train_error(capsys, argv) -> str:
-    line = _preflight_error(capsys, cli.preflight, argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME,
+    line = _preflight_error(capsys, cli.preflight, argv, train.PROG, train.CONFIG_DIR, train.CONFIG_NAME,
                             train.check_config, train.base_config(argv))
     assert line.startswith("indreg-train-momentum: error: ")
     return line
@@ -139,10 +139,10 @@ def test_train_momentum_accepts_its_own_keys(tmp_path, monkeypatch):
                  ["model=unrolled", "model.space=initial", "model.correction=false"],
                  ["model=unrolled", "model.heavy_ball=false", "model.supervised=0"]):
         argv = [*argv, f"hydra.run.dir={tmp_path / 'run'}"]
-        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
+        cli.preflight(argv, train.PROG, train.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
                       train.base_config(argv))
     assert not any(tmp_path.iterdir())
-    assert cli.compose(register.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 10
+    assert cli.compose(train.CONFIG_DIR, train.CONFIG_NAME, ["model=unrolled"]).model.updates == 10
 
 
 @pytest.mark.parametrize("argv, message", [

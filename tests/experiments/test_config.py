@@ -107,7 +107,7 @@ def test_invalid_values_name_the_key(override, key):
 @pytest.mark.parametrize("overrides, message", [
     (["phantom.size=4"], "phantom.size=4: expected an integer >= 7 (the SSIM window)"),
     (["phantom.size=6"], "phantom.size=6: expected an integer >= 7 (the SSIM window)"),
-    (["experiment=suite_et_3d", "geometry.tilt_axis_angle=1e300"],   # the range: tests/test_tilt_axis.py
+    (["experiment=suite_et_3d", "geometry.tilt_axis_angle=1e300"],   # the range: tests/alignment/test_tilt_axis.py
      "invalid config value geometry.tilt_axis_angle=1e+300: expected"),
     (["experiment=suite_dynamic_2d", "geometry=tilt_series"],
      "geometry='tilt_series': expected parallel (the dynamic source simulates 2D parallel-beam frames)"),

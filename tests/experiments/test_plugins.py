@@ -15,7 +15,7 @@ from experiment_helpers import run_cli
 PLUGIN = textwrap.dedent('''
     """A plug-in model: LDDMM of the template times ``brightness``, with ``extra_steps`` more time steps."""
     import indreg
-    from indreg.models import Model, Option, number
+    from indreg.registration.models import Model, Option, number
 
     class Scaled(indreg.IndirectRegistration):
         def __init__(self, *args, brightness, extra_steps, **kwargs):
@@ -104,7 +104,7 @@ def test_plugin_whose_build_raises_is_one_line_naming_the_model(tmp_path, monkey
     """A plug-in's build that raises (a KeyError here) is one ValueError naming the model and the error, the original
     chained; from the command line one line, no traceback; a syntax error's line is not repeated."""
     (tmp_path / "raising_plugin.py").write_text(textwrap.dedent('''
-        from indreg.models import Model
+        from indreg.registration.models import Model
 
         def build(operator, template, data, kernel, o):
             raise KeyError("no such option")
@@ -158,7 +158,7 @@ SOLVER = textwrap.dedent('''
     """A plug-in solver with an option of its own: Adam with its first moment's decay ``my_beta``."""
     import indreg
     from indreg.options import Option, number
-    from indreg.solver_registry import Solver
+    from indreg.registration.solver_registry import Solver
 
     def build(problem, o, model_kwargs):
         return indreg.solvers.TorchOptimSolver(problem, "adam", lr=0.05, max_iter=o["max_iter"],
@@ -194,7 +194,7 @@ def test_plugin_solver_with_an_option_from_python_and_the_command_line(tmp_path,
 CORRECTION = textwrap.dedent('''
     """A plug-in in-the-fit correction with an option: the template's mean matched to the data's every k iterations."""
     import torch
-    from indreg.corrections import Correction, register_correction
+    from indreg.registration.corrections import Correction, register_correction
     from indreg.options import Option, number
     from indreg.solvers.state import RefitSolver
 

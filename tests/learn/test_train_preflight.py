@@ -2,13 +2,13 @@
 (``model.lr=0``: ZeroDivisionError, ``data.num_train=0``, NaNs, ...) in one line, before any data are built."""
 import pytest
 
-from indreg.experiments import cli, register
+from indreg.experiments import cli
 from indreg.learn import train
 
 
 def _error(capsys, argv) -> str:
     with pytest.raises(SystemExit) as exc:
-        cli.preflight(argv, train.PROG, register.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
+        cli.preflight(argv, train.PROG, train.CONFIG_DIR, train.CONFIG_NAME, train.check_config,
                       train.base_config(argv))
     lines = capsys.readouterr().err.strip().splitlines()
     assert exc.value.code == 1 and len(lines) == 1, lines
@@ -35,5 +35,5 @@ def test_unrolled_values_that_cannot_train_are_refused_in_one_line(tmp_path, cap
 
 def test_the_defaults_pass(tmp_path):
     for argv in (["model=unrolled"], ["model=oneshot"]):
-        cli.preflight(argv + [f"hydra.run.dir={tmp_path / 'run'}"], train.PROG, register.CONFIG_DIR,
+        cli.preflight(argv + [f"hydra.run.dir={tmp_path / 'run'}"], train.PROG, train.CONFIG_DIR,
                       train.CONFIG_NAME, train.check_config, train.base_config(argv))

@@ -3,7 +3,8 @@ import inspect
 
 import pytest
 
-from indreg import options, solver_registry  # noqa: F401  (the registered solvers)
+from indreg import options
+from indreg.registration import solver_registry  # noqa: F401  (the registered solvers)
 from indreg.solvers import Algorithm1, MetamorphosisDescent, MetamorphosisTorchOptim, MultilevelSolver, \
     TorchOptimSolver
 

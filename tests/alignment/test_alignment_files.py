@@ -11,11 +11,11 @@ from scipy.ndimage import affine_transform
 
 import indreg
 from indreg import ImageDomain
-from indreg.io.alignment_files import (from_operator, read_alignment, read_aln, read_xf, to_operator, write_alignment,
+from indreg.alignment.files import (from_operator, read_alignment, read_aln, read_xf, to_operator, write_alignment,
                                     write_xf)
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.forward.operator import adjointness
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.operator import AlignedOperator
 
 F64 = torch.float64
 N = 24

@@ -1,4 +1,4 @@
-"""Tests of indreg.conventions and ``indreg.load(convention=...)``: every convention round-trips and reproduces
+"""Tests of indreg.io.conventions and ``indreg.load(convention=...)``: every convention round-trips and reproduces
 indreg's data from its own export; scikit-image's radon checked numerically against indreg's operator (arrays,
 .npy and .tif files), ASTRA's and ODL's where installed, TomoPy's ray geometry (from its source) on Gaussian
 blobs, IMOD's MRC section against the tilt-series reading; the orientation warning names the convention; bad values
@@ -12,8 +12,8 @@ import tifffile
 import torch
 
 import indreg
-from indreg import conventions
-from indreg.conventions import CONVENTIONS
+from indreg.io import conventions
+from indreg.io.conventions import CONVENTIONS
 from indreg.io import DataFileError
 from indreg.metrics import ssim
 

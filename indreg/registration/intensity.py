@@ -26,7 +26,8 @@ import math
 
 import torch
 
-from .solvers.state import RefitSolver
+from ..options import TEMPLATE_FITS as FITS  # the values of template_scale that fit with the deformation
+from ..solvers.state import RefitSolver
 
 __all__ = ["FITS", "FIT_EVERY", "fit_intensity", "IntensityFitSolver", "wrap"]
 
@@ -34,8 +35,6 @@ log = logging.getLogger("indreg")
 
 #: Iterations between two fits of the template's factor and offset.
 FIT_EVERY = 10
-#: The values of ``template_scale`` that fit with the deformation.
-FITS = ("fit", "fit+offset")
 
 
 def fit_intensity(P: torch.Tensor, Q, g: torch.Tensor, inner) -> tuple:

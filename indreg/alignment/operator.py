@@ -22,7 +22,7 @@ Convention:
       rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
     - ``matrices`` (optional, ``(num_projections, 2, 2)``, tilt series only): a fixed linear map ``B_k`` of the
       ``(s, t)`` plane per projection (another tool's per-tilt rotation, magnification, stretch;
-      ``indreg.io.alignment_files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
+      ``indreg.alignment.files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
       ``(S y)(p) = y(B_k^{-1} R(-alpha)(p - shift))``. Without it ``B_k = I``.
     - Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
       field of view, a rod along the axis, continues there) or zero (``edge="zero"``).
@@ -32,15 +32,13 @@ from __future__ import annotations
 import torch
 
 from .._checks import check_tensor
-from .algebra import OperatorAlgebra
-from .operator import check_data_pair, check_operator
+from .modes import EDGES, INTERPOLATIONS
+from ..forward.algebra import OperatorAlgebra
+from ..forward.operator import check_data_pair, check_operator
 
 __all__ = ["AlignedOperator", "EDGES", "INTERPOLATIONS", "KEEP_BYTES", "cubic_kernel", "cubic_slope",
            "projection_frame"]
 
-#: ``S``'s interpolation and what it takes beyond the detector (module Convention); the first are the defaults.
-INTERPOLATIONS = ("linear", "cubic")
-EDGES = ("nearest", "zero")
 #: Largest size of the interpolation's indices and weights an operator keeps between calls (``AlignedOperator``):
 #: 16 int64 indices and 16 weights per detector pixel with the cubic kernel (10 tilts of 128^2 pixels in
 #: float64: 40 MiB); beyond it they are recomputed per call, as they are while they take part in a gradient.
@@ -77,9 +75,9 @@ def _linear_slope(x: torch.Tensor) -> torch.Tensor:
 def projection_frame(operator) -> tuple:
     """``(operator, num_projections, rows, columns, det_points, det_cell, row_cell)`` of a parallel-beam
     ``RayTransform`` or a ``TiltSeriesTransform``; a one-line TypeError for any other operator."""
-    from .geometry import ParallelBeamGeometry
-    from .ray_transform import RayTransform
-    from .tilt_series import TiltSeriesTransform
+    from ..forward.geometry import ParallelBeamGeometry
+    from ..forward.ray_transform import RayTransform
+    from ..forward.tilt_series import TiltSeriesTransform
 
     if isinstance(operator, TiltSeriesTransform):
         g = operator.geometry

@@ -35,8 +35,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ._files import _as_path, _fail
-from ..forward.shift import AlignedOperator
+from ..io._files import _as_path, _fail
+from .operator import AlignedOperator
 
 __all__ = ["Alignment", "ALIGNMENT_FORMATS", "read_alignment", "read_xf", "read_aln", "write_xf", "write_aln",
            "write_alignment", "to_operator", "from_operator", "xf_of", "rotation_of"]
@@ -129,7 +129,7 @@ def read_xf(path, angles=None, *, name: str = "alignment") -> Alignment:
 
 
 def _xf_angles(path: Path, angles, count: int, name: str) -> np.ndarray:
-    from .angle_files import read_angles
+    from ..io.angle_files import read_angles
 
     if angles is None:
         tlt = path.with_suffix(".tlt")
@@ -320,7 +320,7 @@ def write_alignment(directory, alignment, stem: str = "alignment", pixel_size: O
         written["aln"] = write_aln(directory / f"{stem}.aln", alignment).name
     except ValueError as err:
         log.warning("%s", err)
-    record = {"files": written, "writer": "indreg.alignment_files", "conventions": CONVENTIONS,
+    record = {"files": written, "writer": "indreg.alignment.files", "conventions": CONVENTIONS,
               "units": {"shifts": "pixel", "angles": "degree", "pixel_size": "Angstrom" if pixel_size else None},
               "pixel_size": pixel_size, "raw_size": list(raw_size) if raw_size else None,
               "frames": alignment.frames.tolist(), "tilt_angles_deg": alignment.tilt_angles_deg.tolist(),

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import indreg
-from indreg import api, noise, phantoms, run
+from indreg import noise, phantoms
+from indreg.registration import api, run
 
 
 @pytest.fixture(scope="module")

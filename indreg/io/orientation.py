@@ -24,7 +24,7 @@ columns reversed) and, with square projections, by 90 degrees. A fan beam: the d
 (composed, user-defined): not probed.
 
 Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
-``indreg.run.setup``); the angles on the first data axis, detector columns on the last.
+``indreg.registration.run.setup``); the angles on the first data axis, detector columns on the last.
 """
 from __future__ import annotations
 
@@ -33,10 +33,15 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
-__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "Reading", "readings", "scores", "verdict",
-           "check"]
+from .conventions import (CONVENTIONS, angles_to_indreg, detector_for, domain_for, get_convention, image_from_indreg,
+                          image_to_indreg, sinogram_layout)
+
+__all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "MARGIN", "CONVENTION_TIE", "CHECK_PIXELS",
+           "CHECK_ANGLES", "Reading", "readings", "scores", "verdict", "check", "correlation", "orientation_scores",
+           "orientation_hint", "flip_hint"]
 
 log = logging.getLogger("indreg")
 
@@ -76,7 +81,7 @@ def _same(x):
 def _plane(operator) -> Optional[tuple]:
     """The array axes ``(u, v, t)`` of the plane of rotation (``t``: the tilt axis, None in 2D) of a parallel-beam
     ``RayTransform`` or a ``TiltSeriesTransform``, None for any other operator."""
-    from .forward import ParallelBeamGeometry, RayTransform, TiltSeriesTransform
+    from ..forward import ParallelBeamGeometry, RayTransform, TiltSeriesTransform
 
     if isinstance(operator, TiltSeriesTransform):
         t = operator.geometry.axis
@@ -147,19 +152,25 @@ def _gradients(g: torch.Tensor, width: float) -> torch.Tensor:
     return torch.cat([g.diff(dim=-1).flatten(), g.diff(dim=-2).flatten()])
 
 
-def _correlation(a: torch.Tensor, b: torch.Tensor, width: float = BLUR[0]) -> float:
-    a, b = _gradients(a, width), _gradients(b, width)
+def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+    """The correlation coefficient of ``a`` and ``b`` as vectors (float64); 0 where either is constant."""
+    a, b = a.double().flatten(), b.double().flatten()
     a, b = a - a.mean(), b - b.mean()
     norm = float(a.norm() * b.norm())
     return float(a @ b) / norm if norm > 0 else 0.0
+
+
+def _correlation(a: torch.Tensor, b: torch.Tensor, width: float = BLUR[0]) -> float:
+    """:func:`correlation` of the blurred gradients (module docstring)."""
+    return correlation(_gradients(a, width), _gradients(b, width))
 
 
 def _fewer_slices(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
     """A tilt series of more than :data:`SLICES` slices along its tilt axis probed on that many, evenly spaced and
     symmetric about the middle (so that a turned stack's rows are among them): ``(template, data, operator)``; other
     problems as they are."""
-    from .domain import ImageDomain
-    from .forward import TiltSeriesGeometry, TiltSeriesTransform
+    from ..domain import ImageDomain
+    from ..forward import TiltSeriesGeometry, TiltSeriesTransform
 
     if not isinstance(operator, TiltSeriesTransform):
         return template, data, operator
@@ -218,8 +229,8 @@ def verdict(table: dict) -> tuple:
 def check(template, data, operator, mode: str = "check", key: str = "orientation") -> str:
     """Probe (``mode`` in :data:`MODES`): log a warning, or raise ``ValueError`` (``mode="check"`` and a margin above
     :data:`REFUSE`) naming ``key`` to override; returns the warning (``""``: none, ``mode="off"``, no template, a
-    time series), which the run's poor-fit report repeats (``indreg.run.poor_fit``)."""
-    from .forward import TimeSeriesOperator
+    time series), which the run's poor-fit report repeats (``indreg.registration.run.poor_fit``)."""
+    from ..forward import TimeSeriesOperator
 
     if mode == "off" or template is None or isinstance(operator, TimeSeriesOperator) \
             or len(readings(operator, tuple(data.shape))) == 1:
@@ -230,3 +241,109 @@ def check(template, data, operator, mode: str = "check", key: str = "orientation
     if level:
         log.warning("%s", message)
     return message
+
+
+# ---------------------------------------------------------------------------------------------------- the files' convention
+# At load (``indreg.load``): does the template's projection fit the data better read in another convention, or
+# mirrored? Plain correlations of a coarse copy of the problem (milliseconds).
+
+#: A convention whose reading fits the data better by this much correlation is named in a warning.
+MARGIN = 0.1
+#: Readings within this correlation of the best are named with it (ASTRA's picture and IMOD's section with its
+#: angles are one reading: the displayed picture is the section mirrored, and the mirror negates the angles).
+CONVENTION_TIE = 0.01
+#: The check runs on at most this many pixels a side and angles (block means, evenly chosen rows): milliseconds.
+CHECK_PIXELS, CHECK_ANGLES = 64, 18
+
+
+def _distinct() -> dict:
+    """One convention per distinct reading (``odl`` reads as ``indreg``, ``tomopy`` as ``astra``): ``{first: names}``."""
+    groups: dict = {}
+    for c in CONVENTIONS.values():
+        key = (c.image, c.sinogram, c.angle_sense, c.angle_offset, c.pixel_units, c.bins)
+        groups.setdefault(key, []).append(c.name)
+    return {names[0]: names for names in groups.values()}
+
+
+def _fit(stored_f, stored_g, radians, convention, half_width: float, det_min, det_max, picture: bool):
+    """``(correlation, transposed)`` of the parallel-beam projection of the template, read in ``convention``, with
+    the data read so, on a coarse copy of the problem; the data are taken transposed (``transposed=True``) if their
+    rows are then not one per angle, and ``None`` is returned if neither way fits."""
+    import torch.nn.functional as F
+
+    from ..forward import ParallelBeamGeometry, RayTransform
+
+    c = get_convention(convention)
+    g, transposed = sinogram_layout(stored_g, c), False
+    if g.shape[0] != radians.size:
+        g, transposed = np.ascontiguousarray(g.T), True
+    if g.shape[0] != radians.size:
+        return None
+    rows = np.unique(np.linspace(0, radians.size - 1, min(radians.size, CHECK_ANGLES)).round().astype(int))
+    f = torch.as_tensor(image_to_indreg(stored_f, c, picture))
+    n = f.shape[0]
+    m = min(n, CHECK_PIXELS)
+    small = F.interpolate(f[None, None], size=(m, m), mode="area")[0, 0] if m < n else f
+    lo, hi = detector_for(c, g.shape[1], 2.0 * half_width / n, det_min, det_max)
+    geometry = ParallelBeamGeometry(angles=torch.as_tensor(angles_to_indreg(radians[rows], c)),
+                                    det_count=g.shape[1], det_min=lo, det_max=hi)
+    projection = RayTransform(domain_for(c, m, half_width), geometry)(small.contiguous())
+    return correlation(projection, torch.from_numpy(g[rows])), transposed
+
+
+def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=None, det_max=None,
+                       picture: bool = False) -> dict:
+    """``{convention: (correlation, transposed)}`` of the template's projection with the data, each read in that
+    convention (``transposed``: the sinogram only fits transposed from that convention's layout).
+
+    ``stored_f``, ``stored_g``: the arrays as stored (a picture's as displayed, with ``picture=True``),
+    ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any."""
+    scores = {}
+    for name in _distinct():
+        if picture and CONVENTIONS[name].angle_sense < 0:   # no tool of the other sense writes pictures: a picture
+            continue                                         # upside down is flip_hint's
+        score = _fit(stored_f, stored_g, np.asarray(radians), name, half_width, det_min, det_max, picture)
+        if score is not None:
+            scores[name] = score
+    return scores
+
+
+def orientation_hint(scores: dict, current) -> str | None:
+    """A one-line hint naming the convention whose reading fits the data clearly better than ``current``'s."""
+    c = get_convention(current)
+    own = next(name for name, names in _distinct().items() if c.name in names)
+    best = max(scores, key=lambda name: scores[name][0], default=own)
+    if own not in scores or best == own or scores[best][0] < scores[own][0] + MARGIN:
+        return None
+    tied = [name for name in scores if scores[name][0] >= scores[best][0] - CONVENTION_TIE]   # no telling them apart here
+    names = " or ".join(n for name in sorted(tied, key=lambda k: -scores[k][0]) for n in _distinct()[name])
+    listed = ", ".join(f"{name} {value:.2f}" for name, (value, _) in sorted(scores.items(), key=lambda kv: -kv[1][0]))
+    layout = "(bins, angles)" if CONVENTIONS[best].sinogram == "bin_angle" else "(angles, bins)"
+    swapped = f", with the sinogram's axes swapped ({best}'s is {layout})" if scores[best][1] else ""
+    return (f"read as convention {c.name}, the template's projection correlates {scores[own][0]:.2f} with the "
+            f"data; read as {names}, {scores[best][0]:.2f} ({listed}): the files probably follow {names}{swapped}")
+
+
+#: Mirror images no convention makes: a picture saved upside down, an array saved transposed.
+_FLIPS = {"flipped along y (np.flip(f, 1): a picture upside down?)": lambda f: f[:, ::-1],
+          "flipped along x (np.flip(f, 0))": lambda f: f[::-1],
+          "transposed (f.T)": lambda f: f.T}
+
+
+def flip_hint(f, g, radians, convention, half_width: float, det_min=None, det_max=None) -> str | None:
+    """A one-line hint when the template ``f`` (indreg's layout, as read in ``convention``) fits the data ``g``
+    clearly better mirrored (:data:`_FLIPS`); ``radians``: the angles as given; ``None`` otherwise."""
+    c = get_convention(convention)
+    stored_g = g.T if c.sinogram == "bin_angle" else g
+
+    def score(image):
+        stored = image_from_indreg(np.ascontiguousarray(image), c)
+        return _fit(stored, stored_g, np.asarray(radians), c, half_width, det_min, det_max, False)
+
+    own = score(f)
+    scores = {name: score(flip(f)) for name, flip in _FLIPS.items()}
+    best = max(scores, key=lambda name: scores[name][0])
+    if own is None or scores[best][0] < own[0] + MARGIN:
+        return None
+    return (f"the template's projection correlates {own[0]:.2f} with the data, {scores[best][0]:.2f} with the "
+            f"template {best}: check the template's orientation")

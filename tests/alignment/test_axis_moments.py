@@ -1,4 +1,4 @@
-"""The tilt-axis angle from the stack's moment conditions (indreg.axis_moments): the conditions hold to rounding on
+"""The tilt-axis angle from the stack's moment conditions (indreg.alignment.moments): the conditions hold to rounding on
 an exact series at its true angle, the estimate on series turned and shifted by scipy, the warning on a specimen
 that looks alike at every turn, one-line errors."""
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from indreg.axis_moments import MAX_SE_DEG, binned, condition_misfit, estimate_axis_angle
+from indreg.alignment.moments import MAX_SE_DEG, binned, condition_misfit, estimate_axis_angle
 
 SIZE = 32
 THETA = np.radians(np.arange(-60, 60.1, 6.0))
@@ -119,7 +119,7 @@ def test_the_shifts_derivatives_are_the_transforms_finite_differences():
     """The Gauss-Newton step's ``dG/dc`` and ``dG/dd`` (one phase for every tilt, the tilt's shift along the axis a
     factor of its own) against central differences of ``G``; the noise's standard deviations against the direct
     sums ``sigma^2 sum (u^n w)^2 cos^2 / sin^2``."""
-    from indreg.axis_moments import _prepare, _transforms, _window
+    from indreg.alignment.moments import _prepare, _transforms, _window
 
     stack = turned_by_scipy(exact_series(blobs(12, 3), 0.0, np.zeros((len(THETA), 2))), 1.0, random_shifts(2), 0.01, 4)
     S, _ = _prepare(stack, THETA, 0.25, 1.0, 10.0, None, 2)
@@ -212,7 +212,7 @@ def test_register_warns_when_too_few_tilts_tell_the_angle(caplog):
 
     import indreg
     from indreg import ImageDomain
-    from indreg.axis_moments import MIN_TILTS
+    from indreg.alignment.moments import MIN_TILTS
     from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 
     domain = ImageDomain.paper(SIZE, ndim=3)

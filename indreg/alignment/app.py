@@ -11,7 +11,7 @@ Convention:
     - The tilt axis' angle in the images (``--tilt-axis-angle``, degrees from Y counter-clockwise, IMOD's; else the
       ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
       operator (``AlignedOperator``'s per-tilt maps); ``--axis-from-stack`` replaces that rest by the stack's own
-      estimate (``indreg.axis_moments.estimate_axis_angle``: no reconstruction takes part of it up) where the data
+      estimate (``indreg.alignment.moments.estimate_axis_angle``: no reconstruction takes part of it up) where the data
       determine it, and keeps it in the rounds; ``--refine-axis`` refines the angle by projection matching (not
       validated).
     - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
@@ -22,7 +22,7 @@ Convention:
       in the stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the
       reconstruction is the finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so,
       slab by slab of rows along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
-    - The alignment files refer to the raw stack as stored (``indreg.io.alignment_files``).
+    - The alignment files refer to the raw stack as stored (``indreg.alignment.files``).
 """
 from __future__ import annotations
 
@@ -146,7 +146,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _read(args) -> tuple:
     """The stack (float32), its angles (radians), pixel size (Angstrom) and tilt-axis angle (degrees)."""
-    from . import io
+    from .. import io
 
     angles = args.angles
     if angles is not None and not Path(angles).is_file():
@@ -165,7 +165,7 @@ def _read(args) -> tuple:
 def _bin(stack: np.ndarray, b: int) -> tuple:
     """``stack`` binned by ``b`` (block means; the remainder cropped, its larger half at the end) and the offset
     ``delta`` (x, y) of the binned centred coordinates: ``x = b x_b + delta``."""
-    from .axis_moments import binned
+    from .moments import binned
 
     _, ny, nx = stack.shape
     (ry, rx), (ly, lx) = (ny % b, nx % b), (ny % b // 2, nx % b // 2)
@@ -175,7 +175,7 @@ def _bin(stack: np.ndarray, b: int) -> tuple:
 
 def _background(stack: np.ndarray, spec: str) -> float:
     """The level subtracted before the estimation (projections are ~0 outside the object): ``"auto"`` the median of
-    the images' outer frame (``indreg.tilt_axis.frame_level``), ``"none"`` 0, or a number."""
+    the images' outer frame (``indreg.alignment.tilt_axis.frame_level``), ``"none"`` 0, or a number."""
     from .tilt_axis import frame_level
 
     if spec == "auto":
@@ -193,7 +193,7 @@ def _background(stack: np.ndarray, spec: str) -> float:
 def _stack_rest(stack: np.ndarray, radians: np.ndarray, rest: float) -> tuple:
     """``--axis-from-stack``: the tilt axis' angle in the quarter-turned ``stack`` (less its background) from its
     moment conditions where they determine it, else ``rest`` with a warning; and a record of the estimate."""
-    from .axis_moments import SCAN_DEG, estimate_axis_angle
+    from .moments import SCAN_DEG, estimate_axis_angle
 
     if abs(rest) >= SCAN_DEG - 1:
         log.warning("--axis-from-stack: the given angle is %.2f deg from a quarter turn, beyond the estimate's scan "
@@ -224,9 +224,9 @@ def _operator(stack_b: np.ndarray, radians: np.ndarray, nz: int, rest_deg: float
     tilt axis' remaining angle as its per-tilt maps."""
     import torch
 
-    from .domain import ImageDomain
-    from .forward import TiltSeriesGeometry, TiltSeriesTransform
-    from .forward.shift import AlignedOperator
+    from ..domain import ImageDomain
+    from ..forward import TiltSeriesGeometry, TiltSeriesTransform
+    from .operator import AlignedOperator
 
     K, ny, nx = stack_b.shape
     domain = ImageDomain((nx, ny, nz), (-nx / 2, -ny / 2, -nz / 2), (nx / 2, ny / 2, nz / 2))
@@ -238,7 +238,7 @@ def _operator(stack_b: np.ndarray, radians: np.ndarray, nz: int, rest_deg: float
 
 def _in_stack_pixels(op, b: int, delta: np.ndarray) -> tuple:
     """The binned operator's maps ``(M, d)`` in pixels of the (quarter-turned) full-size stack."""
-    from .io.alignment_files import from_operator
+    from .files import from_operator
 
     a = from_operator(op)
     return a.matrices, b * a.shifts + np.einsum("kij,j->ki", np.eye(2) - a.matrices, delta)
@@ -246,7 +246,7 @@ def _in_stack_pixels(op, b: int, delta: np.ndarray) -> tuple:
 
 def _binned_operator(T, M: np.ndarray, d: np.ndarray, b: int, delta: np.ndarray, radians: np.ndarray):
     """``T`` (a level binned by ``b``) with the maps ``(M, d)`` of the full-size stack as its own."""
-    from .io.alignment_files import Alignment, to_operator
+    from .files import Alignment, to_operator
 
     shifts = (d - np.einsum("kij,j->ki", np.eye(2) - M, delta)) / b
     return to_operator(T, Alignment(M, shifts, np.degrees(radians), np.arange(len(M))))
@@ -254,7 +254,7 @@ def _binned_operator(T, M: np.ndarray, d: np.ndarray, b: int, delta: np.ndarray,
 
 def _raw_alignment(M: np.ndarray, d: np.ndarray, quarter: int, raw_shape: tuple, radians: np.ndarray):
     """The maps of the quarter-turned stack in pixels of the raw stack as stored (module Convention)."""
-    from .io.alignment_files import Alignment
+    from .files import Alignment
 
     Q = np.round(_rotation(90.0 * quarter))                            # raw = R(90 q) rotated (centred)
     K, ny, nx = raw_shape
@@ -278,7 +278,7 @@ def _reconstruct(op, data, x_sirt, kind: str, iters: int, weight: float):
     """SIRT's (from projection matching) or TV's (``weight`` times ``tv_weight_unit``, nonnegative) volume."""
     if kind == "sirt":
         return x_sirt
-    from .forward.tv import tv_reconstruction, tv_weight_unit
+    from ..forward.tv import tv_reconstruction, tv_weight_unit
 
     return tv_reconstruction(op, data, weight * tv_weight_unit(op, data), num_iter=iters, x0=x_sirt,
                              nonneg=True)[0]
@@ -289,7 +289,7 @@ def _slab_sirt(stack: np.ndarray, radians: np.ndarray, nz: int, iters: int, rows
     the volume ``(nx, ny, nz)`` and its relative data residual. Exact: a tilt series' rows are independent."""
     import torch
 
-    from .forward.sirt import sirt
+    from ..forward.sirt import sirt
 
     K, ny, nx = stack.shape
     volume = torch.empty(nx, ny, nz)
@@ -312,7 +312,7 @@ def _residual(op, x, data) -> float:
 
 def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
     """The conventions of each output file for the run's record (``indreg.io.provenance``)."""
-    from .io.alignment_files import CONVENTIONS
+    from .files import CONVENTIONS
 
     volume = {"axis_order": "indreg's (nx, ny, nz) stored as (z, y, x): x along the aligned images' columns, "
                             "y along the tilt axis, z the beam at tilt 0", "voxel_size_A": [voxel] * 3,
@@ -337,12 +337,12 @@ def run(args) -> dict:
     """The whole run (module docstring); returns the JSON record written as ``align.json``."""
     import torch
 
-    from . import io
-    from .alignment import projection_matching
-    from .io.alignment_files import write_alignment
+    from .. import io
+    from .fit import projection_matching
+    from .files import write_alignment
     from .tilt_axis import check_tilt_axis
-    from .io.provenance import write_record
-    from .io.volume_files import write_mrc, write_ome_zarr
+    from ..io.provenance import write_record
+    from ..io.volume_files import write_mrc, write_ome_zarr
 
     start = time.perf_counter()
     budget = parse_bytes(args.max_memory)
@@ -370,7 +370,7 @@ def run(args) -> dict:
     level = _background(rotated, args.background)
     from_stack = None
     if args.axis_from_stack:   # binned first (the estimate's bound), so no full-size copy less the background
-        from .axis_moments import binned_within
+        from .moments import binned_within
 
         rest, from_stack = _stack_rest(binned_within(rotated)[0] - level, radians, rest)
     M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))

@@ -20,8 +20,8 @@ from typing import Optional
 
 import torch
 
-from .forward.stacking import restrict
-from .options import OptionError
+from ..forward.stacking import restrict
+from ..options import OptionError
 
 
 def holdout_rows(spec, count: int, name: str = "holdout") -> tuple:

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from indreg.io.alignment_files import read_aln, read_xf, write_aln, write_xf
+from indreg.alignment.files import read_aln, read_xf, write_aln, write_xf
 
-PAGE = Path(__file__).resolve().parents[1] / "docs" / "file_formats.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "file_formats.md"
 
 
 def _block_after(text: str, marker: str) -> str:

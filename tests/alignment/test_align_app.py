@@ -13,8 +13,8 @@ import torch
 from scipy.ndimage import affine_transform
 
 from indreg import ImageDomain
-from indreg.align_app import _slab_sirt, choose_binning, levels, main, parse_bytes, slab_rows, working_set
-from indreg.io.alignment_files import read_aln, read_xf
+from indreg.alignment.app import _slab_sirt, choose_binning, levels, main, parse_bytes, slab_rows, working_set
+from indreg.alignment.files import read_aln, read_xf
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.io import write_tilt_series
 
@@ -158,7 +158,7 @@ def test_memory_budget_and_errors(tmp_path, capsys):
 
 
 def test_help_is_fast():
-    r = subprocess.run([sys.executable, "-m", "indreg.align_app", "--help"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "indreg.alignment.app", "--help"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0 and "--max-memory" in r.stdout
 

@@ -8,7 +8,7 @@ import torch
 import indreg
 from indreg import noise, phantoms
 from indreg.options import OptionError
-from indreg.validation import holdout_rows
+from indreg.evaluation.validation import holdout_rows
 
 DOMAIN = indreg.ImageDomain.paper(24)
 ANGLES = torch.arange(12, dtype=torch.float64) * (math.pi / 12)

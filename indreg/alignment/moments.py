@@ -13,7 +13,7 @@ angle ``alpha`` and, at each, fits these conditions to the stack.
 
 Convention:
     - ``stack`` ``(tilts, rows, columns)``: rows along the tilt axis, columns across it (indreg's layout), square
-      pixels, ``alpha`` indreg's tilt-axis angle (``indreg.forward.shift``: a feature at the ideal point ``q``
+      pixels, ``alpha`` indreg's tilt-axis angle (``indreg.alignment.operator``: a feature at the ideal point ``q``
       appears at ``R(alpha) q + shift``). A pixel at ``(s, t)`` (columns, rows, from the image's centre) lies at
       ``u = cos(alpha) s + sin(alpha) t - c_k`` across the axis and ``v = -sin(alpha) s + cos(alpha) t - d_k``
       along it; ``(c_k, d_k)`` are tilt ``k``'s shifts across / along (px).

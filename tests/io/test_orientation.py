@@ -1,4 +1,4 @@
-"""The orientation probe before a run (indreg.orientation): each wrong reading of a 2D and a 3D problem is named
+"""The orientation probe before a run (indreg.io.orientation): each wrong reading of a 2D and a 3D problem is named
 (warned or refused, with its fix), its right reading is silent; orientation='warn' runs anyway, 'off' skips it."""
 import logging
 
@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import indreg
-from indreg import orientation, phantoms
+from indreg import phantoms
+from indreg.io import orientation
 
 
 def problem_2d():
@@ -122,7 +123,7 @@ def test_imod_sense_3d_names_imod():
 
 def test_poor_fit_repeats_the_probe():
     """A finished run after a probe warning is a poor fit whatever its residual; a failed one is not."""
-    from indreg.run import poor_fit
+    from indreg.registration.run import poor_fit
 
     assert poor_fit("completed", 0.01, 0.01, [], None, "read as X").startswith(
         "poor fit: the run fitted data that were probably read wrongly (read as X)")

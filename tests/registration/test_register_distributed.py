@@ -8,7 +8,7 @@ import textwrap
 import pytest
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # 16^3 on [-16, 16]^3, velocity on 8^3, 13 tilts, N = 3, float64, slabs chosen automatically; each rank saves its
 # result to <out>.<rank>

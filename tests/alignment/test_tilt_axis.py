@@ -10,7 +10,7 @@ import indreg
 from indreg import ImageDomain, phantoms
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.io import DataFileError, read_tilt_axis_angle, write_tilt_series
-from indreg.tilt_axis import align_tilt_axis, check_tilt_axis, rotate_images
+from indreg.alignment.tilt_axis import align_tilt_axis, check_tilt_axis, rotate_images
 
 DOMAIN = ImageDomain((16, 12, 16), (-8.0, -6.0, -8.0), (8.0, 6.0, 8.0))   # 1-unit voxels, half_width 8
 ANGLES = np.arange(-60.0, 61.0, 10.0)
