@@ -379,7 +379,7 @@ def _measurements(value, name: str, ndim: int, convention=conventions.CONVENTION
 def _check_orientation(f: np.ndarray, g: np.ndarray, radians: np.ndarray, conv, template, half_width: float,
                        det_min, det_max, key: dict) -> None:
     """Warn when the files read in another convention fit the data clearly better (``orientation_hint``)."""
-    picture = _is_path(template) and io.split_path(template)[0].suffix.lower() in io.PICTURE
+    picture = _is_path(template) and io.split_path(template)[0].suffix.lower() in io.formats.suffixes("picture")
     stored_f = np.rot90(f) if picture else conventions.image_from_indreg(f, conv)
     stored_g = g.T if conv.sinogram == "bin_angle" else g
     scores = orientation.orientation_scores(stored_f, stored_g, conventions.angles_from_indreg(radians, conv),
@@ -395,8 +395,9 @@ def _check_orientation(f: np.ndarray, g: np.ndarray, radians: np.ndarray, conv, 
 
 
 def _may_have_sibling(data, ndim: int) -> bool:
-    """Whether the data file's angles may come from the ``.tlt`` / ``.rawtlt`` next to it (2D: MRC only)."""
-    return _is_path(data) and (ndim == 3 or io.split_path(data)[0].suffix.lower() in io.MRC)
+    """Whether the data file's angles may come from the ``.tlt`` / ``.rawtlt`` next to it (2D: a stack of sections,
+    MRC)."""
+    return _is_path(data) and (ndim == 3 or io.split_path(data)[0].suffix.lower() in io.formats.suffixes("sections"))
 
 
 def _angles(angles, unit: str, data, shape: tuple, ndim: int, key: dict) -> np.ndarray:

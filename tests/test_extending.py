@@ -1,10 +1,13 @@
-"""docs/extending.md: its Python blocks, run in order as one module, add an operator, a model, a data source and a
-solver that work through ``indreg.register`` and through the app without any change to indreg."""
+"""docs/extending.md: its Python blocks, run in order as one module, add an operator, a model, a data source, a
+solver, a correction and a file format that work through ``indreg.register`` / ``indreg.load`` and through the app
+without any change to indreg, each by one registration at most."""
 import importlib
+import json
 import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -29,6 +32,7 @@ def toy(tmp_path_factory):
         indreg.registration.models.MODELS.pop("brightness", None)
         indreg.options.SOLVERS.pop("heavy_ball", None)
         indreg.options.CORRECTIONS.pop("data_offset", None)
+        indreg.io.formats.FILE_FORMATS.pop("grid", None)
 
 
 def test_toy_operator_is_adjoint_and_registers(toy):
@@ -132,3 +136,62 @@ def test_toy_correction_runs_through_the_app(toy, tmp_path):
                  "solver.max_iter=4", "baseline.enabled=false", "logging.tensorboard=false", "logging.progress=false",
                  "logging.figure=false"], tmp_path)
     assert m["status"] == "completed" and m["data_offset"]["every"] == 2
+
+
+def test_each_extension_is_one_module_and_at_most_one_registration():
+    """Every numbered section's code (the user's one module) calls at most one ``register_*`` of indreg."""
+    sections = re.split(r"^## (?=\d+\. )", DOC.read_text(), flags=re.M)[1:]
+    assert len(sections) == 7
+    for text in sections:
+        code = "".join(re.findall(r"```python\n(.*?)```", text, re.S))
+        calls = re.findall(r"\bregister_(?:model|solver|correction|source|format)\(", code)
+        assert len(calls) <= 1, (text.splitlines()[0], calls)
+
+
+def test_toy_format_reads_and_writes_through_the_readers(toy, tmp_path):
+    """The guide's ``.grid``: ``indreg.load`` gave back the arrays, the readers and writers take it (a volume, a
+    stack, a sinogram), its leading bytes are checked, a key refused, and the messages that list suffixes list it."""
+    assert torch.equal(toy.loaded.template, toy.template) and torch.allclose(toy.loaded.data, toy.R(toy.target))
+    rng = np.random.default_rng(0)
+    volume = rng.standard_normal((4, 5, 3))
+    indreg.io.write_volume(tmp_path / "v.GRID", volume)                     # suffixes are matched in any case
+    np.testing.assert_array_equal(indreg.io.read_volume(tmp_path / "v.GRID"), volume)
+    np.testing.assert_array_equal(indreg.io.read_stack(tmp_path / "v.GRID"), volume)
+    sino = rng.standard_normal((6, 8))
+    indreg.io.write_image(tmp_path / "s.grid", sino)
+    np.testing.assert_array_equal(indreg.io.read_sinogram(tmp_path / "s.grid"), sino)
+    (tmp_path / "bad.grid").write_text("1 2 3\n")
+    with pytest.raises(indreg.io.DataFileError, match=r"bad\.grid: unreadable as \.grid \(not a \.grid file: wrong "):
+        indreg.io.read_image(tmp_path / "bad.grid")
+    with pytest.raises(indreg.io.DataFileError, match=r"s\.grid:k: a ':KEY' suffix is only for \.npz, \.h5"):
+        indreg.io.read_image(f"{tmp_path / 's.grid'}:k")
+    with pytest.raises(indreg.io.DataFileError, match=r"unknown format '\.xyz'; supported: \.npy, .*\.tiff, \.grid$"):
+        indreg.io.read_image(tmp_path / "a.xyz")
+    with pytest.raises(indreg.io.DataFileError, match=r"cannot write format '\.png'; use \.npy, .*\.grid$"):
+        indreg.io.write_image(tmp_path / "a.png", sino)
+
+
+@pytest.mark.slow
+def test_toy_format_through_the_app(toy, tmp_path):
+    """``indreg-register data=files`` with ``.grid`` files: refused before the run in one line listing the registered
+    suffixes, and run with ``plugins=[module]`` naming the module that registers the format (the guide's block)."""
+    from experiments.experiment_helpers import run_cli
+
+    block = next(b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), re.S) if "register_format(" in b)
+    (tmp_path / "grid_format.py").write_text(block)
+    indreg.io.write_image(tmp_path / "t.grid", toy.template)
+    indreg.io.write_image(tmp_path / "s.grid", toy.R(toy.target))
+    (tmp_path / "a.tlt").write_text("".join(f"{a:.10g}\n" for a in np.rad2deg(toy.R.geometry.angles.numpy())))
+    args = ["data=files", f"data.template={tmp_path / 't.grid'}", f"data.sinogram={tmp_path / 's.grid'}",
+            "geometry=parallel", f"geometry.angles={tmp_path / 'a.tlt'}", "geometry.det_min=-24", "geometry.det_max=24",
+            "deformation.num_steps=3", "solver.max_iter=2", "baseline=none", "logging.progress=false",
+            "logging.figure=false", "logging.tensorboard=false", f"hydra.run.dir={tmp_path / 'run'}"]
+    refused = run_cli(args, cwd=tmp_path)
+    assert refused.returncode == 1 and not (tmp_path / "run").exists(), refused.stderr[-2000:]
+    assert refused.stderr.strip().endswith("unknown format '.grid'; supported: .npy, .npz, .h5, .hdf5, .hspy, .mrc, "
+                                           ".st, .ali, .png, .tif, .tiff"), refused.stderr
+    ran = run_cli(args + ["plugins=[grid_format]"], cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["status"] == "completed" and m["iterations"] == 2
+    np.testing.assert_allclose(np.load(tmp_path / "run" / "data.npy"), toy.R(toy.target).numpy(), rtol=1e-12)

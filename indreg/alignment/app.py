@@ -153,7 +153,7 @@ def _read(args) -> tuple:
         angles = [float(v) for v in angles.split(",")]
     stack, radians = io.read_tilt_series(args.stack, angles)
     pixel = args.pixel_size
-    if pixel is None and Path(args.stack).suffix.lower() in io.MRC:
+    if pixel is None and Path(args.stack).suffix.lower() in io.formats.suffixes("read_voxel_size"):
         pixel = io.read_voxel_size(args.stack)[0] or None
     axis = args.tilt_axis_angle
     if axis is None:

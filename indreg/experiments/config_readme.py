@@ -44,7 +44,7 @@ tools is `docs/cli.md` in the repository."""
 
 TOP = """Top-level keys: `name`, `seed` (noise and torch), `dtype` (`float32` default, `float64`), `device` (`auto`, `cpu`,
 `cuda`, `cuda:<i>`), `resume`, `stop_after`, `plugins` (modules imported first: a plug-in correction, solver,
-model or source)."""
+model, source or file format)."""
 
 TAIL = """## Commands
 

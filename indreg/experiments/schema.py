@@ -202,6 +202,6 @@ def build_schema() -> type:
         ("validation", groups["validation"], field(default_factory=groups["validation"]))])
     cls.__doc__ = "The whole run. ``stop_after``: stop (checkpoint, as if interrupted) once this many iterations " \
                   "are done. ``plugins``: modules imported before the config is composed (from the working " \
-                  "directory or PYTHONPATH), whose registrations (a correction, a solver, a model, a source) and " \
-                  "their options then take part."
+                  "directory or PYTHONPATH), whose registrations (a correction, a solver, a model, a source, a file " \
+                  "format) and their options then take part."
     return cls

@@ -1,5 +1,5 @@
-"""Shared by the file modules (``indreg.io``, ``indreg.io.angle_files``, ``indreg.io.writers``): the one-line error of
-a bad file and the ``file.npz:key`` path syntax.
+"""Shared by the file modules (``indreg.io``, ``indreg.io.formats``, ``indreg.io.angle_files``, ``indreg.io.writers``):
+the one-line error of a bad file (the ``file.npz:key`` path syntax: ``indreg.io.formats.split_path``).
 
 Convention:
     - Every problem with a file raises :class:`DataFileError`, one line ``"{name} file {path}: {problem}"``.
@@ -10,9 +10,7 @@ import os
 import re
 from pathlib import Path
 
-__all__ = ["DataFileError", "split_path"]
-
-_KEYED = re.compile(r"^(.*\.(?:npy|npz|h5|hdf5|hspy|mrc|st|ali|png|tif|tiff)):(.*)$", re.IGNORECASE)
+__all__ = ["DataFileError"]
 
 
 class DataFileError(ValueError):
@@ -37,11 +35,3 @@ def _as_path(spec, name: str) -> Path:
         raise DataFileError(f"{name} path must be a str or os.PathLike, got {type(spec).__name__}")
     return Path(spec)
 
-
-def split_path(spec, name: str = "data") -> tuple:
-    """``(path, key)`` of a path ``file.npz:key`` / ``file.h5:/group/dataset`` (key ``None`` if not given)."""
-    text = str(_as_path(spec, name))
-    match = _KEYED.match(text)
-    if match and not Path(text).exists():
-        return Path(match.group(1)), (match.group(2) or None)
-    return Path(text), None

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import _fail, _one_line, split_path
+from ._files import _fail, _one_line
+from .formats import split_path
 
 __all__ = ["ANGLE_UNITS", "RADIAN_SPAN", "read_angles", "tilt_angles_for", "mdoc_for", "read_tilt_axis_angle"]
 
