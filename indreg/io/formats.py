@@ -3,13 +3,13 @@ arrays are laid out), for every reader and writer of :mod:`indreg.io` and the ap
 
 Built in, registered in this order (the order of the suffixes in messages):
 
-    NumPy        ``.npy``                  read, written (float64); no pickled objects
-    NumPy zip    ``.npz``                  read; a container (``file.npz:key``)
-    HDF5         ``.h5``, ``.hdf5``, ``.hspy``  read; a container (``file.h5:/group/dataset``); data in the file only
-    MRC          ``.mrc``, ``.st``, ``.ali``    read, written (float32); sections ``(z, y, x)``, a stack of sections
-                                           (tilt series), the voxel size in its header
-    PNG          ``.png``                  read; a picture (read as displayed, 8/16-bit as fractions, RGB to grey)
-    TIFF         ``.tif``, ``.tiff``       read; a picture
+    NumPy      ``.npy``                      read, written (float64); no pickled objects
+    NumPy zip  ``.npz``                      read; a container (``file.npz:key``)
+    HDF5       ``.h5``, ``.hdf5``, ``.hspy``   read; a container (``file.h5:/group/dataset``); data in the file only
+    MRC        ``.mrc``, ``.st``, ``.ali``     read, written (float32); volumes stored ``(z, y, x)``, a stack of
+                                             sections (tilt series), the voxel size in its header
+    PNG        ``.png``                      read; a picture (as displayed, 8/16-bit as fractions, RGB to grey)
+    TIFF       ``.tif``, ``.tiff``           read; a picture
 
 A format of your own is one :class:`FileFormat` and one :func:`register_format` call in your module
 (docs/extending.md); from then on ``indreg.load``, the readers and writers and the app (``plugins=[your_module]``)
