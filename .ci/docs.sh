@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The documentation site in a fresh venv: docs/ and the docstrings (mkdocs.yml), warnings as errors (every internal
 # link, anchor and API reference resolved). The API reference is read from the source (griffe), so neither torch nor
-# indreg's other dependencies are installed: only the `docs` extra's packages. Output: site/.
+# indreg's other dependencies are installed: only the `docs` extra's packages (numpy among them: indreg.register's
+# option entries come from the option table, imported without torch, docs/_hooks/register_options.py). Output: site/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${DOCS_VENV:-.venv-docs-ci}"

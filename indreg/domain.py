@@ -33,24 +33,26 @@ def _corner(point, name: str, ndim: int) -> tuple:
 class ImageDomain:
     """A box ``[min_pt, max_pt]`` in R^d (d = 2 or 3) discretised by ``shape`` cells, sampled at cell centres.
 
-    Convention:
-        - d = ``len(shape)``. An image is a tensor ``(..., nx, ny)`` (2D) or ``(..., nx, ny, nz)`` (3D): array
-          axis 0 is x, axis 1 is y, axis 2 is z ("ij" indexing), any leading batch dims.
-        - Cell ``(i, j[, k])`` sits at the cell centre
-          ``x_i = min_pt[0] + (i + 1/2) * cell_sides[0]``, ``y_j = min_pt[1] + (j + 1/2) * cell_sides[1]``, ...
-        - ``min_pt < max_pt`` are finite corners with d entries and a finite extent; default ``(-16, ..., -16)``
-          and ``(16, ..., 16)``.
-        - Units are physical (the paper's domain is ``[-16, 16]^2``), so the paper's kernel width sigma,
-          regularisation gamma and step size mean the same at every resolution.
-        - Inner products and norms are L2: ``<f, g> = cell_volume * sum f g`` over the last d axes, so adjoints
-          of operators defined on this domain are L2 adjoints.
+    Notes
+    -----
+    - d = ``len(shape)``. An image is a tensor ``(..., nx, ny)`` (2D) or ``(..., nx, ny, nz)`` (3D): array
+      axis 0 is x, axis 1 is y, axis 2 is z ("ij" indexing), any leading batch dims.
+    - Cell ``(i, j[, k])`` sits at the cell centre
+      ``x_i = min_pt[0] + (i + 1/2) * cell_sides[0]``, ``y_j = min_pt[1] + (j + 1/2) * cell_sides[1]``, ...
+    - ``min_pt < max_pt`` are finite corners with d entries and a finite extent; default ``(-16, ..., -16)``
+      and ``(16, ..., 16)``.
+    - Units are physical (the paper's domain is ``[-16, 16]^2``), so the paper's kernel width sigma,
+      regularisation gamma and step size mean the same at every resolution.
+    - Inner products and norms are L2: ``<f, g> = cell_volume * sum f g`` over the last d axes, so adjoints
+      of operators defined on this domain are L2 adjoints.
 
-    Example:
-        >>> dom = ImageDomain((64, 64), (-16.0, -16.0), (16.0, 16.0))
-        >>> dom.cell_volume
-        0.25
-        >>> ImageDomain((32, 32, 32)).cell_volume
-        1.0
+    Examples
+    --------
+    >>> dom = ImageDomain((64, 64), (-16.0, -16.0), (16.0, 16.0))
+    >>> dom.cell_volume
+    0.25
+    >>> ImageDomain((32, 32, 32)).cell_volume
+    1.0
     """
 
     shape: tuple

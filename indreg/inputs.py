@@ -15,29 +15,30 @@ Geometries (``geometry=``)::
                  rotated so that its tilt axis runs along the detector rows (``tilt_axis_angle``, or the
                  ``.mdoc`` next to it) and checked for consistency (``indreg.alignment.tilt_axis``)
 
-Convention:
-    - 2D: template ``(n, n)`` on ``[-half_width, half_width]^2`` (square, so that the cells are square), data
-      ``(num_angles, det_count)``, one row per angle. 3D: template ``(nx, ny, nz)`` on cubic cells of side
-      ``2 half_width / max(nx, ny, nz)``, centred (a slab keeps its aspect ratio), data
-      ``(num_tilts, det_rows, det_cols)`` (docs/tilt_series.md). Axis 0 = x.
-    - ``template``, ``data``, ``target``: a path (any format of :mod:`indreg.io`: ``file.npz:key``,
-      ``file.h5:/dataset``, ...) or an array (numpy, torch) in indreg's layout. ``angles``: a text file (one angle
-      a line, IMOD ``.tlt``) or a list, in ``angle_unit``; without it, the ``.tlt`` / ``.rawtlt`` next to the
-      data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
-    - ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
-      (``indreg.io.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
-      series takes ``indreg`` or ``imod`` (IMOD's stack layout is indreg's; ``imod`` negates the angles, IMOD's
-      sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as
-      ``fraction`` of their full scale (default) or ``raw``. The log says how each file was read and warns when the
-      template's projection fits the data better read another way (:func:`indreg.io.orientation.orientation_hint`;
-      the readings no convention makes are probed before the run: ``indreg.io.orientation``).
-    - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
-      agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
-      tilt series gets columns as wide as the voxels, centred on the tilt axis.
-    - The returned tensors are float64 on the CPU.
-    - Bad input raises one line before any computation: :class:`indreg.io.DataFileError` for a file (naming it),
-      a count or shape that does not fit, or a geometry that cannot be built; ``ValueError`` / ``TypeError`` for
-      an argument's value (inline angles, ``angle_unit``, ``half_width``, an array).
+Notes
+-----
+- 2D: template ``(n, n)`` on ``[-half_width, half_width]^2`` (square, so that the cells are square), data
+  ``(num_angles, det_count)``, one row per angle. 3D: template ``(nx, ny, nz)`` on cubic cells of side
+  ``2 half_width / max(nx, ny, nz)``, centred (a slab keeps its aspect ratio), data
+  ``(num_tilts, det_rows, det_cols)`` (docs/tilt_series.md). Axis 0 = x.
+- ``template``, ``data``, ``target``: a path (any format of :mod:`indreg.io`: ``file.npz:key``,
+  ``file.h5:/dataset``, ...) or an array (numpy, torch) in indreg's layout. ``angles``: a text file (one angle
+  a line, IMOD ``.tlt``) or a list, in ``angle_unit``; without it, the ``.tlt`` / ``.rawtlt`` next to the
+  data file (an ``.mrc``/``.st``/``.ali`` sinogram, or any tilt-series file).
+- ``convention`` (2D): the tool whose layout, angles, units and detector centre the files and arrays follow
+  (``indreg.io.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a tilt
+  series takes ``indreg`` or ``imod`` (IMOD's stack layout is indreg's; ``imod`` negates the angles, IMOD's
+  sense of rotation, and multiplies pixel sums by the voxel side). ``integer_scale``: 8- / 16-bit pictures as
+  ``fraction`` of their full scale (default) or ``raw``. The log says how each file was read and warns when the
+  template's projection fits the data better read another way (:func:`indreg.io.orientation.orientation_hint`;
+  the readings no convention makes are probed before the run: ``indreg.io.orientation``).
+- Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
+  agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
+  tilt series gets columns as wide as the voxels, centred on the tilt axis.
+- The returned tensors are float64 on the CPU.
+- Bad input raises one line before any computation: :class:`indreg.io.DataFileError` for a file (naming it),
+  a count or shape that does not fit, or a geometry that cannot be built; ``ValueError`` / ``TypeError`` for
+  an argument's value (inline angles, ``angle_unit``, ``half_width``, an array).
 """
 from __future__ import annotations
 

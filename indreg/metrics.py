@@ -1,20 +1,21 @@
 """Figures of merit of a result against the ground truth: SSIM (scikit-image), PSNR and relative error.
 
-Convention:
-    - Every function takes ``(x, gt)``: the result first, the ground truth second, each a 2D image
-      ``(nx, ny)`` or a 3D volume ``(nx, ny, nz)`` as a torch tensor (any device, real dtype) or numpy array;
-      compared in float64; returns a float. Both must have the same shape, finite real values (complex and
-      boolean inputs are refused, not cast), and for SSIM at least 7 cells per axis.
-    - ``ssim`` / ``psnr``: today's honest convention, ``data_range = gt.max() - gt.min()``.
-    - ``ssim_paper`` / ``psnr_paper``: the 2017 scikit-image defaults (``compare_ssim`` / ``compare_psnr``) that
-      the paper's numbers use: SSIM with data range 2 (the float dtype range -1..1); PSNR with data range 2 if
-      an image has negative values, else 1. (The 2017 ``compare_psnr`` looked at its first argument only; the
-      authors passed the result first and the ground truths are nonnegative, so "either image" is the same.)
-      Other SSIM settings are the defaults then and now: 7 x 7 uniform window, sample covariance.
-    - 3D SSIM is the same statistic with a 7 x 7 x 7 window (scikit-image's n-dimensional SSIM), averaged over
-      the volume. Volumes are read in float64 chunks of :data:`CHUNK` slices along axis 0 (SSIM's with a halo of
-      3 slices), never as whole float64 copies: the same numbers as whole volumes to float rounding (the sums'
-      order).
+Notes
+-----
+- Every function takes ``(x, gt)``: the result first, the ground truth second, each a 2D image
+  ``(nx, ny)`` or a 3D volume ``(nx, ny, nz)`` as a torch tensor (any device, real dtype) or numpy array;
+  compared in float64; returns a float. Both must have the same shape, finite real values (complex and
+  boolean inputs are refused, not cast), and for SSIM at least 7 cells per axis.
+- ``ssim`` / ``psnr``: today's honest convention, ``data_range = gt.max() - gt.min()``.
+- ``ssim_paper`` / ``psnr_paper``: the 2017 scikit-image defaults (``compare_ssim`` / ``compare_psnr``) that
+  the paper's numbers use: SSIM with data range 2 (the float dtype range -1..1); PSNR with data range 2 if
+  an image has negative values, else 1. (The 2017 ``compare_psnr`` looked at its first argument only; the
+  authors passed the result first and the ground truths are nonnegative, so "either image" is the same.)
+  Other SSIM settings are the defaults then and now: 7 x 7 uniform window, sample covariance.
+- 3D SSIM is the same statistic with a 7 x 7 x 7 window (scikit-image's n-dimensional SSIM), averaged over
+  the volume. Volumes are read in float64 chunks of :data:`CHUNK` slices along axis 0 (SSIM's with a halo of
+  3 slices), never as whole float64 copies: the same numbers as whole volumes to float rounding (the sums'
+  order).
 """
 from __future__ import annotations
 

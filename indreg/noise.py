@@ -1,15 +1,16 @@
 """Seeded additive white Gaussian noise at a requested signal-to-noise ratio (paper's eq. ``snr``).
 
-Convention:
-    - One data set is the last ``event_dims`` axes of a tensor (default 2: a sinogram
-      ``(..., num_angles, det_count)``); leading dims are a batch, each item gets its own noise and SNR.
-    - Two SNR conventions, both in dB, with means and (unweighted; a constant weight cancels) norms over
-      one data set:
-        ``"paper"``: ``10 log10(||g - mean g||^2 / ||n - mean n||^2)``, the printed formula ``snr``;
-        ``"code"``:  ``10 log10(||g - mean g|| / ||n - mean n||)``, what the authors' code computes, i.e.
-        half the paper's dB. The paper's reported values (:data:`PAPER_SNR_DB`) are in this convention.
-    - Noise is drawn in float64 on the CPU from a seeded ``torch.Generator`` and then cast and moved to the
-      data's dtype/device, so a seed gives the same noise on every device.
+Notes
+-----
+- One data set is the last ``event_dims`` axes of a tensor (default 2: a sinogram
+  ``(..., num_angles, det_count)``); leading dims are a batch, each item gets its own noise and SNR.
+- Two SNR conventions, both in dB, with means and (unweighted; a constant weight cancels) norms over
+  one data set:
+    ``"paper"``: ``10 log10(||g - mean g||^2 / ||n - mean n||^2)``, the printed formula ``snr``;
+    ``"code"``:  ``10 log10(||g - mean g|| / ||n - mean n||)``, what the authors' code computes, i.e.
+    half the paper's dB. The paper's reported values (:data:`PAPER_SNR_DB`) are in this convention.
+- Noise is drawn in float64 on the CPU from a seeded ``torch.Generator`` and then cast and moved to the
+  data's dtype/device, so a seed gives the same noise on every device.
 """
 from __future__ import annotations
 

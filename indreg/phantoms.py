@@ -1,18 +1,19 @@
 """Targets and templates of the paper's test suites, sampled on any :class:`~indreg.domain.ImageDomain`.
 
-Convention:
-    - Every phantom is a function ``f(domain) -> float64 tensor (nx, ny)`` on the CPU: axis 0 is x,
-      axis 1 is y, values at the domain's cell centres. Show a phantom upright with ``np.rot90(a)``.
-    - Raster phantoms (J, V, six objects) are functions on the paper's frame ``[-16, 16]^2``: the stored
-      pixels are linear-interpolation nodes at their cell centres, the function is zero beyond the frame
-      (falling linearly to zero within half a stored pixel of its edge), and it is sampled at the
-      requested domain's cell centres (a domain's box may differ from ``[-16, 16]^2``).
-    - Ellipse phantoms are analytic, in the normalised frame ``[-1, 1]^2`` that maps affinely onto the
-      domain's box ``[min_pt, max_pt]``; each pixel is the mean of ``supersample x supersample`` point
-      values inside it (anti-aliasing). Ellipse rows are
-      ``(value, semi-axis x, semi-axis y, centre x, centre y, rotation in degrees)``, y pointing up, and a
-      point ``p`` is inside when ``|R(rotation) (p - centre) / axes| <= 1`` with
-      ``R(t) = [[cos t, sin t], [-sin t, cos t]]`` (ODL's ellipsoid phantom).
+Notes
+-----
+- Every phantom is a function ``f(domain) -> float64 tensor (nx, ny)`` on the CPU: axis 0 is x,
+  axis 1 is y, values at the domain's cell centres. Show a phantom upright with ``np.rot90(a)``.
+- Raster phantoms (J, V, six objects) are functions on the paper's frame ``[-16, 16]^2``: the stored
+  pixels are linear-interpolation nodes at their cell centres, the function is zero beyond the frame
+  (falling linearly to zero within half a stored pixel of its edge), and it is sampled at the
+  requested domain's cell centres (a domain's box may differ from ``[-16, 16]^2``).
+- Ellipse phantoms are analytic, in the normalised frame ``[-1, 1]^2`` that maps affinely onto the
+  domain's box ``[min_pt, max_pt]``; each pixel is the mean of ``supersample x supersample`` point
+  values inside it (anti-aliasing). Ellipse rows are
+  ``(value, semi-axis x, semi-axis y, centre x, centre y, rotation in degrees)``, y pointing up, and a
+  point ``p`` is inside when ``|R(rotation) (p - centre) / axes| <= 1`` with
+  ``R(t) = [[cos t, sin t], [-sin t, cos t]]`` (ODL's ellipsoid phantom).
 
 Names for :func:`get`: ``"j"``, ``"v"`` (suite 1), ``"six_objects_target"``, ``"six_objects_template"``
 (suite 2), ``"shepp_logan"``, ``"shepp_logan_template"`` (suite 3), ``"shepp_logan_template_missing"``,
@@ -82,10 +83,11 @@ SHEPP_LOGAN_TEMPLATE_EXTRA_ELLIPSES = SHEPP_LOGAN_TEMPLATE_ELLIPSES + ((0.30, .0
 def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torch.Tensor:
     """Sum of constant-valued ellipses, averaged over ``supersample^2`` points per pixel.
 
-    Convention:
-        ``ellipses`` rows are ``(value, a, b, cx, cy, rotation_deg)`` in the normalised frame ``[-1, 1]^2``
-        mapped onto ``[min_pt, max_pt]`` (module docstring); returns float64 ``(nx, ny)``. The integral of one
-        ellipse over the domain is ``value * pi * a * b * extent_x * extent_y / 4`` up to the sub-sampling error.
+    Notes
+    -----
+    ``ellipses`` rows are ``(value, a, b, cx, cy, rotation_deg)`` in the normalised frame ``[-1, 1]^2``
+    mapped onto ``[min_pt, max_pt]`` (module docstring); returns float64 ``(nx, ny)``. The integral of one
+    ellipse over the domain is ``value * pi * a * b * extent_x * extent_y / 4`` up to the sub-sampling error.
     """
     import torch
 

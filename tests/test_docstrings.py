@@ -1,5 +1,6 @@
 """Every ``>>>`` example in the package's docstrings runs (doctest) and prints what it shows."""
 import doctest
+import inspect
 import importlib
 import pkgutil
 import re
@@ -59,3 +60,145 @@ def test_modules_import_without_optional_extras():
     """Every module imports (the examples can be collected) whether or not the extras are installed."""
     for name in _modules():
         importlib.import_module(name)
+
+
+# ------------------------------------------------------------------------------------------ the public API's sections
+#: The packages whose public names are the API: name -> where its list lives (``__all__``; the three modules of
+#: ``indreg.__all__`` that have none: every function and class they define without a leading underscore).
+API_PACKAGES = ("indreg", "indreg.alignment", "indreg.evaluation", "indreg.io", "indreg.forward", "indreg.deform",
+                "indreg.solvers", "indreg.problems", "indreg.learn")
+API_MODULES = ("indreg.metrics", "indreg.noise", "indreg.phantoms")
+#: The option registries of ``indreg.options`` (its other names are the table's internals).
+OPTIONS_API = ("register_model", "register_solver", "register_correction", "Model", "Solver", "Correction", "Option",
+               "check_value")
+#: Public callables exempt from a section, with the reason: (name, section) -> reason.
+EXEMPT = {}
+#: Google-style section headers (the project writes numpydoc: a title underlined with dashes).
+GOOGLE = re.compile(r"^\s*(Args|Arguments|Keyword Args|Returns|Return|Yields|Raises|Convention|Conventions|Example|"
+                    r"Examples|Note|Notes|Attributes|Parameters|See Also|References):\s*$", flags=re.M)
+
+
+def _public_api() -> dict:
+    """Every public callable of the API: its first dotted name -> the object (one entry per object)."""
+    names = []
+    for package in API_PACKAGES:
+        module = importlib.import_module(package)
+        names += [(package, n) for n in module.__all__]
+    for name in API_MODULES:
+        module = importlib.import_module(name)
+        names += [(name, n) for n, obj in vars(module).items() if not n.startswith("_") and
+                  (inspect.isfunction(obj) or inspect.isclass(obj)) and obj.__module__ == name]
+    names += [("indreg.options", n) for n in OPTIONS_API]
+    out, seen = {}, set()
+    for module, name in names:
+        obj = getattr(importlib.import_module(module), name)
+        if inspect.ismodule(obj) or not callable(obj) or id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        out[f"{module}.{name}"] = obj
+    return out
+
+
+def _sections(doc: str) -> dict:
+    """numpydoc sections of a (cleaned) docstring: title -> its lines."""
+    lines = doc.splitlines()
+    out, title = {}, None
+    for i, line in enumerate(lines):
+        if i + 1 < len(lines) and line.strip() and re.fullmatch(r"-{3,}", lines[i + 1].strip()) \
+                and not line.startswith(" "):
+            title = line.strip()
+            out[title] = []
+        elif title is not None and not re.fullmatch(r"-{3,}", line.strip()):
+            out[title].append(line)
+    return out
+
+
+def _documented(lines: list) -> set:
+    """The names a Parameters section documents (``name : type`` or ``name`` at the section's indentation)."""
+    out = set()
+    for line in lines:
+        m = re.match(r"^(\*{0,2}\w+(?:, \*{0,2}\w+)*)(\s*:.*)?$", line)
+        if m:
+            out.update(n.lstrip("*") for n in m.group(1).split(", "))
+    return out
+
+
+def _parameters(obj) -> list:
+    """The parameters a caller passes (a class: its constructor's), without ``self``."""
+    try:
+        sig = inspect.signature(obj)
+    except (TypeError, ValueError):
+        return []
+    return [p for p in sig.parameters.values() if p.name not in ("self", "cls")]
+
+
+def _returns_value(func) -> bool:
+    """Whether ``func``'s own body has a ``return <value>`` (not ``return`` / ``return None``)."""
+    import ast
+    import textwrap
+
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(func)))
+    except (OSError, TypeError, SyntaxError):
+        return False
+    top = tree.body[0]
+
+    def walk(node):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+                continue
+            if isinstance(child, ast.Return) and child.value is not None and not (
+                    isinstance(child.value, ast.Constant) and child.value.value is None):
+                yield child
+            yield from walk(child)
+    return any(True for _ in walk(top))
+
+
+API = _public_api()
+
+
+def test_the_public_api_is_listed():
+    assert len(API) > 100 and "indreg.register" in API and "indreg.options.check_value" in API
+
+
+@pytest.mark.parametrize("name", sorted(API))
+def test_public_docstring_has_its_sections(name):
+    """numpydoc sections: ``Parameters`` naming every parameter, ``Returns`` (``Yields`` for a generator) when the
+    function returns a value, each title underlined with as many dashes."""
+    obj = API[name]
+    doc = obj.__doc__
+    assert doc and doc.strip(), f"{name} has no docstring"
+    doc = inspect.cleandoc(doc)
+    for i, line in enumerate(lines := doc.splitlines()):
+        if i and re.fullmatch(r"-{3,}", line.strip()) and lines[i - 1].strip():
+            assert len(line.strip()) == len(lines[i - 1].strip()), f"{name}: underline of {lines[i - 1].strip()!r}"
+    sections = _sections(doc)
+    params = _parameters(obj)
+    if params and (name, "Parameters") not in EXEMPT:
+        record = inspect.isclass(obj) and "Attributes" in sections and "Parameters" not in sections
+        listed = _documented(sections.get("Attributes" if record else "Parameters", []))
+        missing = [p.name for p in params if p.name not in listed]
+        assert not missing, f"{name}: Parameters does not document {missing}"
+    if inspect.isfunction(obj) and (name, "Returns") not in EXEMPT:
+        if inspect.isgeneratorfunction(obj):
+            assert "Yields" in sections, f"{name} is a generator: a Yields section"
+        elif _returns_value(obj):
+            assert "Returns" in sections, f"{name} returns a value: a Returns section"
+    assert not GOOGLE.search(doc), f"{name}: a Google-style section header ({GOOGLE.search(doc).group(0).strip()})"
+
+
+def test_no_google_style_sections_in_the_package():
+    """One docstring style (numpydoc, mkdocs.yml's ``docstring_style``): no ``Args:`` / ``Raises:`` / ... blocks."""
+    root = Path(indreg.__file__).parent
+    found = [f"{p.relative_to(root.parent)}:{text.count(chr(10), 0, m.start()) + 1}: {m.group(0).strip()}"
+             for p in sorted(root.rglob("*.py")) for text in [p.read_text()] for m in GOOGLE.finditer(text)]
+    assert not found, "Google-style sections (write numpydoc: Parameters / Returns / Raises / Notes):\n" + \
+        "\n".join(found)
+
+
+def test_register_docstring_lists_every_option():
+    """``help(indreg.register)``: a Parameters entry for every option of the table, generated from it."""
+    from indreg import options
+
+    listed = _documented(_sections(inspect.cleandoc(indreg.register.__doc__))["Parameters"])
+    assert {o.name for o in options.all_options()} <= listed

@@ -4,25 +4,26 @@ MRC, and OME-Zarr with ``--zarr``), by projection matching (``indreg.alignment.p
 
     indreg-align series.mrc [--angles series.tlt] [--tilt-axis-angle 85.3] [--axis-from-stack] [--max-memory 8GiB]
 
-Convention:
-    - The stack is read as stored (``indreg.io.read_tilt_series``: sections = tilts, ``(Y, X)`` images, angles from
-      ``--angles`` or the ``.tlt`` / ``.rawtlt`` next to it); the pixel size (Angstrom) from ``--pixel-size`` or the
-      MRC header.
-    - The tilt axis' angle in the images (``--tilt-axis-angle``, degrees from Y counter-clockwise, IMOD's; else the
-      ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
-      operator (``AlignedOperator``'s per-tilt maps); ``--axis-from-stack`` replaces that rest by the stack's own
-      estimate (``indreg.alignment.moments.estimate_axis_angle``: no reconstruction takes part of it up) where the data
-      determine it, and keeps it in the rounds; ``--refine-axis`` refines the angle by projection matching (not
-      validated).
-    - The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
-      projections are about 0 outside the object), coarse to fine: ``--rounds`` rounds binned by ``--coarse-bin``
-      (``--bin`` times a power of 2, by default the largest that leaves images of at least ``COARSE_SIZE``
-      pixels), then ``--fine-rounds`` rounds at each binning halved down to ``--bin`` (default: the least power
-      of 2 whose working set fits ``--max-memory``, :func:`working_set`), the shifts carried from level to level
-      in the stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the
-      reconstruction is the finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so,
-      slab by slab of rows along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
-    - The alignment files refer to the raw stack as stored (``indreg.alignment.files``).
+Notes
+-----
+- The stack is read as stored (``indreg.io.read_tilt_series``: sections = tilts, ``(Y, X)`` images, angles from
+  ``--angles`` or the ``.tlt`` / ``.rawtlt`` next to it); the pixel size (Angstrom) from ``--pixel-size`` or the
+  MRC header.
+- The tilt axis' angle in the images (``--tilt-axis-angle``, degrees from Y counter-clockwise, IMOD's; else the
+  ``.mdoc``'s, else 0): its quarter turns are applied to the stack exactly (``np.rot90``), the rest in the
+  operator (``AlignedOperator``'s per-tilt maps); ``--axis-from-stack`` replaces that rest by the stack's own
+  estimate (``indreg.alignment.moments.estimate_axis_angle``: no reconstruction takes part of it up) where the data
+  determine it, and keeps it in the rounds; ``--refine-axis`` refines the angle by projection matching (not
+  validated).
+- The estimation runs on the stack less its background (``--background``: the images' outer frame by default;
+  projections are about 0 outside the object), coarse to fine: ``--rounds`` rounds binned by ``--coarse-bin``
+  (``--bin`` times a power of 2, by default the largest that leaves images of at least ``COARSE_SIZE``
+  pixels), then ``--fine-rounds`` rounds at each binning halved down to ``--bin`` (default: the least power
+  of 2 whose working set fits ``--max-memory``, :func:`working_set`), the shifts carried from level to level
+  in the stack's pixels (:func:`levels`). The aligned stack is made at full size tilt by tilt; the
+  reconstruction is the finest level's SIRT, or with ``--recon-bin`` a SIRT of the aligned stack binned so,
+  slab by slab of rows along the tilt axis (as many as ``--max-memory`` holds, :func:`slab_rows`).
+- The alignment files refer to the raw stack as stored (``indreg.alignment.files``).
 """
 from __future__ import annotations
 

@@ -4,24 +4,25 @@ applied in the operator (``AlignedOperator``), not by resampling the stack (docs
 An :class:`Alignment` holds, per tilt ``k`` of the raw stack, the map from the aligned (ideal) image to the raw one
 in centred pixel coordinates: a point ``q`` of the aligned image is seen at ``p = M_k q + d_k`` in the raw one.
 
-Convention:
-    - Pixel coordinates ``(x, y)``: x along the columns (MRC's X, the detector columns ``s``), y along the rows
-      (MRC's Y, along the tilt axis, ``t``), in pixels of the stack as stored, centred on the image's middle:
-      pixel index ``i`` sits at ``i - (n - 1) / 2``. IMOD's own coordinates run from 0 at the left edge of the
-      first pixel to ``n`` at the right edge of the last, with the centre at ``n / 2`` (cubinterp since 2007): the
-      same centre.
-    - IMOD ``.xf``: one line ``A11 A12 A21 A22 DX DY`` per view of the raw stack; newstack makes the aligned
-      image by ``u' = A u + D`` (``u`` raw, ``u'`` aligned, both centred), so ``M = A^-1`` and ``d = -A^-1 D``.
-      Angles: the ``.tlt`` next to it (degrees, one a line), ``.xtilt`` (a tilt about X) is read and must be 0
-      (it is not modelled).
-    - AreTomo ``.aln`` (AreTomo2's ``CCorrTomoStack`` / ``GCorrPatchShift``): the aligned image at ``q`` takes the
-      raw one at ``R(ROT) q + (TX, TY)``, so ``M = R(ROT)`` (``R`` counter-clockwise, degrees) and ``d = (TX, TY)``;
-      ``GMAG`` is not applied by AreTomo's correction and is not here (a warning when it is not 1); rows are the
-      stack's sections ``SEC`` (0-based; 1-based files are recognised by their range), ``# DarkFrame`` lines
-      name the sections left out, ``TILT`` gives the angle. Local (patch) alignments are not read.
-    - In the operator (:func:`to_operator`): ``AlignedOperator(T, shifts, 0, matrices=B)`` with ``B_k`` the map
-      ``M_k`` in the detector's physical units and the shifts in pixels (the tilt-axis angle ``alpha`` starts at
-      0 and is refined on top: ``p = R(alpha) B_k q + shift``); :func:`from_operator` goes back.
+Notes
+-----
+- Pixel coordinates ``(x, y)``: x along the columns (MRC's X, the detector columns ``s``), y along the rows
+  (MRC's Y, along the tilt axis, ``t``), in pixels of the stack as stored, centred on the image's middle:
+  pixel index ``i`` sits at ``i - (n - 1) / 2``. IMOD's own coordinates run from 0 at the left edge of the
+  first pixel to ``n`` at the right edge of the last, with the centre at ``n / 2`` (cubinterp since 2007): the
+  same centre.
+- IMOD ``.xf``: one line ``A11 A12 A21 A22 DX DY`` per view of the raw stack; newstack makes the aligned
+  image by ``u' = A u + D`` (``u`` raw, ``u'`` aligned, both centred), so ``M = A^-1`` and ``d = -A^-1 D``.
+  Angles: the ``.tlt`` next to it (degrees, one a line), ``.xtilt`` (a tilt about X) is read and must be 0
+  (it is not modelled).
+- AreTomo ``.aln`` (AreTomo2's ``CCorrTomoStack`` / ``GCorrPatchShift``): the aligned image at ``q`` takes the
+  raw one at ``R(ROT) q + (TX, TY)``, so ``M = R(ROT)`` (``R`` counter-clockwise, degrees) and ``d = (TX, TY)``;
+  ``GMAG`` is not applied by AreTomo's correction and is not here (a warning when it is not 1); rows are the
+  stack's sections ``SEC`` (0-based; 1-based files are recognised by their range), ``# DarkFrame`` lines
+  name the sections left out, ``TILT`` gives the angle. Local (patch) alignments are not read.
+- In the operator (:func:`to_operator`): ``AlignedOperator(T, shifts, 0, matrices=B)`` with ``B_k`` the map
+  ``M_k`` in the detector's physical units and the shifts in pixels (the tilt-axis angle ``alpha`` starts at
+  0 and is refined on top: ``p = R(alpha) B_k q + shift``); :func:`from_operator` goes back.
 """
 from __future__ import annotations
 

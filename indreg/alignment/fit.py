@@ -7,19 +7,20 @@ the angle) are re-fitted to the data with ``f_k`` fixed: ``min_{s, alpha} (1/2) 
 Gauss-Newton (:func:`estimate`); the first estimate (iteration 0, against the template) starts from the peak of
 every projection's cross-correlation with ``P`` (:func:`coarse_shifts`), later ones from the previous estimate.
 
-Convention:
-    - Shifts in detector pixels, ``(num_projections, c)``: ``c = 1`` (2D, across the axis) or 2 (tilt series:
-      across, along); the angle in radians here, in degrees in reports.
-    - Gauge: a translation ``(a, b)`` of the object in the plane orthogonal to the axis moves projection ``k`` by
-      ``a cos(theta_k) + b sin(theta_k)`` across the axis, one along it moves every projection alike along it; the
-      deformation carries such a translation (the template can move), so by default (``"offset+translation"``)
-      the shifts are kept orthogonal to them: across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant
-      too: an offset of the axis, at most nearly a translation over a limited tilt range), along it to ``1``
-      (:func:`gauge`); the true shifts are known only up to these. ``"translation"`` keeps the constant across
-      the axis (the axis' offset is estimated), ``"none"`` keeps everything: the template fixes the frame, the
-      shifts move the data onto it and the deformation is left the change of shape (:data:`ALIGN_GAUGES`).
-    - Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
-      MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
+Notes
+-----
+- Shifts in detector pixels, ``(num_projections, c)``: ``c = 1`` (2D, across the axis) or 2 (tilt series:
+  across, along); the angle in radians here, in degrees in reports.
+- Gauge: a translation ``(a, b)`` of the object in the plane orthogonal to the axis moves projection ``k`` by
+  ``a cos(theta_k) + b sin(theta_k)`` across the axis, one along it moves every projection alike along it; the
+  deformation carries such a translation (the template can move), so by default (``"offset+translation"``)
+  the shifts are kept orthogonal to them: across the axis to ``1, cos(theta_k), sin(theta_k)`` (the constant
+  too: an offset of the axis, at most nearly a translation over a limited tilt range), along it to ``1``
+  (:func:`gauge`); the true shifts are known only up to these. ``"translation"`` keeps the constant across
+  the axis (the axis' offset is estimated), ``"none"`` keeps everything: the template fixes the frame, the
+  shifts move the data onto it and the deformation is left the change of shape (:data:`ALIGN_GAUGES`).
+- Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
+  MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
 """
 from __future__ import annotations
 

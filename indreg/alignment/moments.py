@@ -11,27 +11,28 @@ A trial angle off by ``delta`` mixes the rows: to first order ``m_1`` gains ``de
 the form ``a cos + b sin`` wherever a slice is not round, centred on the axis or not. The estimator scans the trial
 angle ``alpha`` and, at each, fits these conditions to the stack.
 
-Convention:
-    - ``stack`` ``(tilts, rows, columns)``: rows along the tilt axis, columns across it (indreg's layout), square
-      pixels, ``alpha`` indreg's tilt-axis angle (``indreg.alignment.operator``: a feature at the ideal point ``q``
-      appears at ``R(alpha) q + shift``). A pixel at ``(s, t)`` (columns, rows, from the image's centre) lies at
-      ``u = cos(alpha) s + sin(alpha) t - c_k`` across the axis and ``v = -sin(alpha) s + cos(alpha) t - d_k``
-      along it; ``(c_k, d_k)`` are tilt ``k``'s shifts across / along (px).
-    - No interpolation of the data: per tilt, exact sums over the pixels, ``G_{n,k}(rho) = sum_p I_k(p) u_p^n
-      w(v_p) exp(-2 pi i rho v_p)``, ``w`` a Tukey window along the axis that keeps the rows near the detector's
-      top and bottom out (what leaves the detector along the axis), ``rho`` at a spacing of one over the window's
-      length up to ``band`` cycles per pixel. The conditions hold for every ``rho`` (a weighting along the axis
-      keeps them), so each is a linear model per ``rho`` (real and imaginary parts apart).
-    - Noise: ``sigma`` from the data (:func:`noise_level`: each pixel less its four neighbours' mean, a robust
-      spread); every ``G`` is divided by its standard deviation, so the criterion ``chi2(alpha)`` (the shifts and
-      the linear model fitted) is a chi-square; the angle's standard error is ``sqrt(2 / chi2''(alpha))``, times
-      ``sqrt(chi2 / dof)`` where the conditions fit worse than the noise, combined with the spread of the slope of
-      pure noise's criterion over the curvature (the rows, and the noise summed into them, move with the trial
-      angle: :func:`_noise_slopes`).
-    - Shifts: ``c_k`` keeps the axis' offset (orthogonal to ``cos theta_k, sin theta_k`` only, which a translation
-      of the specimen explains), ``d_k`` mean zero.
-    - Scales (``scales=True``, the default): tilt ``k``'s ``G`` is ``a_k`` times the conditions (an exposure or a
-      signal that changes with the path length), ``a_k`` fitted by least squares against them, mean 1.
+Notes
+-----
+- ``stack`` ``(tilts, rows, columns)``: rows along the tilt axis, columns across it (indreg's layout), square
+  pixels, ``alpha`` indreg's tilt-axis angle (``indreg.alignment.operator``: a feature at the ideal point ``q``
+  appears at ``R(alpha) q + shift``). A pixel at ``(s, t)`` (columns, rows, from the image's centre) lies at
+  ``u = cos(alpha) s + sin(alpha) t - c_k`` across the axis and ``v = -sin(alpha) s + cos(alpha) t - d_k``
+  along it; ``(c_k, d_k)`` are tilt ``k``'s shifts across / along (px).
+- No interpolation of the data: per tilt, exact sums over the pixels, ``G_{n,k}(rho) = sum_p I_k(p) u_p^n
+  w(v_p) exp(-2 pi i rho v_p)``, ``w`` a Tukey window along the axis that keeps the rows near the detector's
+  top and bottom out (what leaves the detector along the axis), ``rho`` at a spacing of one over the window's
+  length up to ``band`` cycles per pixel. The conditions hold for every ``rho`` (a weighting along the axis
+  keeps them), so each is a linear model per ``rho`` (real and imaginary parts apart).
+- Noise: ``sigma`` from the data (:func:`noise_level`: each pixel less its four neighbours' mean, a robust
+  spread); every ``G`` is divided by its standard deviation, so the criterion ``chi2(alpha)`` (the shifts and
+  the linear model fitted) is a chi-square; the angle's standard error is ``sqrt(2 / chi2''(alpha))``, times
+  ``sqrt(chi2 / dof)`` where the conditions fit worse than the noise, combined with the spread of the slope of
+  pure noise's criterion over the curvature (the rows, and the noise summed into them, move with the trial
+  angle: :func:`_noise_slopes`).
+- Shifts: ``c_k`` keeps the axis' offset (orthogonal to ``cos theta_k, sin theta_k`` only, which a translation
+  of the specimen explains), ``d_k`` mean zero.
+- Scales (``scales=True``, the default): tilt ``k``'s ``G`` is ``a_k`` times the conditions (an exposure or a
+  signal that changes with the path length), ``a_k`` fitted by least squares against them, mean 1.
 """
 from __future__ import annotations
 

@@ -11,21 +11,22 @@ space only, whose inner product is a constant times the plain sum, so the adjoin
 exact transpose of the interpolation (a scatter-add of the same weights). ``S`` is differentiable in the data, the
 shifts and the angle (its weights are; the cell indices are piecewise constant).
 
-Convention:
-    - A projection image has axes ``(rows, columns)``: rows along the tilt axis (a 2D sinogram has one row),
-      columns across it (the detector bins ``s_d``). Pixels are the detector cells: ``det_cell`` across,
-      ``row_cell`` (the cell side along the tilt axis) along.
-    - ``shifts`` ``(num_projections, c)`` in pixels, ``c = 1`` in 2D (across the axis) and ``c = 2`` for a tilt
-      series (``[:, 0]`` across, ``[:, 1]`` along the axis); ``angle`` ``alpha`` in radians (tilt series only).
-    - A feature at the ideal detector point ``q = (s, t)`` (physical units; ``t = 0`` at the middle row, ``s``
-      as ``det_points``) appears at ``p = R(alpha) q + (s_k det_cell, s_k' row_cell)``, ``R`` the counter-clockwise
-      rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
-    - ``matrices`` (optional, ``(num_projections, 2, 2)``, tilt series only): a fixed linear map ``B_k`` of the
-      ``(s, t)`` plane per projection (another tool's per-tilt rotation, magnification, stretch;
-      ``indreg.alignment.files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
-      ``(S y)(p) = y(B_k^{-1} R(-alpha)(p - shift))``. Without it ``B_k = I``.
-    - Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
-      field of view, a rod along the axis, continues there) or zero (``edge="zero"``).
+Notes
+-----
+- A projection image has axes ``(rows, columns)``: rows along the tilt axis (a 2D sinogram has one row),
+  columns across it (the detector bins ``s_d``). Pixels are the detector cells: ``det_cell`` across,
+  ``row_cell`` (the cell side along the tilt axis) along.
+- ``shifts`` ``(num_projections, c)`` in pixels, ``c = 1`` in 2D (across the axis) and ``c = 2`` for a tilt
+  series (``[:, 0]`` across, ``[:, 1]`` along the axis); ``angle`` ``alpha`` in radians (tilt series only).
+- A feature at the ideal detector point ``q = (s, t)`` (physical units; ``t = 0`` at the middle row, ``s``
+  as ``det_points``) appears at ``p = R(alpha) q + (s_k det_cell, s_k' row_cell)``, ``R`` the counter-clockwise
+  rotation of the ``(s, t)`` plane about the tilt axis' point ``(0, 0)``. So ``(S y)(p) = y(R(-alpha)(p - shift))``.
+- ``matrices`` (optional, ``(num_projections, 2, 2)``, tilt series only): a fixed linear map ``B_k`` of the
+  ``(s, t)`` plane per projection (another tool's per-tilt rotation, magnification, stretch;
+  ``indreg.alignment.files``), applied before the tilt-axis rotation: ``p = R(alpha) B_k q + shift``, so
+  ``(S y)(p) = y(B_k^{-1} R(-alpha)(p - shift))``. Without it ``B_k = I``.
+- Beyond the detector ``y`` is its nearest edge pixel (``edge="nearest"``: a specimen that runs out of the
+  field of view, a rod along the axis, continues there) or zero (``edge="zero"``).
 """
 from __future__ import annotations
 

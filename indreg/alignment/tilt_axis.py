@@ -5,20 +5,21 @@ docs/tilt_series.md): detector row ``j`` images slice ``j`` of the volume, ortho
 have it along the image's X, or at an angle that the microscope software records (SerialEM / IMOD ``.mdoc``:
 ``Tilt axis angle = 85.3``, ``TiltAxisAngle = -90``).
 
-Convention:
-    - A stack ``(num_tilts, rows, cols)`` is seen as IMOD shows a section: X = the column index (to the right),
-      Y = the row index (upwards). ``tilt_axis_angle`` is the angle from the Y axis to the tilt axis,
-      counterclockwise positive, in degrees (IMOD's rotation angle, SerialEM's tilt axis angle): 0 is indreg's
-      layout, +-90 an axis along X.
-    - :func:`align_tilt_axis` rotates every tilt image by ``-tilt_axis_angle`` about its centre so that the axis
-      runs along Y: a multiple of 90 degrees exactly (``np.rot90``: a transposition and a flip, rows and columns
-      swap for an odd multiple), the rest (at most 45 degrees) by bilinear interpolation on the same grid (square
-      pixels; pixels whose source lies outside the image take the nearest edge value, so the corners of a rotated
-      image are extrapolated, not measured).
-    - :func:`check_tilt_axis`: in a parallel beam the mass of each slice orthogonal to the tilt axis is the same at
-      every tilt, so with the axis along the rows' index every row sum (over the columns) is the same at every
-      tilt, up to one scale per tilt (exposure, a slab's thickness). The check compares the per-row sums across the
-      tilts with the per-column sums: the axis runs along the direction whose sums agree.
+Notes
+-----
+- A stack ``(num_tilts, rows, cols)`` is seen as IMOD shows a section: X = the column index (to the right),
+  Y = the row index (upwards). ``tilt_axis_angle`` is the angle from the Y axis to the tilt axis,
+  counterclockwise positive, in degrees (IMOD's rotation angle, SerialEM's tilt axis angle): 0 is indreg's
+  layout, +-90 an axis along X.
+- :func:`align_tilt_axis` rotates every tilt image by ``-tilt_axis_angle`` about its centre so that the axis
+  runs along Y: a multiple of 90 degrees exactly (``np.rot90``: a transposition and a flip, rows and columns
+  swap for an odd multiple), the rest (at most 45 degrees) by bilinear interpolation on the same grid (square
+  pixels; pixels whose source lies outside the image take the nearest edge value, so the corners of a rotated
+  image are extrapolated, not measured).
+- :func:`check_tilt_axis`: in a parallel beam the mass of each slice orthogonal to the tilt axis is the same at
+  every tilt, so with the axis along the rows' index every row sum (over the columns) is the same at every
+  tilt, up to one scale per tilt (exposure, a slab's thickness). The check compares the per-row sums across the
+  tilts with the per-column sums: the axis runs along the direction whose sums agree.
 """
 from __future__ import annotations
 

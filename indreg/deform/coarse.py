@@ -50,20 +50,22 @@ class CoarseVelocityDeformation(LDDMMDeformation):
       folding check of every step): of the coarse map ``Id + u_N`` on the velocity grid, whose interpolation is
       applied (``f^d`` times cheaper: at 256^3 with ``f = 4`` the fine determinant cost more than half a gradient).
 
-    Convention:
-        ``velocity (..., N+1, d, *velocity_domain.shape)`` (component 0 = x; physical units per unit time),
-        ``template (..., *domain.shape)``, output ``(..., *domain.shape)``; 2D and 3D, float32 / float64, any
-        device. ``velocity_domain`` has the box (``min_pt``, ``max_pt``) of ``domain`` and at most its cells per
-        axis (any ratio; ``coarse_domain(domain, f)`` is the grid of ``velocity_factor=f``).
+    Notes
+    -----
+    ``velocity (..., N+1, d, *velocity_domain.shape)`` (component 0 = x; physical units per unit time),
+    ``template (..., *domain.shape)``, output ``(..., *domain.shape)``; 2D and 3D, float32 / float64, any
+    device. ``velocity_domain`` has the box (``min_pt``, ``max_pt``) of ``domain`` and at most its cells per
+    axis (any ratio; ``coarse_domain(domain, f)`` is the grid of ``velocity_factor=f``).
 
-    Example:
-        >>> from indreg import phantoms
-        >>> dom = ImageDomain.paper(32)
-        >>> W = CoarseVelocityDeformation(dom, coarse_domain(dom, 2), num_steps=10)
-        >>> v = torch.zeros(11, 2, 16, 16, dtype=torch.float64, requires_grad=True)
-        >>> template = phantoms.get("j", dom)
-        >>> bool(torch.equal(W(v, template), template)), W.deformation(v).shape
-        (True, torch.Size([2, 32, 32]))
+    Examples
+    --------
+    >>> from indreg import phantoms
+    >>> dom = ImageDomain.paper(32)
+    >>> W = CoarseVelocityDeformation(dom, coarse_domain(dom, 2), num_steps=10)
+    >>> v = torch.zeros(11, 2, 16, 16, dtype=torch.float64, requires_grad=True)
+    >>> template = phantoms.get("j", dom)
+    >>> bool(torch.equal(W(v, template), template)), W.deformation(v).shape
+    (True, torch.Size([2, 32, 32]))
     """
 
     def __init__(self, domain: ImageDomain, velocity_domain: ImageDomain, num_steps: int = 20,

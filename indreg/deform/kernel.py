@@ -84,21 +84,23 @@ class GaussianKernel:
     ``eps(dtype)`` relative to the largest one, so they agree with ``"matrix"`` to the dense form's own
     rounding level (float32: max relative difference ~6e-7, float64 ~1e-14; tests/deform/test_kernel.py).
 
-    Convention:
-        vector fields ``(..., 2, nx, ny)`` on ``domain`` (component 0 = x, 1 = y), any batch dims;
-        ``sigma`` in physical units (the paper's domain is ``[-16, 16]^2``); the output has the input's
-        shape, dtype and device. The operator is L2-self-adjoint and positive definite:
-        ``<K f, g>_L2 = <f, K g>_L2``, and for ``v = K m`` the V norm is ``<v, v>_V = <m, K m>_L2``
-        (``inner_v``). 3D (a ``domain`` of shape ``(nx, ny, nz)``): vector fields ``(..., 3, nx, ny, nz)``
-        (component 2 = z), the same methods with a third factor.
+    Notes
+    -----
+    vector fields ``(..., 2, nx, ny)`` on ``domain`` (component 0 = x, 1 = y), any batch dims;
+    ``sigma`` in physical units (the paper's domain is ``[-16, 16]^2``); the output has the input's
+    shape, dtype and device. The operator is L2-self-adjoint and positive definite:
+    ``<K f, g>_L2 = <f, K g>_L2``, and for ``v = K m`` the V norm is ``<v, v>_V = <m, K m>_L2``
+    (``inner_v``). 3D (a ``domain`` of shape ``(nx, ny, nz)``): vector fields ``(..., 3, nx, ny, nz)``
+    (component 2 = z), the same methods with a third factor.
 
-    Example:
-        >>> K = GaussianKernel(ImageDomain.paper(64), sigma=6.0)
-        >>> m = torch.zeros(21, 2, 64, 64)
-        >>> m[:, 0, 32, 32] = 1.0                               # a point momentum along x at each time
-        >>> v = K(m)                                            # a Gaussian bump of velocity around it
-        >>> v.shape, bool(v[:, 1].eq(0).all())
-        (torch.Size([21, 2, 64, 64]), True)
+    Examples
+    --------
+    >>> K = GaussianKernel(ImageDomain.paper(64), sigma=6.0)
+    >>> m = torch.zeros(21, 2, 64, 64)
+    >>> m[:, 0, 32, 32] = 1.0                               # a point momentum along x at each time
+    >>> v = K(m)                                            # a Gaussian bump of velocity around it
+    >>> v.shape, bool(v[:, 1].eq(0).all())
+    (torch.Size([21, 2, 64, 64]), True)
     """
 
     def __init__(self, domain: ImageDomain, sigma: float, method: str = "auto"):

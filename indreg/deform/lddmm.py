@@ -224,31 +224,33 @@ class LDDMMDeformation(torch.nn.Module):
     the discrete map uses ``nu(t_{i+1} .. t_N)`` (Remark re:inverse_linear_deformation). Both gradients
     converge to the same continuous L2 gradient (test_gradient_scale_relation).
 
-    Convention:
-        ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, 1 = y; physical units per unit time),
-        ``template (..., nx, ny)`` or ``(nx, ny)`` (shared across the batch; batch dims broadcast and the
-        gradients are summed back to each input's shape); output ``(..., nx, ny)``. float32 / float64, any
-        device (the inputs'). Images are 0 outside the domain (zero padding), Jacobians and displacements are
-        continued from the border.
+    Notes
+    -----
+    ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, 1 = y; physical units per unit time),
+    ``template (..., nx, ny)`` or ``(nx, ny)`` (shared across the batch; batch dims broadcast and the
+    gradients are summed back to each input's shape); output ``(..., nx, ny)``. float32 / float64, any
+    device (the inputs'). Images are 0 outside the domain (zero padding), Jacobians and displacements are
+    continued from the border.
 
-        3D (a ``domain`` with ``shape (nx, ny, nz)``): the same operator, code and options, with
-        ``velocity (..., N+1, 3, nx, ny, nz)`` (component 2 = z), ``template (..., nx, ny, nz)``, output
-        ``(..., nx, ny, nz)``; trilinear interpolation (``grid_sample`` on 5D tensors), the 3x3 Jacobian
-        determinant, and divergences / gradients over three axes. Everything above holds per axis. Measured
-        times and memory: docs/3d.md.
+    3D (a ``domain`` with ``shape (nx, ny, nz)``): the same operator, code and options, with
+    ``velocity (..., N+1, 3, nx, ny, nz)`` (component 2 = z), ``template (..., nx, ny, nz)``, output
+    ``(..., nx, ny, nz)``; trilinear interpolation (``grid_sample`` on 5D tensors), the 3x3 Jacobian
+    determinant, and divergences / gradients over three axes. Everything above holds per axis. Measured
+    times and memory: docs/3d.md.
 
-    Example:
-        >>> from indreg import phantoms
-        >>> dom = ImageDomain.paper(32)
-        >>> W = LDDMMDeformation(dom, num_steps=10)
-        >>> template = phantoms.get("j", dom)                   # (32, 32), float64
-        >>> v = torch.zeros(11, 2, 32, 32, dtype=torch.float64, requires_grad=True)
-        >>> deformed = W(v, template)                           # the zero velocity: the identity map
-        >>> torch.allclose(deformed, template)
-        True
-        >>> deformed.square().sum().backward()                  # the paper's gradient as the backward pass
-        >>> v.grad.shape
-        torch.Size([11, 2, 32, 32])
+    Examples
+    --------
+    >>> from indreg import phantoms
+    >>> dom = ImageDomain.paper(32)
+    >>> W = LDDMMDeformation(dom, num_steps=10)
+    >>> template = phantoms.get("j", dom)                   # (32, 32), float64
+    >>> v = torch.zeros(11, 2, 32, 32, dtype=torch.float64, requires_grad=True)
+    >>> deformed = W(v, template)                           # the zero velocity: the identity map
+    >>> torch.allclose(deformed, template)
+    True
+    >>> deformed.square().sum().backward()                  # the paper's gradient as the backward pass
+    >>> v.grad.shape
+    torch.Size([11, 2, 32, 32])
     """
 
     def __init__(self, domain: ImageDomain, num_steps: int = 20, action: str = "geometric",

@@ -258,24 +258,26 @@ class MetamorphosisDeformation(torch.nn.Module):
     Gradient scale: ``dL/dzeta_i = (cell_volume / N) * (its L2([0,1], L2) gradient)``, as ``dL/dnu_i``
     (``LDDMMDeformation``, "Gradient scale").
 
-    Convention:
-        ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, physical units per unit time), ``source (..., N+1,
-        nx, ny)`` (image units per unit time), ``template (..., nx, ny)``; batch dims broadcast (gradients are
-        summed back to each input's shape); output ``(..., nx, ny)``. 3D (a domain of shape ``(nx, ny, nz)``):
-        ``velocity (..., N+1, 3, nx, ny, nz)``, ``source (..., N+1, nx, ny, nz)``, ``template`` and output
-        ``(..., nx, ny, nz)``, trilinear interpolation (the same code path; "bilinear" above reads "trilinear").
-        float32 / float64, any device (the inputs'). Images and sources are 0 outside the domain.
+    Notes
+    -----
+    ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, physical units per unit time), ``source (..., N+1,
+    nx, ny)`` (image units per unit time), ``template (..., nx, ny)``; batch dims broadcast (gradients are
+    summed back to each input's shape); output ``(..., nx, ny)``. 3D (a domain of shape ``(nx, ny, nz)``):
+    ``velocity (..., N+1, 3, nx, ny, nz)``, ``source (..., N+1, nx, ny, nz)``, ``template`` and output
+    ``(..., nx, ny, nz)``, trilinear interpolation (the same code path; "bilinear" above reads "trilinear").
+    float32 / float64, any device (the inputs'). Images and sources are 0 outside the domain.
 
-    Example:
-        >>> from indreg import phantoms
-        >>> dom = ImageDomain.paper(32)
-        >>> M = MetamorphosisDeformation(dom, num_steps=10)
-        >>> template = phantoms.get("j", dom)
-        >>> torch.allclose(M(M.zero_velocity(), M.zero_source(), template), template)   # no motion, no source
-        True
-        >>> source = M.zero_source() + 0.5                      # zeta = 0.5 for t in [0, 1]: adds 0.5 in total
-        >>> torch.allclose(M(M.zero_velocity(), source, template), template + 0.5)
-        True
+    Examples
+    --------
+    >>> from indreg import phantoms
+    >>> dom = ImageDomain.paper(32)
+    >>> M = MetamorphosisDeformation(dom, num_steps=10)
+    >>> template = phantoms.get("j", dom)
+    >>> torch.allclose(M(M.zero_velocity(), M.zero_source(), template), template)   # no motion, no source
+    True
+    >>> source = M.zero_source() + 0.5                      # zeta = 0.5 for t in [0, 1]: adds 0.5 in total
+    >>> torch.allclose(M(M.zero_velocity(), source, template), template + 0.5)
+    True
     """
 
     def __init__(self, domain: ImageDomain, num_steps: int = 20, backward: str = "adjoint",

@@ -134,23 +134,25 @@ class GeodesicShooting(torch.nn.Module):
     momentum gradient has cosine 0.99 with the exact one but a relative error of 14-16 % at N = 5, 10, 20
     (template gradient: 2-7 %), and the error does not vanish as N grows.
 
-    Convention:
-        momentum ``m0 (..., 2, nx, ny)`` (L2 density, ``nu = K m``; any batch dims), template ``(..., nx, ny)``
-        or ``(nx, ny)`` shared by the batch; same dtype and device. Returns the deformed template
-        ``(..., nx, ny)``, or a ``ShootingResult`` with ``return_all=True``. 3D (a ``domain`` of shape
-        ``(nx, ny, nz)``): ``m0 (..., 3, nx, ny, nz)``, template ``(..., nx, ny, nz)``, 3x3 Jacobians.
+    Notes
+    -----
+    momentum ``m0 (..., 2, nx, ny)`` (L2 density, ``nu = K m``; any batch dims), template ``(..., nx, ny)``
+    or ``(nx, ny)`` shared by the batch; same dtype and device. Returns the deformed template
+    ``(..., nx, ny)``, or a ``ShootingResult`` with ``return_all=True``. 3D (a ``domain`` of shape
+    ``(nx, ny, nz)``): ``m0 (..., 3, nx, ny, nz)``, template ``(..., nx, ny, nz)``, 3x3 Jacobians.
 
-    Example:
-        >>> from indreg import phantoms
-        >>> dom = ImageDomain.paper(32)
-        >>> shoot = GeodesicShooting(dom, GaussianKernel(dom, 6.0), num_steps=10)
-        >>> template = phantoms.get("j", dom)                   # (32, 32)
-        >>> m0 = torch.zeros(4, 2, 32, 32, dtype=torch.float64)  # a batch of 4 initial momenta
-        >>> m0[1, 0] = 0.01                                     # the second one pushes along x
-        >>> shoot(m0, template).shape
-        torch.Size([4, 32, 32])
-        >>> shoot.energy(m0) > 0                                # <m0, K m0> = ||v||^2_{L2([0,1], V)}
-        tensor([False,  True, False, False])
+    Examples
+    --------
+    >>> from indreg import phantoms
+    >>> dom = ImageDomain.paper(32)
+    >>> shoot = GeodesicShooting(dom, GaussianKernel(dom, 6.0), num_steps=10)
+    >>> template = phantoms.get("j", dom)                   # (32, 32)
+    >>> m0 = torch.zeros(4, 2, 32, 32, dtype=torch.float64)  # a batch of 4 initial momenta
+    >>> m0[1, 0] = 0.01                                     # the second one pushes along x
+    >>> shoot(m0, template).shape
+    torch.Size([4, 32, 32])
+    >>> shoot.energy(m0) > 0                                # <m0, K m0> = ||v||^2_{L2([0,1], V)}
+    tensor([False,  True, False, False])
     """
 
     def __init__(self, domain: ImageDomain, kernel: GaussianKernel, num_steps: int, action: str = "geometric",

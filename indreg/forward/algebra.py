@@ -15,18 +15,19 @@ indreg's own (which also write ``A * B``, ``c * A``, ``A + B``, ``A - B``: ``Ope
     restrict(T, rows)          f -> (T f)[rows] along the first data axis (e.g. held-out angles)
     ImageOperator(domain, forward, adjoint)   an operator of image space (a blur) from two functions
 
-Convention:
-    - Images ``(..., *domain.shape)`` and data ``(..., *range_shape)`` with any leading batch dims, 2D or 3D, in the
-      dtypes and on the devices the parts accept; everything is differentiable (autograd through the parts).
-    - An operator whose range is an image space has ``range_domain`` (an ``ImageDomain``; its ``inner_data`` is
-      ``range_domain.inner``): ``ImageOperator`` and what is built on its left.
-    - Adjoints are the weighted L2 adjoints of the parts' inner products. The data inner product of a composition,
-      sum or multiple is its (outer, first) part's; of a stack the sum of the parts'; of a restriction the part's
-      reweighted (``RestrictedOperator``).
-    - Parts that do not fit (domains, range shapes, data inner products, compared by ``<1, 1>`` in float64 on the
-      CPU) are refused by a one-line ``ValueError`` naming both; an argument that is no operator by a
-      ``TypeError`` naming what it lacks.
-    - ``on_domain(domain)`` (coarse-to-fine solvers) where every part has it, else ``on_domain`` is None.
+Notes
+-----
+- Images ``(..., *domain.shape)`` and data ``(..., *range_shape)`` with any leading batch dims, 2D or 3D, in the
+  dtypes and on the devices the parts accept; everything is differentiable (autograd through the parts).
+- An operator whose range is an image space has ``range_domain`` (an ``ImageDomain``; its ``inner_data`` is
+  ``range_domain.inner``): ``ImageOperator`` and what is built on its left.
+- Adjoints are the weighted L2 adjoints of the parts' inner products. The data inner product of a composition,
+  sum or multiple is its (outer, first) part's; of a stack the sum of the parts'; of a restriction the part's
+  reweighted (``RestrictedOperator``).
+- Parts that do not fit (domains, range shapes, data inner products, compared by ``<1, 1>`` in float64 on the
+  CPU) are refused by a one-line ``ValueError`` naming both; an argument that is no operator by a
+  ``TypeError`` naming what it lacks.
+- ``on_domain(domain)`` (coarse-to-fine solvers) where every part has it, else ``on_domain`` is None.
 """
 from __future__ import annotations
 
@@ -164,21 +165,23 @@ class ImageOperator(OperatorAlgebra):
     """A linear operator of image space ``B: L2(domain) -> L2(domain)`` from its action (e.g. a blur), to compose
     with a projector: ``T = R * ImageOperator(domain, blur)``.
 
-    Convention:
-        - ``forward(f)`` / ``adjoint(f)``: tensors ``(..., *domain.shape)`` -> the same shape, batched and
-          differentiable (torch operations); ``adjoint=None``: ``B`` is self-adjoint. Both sides carry
-          ``domain.inner``, so the L2 adjoint is the plain transpose.
-        - ``range_shape = domain.shape``, ``range_domain = domain``, ``inner_data = domain.inner``.
-        - ``on_domain(d)``: the same functions on the grid ``d`` (they must accept any grid shape; a stencil in
-          cells keeps its width in cells, not in physical units).
+    Notes
+    -----
+    - ``forward(f)`` / ``adjoint(f)``: tensors ``(..., *domain.shape)`` -> the same shape, batched and
+      differentiable (torch operations); ``adjoint=None``: ``B`` is self-adjoint. Both sides carry
+      ``domain.inner``, so the L2 adjoint is the plain transpose.
+    - ``range_shape = domain.shape``, ``range_domain = domain``, ``inner_data = domain.inner``.
+    - ``on_domain(d)``: the same functions on the grid ``d`` (they must accept any grid shape; a stencil in
+      cells keeps its width in cells, not in physical units).
 
-    Example:
-        >>> import indreg
-        >>> dom = indreg.ImageDomain.paper(16)
-        >>> B = ImageOperator(dom, lambda f: 0.5 * f + 0.25 * (f.roll(1, -1) + f.roll(-1, -1)))  # periodic blur
-        >>> T = indreg.RayTransform(dom, indreg.ParallelBeamGeometry.paper(6, 24)) * B
-        >>> T.range_shape, T.adjointness_test() < 1e-12
-        ((6, 24), True)
+    Examples
+    --------
+    >>> import indreg
+    >>> dom = indreg.ImageDomain.paper(16)
+    >>> B = ImageOperator(dom, lambda f: 0.5 * f + 0.25 * (f.roll(1, -1) + f.roll(-1, -1)))  # periodic blur
+    >>> T = indreg.RayTransform(dom, indreg.ParallelBeamGeometry.paper(6, 24)) * B
+    >>> T.range_shape, T.adjointness_test() < 1e-12
+    ((6, 24), True)
     """
 
     def __init__(self, domain: ImageDomain, forward: Callable, adjoint: Optional[Callable] = None):

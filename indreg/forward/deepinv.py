@@ -55,14 +55,15 @@ def _physics_class():
         class IndregPhysics(deepinv.physics.LinearPhysics):
             """An indreg linear operator ``T`` as deepinv physics: ``A = T``, ``A_adjoint = A^T`` (Euclidean).
 
-            Convention:
-                - ``A``: images ``(B, C, nx, ny)`` (``H`` = x, ``W`` = y) -> measurements
-                  ``(B, C, *range_shape)``, channels projected independently; any leading dims work.
-                - ``A_adjoint`` is the transpose for deepinv's plain sums, ``A^T y = cell_volume * T^*(y / w)``
-                  with ``T^*`` indreg's L2 adjoint and ``w`` the data weight of ``T.inner_data`` (module
-                  docstring). For ``RayTransform`` this is exactly ``T.transpose``.
-                - Noise and sensor models, solver settings: deepinv's ``LinearPhysics`` keyword arguments.
-                - ``clone()`` / ``copy.deepcopy`` copy the deepinv state and share the indreg operator.
+            Notes
+            -----
+            - ``A``: images ``(B, C, nx, ny)`` (``H`` = x, ``W`` = y) -> measurements
+              ``(B, C, *range_shape)``, channels projected independently; any leading dims work.
+            - ``A_adjoint`` is the transpose for deepinv's plain sums, ``A^T y = cell_volume * T^*(y / w)``
+              with ``T^*`` indreg's L2 adjoint and ``w`` the data weight of ``T.inner_data`` (module
+              docstring). For ``RayTransform`` this is exactly ``T.transpose``.
+            - Noise and sensor models, solver settings: deepinv's ``LinearPhysics`` keyword arguments.
+            - ``clone()`` / ``copy.deepcopy`` copy the deepinv state and share the indreg operator.
             """
 
             def __init__(self, operator, data_weight, **kwargs):
@@ -134,20 +135,22 @@ def as_physics(operator, **kwargs):
             ``range_shape``, ``__call__``, ``adjoint`` (L2 adjoint) and ``inner_data`` (a weighted sum)).
         **kwargs: passed to ``deepinv.physics.LinearPhysics`` (``noise_model``, ``max_iter``, ``tol``, ...).
 
-    Convention:
-        - Images ``(B, C, nx, ny)`` (deepinv's ``H`` = indreg's x axis, ``W`` = y), measurements
-          ``(B, C, *range_shape)``; each channel is projected independently.
-        - ``A_adjoint`` is the adjoint for deepinv's plain Euclidean inner products, i.e. the matrix transpose
-          ``A^T y = cell_volume * T^*(y / w)`` (``w`` the data weight of ``inner_data``), not indreg's weighted
-          L2 adjoint ``T^*``: deepinv's adjointness test, data-fidelity gradients, least-squares solvers and
-          autograd all use unweighted sums. For ``RayTransform``, ``A_adjoint == T.transpose``.
+    Notes
+    -----
+    - Images ``(B, C, nx, ny)`` (deepinv's ``H`` = indreg's x axis, ``W`` = y), measurements
+      ``(B, C, *range_shape)``; each channel is projected independently.
+    - ``A_adjoint`` is the adjoint for deepinv's plain Euclidean inner products, i.e. the matrix transpose
+      ``A^T y = cell_volume * T^*(y / w)`` (``w`` the data weight of ``inner_data``), not indreg's weighted
+      L2 adjoint ``T^*``: deepinv's adjointness test, data-fidelity gradients, least-squares solvers and
+      autograd all use unweighted sums. For ``RayTransform``, ``A_adjoint == T.transpose``.
 
-    Example:
-        >>> import torch
-        >>> from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
-        >>> phys = as_physics(RayTransform(ImageDomain.paper(64), ParallelBeamGeometry.paper(10, 92)))
-        >>> bool(phys.adjointness_test(img_size=(1, 64, 64), dtype=torch.float64) < 1e-12)
-        True
+    Examples
+    --------
+    >>> import torch
+    >>> from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
+    >>> phys = as_physics(RayTransform(ImageDomain.paper(64), ParallelBeamGeometry.paper(10, 92)))
+    >>> bool(phys.adjointness_test(img_size=(1, 64, 64), dtype=torch.float64) < 1e-12)
+    True
     """
     cls = _physics_class()
     missing = [name for name in _PROTOCOL if not hasattr(operator, name)]
@@ -190,16 +193,17 @@ def _probe(physics, domain: ImageDomain):
 class PhysicsOperator(OperatorAlgebra, nn.Module):
     """A deepinv ``LinearPhysics`` ``A`` as an indreg linear operator ``T`` on ``domain``.
 
-    Convention:
-        - Input images ``(..., nx, ny)`` (axis 0 = x = deepinv's ``H``), any leading batch dims, in a dtype
-          the physics accepts (``dtypes``) and on its device; a channel dim of 1 is added for deepinv.
-        - Output data ``(..., *range_shape)`` (deepinv's measurement without its channel dim; for
-          ``deepinv.physics.Tomography`` that is ``(det_count, num_angles)``).
-        - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` (``inner_data``).
-        - ``transpose`` is deepinv's ``A_adjoint`` (Euclidean); the L2 adjoint for the weighted inner products
-          is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``).
-        - Gradients are deepinv's (autograd through ``physics.A``).
-        - Arithmetic and checks from ``OperatorAlgebra`` (``T * B``, ``c * T``, ``adjointness_test``, ...).
+    Notes
+    -----
+    - Input images ``(..., nx, ny)`` (axis 0 = x = deepinv's ``H``), any leading batch dims, in a dtype
+      the physics accepts (``dtypes``) and on its device; a channel dim of 1 is added for deepinv.
+    - Output data ``(..., *range_shape)`` (deepinv's measurement without its channel dim; for
+      ``deepinv.physics.Tomography`` that is ``(det_count, num_angles)``).
+    - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` (``inner_data``).
+    - ``transpose`` is deepinv's ``A_adjoint`` (Euclidean); the L2 adjoint for the weighted inner products
+      is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``).
+    - Gradients are deepinv's (autograd through ``physics.A``).
+    - Arithmetic and checks from ``OperatorAlgebra`` (``T * B``, ``c * T``, ``adjointness_test``, ...).
     """
 
     def __init__(self, physics, domain: ImageDomain, range_shape: tuple, dtypes: tuple, data_weight: float):
@@ -270,18 +274,20 @@ def as_operator(physics, domain: ImageDomain, range_shape=None, data_weight: flo
         data_weight: weight ``w > 0`` of the data inner product ``w * sum(y1 * y2)`` (e.g. angle step times
             detector step for a tomography sinogram, as ``RayTransform``); 1 gives deepinv's plain sum.
 
-    Convention:
-        see ``PhysicsOperator``: ``T = A``, ``T^* = (data_weight / cell_volume) * A^T`` (deepinv's ``A_adjoint``
-        is the Euclidean transpose, so this scaling makes ``T^*`` the adjoint for indreg's inner products).
+    Notes
+    -----
+    see ``PhysicsOperator``: ``T = A``, ``T^* = (data_weight / cell_volume) * A^T`` (deepinv's ``A_adjoint``
+    is the Euclidean transpose, so this scaling makes ``T^*`` the adjoint for indreg's inner products).
 
-    Example:
-        >>> import math
-        >>> import deepinv
-        >>> from indreg import ImageDomain
-        >>> phys = deepinv.physics.Tomography(angles=10, img_width=64, normalize=False)
-        >>> T = as_operator(phys, ImageDomain.paper(64), data_weight=math.pi / 10 * 0.5)
-        >>> T.range_shape      # deepinv's sinogram axes: (detector, angle)
-        (91, 10)
+    Examples
+    --------
+    >>> import math
+    >>> import deepinv
+    >>> from indreg import ImageDomain
+    >>> phys = deepinv.physics.Tomography(angles=10, img_width=64, normalize=False)
+    >>> T = as_operator(phys, ImageDomain.paper(64), data_weight=math.pi / 10 * 0.5)
+    >>> T.range_shape      # deepinv's sinogram axes: (detector, angle)
+    (91, 10)
     """
     deepinv = _import_deepinv()
     if not isinstance(physics, deepinv.physics.LinearPhysics):

@@ -89,13 +89,14 @@ def fbp(T, y: torch.Tensor, filter: str = "hamming", frequency_scaling: float = 
         padding: bool = True) -> torch.Tensor:
     """Filtered backprojection ``T^*( w h * y )`` of data ``y`` for the ray transform ``T``.
 
-    Convention:
-        - ``y``: ``(..., num_angles, det_count)`` line integrals (physical units) as produced by ``T``;
-          returns images ``(..., nx, ny)`` on ``T.domain`` in the units of the original ``f``
-          (e.g. a unit disk reconstructs to about 1 inside with ``ram-lak``, ``frequency_scaling=1``).
-        - Parallel beam: any angle set; angle ``k`` is weighted by its quadrature cell
-          ``T.geometry.angle_weights[k]`` (module docstring). Fan beam: angles over a full turn, rebinned.
-        - Differentiable (FFT, multiplication, the rebinning and ``T.adjoint`` are all differentiable).
+    Notes
+    -----
+    - ``y``: ``(..., num_angles, det_count)`` line integrals (physical units) as produced by ``T``;
+      returns images ``(..., nx, ny)`` on ``T.domain`` in the units of the original ``f``
+      (e.g. a unit disk reconstructs to about 1 inside with ``ram-lak``, ``frequency_scaling=1``).
+    - Parallel beam: any angle set; angle ``k`` is weighted by its quadrature cell
+      ``T.geometry.angle_weights[k]`` (module docstring). Fan beam: angles over a full turn, rebinned.
+    - Differentiable (FFT, multiplication, the rebinning and ``T.adjoint`` are all differentiable).
 
     Args:
         filter: one of ``ram-lak``, ``shepp-logan``, ``cosine``, ``hamming``, ``hann``.

@@ -191,21 +191,22 @@ def _check_weights(weights, n: int) -> torch.Tensor:
 class ParallelBeamGeometry(_Geometry):
     """Angles ``theta_k`` (radians) and a detector line ``[det_min, det_max]`` split into ``det_count`` cells.
 
-    Convention:
-        - A datum ``p(theta_k, s_d)`` is the line integral over ``{s_d w + t w_perp : t in R}`` with
-          ``w = (cos theta, sin theta)`` and ``w_perp = (-sin theta, cos theta)`` (see ``RayTransform``);
-          this is ODL's ``Parallel2dGeometry`` with its default axes, and ASTRA's ``parallel``.
-        - Detector bins are cell-centred: ``s_d = det_min + (d + 1/2) * det_cell``,
-          ``det_cell = (det_max - det_min) / det_count``, in the image domain's physical units.
-        - Data are tensors ``(..., num_angles, det_count)``.
-        - The data-space inner product is ``<p, q> = data_weight * sum p q`` with
-          ``data_weight = angle_cell * det_cell`` and ``angle_cell = pi / num_angles``, as ODL weights its
-          data space (every angle gets the same weight, whatever the angles are).
-        - FBP weighs angle ``k`` by its quadrature cell ``angle_weights[k]`` (midpoint rule on the
-          half-turn, ``midpoint_cells``): ``pi / n`` for ``n`` uniform angles on ``[0, pi)``, the step for a
-          tilt series.
-        - ``det_min = det_max = None``: the operator fits a symmetric detector reaching the domain's
-          farthest corner (the half-diagonal for a centred domain), see ``resolve``.
+    Notes
+    -----
+    - A datum ``p(theta_k, s_d)`` is the line integral over ``{s_d w + t w_perp : t in R}`` with
+      ``w = (cos theta, sin theta)`` and ``w_perp = (-sin theta, cos theta)`` (see ``RayTransform``);
+      this is ODL's ``Parallel2dGeometry`` with its default axes, and ASTRA's ``parallel``.
+    - Detector bins are cell-centred: ``s_d = det_min + (d + 1/2) * det_cell``,
+      ``det_cell = (det_max - det_min) / det_count``, in the image domain's physical units.
+    - Data are tensors ``(..., num_angles, det_count)``.
+    - The data-space inner product is ``<p, q> = data_weight * sum p q`` with
+      ``data_weight = angle_cell * det_cell`` and ``angle_cell = pi / num_angles``, as ODL weights its
+      data space (every angle gets the same weight, whatever the angles are).
+    - FBP weighs angle ``k`` by its quadrature cell ``angle_weights[k]`` (midpoint rule on the
+      half-turn, ``midpoint_cells``): ``pi / n`` for ``n`` uniform angles on ``[0, pi)``, the step for a
+      tilt series.
+    - ``det_min = det_max = None``: the operator fits a symmetric detector reaching the domain's
+      farthest corner (the half-diagonal for a centred domain), see ``resolve``.
 
     Args:
         num_angles: number of angles; the default angles are uniform ``k * pi / num_angles`` on ``[0, pi)``.
@@ -217,10 +218,11 @@ class ParallelBeamGeometry(_Geometry):
             values beyond ``2 pi`` as probable degrees.
         angle_weights: explicit FBP quadrature cells (radians, positive), default ``midpoint_cells``.
 
-    Example:
-        >>> g = ParallelBeamGeometry.paper(num_angles=10, det_count=92)
-        >>> round(float(g.angles[1]) * 180 / math.pi, 2), round(g.det_cell, 4)
-        (18.95, 0.5217)
+    Examples
+    --------
+    >>> g = ParallelBeamGeometry.paper(num_angles=10, det_count=92)
+    >>> round(float(g.angles[1]) * 180 / math.pi, 2), round(g.det_cell, 4)
+    (18.95, 0.5217)
     """
 
     period = math.pi
@@ -302,10 +304,11 @@ class FanBeamGeometry(_Geometry):
             distance (>= 0). ASTRA's ``source_origin`` and ``origin_det`` (not source-to-detector).
         det_min, det_max, angles, angle_unit, angle_weights: as for ``ParallelBeamGeometry``.
 
-    Example:
-        >>> g = FanBeamGeometry(360, 512, src_radius=40.0, det_radius=40.0, det_min=-64.0, det_max=64.0)
-        >>> g.shape, g.magnification
-        ((360, 512), 2.0)
+    Examples
+    --------
+    >>> g = FanBeamGeometry(360, 512, src_radius=40.0, det_radius=40.0, det_min=-64.0, det_max=64.0)
+    >>> g.shape, g.magnification
+    ((360, 512), 2.0)
     """
 
     def __init__(self, num_angles: int | None = None, det_count: int = 1, src_radius: float = None,

@@ -297,26 +297,28 @@ class RayTransform(WeightedDataMixin, nn.Module):
     (``eq:OptimV``, data ``g = T(W(nu, I)) + noise``), discretised with Joseph's method (module docstring);
     the matrix comes from the projector registered for the geometry's type (``register_projector``).
 
-    Convention:
-        - Input images ``(..., nx, ny)`` on ``domain`` (axis 0 = x, axis 1 = y, physical units), any
-          leading batch dims, float32 or float64, on any device (the operator follows the input).
-        - Output data ``(..., num_angles, det_count)``: line integrals in physical length units
-          (a unit-valued disk of radius r gives ``2 r`` through its centre).
-        - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` with
-          ``data_weight = geometry.data_weight`` (as ODL).
-        - ``transpose`` is the exact matrix transpose ``A^T``; the L2 adjoint for the weighted inner
-          products is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``), and
-          ``T^* q (x) ~ sum_k angle_cell * q(theta_k, x . w_k)``, the discrete backprojection.
-        - Gradients: the forward is an autograd Function whose backward is ``A^T`` and vice versa, so the
-          backward of ``A`` is exact and twice differentiable.
-        - A geometry without detector extent (``det_min = det_max = None``) is fitted to the domain
-          (``geometry.resolve(domain)``); ``self.geometry`` is the resolved one.
+    Notes
+    -----
+    - Input images ``(..., nx, ny)`` on ``domain`` (axis 0 = x, axis 1 = y, physical units), any
+      leading batch dims, float32 or float64, on any device (the operator follows the input).
+    - Output data ``(..., num_angles, det_count)``: line integrals in physical length units
+      (a unit-valued disk of radius r gives ``2 r`` through its centre).
+    - Image inner product ``cell_volume * sum``; data inner product ``data_weight * sum`` with
+      ``data_weight = geometry.data_weight`` (as ODL).
+    - ``transpose`` is the exact matrix transpose ``A^T``; the L2 adjoint for the weighted inner
+      products is ``T^* = (data_weight / cell_volume) * A^T`` (``adjoint``), and
+      ``T^* q (x) ~ sum_k angle_cell * q(theta_k, x . w_k)``, the discrete backprojection.
+    - Gradients: the forward is an autograd Function whose backward is ``A^T`` and vice versa, so the
+      backward of ``A`` is exact and twice differentiable.
+    - A geometry without detector extent (``det_min = det_max = None``) is fitted to the domain
+      (``geometry.resolve(domain)``); ``self.geometry`` is the resolved one.
 
-    Example:
-        >>> dom = ImageDomain.paper(64)
-        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(10, 92))
-        >>> T(dom.zeros(3)).shape
-        torch.Size([3, 10, 92])
+    Examples
+    --------
+    >>> dom = ImageDomain.paper(64)
+    >>> T = RayTransform(dom, ParallelBeamGeometry.paper(10, 92))
+    >>> T(dom.zeros(3)).shape
+    torch.Size([3, 10, 92])
     """
 
     def __init__(self, domain: ImageDomain, geometry):

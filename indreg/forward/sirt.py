@@ -50,11 +50,12 @@ def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None
          callback=None) -> tuple:
     """``num_iter`` SIRT iterations for ``T x = y`` (module docstring).
 
-    Convention:
-        - ``T`` a ``LinearOperator``; ``y`` data ``(..., *T.range_shape)``, any leading batch dims; images
-          ``(..., *T.domain.shape)`` (2D or 3D); dtype and device follow ``y``.
-        - ``x0``: start (default zeros). ``nonneg``: clip to ``x >= 0`` after every step.
-        - ``callback(i, x)`` after iteration ``i`` (0-based).
+    Notes
+    -----
+    - ``T`` a ``LinearOperator``; ``y`` data ``(..., *T.range_shape)``, any leading batch dims; images
+      ``(..., *T.domain.shape)`` (2D or 3D); dtype and device follow ``y``.
+    - ``x0``: start (default zeros). ``nonneg``: clip to ``x >= 0`` after every step.
+    - ``callback(i, x)`` after iteration ``i`` (0-based).
 
     Returns:
         ``(x, history)``: ``history["residual"]`` float64 CPU ``(num_iter, ...)``, the weighted residual

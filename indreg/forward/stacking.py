@@ -21,13 +21,14 @@ __all__ = ["StackedOperator", "RestrictedOperator", "stack", "restrict"]
 class StackedOperator(OperatorAlgebra):
     """The operators ``T_1 .. T_K`` of one domain and one range shape ``R``, stacked (deepinv's ``stack``).
 
-    Convention:
-        - ``range_shape`` ``(K, *R)``: part ``k``'s data on axis ``-len(R) - 1``.
-        - ``__call__``: ``(..., *domain.shape) -> (..., K, *R)``, ``f -> (T_1 f, ..., T_K f)``; ``adjoint``: back,
-          ``g -> sum_k T_k^* g_k``.
-        - ``frames`` / ``frames_adjoint``: the block-diagonal operator ``(f_1, .., f_K) -> (T_1 f_1, .., T_K f_K)``,
-          ``(..., K, *domain.shape) <-> (..., K, *R)`` (a frame per part, e.g. per time point).
-        - ``inner_data`` sums the parts' ``T_k.inner_data`` (batch dims kept); ``frame_inner`` keeps the parts.
+    Notes
+    -----
+    - ``range_shape`` ``(K, *R)``: part ``k``'s data on axis ``-len(R) - 1``.
+    - ``__call__``: ``(..., *domain.shape) -> (..., K, *R)``, ``f -> (T_1 f, ..., T_K f)``; ``adjoint``: back,
+      ``g -> sum_k T_k^* g_k``.
+    - ``frames`` / ``frames_adjoint``: the block-diagonal operator ``(f_1, .., f_K) -> (T_1 f_1, .., T_K f_K)``,
+      ``(..., K, *domain.shape) <-> (..., K, *R)`` (a frame per part, e.g. per time point).
+    - ``inner_data`` sums the parts' ``T_k.inner_data`` (batch dims kept); ``frame_inner`` keeps the parts.
     """
 
     def __init__(self, operators: Sequence):
@@ -111,14 +112,15 @@ class RestrictedOperator(OperatorAlgebra):
     """``T`` restricted to some rows of its range: ``T_S f = (T f)[rows]`` along the first data axis (the angles of
     a ray transform, the tilts of a tilt series, the parts of a stack); it computes ``T f`` and selects.
 
-    Convention:
-        - ``range_shape`` ``(len(rows), *T.range_shape[1:])``; ``rows`` strictly increasing indices in
-          ``[0, T.range_shape[0])``.
-        - ``inner_data(y1, y2) = c * T.inner_data(E y1, E y2)`` with ``E`` the zero fill into ``T``'s range and
-          ``c = T.range_shape[0] / len(rows)``: the weight per datum is that of ``T`` with only these rows (a ray
-          transform's ``angle_cell = pi / num_angles`` becomes ``pi / len(rows)``), so a data term keeps its scale
-          per datum whatever is left out. ``adjoint(y) = c * T.adjoint(E y)`` is then the L2 adjoint, for any ``T``
-          whose data inner product is a weighted sum over data entries (every indreg operator).
+    Notes
+    -----
+    - ``range_shape`` ``(len(rows), *T.range_shape[1:])``; ``rows`` strictly increasing indices in
+      ``[0, T.range_shape[0])``.
+    - ``inner_data(y1, y2) = c * T.inner_data(E y1, E y2)`` with ``E`` the zero fill into ``T``'s range and
+      ``c = T.range_shape[0] / len(rows)``: the weight per datum is that of ``T`` with only these rows (a ray
+      transform's ``angle_cell = pi / num_angles`` becomes ``pi / len(rows)``), so a data term keeps its scale
+      per datum whatever is left out. ``adjoint(y) = c * T.adjoint(E y)`` is then the L2 adjoint, for any ``T``
+      whose data inner product is a weighted sum over data entries (every indreg operator).
     """
 
     def __init__(self, operator, rows):

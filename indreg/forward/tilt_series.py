@@ -52,10 +52,11 @@ class TiltSeriesGeometry:
           ``ParallelBeamGeometry``; for data measured on a detector as wide as the volume pass
           ``det_min, det_max = domain.min_pt[u], domain.max_pt[u]``.
 
-    Example:
-        >>> g = TiltSeriesGeometry.uniform(-60, 60, 2, det_count=64, det_min=-16.0, det_max=16.0)
-        >>> g.num_tilts, g.tilt_axis
-        (61, 'y')
+    Examples
+    --------
+    >>> g = TiltSeriesGeometry.uniform(-60, 60, 2, det_count=64, det_min=-16.0, det_max=16.0)
+    >>> g.num_tilts, g.tilt_axis
+    (61, 'y')
     """
 
     def __init__(self, angles, det_count: int, det_min: float | None = None, det_max: float | None = None,
@@ -146,23 +147,25 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
     (``TiltSeriesGeometry``), discretised by the 2D Joseph matrix ``A`` of that slice geometry, the same for
     every slice: ``T f = A`` applied slice by slice, in one batched sparse product.
 
-    Convention:
-        - Input volumes ``(..., nx, ny, nz)`` on a 3D ``domain`` (axis 0 = x), float32 or float64, any leading
-          batch dims, any device. Output data ``(..., num_tilts, det_rows, det_cols)``, line integrals in
-          physical length units (a unit ball of radius r gives ``2 r`` through its centre).
-        - ``transpose`` is the exact matrix transpose ``A^T`` per slice; ``adjoint`` is the L2 adjoint for
-          ``domain.inner`` and ``inner_data``: ``T^* = (data_weight / cell_volume) A^T`` (the cell side along
-          the tilt axis cancels, so the factor is the 2D one).
-        - Derivative: ``T`` is linear, ``T'(f) = T``; its autograd backward is ``A^T`` (and the backward of
-          ``transpose`` is ``A``), exact and twice differentiable.
-        - ``self.geometry`` is the resolved geometry; ``self.slice_transform`` the 2D ``RayTransform`` of one
-          slice (used by ``fbp``).
+    Notes
+    -----
+    - Input volumes ``(..., nx, ny, nz)`` on a 3D ``domain`` (axis 0 = x), float32 or float64, any leading
+      batch dims, any device. Output data ``(..., num_tilts, det_rows, det_cols)``, line integrals in
+      physical length units (a unit ball of radius r gives ``2 r`` through its centre).
+    - ``transpose`` is the exact matrix transpose ``A^T`` per slice; ``adjoint`` is the L2 adjoint for
+      ``domain.inner`` and ``inner_data``: ``T^* = (data_weight / cell_volume) A^T`` (the cell side along
+      the tilt axis cancels, so the factor is the 2D one).
+    - Derivative: ``T`` is linear, ``T'(f) = T``; its autograd backward is ``A^T`` (and the backward of
+      ``transpose`` is ``A``), exact and twice differentiable.
+    - ``self.geometry`` is the resolved geometry; ``self.slice_transform`` the 2D ``RayTransform`` of one
+      slice (used by ``fbp``).
 
-    Example:
-        >>> dom = ImageDomain((32, 24, 16))
-        >>> T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 3, det_count=40))
-        >>> T(dom.zeros(2)).shape
-        torch.Size([2, 41, 24, 40])
+    Examples
+    --------
+    >>> dom = ImageDomain((32, 24, 16))
+    >>> T = TiltSeriesTransform(dom, TiltSeriesGeometry.uniform(-60, 60, 3, det_count=40))
+    >>> T(dom.zeros(2)).shape
+    torch.Size([2, 41, 24, 40])
     """
 
     def __init__(self, domain: ImageDomain, geometry: TiltSeriesGeometry):

@@ -25,23 +25,25 @@ class TimeSeriesOperator(StackedOperator):
     """The forward operators ``T_1 .. T_K`` of the frames of a time series: their ``StackedOperator``
     (``indreg.forward.stacking``), one part per time point (module docstring).
 
-    Convention:
-        - ``operators``: a non-empty sequence of linear operators (``indreg.forward.LinearOperator``) on one
-          ``domain`` with one ``range_shape`` ``R`` (e.g. ``(num_angles, det_count)``: the same number of angles
-          per time point, at different angles).
-        - ``range_shape`` ``(K, *R)``: the frames' data stacked on axis ``-len(R) - 1`` (frame ``k`` = ``T_k``'s).
-        - ``frames``: ``(..., K, *domain.shape) -> (..., K, *R)``; ``frames_adjoint``: back; ``__call__``:
-          ``(..., *domain.shape) -> (..., K, *R)``; ``adjoint``: ``(..., K, *R) -> (..., *domain.shape)``.
-        - ``inner_data`` sums the frames' ``T_k.inner_data`` (batch dims kept); ``frame_inner`` keeps the frames.
+    Notes
+    -----
+    - ``operators``: a non-empty sequence of linear operators (``indreg.forward.LinearOperator``) on one
+      ``domain`` with one ``range_shape`` ``R`` (e.g. ``(num_angles, det_count)``: the same number of angles
+      per time point, at different angles).
+    - ``range_shape`` ``(K, *R)``: the frames' data stacked on axis ``-len(R) - 1`` (frame ``k`` = ``T_k``'s).
+    - ``frames``: ``(..., K, *domain.shape) -> (..., K, *R)``; ``frames_adjoint``: back; ``__call__``:
+      ``(..., *domain.shape) -> (..., K, *R)``; ``adjoint``: ``(..., K, *R) -> (..., *domain.shape)``.
+    - ``inner_data`` sums the frames' ``T_k.inner_data`` (batch dims kept); ``frame_inner`` keeps the frames.
 
-    Example:
-        >>> import indreg, math
-        >>> dom = indreg.ImageDomain.paper(16)
-        >>> ops = [indreg.RayTransform(dom, indreg.ParallelBeamGeometry(angles=[(k + 4 * j) * math.pi / 12
-        ...        for j in range(3)], det_count=24, det_min=-24, det_max=24)) for k in range(4)]
-        >>> T = TimeSeriesOperator(ops)
-        >>> T.range_shape, T.adjointness_test() < 1e-12, T.frames_adjointness_test() < 1e-12
-        ((4, 3, 24), True, True)
+    Examples
+    --------
+    >>> import indreg, math
+    >>> dom = indreg.ImageDomain.paper(16)
+    >>> ops = [indreg.RayTransform(dom, indreg.ParallelBeamGeometry(angles=[(k + 4 * j) * math.pi / 12
+    ...        for j in range(3)], det_count=24, det_min=-24, det_max=24)) for k in range(4)]
+    >>> T = TimeSeriesOperator(ops)
+    >>> T.range_shape, T.adjointness_test() < 1e-12, T.frames_adjointness_test() < 1e-12
+    ((4, 3, 24), True, True)
     """
 
 

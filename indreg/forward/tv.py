@@ -2,30 +2,31 @@
 "Reconstruction protocol"), solved by the primal-dual method of Chambolle & Pock (2011) with steps balanced
 between the data and the TV blocks (Pock & Chambolle 2011), so that the iterates do not depend on the units.
 
-Convention:
-    - ``T`` is any ``LinearOperator`` (``indreg.forward.operator``): a ``RayTransform`` or a user's operator.
-    - ``T`` may also be a ``TiltSeriesTransform`` (3D): everything below holds with d = 3.
-    - Images ``(..., nx, ny)`` or volumes ``(..., nx, ny, nz)`` (axis 0 = x) on ``T.domain``; data
-      ``(..., *T.range_shape)`` (for a ray transform ``(..., num_angles, det_count)``); any leading batch
-      dims (shared by ``y`` and ``x0``); dtype and device follow ``y``.
-    - Objective, as the paper's eq:VarReg with ODL's ``L2NormSquared`` data term (no factor 1/2, the
-      authors' ODL set-up, so the paper's ``mu`` means the same here):
-          ``E(x) = ||T x - y||^2 + mu * TV(x)``,  ``TV(x) = int |grad x| dx``  (isotropic),
-      with ``||.||`` the weighted data norm (``T.inner_data``) and the integral a cell-volume Riemann sum.
-      Equivalently ``(1/2)||T x - y||^2 + (mu/2) TV(x)``. Measured on suite 1 (V, 64^2, 10 x 92 angles x bins,
-      4.87 dB code convention, seed 0, 1000 iterations, balanced steps): ``mu = 3.0`` gives SSIM 0.62 (0.73 in
-      the paper's convention) against FBP's 0.39 (0.45); ``mu = 1.5`` (the paper's 3.0 read with a halved data
-      term) gives 0.49, ``mu = 6`` 0.63. (The equal steps, 1000 iterations: 0.55, 0.49, 0.48, further from the
-      minimum: objective 0.8 % above it at ``mu = 3`` against 0.04 %.)
-    - ``grad``: forward differences divided by the cell sides, zero padding beyond the last pixel (ODL's
-      ``Gradient`` default, ``pad_mode="constant"``): ``(grad f)_x[i] = (f[i+1] - f[i]) / hx`` with
-      ``f[nx] = 0``. ``div = -grad^*`` (L2 adjoint; the cell volumes cancel, so it is the matrix transpose):
-      ``(div p)[i] = (p_x[i] - p_x[i-1]) / hx + (same in y[, z])`` with ``p_x[-1] = 0``. In 3D the same
-      with a third component (z); the vector field is ``(..., d, *shape)``.
-    - Over ranks (``indreg.forward.split``): ``T`` a ``SlabTransform``, ``y`` its rows; its domain's inner products,
-      the data's and the objective are summed over the ranks, the differences read the neighbours' slices across
-      the split (``beyond``), and the power iteration starts from the rows of the whole volume's random draw, so
-      that every rank's rows equal one process's to rounding.
+Notes
+-----
+- ``T`` is any ``LinearOperator`` (``indreg.forward.operator``): a ``RayTransform`` or a user's operator.
+- ``T`` may also be a ``TiltSeriesTransform`` (3D): everything below holds with d = 3.
+- Images ``(..., nx, ny)`` or volumes ``(..., nx, ny, nz)`` (axis 0 = x) on ``T.domain``; data
+  ``(..., *T.range_shape)`` (for a ray transform ``(..., num_angles, det_count)``); any leading batch
+  dims (shared by ``y`` and ``x0``); dtype and device follow ``y``.
+- Objective, as the paper's eq:VarReg with ODL's ``L2NormSquared`` data term (no factor 1/2, the
+  authors' ODL set-up, so the paper's ``mu`` means the same here):
+      ``E(x) = ||T x - y||^2 + mu * TV(x)``,  ``TV(x) = int |grad x| dx``  (isotropic),
+  with ``||.||`` the weighted data norm (``T.inner_data``) and the integral a cell-volume Riemann sum.
+  Equivalently ``(1/2)||T x - y||^2 + (mu/2) TV(x)``. Measured on suite 1 (V, 64^2, 10 x 92 angles x bins,
+  4.87 dB code convention, seed 0, 1000 iterations, balanced steps): ``mu = 3.0`` gives SSIM 0.62 (0.73 in
+  the paper's convention) against FBP's 0.39 (0.45); ``mu = 1.5`` (the paper's 3.0 read with a halved data
+  term) gives 0.49, ``mu = 6`` 0.63. (The equal steps, 1000 iterations: 0.55, 0.49, 0.48, further from the
+  minimum: objective 0.8 % above it at ``mu = 3`` against 0.04 %.)
+- ``grad``: forward differences divided by the cell sides, zero padding beyond the last pixel (ODL's
+  ``Gradient`` default, ``pad_mode="constant"``): ``(grad f)_x[i] = (f[i+1] - f[i]) / hx`` with
+  ``f[nx] = 0``. ``div = -grad^*`` (L2 adjoint; the cell volumes cancel, so it is the matrix transpose):
+  ``(div p)[i] = (p_x[i] - p_x[i-1]) / hx + (same in y[, z])`` with ``p_x[-1] = 0``. In 3D the same
+  with a third component (z); the vector field is ``(..., d, *shape)``.
+- Over ranks (``indreg.forward.split``): ``T`` a ``SlabTransform``, ``y`` its rows; its domain's inner products,
+  the data's and the objective are summed over the ranks, the differences read the neighbours' slices across
+  the split (``beyond``), and the power iteration starts from the rows of the whole volume's random draw, so
+  that every rank's rows equal one process's to rounding.
 """
 from __future__ import annotations
 

@@ -2,31 +2,32 @@
 (``indreg.io.writers``; angle files: ``indreg.io.angle_files``; both re-exported here). Which suffix is which format,
 with its reader and writer, is the registry of ``indreg.io.formats`` (``register_format`` adds one of yours).
 
-Convention:
-    - Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y),
-      volumes as ``(nx, ny, nz)`` (``read_volume``); sinograms as float64 ``(num_angles, det_count)``, tilt
-      series as ``(num_tilts, det_rows, det_cols)`` (``read_tilt_series``); angles as float64 radians, 1D.
-    - 3D MRC volumes are stored in MRC's order, sections ``(z, y, x)``, and transposed on reading and writing
-      (``read_volume``, ``write_volume``; a format's ``volume_order``); 2D MRC images and tilt-series stacks are
-      taken as stored.
-    - Array formats (``.npy``, ``.npz``, ``.h5``/``.hdf5``, ``.mrc``/``.st``/``.ali``) hold indreg's arrays
-      as they are: images ``(x, y)``, sinograms ``(angle, bin)``; another tool's layout is converted with
-      ``convention=`` (``indreg.io.conventions``: ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``).
-    - Picture formats (``.png``, ``.tif``/``.tiff``; a format's ``picture``) are read as displayed (rows top to
-      bottom, columns left to right). An image is turned upright for indreg, ``f = np.rot90(displayed, k=-1)``, so
-      that ``np.rot90(f)`` (how indreg shows images) is the displayed picture: x to the right, y up.
-      A sinogram stored as a picture is taken as displayed: rows = angles, columns = bins (no rotation), or
-      columns = angles where the convention says so.
-    - 8- and 16-bit pictures are read as fractions of their full scale (value / 255, / 65535, as skimage's
-      ``img_as_float``; ``integer_scale="raw"`` keeps the values); other dtypes and array formats keep their values
-      (counts are physical). RGB(A) pictures
-      become grey by luminance ``0.2125 R + 0.7154 G + 0.0721 B`` (ITU-R BT.709, as ``skimage.color.rgb2gray``);
-      an alpha channel is ignored.
-    - Path syntax: ``file.npz`` (one array) or ``file.npz:key``; ``file.h5:/group/dataset`` (also ``.hdf5``, and
-      HyperSpy's ``.hspy``, HDF5 with the signal at ``file.hspy:/Experiments/__unnamed__/data``), the dataset may
-      be omitted when the file holds exactly one (a format's ``container``).
-    - Every problem with a file raises :class:`DataFileError`, one line naming the file and the problem.
-      Problems with inline values (angle lists, ``angle_unit``) raise ``ValueError``.
+Notes
+-----
+- Images come back as float64 numpy arrays ``(nx, ny)`` in indreg's layout (axis 0 = x, axis 1 = y),
+  volumes as ``(nx, ny, nz)`` (``read_volume``); sinograms as float64 ``(num_angles, det_count)``, tilt
+  series as ``(num_tilts, det_rows, det_cols)`` (``read_tilt_series``); angles as float64 radians, 1D.
+- 3D MRC volumes are stored in MRC's order, sections ``(z, y, x)``, and transposed on reading and writing
+  (``read_volume``, ``write_volume``; a format's ``volume_order``); 2D MRC images and tilt-series stacks are
+  taken as stored.
+- Array formats (``.npy``, ``.npz``, ``.h5``/``.hdf5``, ``.mrc``/``.st``/``.ali``) hold indreg's arrays
+  as they are: images ``(x, y)``, sinograms ``(angle, bin)``; another tool's layout is converted with
+  ``convention=`` (``indreg.io.conventions``: ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``).
+- Picture formats (``.png``, ``.tif``/``.tiff``; a format's ``picture``) are read as displayed (rows top to
+  bottom, columns left to right). An image is turned upright for indreg, ``f = np.rot90(displayed, k=-1)``, so
+  that ``np.rot90(f)`` (how indreg shows images) is the displayed picture: x to the right, y up.
+  A sinogram stored as a picture is taken as displayed: rows = angles, columns = bins (no rotation), or
+  columns = angles where the convention says so.
+- 8- and 16-bit pictures are read as fractions of their full scale (value / 255, / 65535, as skimage's
+  ``img_as_float``; ``integer_scale="raw"`` keeps the values); other dtypes and array formats keep their values
+  (counts are physical). RGB(A) pictures
+  become grey by luminance ``0.2125 R + 0.7154 G + 0.0721 B`` (ITU-R BT.709, as ``skimage.color.rgb2gray``);
+  an alpha channel is ignored.
+- Path syntax: ``file.npz`` (one array) or ``file.npz:key``; ``file.h5:/group/dataset`` (also ``.hdf5``, and
+  HyperSpy's ``.hspy``, HDF5 with the signal at ``file.hspy:/Experiments/__unnamed__/data``), the dataset may
+  be omitted when the file holds exactly one (a format's ``container``).
+- Every problem with a file raises :class:`DataFileError`, one line naming the file and the problem.
+  Problems with inline values (angle lists, ``angle_unit``) raise ``ValueError``.
 
 See ``docs/file_formats.md`` for the table of formats and how to export data from other packages.
 """
@@ -146,15 +147,6 @@ def read_image(path, *, name: str = "template", ndim: int = 2, convention="indre
                integer_scale: str = "fraction") -> np.ndarray:
     """Read a 2D image as float64 ``(nx, ny)``, axis 0 = x, axis 1 = y (``ndim=3``: :func:`read_volume`).
 
-    Convention:
-        - Arrays (``.npy``/``.npz``/``.h5``/``.mrc``, any format that is no picture) are in ``convention``'s layout
-          (``indreg``: already ``(x, y)``; ``indreg.io.conventions``); a format of ``sections`` (MRC) may also hold
-          one section ``(1, nx, ny)``.
-        - Pictures (``.png``/``.tif``) are read as displayed and rotated, ``f = np.rot90(displayed, k=-1)``,
-          so that ``np.rot90(f)`` shows the picture upright (x to the right, y up), whatever the convention.
-        - 8- / 16-bit pictures: fractions of 255 / 65535 (``integer_scale="fraction"``) or their values (``"raw"``);
-          RGB(A) is turned to grey by BT.709 luminance, alpha ignored. The log says how the file was read.
-
     Parameters
     ----------
     path : str or os.PathLike
@@ -179,6 +171,16 @@ def read_image(path, *, name: str = "template", ndim: int = 2, convention="indre
         One line ``"{name} file {path}: {problem}"``.
     ValueError
         A bad ``ndim``, ``convention`` or ``integer_scale``.
+
+    Notes
+    -----
+    - Arrays (``.npy``/``.npz``/``.h5``/``.mrc``, any format that is no picture) are in ``convention``'s layout
+      (``indreg``: already ``(x, y)``; ``indreg.io.conventions``); a format of ``sections`` (MRC) may also hold
+      one section ``(1, nx, ny)``.
+    - Pictures (``.png``/``.tif``) are read as displayed and rotated, ``f = np.rot90(displayed, k=-1)``,
+      so that ``np.rot90(f)`` shows the picture upright (x to the right, y up), whatever the convention.
+    - 8- / 16-bit pictures: fractions of 255 / 65535 (``integer_scale="fraction"``) or their values (``"raw"``);
+      RGB(A) is turned to grey by BT.709 luminance, alpha ignored. The log says how the file was read.
     """
     if ndim == 3:
         return read_volume(path, name=name)
@@ -195,13 +197,6 @@ def read_image(path, *, name: str = "template", ndim: int = 2, convention="indre
 
 def read_sinogram(path, *, name: str = "sinogram", convention="indreg", integer_scale: str = "fraction") -> np.ndarray:
     """Read 2D parallel-beam data as float64 ``(num_angles, det_count)``, in the file's units.
-
-    Convention:
-        - Arrays and pictures (as displayed) are ``(angle, bin)``, or ``(bin, angle)`` (transposed) where
-          ``convention`` says so (``skimage``); units and angles are converted by ``indreg.load``.
-        - A tilt series in a format of ``sections`` (MRC) may be a stack of one-row projections,
-          ``(num_tilts, 1, det_count)`` or ``(num_tilts, det_count, 1)``, or a 2D image ``(num_tilts, det_count)``.
-        - 8- / 16-bit pictures: as :func:`read_image`'s ``integer_scale``.
 
     Parameters
     ----------
@@ -225,6 +220,14 @@ def read_sinogram(path, *, name: str = "sinogram", convention="indreg", integer_
         One line ``"{name} file {path}: {problem}"``.
     ValueError
         A bad ``convention`` or ``integer_scale``.
+
+    Notes
+    -----
+    - Arrays and pictures (as displayed) are ``(angle, bin)``, or ``(bin, angle)`` (transposed) where
+      ``convention`` says so (``skimage``); units and angles are converted by ``indreg.load``.
+    - A tilt series in a format of ``sections`` (MRC) may be a stack of one-row projections,
+      ``(num_tilts, 1, det_count)`` or ``(num_tilts, det_count, 1)``, or a 2D image ``(num_tilts, det_count)``.
+    - 8- / 16-bit pictures: as :func:`read_image`'s ``integer_scale``.
     """
     convention = conventions.get_convention(convention)
     raw, fmt, suffix, note = _load(path, name, integer_scale)
@@ -237,14 +240,6 @@ def read_sinogram(path, *, name: str = "sinogram", convention="indreg", integer_
 
 def read_volume(path, *, name: str = "template") -> np.ndarray:
     """Read a 3D volume as float64 ``(nx, ny, nz)``, axis 0 = x, axis 1 = y, axis 2 = z.
-
-    Convention:
-        - ``.npy``/``.npz``/``.h5`` arrays (a format's ``volume_order="xyz"``) are taken as they are (already
-          ``(x, y, z)``, as ``write_volume`` writes them).
-        - ``.mrc``/``.st``/``.ali`` (``volume_order="zyx"``): MRC stores sections ``(z, y, x)`` (x fastest, the
-          standard ``mapc, mapr, maps = 1, 2, 3``); the array is transposed to ``(x, y, z)``. The voxel size is
-          :func:`read_voxel_size`.
-        - Pictures (``.png``/``.tif``) are not volumes.
 
     Parameters
     ----------
@@ -262,6 +257,15 @@ def read_volume(path, *, name: str = "template") -> np.ndarray:
     ------
     DataFileError
         One line ``"{name} file {path}: {problem}"`` (a picture: the message lists the volume formats).
+
+    Notes
+    -----
+    - ``.npy``/``.npz``/``.h5`` arrays (a format's ``volume_order="xyz"``) are taken as they are (already
+      ``(x, y, z)``, as ``write_volume`` writes them).
+    - ``.mrc``/``.st``/``.ali`` (``volume_order="zyx"``): MRC stores sections ``(z, y, x)`` (x fastest, the
+      standard ``mapc, mapr, maps = 1, 2, 3``); the array is transposed to ``(x, y, z)``. The voxel size is
+      :func:`read_voxel_size`.
+    - Pictures (``.png``/``.tif``) are not volumes.
     """
     fmt = get_format(split_path(path, name)[0].suffix)
     if fmt is not None and fmt.picture:
@@ -334,14 +338,6 @@ def read_stack(path, *, name: str = "tilt series") -> np.ndarray:
 def read_tilt_series(path, angles=None, unit: str = "deg", *, name: str = "tilt series") -> tuple:
     """Read a tilt series and its angles.
 
-    Convention (``TiltSeriesGeometry`` with ``tilt_axis="y"``, docs/tilt_series.md):
-        - An MRC stack ``.mrc``/``.st``/``.ali`` is taken as stored: sections = tilts, rows = the image's Y
-          (along the tilt axis: detector rows), columns = X (detector columns), so IMOD's aligned stack (tilt
-          axis along Y) is indreg's data with no transposition. ``.npy``/``.npz``/``.h5`` hold the same
-          ``(tilt, row, column)`` array.
-        - ``angles``: a ``.tlt``/``.rawtlt`` path or a list in ``unit`` (``"deg"`` default, or ``"rad"``);
-          ``None``: the sibling ``stem.tlt``, else ``stem.rawtlt`` (``tilt_angles_for``); one angle per tilt.
-
     Parameters
     ----------
     path : str or os.PathLike
@@ -364,6 +360,17 @@ def read_tilt_series(path, angles=None, unit: str = "deg", *, name: str = "tilt 
         A problem with a file, no angle file next to the stack, or a count mismatch.
     ValueError
         Bad inline angles or ``unit``.
+
+    Notes
+    -----
+    As ``TiltSeriesGeometry`` with ``tilt_axis="y"`` (docs/tilt_series.md):
+
+    - An MRC stack ``.mrc``/``.st``/``.ali`` is taken as stored: sections = tilts, rows = the image's Y
+      (along the tilt axis: detector rows), columns = X (detector columns), so IMOD's aligned stack (tilt
+      axis along Y) is indreg's data with no transposition. ``.npy``/``.npz``/``.h5`` hold the same
+      ``(tilt, row, column)`` array.
+    - ``angles``: a ``.tlt``/``.rawtlt`` path or a list in ``unit`` (``"deg"`` default, or ``"rad"``);
+      ``None``: the sibling ``stem.tlt``, else ``stem.rawtlt`` (``tilt_angles_for``); one angle per tilt.
     """
     if unit not in ANGLE_UNITS:
         raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")

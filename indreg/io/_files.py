@@ -1,8 +1,9 @@
 """Shared by the file modules (``indreg.io``, ``indreg.io.formats``, ``indreg.io.angle_files``, ``indreg.io.writers``):
 the one-line error of a bad file (the ``file.npz:key`` path syntax: ``indreg.io.formats.split_path``).
 
-Convention:
-    - Every problem with a file raises :class:`DataFileError`, one line ``"{name} file {path}: {problem}"``.
+Notes
+-----
+- Every problem with a file raises :class:`DataFileError`, one line ``"{name} file {path}: {problem}"``.
 """
 from __future__ import annotations
 

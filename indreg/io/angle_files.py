@@ -1,10 +1,11 @@
 """Tilt angles and acquisition metadata from text files: IMOD ``.tlt`` / ``.rawtlt`` angle lists, inline angle
 lists, SerialEM / IMOD ``.mdoc`` tilt axis angles (re-exported by :mod:`indreg.io`).
 
-Convention:
-    - Angles come back as float64 radians, 1D; ``unit`` (``"deg"`` default, ``"rad"``) is the unit of the numbers
-      given. The angle ``theta`` is that of the detector direction ``w = (cos theta, sin theta)``.
-    - Problems with a file raise :class:`DataFileError` (one line naming it); with inline values ``ValueError``.
+Notes
+-----
+- Angles come back as float64 radians, 1D; ``unit`` (``"deg"`` default, ``"rad"``) is the unit of the numbers
+  given. The angle ``theta`` is that of the detector direction ``w = (cos theta, sin theta)``.
+- Problems with a file raise :class:`DataFileError` (one line naming it); with inline values ``ValueError``.
 """
 from __future__ import annotations
 
@@ -70,12 +71,13 @@ def _inline_angles(values, name: str) -> list:
 def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
     """Projection angles as float64 radians, 1D.
 
-    Convention:
-        - ``spec`` is a path to a text file (one angle per line, IMOD ``.tlt``/``.rawtlt`` style; blank
-          lines and ``#`` comments allowed) or an inline list/tuple/array of numbers.
-        - ``unit`` is ``"deg"`` or ``"rad"``: the unit of the given numbers. The angle ``theta`` is that of
-          the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``). Degrees that
-          span at most about pi (:data:`RADIAN_SPAN`) log a warning that they may be radians.
+    Notes
+    -----
+    - ``spec`` is a path to a text file (one angle per line, IMOD ``.tlt``/``.rawtlt`` style; blank
+      lines and ``#`` comments allowed) or an inline list/tuple/array of numbers.
+    - ``unit`` is ``"deg"`` or ``"rad"``: the unit of the given numbers. The angle ``theta`` is that of
+      the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``). Degrees that
+      span at most about pi (:data:`RADIAN_SPAN`) log a warning that they may be radians.
 
     Raises:
         DataFileError: a problem with the file (missing, junk line N, no angles, non-finite angle).

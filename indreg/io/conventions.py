@@ -7,26 +7,27 @@ along ``w``. Each other convention names what differs, and :func:`image_to_indre
 :func:`angles_to_indreg`, :func:`domain_for` and :func:`detector_for` convert (the ``*_from_indreg`` functions
 convert back, for export).
 
-Convention:
-    - ``image``: how an array file (``.npy``, ``.npz``, ``.h5``, ``.mrc``) holds an image: ``"xy"`` (axis 0 = x,
-      indreg's), ``"displayed"`` (rows = y from the top down, columns = x: ``f = np.rot90(a, k=-1)``) or ``"yx"``
-      (rows = y from the bottom up, MRC sections as IMOD shows them: ``f = a.T``). Pictures (``.png``, ``.tif``)
-      are always read as displayed, whatever the convention.
-    - ``sinogram``: ``"angle_bin"`` (rows = angles) or ``"bin_angle"`` (columns = angles: transposed).
-    - ``angle_sense`` and ``angle_offset`` (degrees): indreg's angle = ``angle_sense`` x the tool's angle +
-      ``angle_offset``. ``angle_sense = -1`` for IMOD: its ``tilt`` projects the point ``(x, z)`` of a section to
-      ``x cos b - z sin b`` (docs/file_formats.md, "IMOD's projection convention"), indreg to ``x cos t + z sin t``;
-      ``angle_offset`` is 0 for every tool here (kept for other tools).
-    - ``pixel_units``: the data are line integrals in pixels, i.e. pixel sums (multiplied by the pixel side ``h`` on
-      reading).
-    - ``bins``: the detector when ``det_min`` / ``det_max`` are not given: ``"fit"`` (indreg fits it to the
-      domain), ``"middle"`` (one pixel a bin, centred on the rotation axis) or ``"index"`` (one pixel a bin, bin
-      ``D // 2`` on the rotation axis, which is the image's pixel ``n // 2`` in rows and columns: the domain is
-      shifted by half a pixel for even ``n``, scikit-image's centre).
-    - Arrays handed to ``indreg.load`` follow the same ``image`` and ``sinogram`` layouts as array files. Angles
-      are radians here (``angle_unit`` is converted before).
-    - Which convention the files follow is probed at load by ``indreg.io.orientation`` (``orientation_scores``,
-      ``orientation_hint``, ``flip_hint``), the one home of orientation probing.
+Notes
+-----
+- ``image``: how an array file (``.npy``, ``.npz``, ``.h5``, ``.mrc``) holds an image: ``"xy"`` (axis 0 = x,
+  indreg's), ``"displayed"`` (rows = y from the top down, columns = x: ``f = np.rot90(a, k=-1)``) or ``"yx"``
+  (rows = y from the bottom up, MRC sections as IMOD shows them: ``f = a.T``). Pictures (``.png``, ``.tif``)
+  are always read as displayed, whatever the convention.
+- ``sinogram``: ``"angle_bin"`` (rows = angles) or ``"bin_angle"`` (columns = angles: transposed).
+- ``angle_sense`` and ``angle_offset`` (degrees): indreg's angle = ``angle_sense`` x the tool's angle +
+  ``angle_offset``. ``angle_sense = -1`` for IMOD: its ``tilt`` projects the point ``(x, z)`` of a section to
+  ``x cos b - z sin b`` (docs/file_formats.md, "IMOD's projection convention"), indreg to ``x cos t + z sin t``;
+  ``angle_offset`` is 0 for every tool here (kept for other tools).
+- ``pixel_units``: the data are line integrals in pixels, i.e. pixel sums (multiplied by the pixel side ``h`` on
+  reading).
+- ``bins``: the detector when ``det_min`` / ``det_max`` are not given: ``"fit"`` (indreg fits it to the
+  domain), ``"middle"`` (one pixel a bin, centred on the rotation axis) or ``"index"`` (one pixel a bin, bin
+  ``D // 2`` on the rotation axis, which is the image's pixel ``n // 2`` in rows and columns: the domain is
+  shifted by half a pixel for even ``n``, scikit-image's centre).
+- Arrays handed to ``indreg.load`` follow the same ``image`` and ``sinogram`` layouts as array files. Angles
+  are radians here (``angle_unit`` is converted before).
+- Which convention the files follow is probed at load by ``indreg.io.orientation`` (``orientation_scores``,
+  ``orientation_hint``, ``flip_hint``), the one home of orientation probing.
 """
 from __future__ import annotations
 

@@ -1,19 +1,20 @@
 """Which tool wrote what: a record of a run's output files (format, the writing tool and its version, units and
 conventions), so that the next tool in a pipeline knows what it got.
 
-Convention:
-    - One entry per file (a directory for OME-Zarr, TensorBoard, Hydra's ``.hydra``): ``path`` (relative to the
-      run directory), ``format``, ``writer`` and ``version`` (the Python package that wrote the bytes: ``numpy``
-      for ``.npy``, ``mrcfile`` for MRC, ``ome-zarr`` and ``zarr`` for OME-Zarr, ``matplotlib`` for figures,
-      ``imageio`` for GIFs, ``torch`` for checkpoints and TensorBoard, ``indreg`` for its own text formats),
-      ``bytes``.
-    - What the file says of itself is read back from it, not copied from the run: a ``.npy``'s dtype and shape
-      (its header), an MRC's shape, voxel size and origin (its header, Angstrom by the format), an OME-Zarr's scale,
-      translation and units (its metadata, read with ``ome-zarr``; the array is not loaded).
-    - The writer's conventions (axis order, units, the voxel size of an ``.npy``, which has none) come from the
-      caller (``describe(..., **conventions)``; :func:`record` takes them per file name).
-    - Files the record does not know (another suffix) are listed with ``format`` their suffix and ``writer``
-      ``"unknown"``: nothing in the directory is left out.
+Notes
+-----
+- One entry per file (a directory for OME-Zarr, TensorBoard, Hydra's ``.hydra``): ``path`` (relative to the
+  run directory), ``format``, ``writer`` and ``version`` (the Python package that wrote the bytes: ``numpy``
+  for ``.npy``, ``mrcfile`` for MRC, ``ome-zarr`` and ``zarr`` for OME-Zarr, ``matplotlib`` for figures,
+  ``imageio`` for GIFs, ``torch`` for checkpoints and TensorBoard, ``indreg`` for its own text formats),
+  ``bytes``.
+- What the file says of itself is read back from it, not copied from the run: a ``.npy``'s dtype and shape
+  (its header), an MRC's shape, voxel size and origin (its header, Angstrom by the format), an OME-Zarr's scale,
+  translation and units (its metadata, read with ``ome-zarr``; the array is not loaded).
+- The writer's conventions (axis order, units, the voxel size of an ``.npy``, which has none) come from the
+  caller (``describe(..., **conventions)``; :func:`record` takes them per file name).
+- Files the record does not know (another suffix) are listed with ``format`` their suffix and ``writer``
+  ``"unknown"``: nothing in the directory is left out.
 """
 from __future__ import annotations
 

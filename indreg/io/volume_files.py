@@ -1,13 +1,14 @@
 """Volumes where viewers open them at their size: MRC with the voxel size (Angstrom) and the origin in the header, and
 OME-Zarr (the ``ome-zarr`` package, an optional extra: ``pip install indreg[zarr]``) with its physical scale.
 
-Convention:
-    - ``volume`` ``(nx, ny, nz)`` (axis 0 = x, indreg's layout); MRC stores sections ``(z, y, x)``, OME-Zarr the
-      array ``(z, y, x)`` with axes named so.
-    - ``voxel_size`` ``(hx, hy, hz)`` and ``origin`` ``(ox, oy, oz)`` in Angstrom: ``origin`` is the position of
-      the centre of voxel ``(0, 0, 0)``; MRC's header ``origin`` holds it (``nxstart = nystart = nzstart = 0``),
-      OME-Zarr's ``translation`` too (its ``scale`` the voxel size), both as ChimeraX and napari place a grid.
-    - Each writer returns what wrote the file (``{"path", "format", "writer", "version"}``) for a run's record.
+Notes
+-----
+- ``volume`` ``(nx, ny, nz)`` (axis 0 = x, indreg's layout); MRC stores sections ``(z, y, x)``, OME-Zarr the
+  array ``(z, y, x)`` with axes named so.
+- ``voxel_size`` ``(hx, hy, hz)`` and ``origin`` ``(ox, oy, oz)`` in Angstrom: ``origin`` is the position of
+  the centre of voxel ``(0, 0, 0)``; MRC's header ``origin`` holds it (``nxstart = nystart = nzstart = 0``),
+  OME-Zarr's ``translation`` too (its ``scale`` the voxel size), both as ChimeraX and napari place a grid.
+- Each writer returns what wrote the file (``{"path", "format", "writer", "version"}``) for a run's record.
 """
 from __future__ import annotations
 

@@ -1,13 +1,14 @@
 """Writing result images, volumes and tilt series (re-exported by :mod:`indreg.io`), each by the writer of its
 suffix's registered format (``indreg.io.formats``).
 
-Convention:
-    - ``write_image``: any array as it is (``.npy`` float64, ``.mrc`` float32), no reorientation.
-    - ``write_volume``: ``(nx, ny, nz)``; MRC stores sections ``(z, y, x)`` (a format's ``volume_order``) with the
-      domain's cell sides as voxel size.
-    - ``write_tilt_series``: ``(num_tilts, det_rows, det_cols)`` as an MRC stack (a format of ``sections``) plus
-      ``stem.tlt`` in degrees.
-    - Every problem raises :class:`DataFileError`, one line naming the file.
+Notes
+-----
+- ``write_image``: any array as it is (``.npy`` float64, ``.mrc`` float32), no reorientation.
+- ``write_volume``: ``(nx, ny, nz)``; MRC stores sections ``(z, y, x)`` (a format's ``volume_order``) with the
+  domain's cell sides as voxel size.
+- ``write_tilt_series``: ``(num_tilts, det_rows, det_cols)`` as an MRC stack (a format of ``sections``) plus
+  ``stem.tlt`` in degrees.
+- Every problem raises :class:`DataFileError`, one line naming the file.
 """
 from __future__ import annotations
 
@@ -49,11 +50,6 @@ def _write(fmt: FileFormat, path: Path, array: np.ndarray, **header) -> None:
 def write_image(path, array) -> Path:
     """Write a result array as it is, in the format of its suffix.
 
-    Convention:
-        - No reorientation: an image ``(nx, ny)`` is stored ``(x, y)``, so :func:`read_image` gives it back.
-        - ``.npy`` keeps float64 (any shape); ``.mrc`` stores float32 (MRC mode 2, 2D or 3D), overwriting an
-          existing file.
-
     Parameters
     ----------
     path : str or os.PathLike
@@ -71,6 +67,12 @@ def write_image(path, array) -> Path:
     DataFileError
         An unknown or read-only suffix (the message lists the writable ones), non-numeric or non-finite data, or
         the file cannot be written.
+
+    Notes
+    -----
+    - No reorientation: an image ``(nx, ny)`` is stored ``(x, y)``, so :func:`read_image` gives it back.
+    - ``.npy`` keeps float64 (any shape); ``.mrc`` stores float32 (MRC mode 2, 2D or 3D), overwriting an
+      existing file.
     """
     path = _as_path(path, "output")
     fmt = _writer(path)
@@ -100,15 +102,6 @@ def _finite_array(array, path: Path, ndim: int, what: str) -> np.ndarray:
 def write_volume(path, volume, domain=None) -> Path:
     """Write a volume ``(nx, ny, nz)`` (axis 0 = x), e.g. as ``.mrc`` or ``.npy``.
 
-    Convention:
-        - ``.mrc`` (``volume_order="zyx"``): float32 (mode 2), sections ``(z, y, x)`` (x fastest, MRC's standard
-          axis order), so IMOD/ChimeraX show x, y, z as indreg's; the voxel size in the header is the domain's cell
-          sides ``(hx, hy, hz)`` in the domain's length unit (MRC readers take it as Angstrom), 1 without a domain;
-          the header's origin the centre of voxel ``(0, 0, 0)`` (``min_pt + h / 2``), as ChimeraX and napari place
-          a grid (``indreg.io.volume_files``), 0 without a domain.
-        - ``.npy``: float64 ``(nx, ny, nz)`` as it is (no voxel size).
-        - ``read_volume`` (and ``read_voxel_size``) give both back.
-
     Parameters
     ----------
     path : str or os.PathLike
@@ -130,6 +123,16 @@ def write_volume(path, volume, domain=None) -> Path:
         file cannot be written.
     TypeError
         ``domain`` is not an ``ImageDomain``.
+
+    Notes
+    -----
+    - ``.mrc`` (``volume_order="zyx"``): float32 (mode 2), sections ``(z, y, x)`` (x fastest, MRC's standard
+      axis order), so IMOD/ChimeraX show x, y, z as indreg's; the voxel size in the header is the domain's cell
+      sides ``(hx, hy, hz)`` in the domain's length unit (MRC readers take it as Angstrom), 1 without a domain;
+      the header's origin the centre of voxel ``(0, 0, 0)`` (``min_pt + h / 2``), as ChimeraX and napari place
+      a grid (``indreg.io.volume_files``), 0 without a domain.
+    - ``.npy``: float64 ``(nx, ny, nz)`` as it is (no voxel size).
+    - ``read_volume`` (and ``read_voxel_size``) give both back.
     """
     path = _as_path(path, "output")
     fmt = _writer(path)

@@ -98,17 +98,18 @@ class UnrolledDescent(nn.Module):
     ``alpha_k``); ``heavy_ball`` adds the learned ``beta_k`` (``inertias``); ``correction`` adds the network ``U``
     (``shared``: one ``U`` for all steps). The initial network gets no gradient (it is trained on its own first).
 
-    Example:
-        >>> import indreg
-        >>> dom = indreg.ImageDomain.paper(16)
-        >>> shooting = indreg.GeodesicShooting(dom, indreg.GaussianKernel(dom, 5.0), num_steps=3)
-        >>> loss = IndirectShootingLoss(shooting, indreg.RayTransform(dom, indreg.ParallelBeamGeometry.paper(4, 24)),
-        ...                             gamma=1e-3)
-        >>> scheme = UnrolledDescent(loss, num_updates=4, width=4, levels=2).double()
-        >>> images = torch.rand(2, 16, 16, dtype=torch.float64)      # templates, and FBPs here too
-        >>> m = scheme(images, images, loss.transforms[0](images))  # Algorithm 1's momentum: (B, N+1, 2, nx, ny)
-        >>> m.shape
-        torch.Size([2, 4, 2, 16, 16])
+    Examples
+    --------
+    >>> import indreg
+    >>> dom = indreg.ImageDomain.paper(16)
+    >>> shooting = indreg.GeodesicShooting(dom, indreg.GaussianKernel(dom, 5.0), num_steps=3)
+    >>> loss = IndirectShootingLoss(shooting, indreg.RayTransform(dom, indreg.ParallelBeamGeometry.paper(4, 24)),
+    ...                             gamma=1e-3)
+    >>> scheme = UnrolledDescent(loss, num_updates=4, width=4, levels=2).double()
+    >>> images = torch.rand(2, 16, 16, dtype=torch.float64)      # templates, and FBPs here too
+    >>> m = scheme(images, images, loss.transforms[0](images))  # Algorithm 1's momentum: (B, N+1, 2, nx, ny)
+    >>> m.shape
+    torch.Size([2, 4, 2, 16, 16])
     """
 
     def __init__(self, loss: IndirectShootingLoss, num_updates: int = 10, step_size: float = 0.02, width: int = 8,

@@ -38,25 +38,27 @@ class IndirectShootingLoss(nn.Module):
     tensor/list), or ``ray_transform[b]`` when ``index`` is omitted (one transform per sample). Samples sharing
     a transform are projected in one batched call.
 
-    Convention:
-        ``momentum (B, 2, nx, ny)``, ``template (B, nx, ny)`` or ``(nx, ny)``, ``data`` a tensor
-        ``(B, *range_shape)`` or (per-sample geometries of different sizes) a list of ``B`` tensors
-        ``range_shape_b``: each sinogram in the range of its sample's transform, finite, with the
-        momentum's dtype (float32 / float64) and device (checked before shooting). ``reduction``: ``"mean"``
-        (default), ``"sum"`` or ``"none"`` (``(B,)``).
+    Notes
+    -----
+    ``momentum (B, 2, nx, ny)``, ``template (B, nx, ny)`` or ``(nx, ny)``, ``data`` a tensor
+    ``(B, *range_shape)`` or (per-sample geometries of different sizes) a list of ``B`` tensors
+    ``range_shape_b``: each sinogram in the range of its sample's transform, finite, with the
+    momentum's dtype (float32 / float64) and device (checked before shooting). ``reduction``: ``"mean"``
+    (default), ``"sum"`` or ``"none"`` (``(B,)``).
 
-    Example:
-        >>> from indreg import GaussianKernel, ImageDomain, ParallelBeamGeometry, RayTransform, phantoms
-        >>> dom = ImageDomain.paper(32)
-        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(6, 46))
-        >>> loss_fn = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 6.0), 5), T, gamma=1e-3)
-        >>> template = phantoms.get("j", dom)
-        >>> sinograms = T(phantoms.get("v", dom)).expand(2, 6, 46)   # a batch of 2
-        >>> m0 = torch.zeros(2, 2, 32, 32, dtype=torch.float64, requires_grad=True)   # a network's output
-        >>> loss = loss_fn(m0, template, sinograms)
-        >>> loss.backward()
-        >>> m0.grad.shape
-        torch.Size([2, 2, 32, 32])
+    Examples
+    --------
+    >>> from indreg import GaussianKernel, ImageDomain, ParallelBeamGeometry, RayTransform, phantoms
+    >>> dom = ImageDomain.paper(32)
+    >>> T = RayTransform(dom, ParallelBeamGeometry.paper(6, 46))
+    >>> loss_fn = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 6.0), 5), T, gamma=1e-3)
+    >>> template = phantoms.get("j", dom)
+    >>> sinograms = T(phantoms.get("v", dom)).expand(2, 6, 46)   # a batch of 2
+    >>> m0 = torch.zeros(2, 2, 32, 32, dtype=torch.float64, requires_grad=True)   # a network's output
+    >>> loss = loss_fn(m0, template, sinograms)
+    >>> loss.backward()
+    >>> m0.grad.shape
+    torch.Size([2, 2, 32, 32])
     """
 
     def __init__(self, shooting: GeodesicShooting, ray_transform, gamma: float, reduction: str = "mean"):

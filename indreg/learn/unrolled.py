@@ -72,16 +72,17 @@ class UnrolledMomentum(nn.Module):
     zero, so an untrained scheme returns ``m_0``. The initial network gets a gradient only from ``num_updates=0``
     (it is trained on its own first and fixed inside the scheme) unless ``train_initial``.
 
-    Example:
-        >>> from indreg import GaussianKernel, GeodesicShooting, ImageDomain, ParallelBeamGeometry, RayTransform
-        >>> dom = ImageDomain.paper(16)
-        >>> T = RayTransform(dom, ParallelBeamGeometry.paper(4, 24))
-        >>> loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 3), T, gamma=1e-3)
-        >>> scheme = UnrolledMomentum(loss, num_updates=2, width=4, levels=2).double()
-        >>> template = torch.rand(3, 16, 16, dtype=torch.float64)
-        >>> data = T(template)
-        >>> scheme(template, template, data).shape
-        torch.Size([3, 2, 16, 16])
+    Examples
+    --------
+    >>> from indreg import GaussianKernel, GeodesicShooting, ImageDomain, ParallelBeamGeometry, RayTransform
+    >>> dom = ImageDomain.paper(16)
+    >>> T = RayTransform(dom, ParallelBeamGeometry.paper(4, 24))
+    >>> loss = IndirectShootingLoss(GeodesicShooting(dom, GaussianKernel(dom, 5.0), 3), T, gamma=1e-3)
+    >>> scheme = UnrolledMomentum(loss, num_updates=2, width=4, levels=2).double()
+    >>> template = torch.rand(3, 16, 16, dtype=torch.float64)
+    >>> data = T(template)
+    >>> scheme(template, template, data).shape
+    torch.Size([3, 2, 16, 16])
     """
 
     def __init__(self, loss: IndirectShootingLoss, num_updates: int = 3, width: int = 16, levels: int = 2,

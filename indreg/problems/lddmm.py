@@ -66,18 +66,19 @@ class IndirectRegistration(RegistrationProblem):
             ``indreg.forward.tv_reconstruction`` uses ``||T x - y||^2 + mu TV``, no 1/2).
         tv_smoothing: ``eps`` of the smoothed isotropic TV (``total_variation``); 0 is plain TV.
 
-    Convention:
-        momentum / velocity ``(N+1, 2, nx, ny)`` at ``t_i = i/N`` (component 0 = x; 3D: ``(N+1, 3, nx, ny, nz)``,
-        template ``(nx, ny, nz)``, any operator whose ``domain`` is 3D); the discrete
-        ``L2([0,1], X)`` inner product is ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (the code's convention, N+1
-        terms). The L2 gradient of E with respect to ``nu`` (``l2_gradient``) is
-        ``h = gamma m + (N / cell_volume) dL/dnu`` with ``L`` the matching term (data fit + TV) and
-        ``dL/dnu`` the torch gradient of the deformation's backward (``LDDMMDeformation``, "Gradient scale"); the
-        V-gradient (eq:GradGoalFunctionalVRHKS(_mp), halved) is ``K h``.
+    Notes
+    -----
+    momentum / velocity ``(N+1, 2, nx, ny)`` at ``t_i = i/N`` (component 0 = x; 3D: ``(N+1, 3, nx, ny, nz)``,
+    template ``(nx, ny, nz)``, any operator whose ``domain`` is 3D); the discrete
+    ``L2([0,1], X)`` inner product is ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (the code's convention, N+1
+    terms). The L2 gradient of E with respect to ``nu`` (``l2_gradient``) is
+    ``h = gamma m + (N / cell_volume) dL/dnu`` with ``L`` the matching term (data fit + TV) and
+    ``dL/dnu`` the torch gradient of the deformation's backward (``LDDMMDeformation``, "Gradient scale"); the
+    V-gradient (eq:GradGoalFunctionalVRHKS(_mp), halved) is ``K h``.
 
-        Two grids of one box: ``image_domain`` (the template's, the operator's, the TV term's) and ``domain`` (the
-        momentum's, the velocity's, the kernel's: ``cell_volume`` above is its own). They are one grid unless the
-        deformation is a ``CoarseVelocityDeformation`` (``velocity_factor``).
+    Two grids of one box: ``image_domain`` (the template's, the operator's, the TV term's) and ``domain`` (the
+    momentum's, the velocity's, the kernel's: ``cell_volume`` above is its own). They are one grid unless the
+    deformation is a ``CoarseVelocityDeformation`` (``velocity_factor``).
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tv_weight=0.0,

@@ -73,11 +73,12 @@ class MetamorphosisRegistration(RegistrationProblem):
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.
 
-    Convention:
-        momentum / velocity ``(N+1, 2, nx, ny)``, source ``(N+1, nx, ny)`` at ``t_i = i/N`` (3D: ``(N+1, 3, nx,
-        ny, nz)`` and ``(N+1, nx, ny, nz)``, template ``(nx, ny, nz)``: the same code); the discrete
-        ``L2([0,1], X)`` inner products are ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (N+1 terms, as LDDMM's);
-        ``zeta_0`` does not enter ``f(1)`` (right Riemann sum), so it only feels the penalty and stays 0.
+    Notes
+    -----
+    momentum / velocity ``(N+1, 2, nx, ny)``, source ``(N+1, nx, ny)`` at ``t_i = i/N`` (3D: ``(N+1, 3, nx,
+    ny, nz)`` and ``(N+1, nx, ny, nz)``, template ``(nx, ny, nz)``: the same code); the discrete
+    ``L2([0,1], X)`` inner products are ``sum_{i=0..N} (1/N) <u_i, v_i>_X`` (N+1 terms, as LDDMM's);
+    ``zeta_0`` does not enter ``f(1)`` (right Riemann sum), so it only feels the penalty and stays 0.
     """
 
     def __init__(self, ray_transform, deformation, kernel, template, data, gamma, tau, tv_weight=0.0,

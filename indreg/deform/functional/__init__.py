@@ -11,16 +11,17 @@ differences, divergence, their transposes, determinants), ``flows`` (the time-st
 the flow there, ``phi_{1,0}`` interpolated to the image's grid, and its exact derivative); every name is
 re-exported here.
 
-Convention:
-    - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
-      fields ``(..., N+1, 2, nx, ny)`` at ``t_i = i / N``; physical units of ``ImageDomain``.
-    - 3D: every function takes the same arguments on an ``ImageDomain`` of shape ``(nx, ny, nz)``, with
-      images ``(..., nx, ny, nz)``, vector fields ``(..., 3, nx, ny, nz)`` (component 2 = z) and velocities
-      ``(..., N+1, 3, nx, ny, nz)``: one code path, the number of image axes d read from ``domain.ndim`` (in
-      the docstrings ``(..., nx, ny)`` then reads ``(..., nx, ny, nz)`` and ``2`` components read 3).
-      Interpolation is trilinear, finite differences and divergences run over three axes, and
-      ``jacobian_determinant`` is the 3x3 determinant (``determinant``).
-    - Interpolation and padding: ``sampling``; finite-difference schemes: ``differences``.
+Notes
+-----
+- Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)`` (component 0 = x, 1 = y), velocity
+  fields ``(..., N+1, 2, nx, ny)`` at ``t_i = i / N``; physical units of ``ImageDomain``.
+- 3D: every function takes the same arguments on an ``ImageDomain`` of shape ``(nx, ny, nz)``, with
+  images ``(..., nx, ny, nz)``, vector fields ``(..., 3, nx, ny, nz)`` (component 2 = z) and velocities
+  ``(..., N+1, 3, nx, ny, nz)``: one code path, the number of image axes d read from ``domain.ndim`` (in
+  the docstrings ``(..., nx, ny)`` then reads ``(..., nx, ny, nz)`` and ``2`` components read 3).
+  Interpolation is trilinear, finite differences and divergences run over three axes, and
+  ``jacobian_determinant`` is the 3x3 determinant (``determinant``).
+- Interpolation and padding: ``sampling``; finite-difference schemes: ``differences``.
 """
 from .backward import ExactRecord, exact_gradient, exact_record, gradient_record, paper_gradient
 from .coarse import coarse_gradient, coarse_record, coarse_trajectory, upsample, upsample_adjoint

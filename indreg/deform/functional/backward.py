@@ -244,10 +244,11 @@ def exact_gradient(grad_out: torch.Tensor, template: torch.Tensor, velocity: tor
     image-sized fields (``lam``, ``mu``, ``k``); cost per step: one ``grid_sampler_2d_backward`` per transported
     field (the scatter dominates, about three interpolations), plus one interpolation for ``B_i``.
 
-    Convention:
-        ``grad_out (..., nx, ny)``, ``template (..., nx, ny)`` and ``velocity (..., N+1, 2, nx, ny)`` with the
-        same batch dims (broadcast first), physical units of ``domain``; derivatives w.r.t. tensor entries
-        (the scale of ``LDDMMDeformation``'s "Gradient scale"); float32 / float64, any device (the inputs').
+    Notes
+    -----
+    ``grad_out (..., nx, ny)``, ``template (..., nx, ny)`` and ``velocity (..., N+1, 2, nx, ny)`` with the
+    same batch dims (broadcast first), physical units of ``domain``; derivatives w.r.t. tensor entries
+    (the scale of ``LDDMMDeformation``'s "Gradient scale"); float32 / float64, any device (the inputs').
     """
     _check_action(action)
     _check_interpolation(interpolation)

@@ -1,19 +1,20 @@
 """Finite differences: gradient, divergence, their transposes, the growth factors ``1 + c div nu`` of the
 Jacobian recursions, and Jacobian determinants of maps given on the cell centres.
 
-Convention:
-    - Images ``(..., *shape)``, vector fields ``(..., d, *shape)`` (component 0 = x, 1 = y[, 2 = z]), physical
-      units of ``ImageDomain`` (``domain.cell_sides``); 3D differences and divergences run over three axes.
-    - ``scheme``: ``"central"`` (default) or ``"forward"`` (the authors' code: forward differences for the
-      gradient, divergence = minus the L2 adjoint of that gradient). Central differences are second-order
-      accurate (forward: first order), so the paper's gradient converges faster to the continuous one.
-      Against the exact derivative of the discrete (bilinear) map neither is uniformly closer: that derivative
-      is the one-sided slope of the cell the displaced point falls in (an upwind difference), so the better
-      match depends on the sign of the velocity. Measured paper-vs-autograd relative difference at 16^2/N=4,
-      32^2/N=8, 64^2/N=16, 128^2/N=32 on the smooth test problem: geometric central 0.35/0.18/0.089/0.045 vs
-      forward 0.25/0.13/0.060/0.030; mass-preserving central 0.30/0.13/0.069/0.046 vs forward
-      0.35/0.18/0.097/0.061 (on another random field geometric central won, 0.043 vs 0.069 at 128^2). Central
-      is the default.
+Notes
+-----
+- Images ``(..., *shape)``, vector fields ``(..., d, *shape)`` (component 0 = x, 1 = y[, 2 = z]), physical
+  units of ``ImageDomain`` (``domain.cell_sides``); 3D differences and divergences run over three axes.
+- ``scheme``: ``"central"`` (default) or ``"forward"`` (the authors' code: forward differences for the
+  gradient, divergence = minus the L2 adjoint of that gradient). Central differences are second-order
+  accurate (forward: first order), so the paper's gradient converges faster to the continuous one.
+  Against the exact derivative of the discrete (bilinear) map neither is uniformly closer: that derivative
+  is the one-sided slope of the cell the displaced point falls in (an upwind difference), so the better
+  match depends on the sign of the velocity. Measured paper-vs-autograd relative difference at 16^2/N=4,
+  32^2/N=8, 64^2/N=16, 128^2/N=32 on the smooth test problem: geometric central 0.35/0.18/0.089/0.045 vs
+  forward 0.25/0.13/0.060/0.030; mass-preserving central 0.30/0.13/0.069/0.046 vs forward
+  0.35/0.18/0.097/0.061 (on another random field geometric central won, 0.043 vs 0.069 at 128^2). Central
+  is the default.
 """
 from __future__ import annotations
 

@@ -3,12 +3,13 @@ and of the Jacobian determinant, displacements, the deformation ``phi_{1,0}``).
 
 Differentiable by autograd; without a graph to record they run in place (reused buffers, ``out=``).
 
-Convention:
-    - Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)``, velocity fields ``(..., N+1, 2, nx, ny)``
-      at ``t_i = i / N`` (3D: ``(..., 3, nx, ny, nz)``, module ``functional``); physical units of
-      ``ImageDomain``.
-    - In the recursions the batch dims of images and velocities must already agree (broadcast first).
-    - Interpolation and padding as in ``sampling``; differences as in ``differences``.
+Notes
+-----
+- Images ``(..., nx, ny)``, vector fields ``(..., 2, nx, ny)``, velocity fields ``(..., N+1, 2, nx, ny)``
+  at ``t_i = i / N`` (3D: ``(..., 3, nx, ny, nz)``, module ``functional``); physical units of
+  ``ImageDomain``.
+- In the recursions the batch dims of images and velocities must already agree (broadcast first).
+- Interpolation and padding as in ``sampling``; differences as in ``differences``.
 """
 from __future__ import annotations
 

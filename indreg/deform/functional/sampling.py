@@ -1,15 +1,16 @@
 """Bilinear / trilinear interpolation: ``grid_sample`` grids, ``sample``, ``warp`` and their transposes.
 
-Convention:
-    - Images ``(..., C, *shape)`` / ``(..., *shape)``, ``shape = (nx, ny)`` or ``(nx, ny, nz)``; vector fields
-      ``(..., d, *shape)`` (component 0 = x, 1 = y[, 2 = z]). ``grid_sample`` grids ``(..., *shape, d)`` list
-      the coordinates in reverse order (``[..., 0]`` = y, ``[..., 1]`` = x in 2D; ``[..., 0]`` = z,
-      ``[..., 1]`` = y, ``[..., 2]`` = x in 3D), in grid units: ``2 / extent`` times physical lengths.
-    - Interpolation is bilinear (2D) / trilinear (3D) (``grid_sample``, ``align_corners=False``: grid
-      coordinates -1 and 1 are the domain's edges, so pixel centres sit exactly at the cell centres of
-      ``ImageDomain``); its exact adjoint is ``grid_sampler_2d_backward`` / ``grid_sampler_3d_backward``.
-      Padding: ``"zeros"`` for images and transported gradients (the image is 0 outside the domain),
-      ``"border"`` for Jacobian determinants and displacement fields (continued constantly).
+Notes
+-----
+- Images ``(..., C, *shape)`` / ``(..., *shape)``, ``shape = (nx, ny)`` or ``(nx, ny, nz)``; vector fields
+  ``(..., d, *shape)`` (component 0 = x, 1 = y[, 2 = z]). ``grid_sample`` grids ``(..., *shape, d)`` list
+  the coordinates in reverse order (``[..., 0]`` = y, ``[..., 1]`` = x in 2D; ``[..., 0]`` = z,
+  ``[..., 1]`` = y, ``[..., 2]`` = x in 3D), in grid units: ``2 / extent`` times physical lengths.
+- Interpolation is bilinear (2D) / trilinear (3D) (``grid_sample``, ``align_corners=False``: grid
+  coordinates -1 and 1 are the domain's edges, so pixel centres sit exactly at the cell centres of
+  ``ImageDomain``); its exact adjoint is ``grid_sampler_2d_backward`` / ``grid_sampler_3d_backward``.
+  Padding: ``"zeros"`` for images and transported gradients (the image is 0 outside the domain),
+  ``"border"`` for Jacobian determinants and displacement fields (continued constantly).
 """
 from __future__ import annotations
 
