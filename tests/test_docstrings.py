@@ -173,7 +173,7 @@ def test_public_docstring_has_its_sections(name):
         if i and re.fullmatch(r"-{3,}", line.strip()) and lines[i - 1].strip():
             assert len(line.strip()) == len(lines[i - 1].strip()), f"{name}: underline of {lines[i - 1].strip()!r}"
     sections = _sections(doc)
-    params = _parameters(obj)
+    params = [] if getattr(obj, "_is_protocol", False) else _parameters(obj)   # a Protocol is not constructed
     if params and (name, "Parameters") not in EXEMPT:
         record = inspect.isclass(obj) and "Attributes" in sections and "Parameters" not in sections
         listed = _documented(sections.get("Attributes" if record else "Parameters", []))

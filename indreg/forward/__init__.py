@@ -24,7 +24,25 @@ OPERATORS = {ParallelBeamGeometry: RayTransform, FanBeamGeometry: RayTransform, 
 
 def operator_for(domain, geometry):
     """The forward operator of ``geometry`` on ``domain`` (``OPERATORS``: ``RayTransform`` for the 2D beams,
-    ``TiltSeriesTransform`` for a tilt series)."""
+    ``TiltSeriesTransform`` for a tilt series).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The image domain.
+    geometry : object
+        A geometry of a type in ``OPERATORS`` (or a subclass of one).
+
+    Returns
+    -------
+    LinearOperator
+        ``OPERATORS[type](domain, geometry)``.
+
+    Raises
+    ------
+    TypeError
+        No operator is registered for the geometry's type.
+    """
     for cls in type(geometry).__mro__:
         if cls in OPERATORS:
             return OPERATORS[cls](domain, geometry)

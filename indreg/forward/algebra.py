@@ -86,7 +86,9 @@ class OperatorAlgebra:
     ``A * B`` is the composition ``f -> A(B f)`` (``B`` an image-space operator, e.g. a blur, or any operator whose
     range is ``A``'s domain), ``c * A`` / ``A * c`` a multiple, ``A + B`` / ``A - B`` / ``-A`` sums; ``B`` may be a
     foreign operator of the protocol. Anything else (``A * tensor``) is refused by Python's ``TypeError``: an
-    operator is applied by calling it, ``A(f)``."""
+    operator is applied by calling it, ``A(f)``.
+
+    A mixin: it takes no parameters of its own."""
 
     def __mul__(self, other):
         if _is_number(other):
@@ -165,6 +167,20 @@ class ImageOperator(OperatorAlgebra):
     """A linear operator of image space ``B: L2(domain) -> L2(domain)`` from its action (e.g. a blur), to compose
     with a projector: ``T = R * ImageOperator(domain, blur)``.
 
+    Parameters
+    ----------
+    domain : ImageDomain
+        The image space (domain and range).
+    forward : callable
+        ``f -> B f`` on tensors ``(..., *domain.shape)``.
+    adjoint : callable, optional
+        ``f -> B^* f``; None: ``B`` is self-adjoint.
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``, or ``forward`` / ``adjoint`` is not callable.
+
     Notes
     -----
     - ``forward(f)`` / ``adjoint(f)``: tensors ``(..., *domain.shape)`` -> the same shape, batched and
@@ -173,6 +189,8 @@ class ImageOperator(OperatorAlgebra):
     - ``range_shape = domain.shape``, ``range_domain = domain``, ``inner_data = domain.inner``.
     - ``on_domain(d)``: the same functions on the grid ``d`` (they must accept any grid shape; a stencil in
       cells keeps its width in cells, not in physical units).
+    - A function that returns another shape than it was given is refused when the operator is applied
+      (``ValueError``).
 
     Examples
     --------
@@ -231,7 +249,22 @@ class ComposedOperator(OperatorAlgebra):
     """``A B: f -> A(B f)`` for ``B``'s range = ``A``'s domain; ``adjoint = B^* A^*``, ``inner_data`` = ``A``'s,
     ``domain`` = ``B``'s (module docstring). ``B``'s range is ``A``'s domain when ``B.range_domain == A.domain``,
     or, for an operator without ``range_domain``, when its ``range_shape`` and data inner product are those of
-    ``A.domain``."""
+    ``A.domain``.
+
+    Parameters
+    ----------
+    outer : LinearOperator
+        ``A``, applied second.
+    inner : LinearOperator
+        ``B``, applied first.
+
+    Raises
+    ------
+    TypeError
+        An argument that is no operator.
+    ValueError
+        ``B``'s range is not ``A``'s domain (domain, shape or inner product).
+    """
 
     def __init__(self, outer, inner):
         self.outer, self.inner = check_operator(outer, "A (of A * B)"), check_operator(inner, "B (of A * B)")
@@ -271,7 +304,20 @@ class ComposedOperator(OperatorAlgebra):
 
 class SumOperator(OperatorAlgebra):
     """``A_1 + ... + A_n`` on one domain into one data space (one ``range_shape`` and data inner product);
-    ``adjoint`` the sum of the adjoints, ``inner_data`` the first term's."""
+    ``adjoint`` the sum of the adjoints, ``inner_data`` the first term's.
+
+    Parameters
+    ----------
+    terms : sequence of LinearOperator
+        At least two operators with one domain, range shape and data inner product.
+
+    Raises
+    ------
+    TypeError
+        A term that is no operator.
+    ValueError
+        Fewer than two terms, or terms that differ in domain, range shape or data inner product.
+    """
 
     def __init__(self, terms: Sequence):
         terms = list(terms)
@@ -315,7 +361,22 @@ def _factor(value) -> float:
 
 
 class ScaledOperator(OperatorAlgebra):
-    """``c A`` for a finite real ``c``: ``adjoint = c A^*``, ``inner_data`` = ``A``'s."""
+    """``c A`` for a finite real ``c``: ``adjoint = c A^*``, ``inner_data`` = ``A``'s.
+
+    Parameters
+    ----------
+    factor : float
+        ``c``, finite and real.
+    operator : LinearOperator
+        ``A``.
+
+    Raises
+    ------
+    TypeError
+        A factor that is no real number, or an ``operator`` that is no operator.
+    ValueError
+        A non-finite factor.
+    """
 
     def __init__(self, factor, operator):
         self.factor = _factor(factor)
@@ -341,19 +402,71 @@ class ScaledOperator(OperatorAlgebra):
 
 
 def compose(*operators) -> ComposedOperator:
-    """``A_1 A_2 ... A_n``: ``f -> A_1(A_2(... A_n f))`` (``ComposedOperator``; ``A * B`` for indreg's operators)."""
+    """``A_1 A_2 ... A_n``: ``f -> A_1(A_2(... A_n f))`` (``ComposedOperator``; ``A * B`` for indreg's operators).
+
+    Parameters
+    ----------
+    *operators : LinearOperator
+        At least two, each one's range the domain of the one before.
+
+    Returns
+    -------
+    ComposedOperator
+        The composition (nested pairwise, ``A_1 (A_2 (... A_n))``).
+
+    Raises
+    ------
+    ValueError
+        Fewer than two operators, or one whose range is not the next one's domain.
+    TypeError
+        An argument that is no operator.
+    """
     if len(operators) < 2:
         raise ValueError(f"compose needs at least 2 operators, got {len(operators)}")
     return functools.reduce(ComposedOperator, operators)
 
 
 def add(*operators) -> SumOperator:
-    """``A_1 + ... + A_n`` (``SumOperator``; ``A + B`` for indreg's operators)."""
+    """``A_1 + ... + A_n`` (``SumOperator``; ``A + B`` for indreg's operators).
+
+    Parameters
+    ----------
+    *operators : LinearOperator
+        At least two, on one domain into one data space.
+
+    Returns
+    -------
+    SumOperator
+        The sum.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As ``SumOperator``.
+    """
     return SumOperator(operators)
 
 
 def scale(factor, operator) -> ScaledOperator:
-    """``c A`` (``ScaledOperator``; ``c * A`` for indreg's operators); ``c (d A)`` is ``(c d) A``."""
+    """``c A`` (``ScaledOperator``; ``c * A`` for indreg's operators); ``c (d A)`` is ``(c d) A``.
+
+    Parameters
+    ----------
+    factor : float
+        ``c``, finite and real.
+    operator : LinearOperator
+        ``A``.
+
+    Returns
+    -------
+    ScaledOperator
+        ``c A`` (one factor where ``A`` is already a multiple).
+
+    Raises
+    ------
+    ValueError, TypeError
+        As ``ScaledOperator``.
+    """
     if isinstance(operator, ScaledOperator):
         return ScaledOperator(_factor(factor) * operator.factor, operator.operator)
     return ScaledOperator(factor, operator)

@@ -130,10 +130,27 @@ def as_physics(operator, **kwargs):
     Use it to run deepinv's solvers (``A_dagger``, ``prox_l2``, ``deepinv.optim``), its ``adjointness_test``
     and its trainers on indreg's projector.
 
-    Args:
-        operator: an indreg linear operator (``indreg.RayTransform`` or any object with ``domain``,
-            ``range_shape``, ``__call__``, ``adjoint`` (L2 adjoint) and ``inner_data`` (a weighted sum)).
-        **kwargs: passed to ``deepinv.physics.LinearPhysics`` (``noise_model``, ``max_iter``, ``tol``, ...).
+    Parameters
+    ----------
+    operator : LinearOperator
+        An indreg linear operator (``indreg.RayTransform`` or any object with ``domain``, ``range_shape``,
+        ``__call__``, ``adjoint`` (L2 adjoint) and ``inner_data`` (a positively weighted sum)).
+    **kwargs
+        Passed to ``deepinv.physics.LinearPhysics`` (``noise_model``, ``max_iter``, ``tol``, ...).
+
+    Returns
+    -------
+    IndregPhysics
+        A ``deepinv.physics.LinearPhysics`` with ``A = T`` and ``A_adjoint = A^T``.
+
+    Raises
+    ------
+    ImportError
+        deepinv is not installed (the message says how).
+    TypeError
+        ``operator`` is no indreg linear operator.
+    ValueError
+        A data inner product that is not a positively weighted sum over the data entries.
 
     Notes
     -----
@@ -191,7 +208,21 @@ def _probe(physics, domain: ImageDomain):
 
 
 class PhysicsOperator(OperatorAlgebra, nn.Module):
-    """A deepinv ``LinearPhysics`` ``A`` as an indreg linear operator ``T`` on ``domain``.
+    """A deepinv ``LinearPhysics`` ``A`` as an indreg linear operator ``T`` on ``domain`` (made by
+    :func:`as_operator`, which checks and infers the arguments).
+
+    Parameters
+    ----------
+    physics : deepinv.physics.LinearPhysics
+        ``A``.
+    domain : ImageDomain
+        The images' domain.
+    range_shape : tuple of int
+        The data shape (deepinv's measurement without batch and channel dims).
+    dtypes : tuple of torch.dtype
+        The float dtypes the physics accepts.
+    data_weight : float
+        Weight of the data inner product.
 
     Notes
     -----
@@ -264,20 +295,36 @@ class PhysicsOperator(OperatorAlgebra, nn.Module):
 def as_operator(physics, domain: ImageDomain, range_shape=None, data_weight: float = 1.0) -> PhysicsOperator:
     """An indreg linear operator (``PhysicsOperator``) wrapping a deepinv ``LinearPhysics`` on ``domain``.
 
-    Args:
-        physics: a real-valued ``deepinv.physics.LinearPhysics`` taking single-channel images
-            ``(B, 1, nx, ny)`` (``Tomography``, ``Blur``, ...). Complex-valued physics (``MRI``, whose
-            images are 2-channel real/imaginary pairs) are refused.
-        domain: the ``ImageDomain`` of the images; its cell volume weights the image inner product.
-        range_shape: the data shape (deepinv's measurement shape without batch and channel dims); inferred by
-            applying the physics to a zero image when None, checked against it otherwise.
-        data_weight: weight ``w > 0`` of the data inner product ``w * sum(y1 * y2)`` (e.g. angle step times
-            detector step for a tomography sinogram, as ``RayTransform``); 1 gives deepinv's plain sum.
+    Parameters
+    ----------
+    physics : deepinv.physics.LinearPhysics
+        Real-valued, taking single-channel images ``(B, 1, nx, ny)`` (``Tomography``, ``Blur``, ...).
+        Complex-valued physics (``MRI``, whose images are 2-channel real/imaginary pairs) are refused.
+    domain : ImageDomain
+        The images' domain; its cell volume weights the image inner product.
+    range_shape : tuple of int, optional
+        The data shape (deepinv's measurement shape without batch and channel dims); inferred by applying the
+        physics to a zero image when None, checked against it otherwise.
+    data_weight : float
+        Weight ``w > 0`` of the data inner product ``w * sum(y1 * y2)`` (e.g. angle step times detector step for
+        a tomography sinogram, as ``RayTransform``); 1 gives deepinv's plain sum.
 
-    Notes
-    -----
-    see ``PhysicsOperator``: ``T = A``, ``T^* = (data_weight / cell_volume) * A^T`` (deepinv's ``A_adjoint``
-    is the Euclidean transpose, so this scaling makes ``T^*`` the adjoint for indreg's inner products).
+    Returns
+    -------
+    PhysicsOperator
+        ``T = A``, ``T^* = (data_weight / cell_volume) * A^T`` (deepinv's ``A_adjoint`` is the Euclidean
+        transpose, so this scaling makes ``T^*`` the adjoint for indreg's inner products).
+
+    Raises
+    ------
+    ImportError
+        deepinv is not installed.
+    TypeError
+        No ``LinearPhysics``, a complex-valued one, no ``ImageDomain``, or physics that return no tensor or
+        complex measurements.
+    ValueError
+        Physics that cannot be applied to a single-channel image of the domain's shape, a ``range_shape`` that
+        disagrees, ``data_weight <= 0``.
 
     Examples
     --------

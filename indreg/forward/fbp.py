@@ -89,25 +89,44 @@ def fbp(T, y: torch.Tensor, filter: str = "hamming", frequency_scaling: float = 
         padding: bool = True) -> torch.Tensor:
     """Filtered backprojection ``T^*( w h * y )`` of data ``y`` for the ray transform ``T``.
 
-    Notes
-    -----
-    - ``y``: ``(..., num_angles, det_count)`` line integrals (physical units) as produced by ``T``;
-      returns images ``(..., nx, ny)`` on ``T.domain`` in the units of the original ``f``
-      (e.g. a unit disk reconstructs to about 1 inside with ``ram-lak``, ``frequency_scaling=1``).
-    - Parallel beam: any angle set; angle ``k`` is weighted by its quadrature cell
-      ``T.geometry.angle_weights[k]`` (module docstring). Fan beam: angles over a full turn, rebinned.
-    - Differentiable (FFT, multiplication, the rebinning and ``T.adjoint`` are all differentiable).
-
-    Args:
-        filter: one of ``ram-lak``, ``shepp-logan``, ``cosine``, ``hamming``, ``hann``.
-        frequency_scaling: relative cut-off in (0, 1]; frequencies above ``scaling * Nyquist`` are zeroed.
-        padding: zero-pad the detector axis to ``2 * det_count`` before the FFT (no wrap-around).
-
     The paper's FBP baseline is ``filter="hamming", frequency_scaling=0.4, padding=True``.
 
-    Tilt series (``TiltSeriesTransform``): data ``(..., num_tilts, det_rows, det_cols)`` -> volumes
-    ``(..., nx, ny, nz)``, the 2D FBP of ``T.slice_transform`` applied to every detector row at once (the
-    weighted backprojection of electron tomography, each tilt weighted by its quadrature cell).
+    Parameters
+    ----------
+    T : RayTransform or TiltSeriesTransform
+        The operator of the data (parallel or fan beam; a tilt series).
+    y : torch.Tensor
+        Data ``(..., num_angles, det_count)`` (a tilt series: ``(..., num_tilts, det_rows, det_cols)``), line
+        integrals in physical units as produced by ``T``.
+    filter : {"hamming", "ram-lak", "shepp-logan", "cosine", "hann"}
+        The apodisation window of the ramp filter.
+    frequency_scaling : float
+        Relative cut-off in (0, 1]; frequencies above ``frequency_scaling * Nyquist`` are zeroed.
+    padding : bool
+        Zero-pad the detector axis to ``2 * det_count`` before the FFT (no wrap-around).
+
+    Returns
+    -------
+    torch.Tensor
+        Images ``(..., nx, ny)`` on ``T.domain`` (volumes ``(..., nx, ny, nz)`` for a tilt series), in the units
+        of the original ``f`` (a unit disk reconstructs to about 1 inside with ``ram-lak``,
+        ``frequency_scaling=1``).
+
+    Raises
+    ------
+    TypeError
+        ``T`` is not a ray transform of a parallel- or fan-beam geometry or a tilt series.
+    ValueError
+        Data of another shape, an unknown filter, ``frequency_scaling`` outside (0, 1], fan-beam angles that do
+        not cover a full turn.
+
+    Notes
+    -----
+    - Parallel beam: any angle set; angle ``k`` is weighted by its quadrature cell
+      ``T.geometry.angle_weights[k]`` (module docstring). Fan beam: angles over a full turn, rebinned.
+    - Tilt series: the 2D FBP of ``T.slice_transform`` applied to every detector row at once (the weighted
+      backprojection of electron tomography, each tilt weighted by its quadrature cell).
+    - Differentiable (FFT, multiplication, the rebinning and ``T.adjoint`` are all differentiable).
     """
     if hasattr(T, "slice_transform"):
         return _fbp_tilt_series(T, y, filter, frequency_scaling, padding)

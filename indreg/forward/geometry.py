@@ -208,15 +208,32 @@ class ParallelBeamGeometry(_Geometry):
     - ``det_min = det_max = None``: the operator fits a symmetric detector reaching the domain's
       farthest corner (the half-diagonal for a centred domain), see ``resolve``.
 
-    Args:
-        num_angles: number of angles; the default angles are uniform ``k * pi / num_angles`` on ``[0, pi)``.
-        det_count: number of detector bins (>= 1).
-        det_min, det_max: detector extent (``det_min < det_max``), physical units; both ``None`` (default):
-            fitted to the domain by ``RayTransform``.
-        angles: explicit angles (1D, finite, real); ``num_angles`` may then be ``None``.
-        angle_unit: ``"rad"`` or ``"deg"`` for explicit angles; ``None`` (default) means radians and rejects
-            values beyond ``2 pi`` as probable degrees.
-        angle_weights: explicit FBP quadrature cells (radians, positive), default ``midpoint_cells``.
+    Parameters
+    ----------
+    num_angles : int, optional
+        Number of angles; the default angles are uniform ``k * pi / num_angles`` on ``[0, pi)``. None with
+        ``angles`` (if given with them, it must equal their number).
+    det_count : int
+        Number of detector bins (>= 1).
+    det_min, det_max : float, optional
+        Detector extent (``det_min < det_max``), physical units; both None (default): fitted to the domain by
+        ``RayTransform``.
+    angles : array_like, optional
+        Explicit angles (1D, finite, real, any order).
+    angle_unit : {None, "rad", "deg"}
+        The unit of explicit angles; None (default) means radians and rejects values beyond ``2 pi`` as
+        probable degrees.
+    angle_weights : array_like, optional
+        Explicit FBP quadrature cells (radians, positive, one per angle), default ``midpoint_cells``.
+
+    Raises
+    ------
+    ValueError
+        Neither ``num_angles`` nor ``angles``, a count that disagrees with ``angles``, empty, 2D, non-finite or
+        degree-like angles without a unit, one of ``det_min`` / ``det_max`` alone or ``det_min >= det_max``,
+        weights of the wrong length or not positive.
+    TypeError
+        Complex, boolean or non-numeric angles or weights, a non-integer count.
 
     Examples
     --------
@@ -283,26 +300,44 @@ class ParallelBeamGeometry(_Geometry):
 class FanBeamGeometry(_Geometry):
     """Fan beam with a flat detector: a point source and a detector line rotating about the origin.
 
-    Convention (ODL's ``FanBeamGeometry`` defaults, ASTRA's ``fanflat``):
-        - At angle ``beta`` the source is at ``S = src_radius * (sin beta, -cos beta)``, the detector's
-          reference point (its foot from the origin) at ``C = det_radius * (-sin beta, cos beta)``, and the
-          detector axis is ``e = (cos beta, sin beta)``; bin ``d`` sits at ``C + u_d e``,
-          ``u_d = det_min + (d + 1/2) det_cell`` (physical units AT THE DETECTOR, not at the origin).
-        - A datum ``p(beta_k, u_d)`` is the integral of the image along the whole line through ``S`` and the
-          bin centre (the source must lie outside the domain).
-        - Ray ``(beta, u)`` is the parallel ray ``(theta, s) = (beta - gamma, src_radius * sin gamma)``,
-          ``gamma = atan(u / (src_radius + det_radius))``: as ``src_radius -> inf`` with ``det_radius = 0``
-          the fan beam becomes ``ParallelBeamGeometry`` with the same angles and detector.
-        - Data ``(..., num_angles, det_count)``; data-space weight ``angle_cell * det_cell`` with
-          ``angle_cell = 2 pi / num_angles`` (ODL's weight for angles over a full turn).
-        - ``det_min = det_max = None``: fitted by the operator to the fan through the domain's farthest corner
-          ``r``: half-width ``(src_radius + det_radius) * tan(asin(r / src_radius))``.
+    Parameters
+    ----------
+    num_angles : int, optional
+        Number of angles; default uniform ``2 pi k / num_angles`` on ``[0, 2 pi)``.
+    det_count : int
+        Number of detector bins (>= 1).
+    src_radius : float
+        Source-to-origin distance (> 0; required): ASTRA's ``source_origin``.
+    det_radius : float
+        Origin-to-detector distance (>= 0): ASTRA's ``origin_det`` (not source-to-detector).
+    det_min, det_max, angles, angle_unit, angle_weights
+        As for ``ParallelBeamGeometry``; the detector extent is measured at the detector.
 
-    Args:
-        num_angles: number of angles; default uniform ``2 pi k / num_angles`` on ``[0, 2 pi)``.
-        det_count: number of bins. src_radius: source-to-origin distance (> 0); det_radius: origin-to-detector
-            distance (>= 0). ASTRA's ``source_origin`` and ``origin_det`` (not source-to-detector).
-        det_min, det_max, angles, angle_unit, angle_weights: as for ``ParallelBeamGeometry``.
+    Raises
+    ------
+    ValueError
+        No ``src_radius``, ``src_radius <= 0`` or ``det_radius < 0``, and the errors of
+        ``ParallelBeamGeometry``.
+    TypeError
+        As for ``ParallelBeamGeometry``.
+
+    Notes
+    -----
+    ODL's ``FanBeamGeometry`` defaults, ASTRA's ``fanflat``:
+
+    - At angle ``beta`` the source is at ``S = src_radius * (sin beta, -cos beta)``, the detector's
+      reference point (its foot from the origin) at ``C = det_radius * (-sin beta, cos beta)``, and the
+      detector axis is ``e = (cos beta, sin beta)``; bin ``d`` sits at ``C + u_d e``,
+      ``u_d = det_min + (d + 1/2) det_cell`` (physical units AT THE DETECTOR, not at the origin).
+    - A datum ``p(beta_k, u_d)`` is the integral of the image along the whole line through ``S`` and the
+      bin centre (the source must lie outside the domain).
+    - Ray ``(beta, u)`` is the parallel ray ``(theta, s) = (beta - gamma, src_radius * sin gamma)``,
+      ``gamma = atan(u / (src_radius + det_radius))``: as ``src_radius -> inf`` with ``det_radius = 0``
+      the fan beam becomes ``ParallelBeamGeometry`` with the same angles and detector.
+    - Data ``(..., num_angles, det_count)``; data-space weight ``angle_cell * det_cell`` with
+      ``angle_cell = 2 pi / num_angles`` (ODL's weight for angles over a full turn).
+    - ``det_min = det_max = None``: fitted by the operator to the fan through the domain's farthest corner
+      ``r``: half-width ``(src_radius + det_radius) * tan(asin(r / src_radius))``.
 
     Examples
     --------

@@ -45,7 +45,26 @@ class LinearOperator(Protocol):
 
 
 def check_operator(op, name: str = "operator"):
-    """Check that ``op`` follows ``LinearOperator``; one-line ``TypeError`` naming what is missing. Returns ``op``."""
+    """Check that ``op`` follows ``LinearOperator`` (its members present, ``adjoint`` and ``inner_data`` callable,
+    ``domain`` an ``ImageDomain``).
+
+    Parameters
+    ----------
+    op : object
+        The operator to check.
+    name : str
+        Its name in the message.
+
+    Returns
+    -------
+    object
+        ``op`` itself.
+
+    Raises
+    ------
+    TypeError
+        One line naming what is missing or of the wrong type.
+    """
     missing = [m for m in MEMBERS if not hasattr(op, m)]
     missing += [m for m in ("adjoint", "inner_data") if m not in missing and not callable(getattr(op, m))]
     if not callable(op) and "__call__" not in missing:
@@ -91,8 +110,29 @@ def _random_pair(op, dtype, device, seed: int) -> tuple:
 
 def adjointness(op, dtype: torch.dtype = torch.float64, device=None, seed: int = 0) -> float:
     """Relative adjointness error ``|<T x, y> - <x, T^* y>| / (||T x|| ||y||)`` for random normal ``x``, ``y``
-    (weighted inner products; as deepinv's ``adjointness_test`` and ODL's ``OperatorTest``). About
-    ``1e-15`` for an exact pair in float64."""
+    (weighted inner products; as deepinv's ``adjointness_test`` and ODL's ``OperatorTest``).
+
+    Parameters
+    ----------
+    op : LinearOperator
+        The operator (checked by :func:`check_operator`).
+    dtype : torch.dtype
+        ``torch.float32`` or ``torch.float64`` (default).
+    device : torch.device or str, optional
+        Where ``x`` and ``y`` are made (default: the CPU).
+    seed : int
+        Seed of the random pair (>= 0).
+
+    Returns
+    -------
+    float
+        The relative error: about ``1e-15`` for an exact pair in float64.
+
+    Raises
+    ------
+    TypeError
+        ``op`` is not an operator, or another ``dtype``.
+    """
     check_operator(op)
     x, y = _random_pair(op, dtype, device, seed)
     with torch.no_grad():

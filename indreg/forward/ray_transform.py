@@ -42,6 +42,18 @@ def register_projector(geometry_type: type, matrix_builder) -> None:
     ``i * ny + j``, float64, physical line-integral weights) for geometries of ``geometry_type``.
 
     The geometry must provide ``shape``, ``data_weight`` and ``resolve(domain)`` (see ``geometry._Geometry``).
+
+    Parameters
+    ----------
+    geometry_type : type
+        The geometry class (its subclasses too, unless they have their own projector).
+    matrix_builder : callable
+        ``(domain, geometry) -> scipy.sparse CSR`` system matrix.
+
+    Raises
+    ------
+    TypeError
+        ``geometry_type`` is not a class or ``matrix_builder`` not callable.
     """
     if not isinstance(geometry_type, type) or not callable(matrix_builder):
         raise TypeError("register_projector(geometry_type, matrix_builder) needs a class and a callable, got "
@@ -296,6 +308,20 @@ class RayTransform(WeightedDataMixin, nn.Module):
     centres (``FanBeamGeometry``). The forward operator of the paper's indirect registration problem
     (``eq:OptimV``, data ``g = T(W(nu, I)) + noise``), discretised with Joseph's method (module docstring);
     the matrix comes from the projector registered for the geometry's type (``register_projector``).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The 2D image domain.
+    geometry : ParallelBeamGeometry or FanBeamGeometry
+        The acquisition geometry (or one of a type registered with ``register_projector``).
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``, or a geometry type without a projector.
+    ValueError
+        A 3D domain (use ``TiltSeriesTransform``), or a fan-beam source inside the domain.
 
     Notes
     -----

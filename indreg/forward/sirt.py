@@ -50,17 +50,37 @@ def sirt(T, y: torch.Tensor, num_iter: int = 100, x0: torch.Tensor | None = None
          callback=None) -> tuple:
     """``num_iter`` SIRT iterations for ``T x = y`` (module docstring).
 
-    Notes
-    -----
-    - ``T`` a ``LinearOperator``; ``y`` data ``(..., *T.range_shape)``, any leading batch dims; images
-      ``(..., *T.domain.shape)`` (2D or 3D); dtype and device follow ``y``.
-    - ``x0``: start (default zeros). ``nonneg``: clip to ``x >= 0`` after every step.
-    - ``callback(i, x)`` after iteration ``i`` (0-based).
+    Parameters
+    ----------
+    T : LinearOperator
+        The forward operator, with a nonnegative matrix (ray sums ``T 1`` and cell sums ``T^* 1`` >= 0).
+    y : torch.Tensor
+        Data ``(..., *T.range_shape)``, any leading batch dims; the images' dtype and device follow it.
+    num_iter : int
+        Iterations (>= 1).
+    x0 : torch.Tensor, optional
+        Start image ``(*batch, *T.domain.shape)`` (default zeros).
+    nonneg : bool
+        Clip to ``x >= 0`` after every step.
+    callback : callable, optional
+        ``callback(i, x)`` after iteration ``i`` (0-based).
 
-    Returns:
-        ``(x, history)``: ``history["residual"]`` float64 CPU ``(num_iter, ...)``, the weighted residual
-        ``sum R (T x_k - y)^2`` after iteration ``k`` (non-increasing), and ``history["data_residual"]`` the
-        data-space norm ``||T x_k - y||`` (``T.inner_data``).
+    Returns
+    -------
+    x : torch.Tensor
+        The reconstruction ``(..., *T.domain.shape)`` (2D or 3D).
+    history : dict
+        ``history["residual"]`` float64 CPU ``(num_iter, ...)``, the weighted residual ``sum R (T x_k - y)^2``
+        after iteration ``k`` (non-increasing), and ``history["data_residual"]`` the data-space norm
+        ``||T x_k - y||`` (``T.inner_data``).
+
+    Raises
+    ------
+    TypeError
+        ``T`` is no operator, or a wrong type of argument.
+    ValueError
+        Data or ``x0`` of the wrong shape, non-finite values, ``num_iter < 1``, an operator with negative
+        entries.
     """
     check_operator(T, "T")
     y = check_tensor(y, "y", tuple(T.range_shape))

@@ -1,8 +1,10 @@
 """Stacks and row restrictions of operators (deepinv's ``stack``): one image to the data of several operators, the
 block-diagonal form on a stack of frames, and an operator restricted to some rows (angles, tilts) of its range.
 
-Convention: as :mod:`indreg.forward.algebra` (the protocol of :mod:`indreg.forward.operator`; adjoints in the
-weighted data inner products, by construction).
+Notes
+-----
+As :mod:`indreg.forward.algebra` (the protocol of :mod:`indreg.forward.operator`; adjoints in the weighted data
+inner products, by construction).
 """
 from __future__ import annotations
 
@@ -20,6 +22,18 @@ __all__ = ["StackedOperator", "RestrictedOperator", "stack", "restrict"]
 
 class StackedOperator(OperatorAlgebra):
     """The operators ``T_1 .. T_K`` of one domain and one range shape ``R``, stacked (deepinv's ``stack``).
+
+    Parameters
+    ----------
+    operators : list or tuple of LinearOperator
+        ``T_1 .. T_K`` (K >= 1), one domain and one range shape.
+
+    Raises
+    ------
+    ValueError
+        An empty or non-list argument, or parts that differ in domain or range shape.
+    TypeError
+        A part that is no operator.
 
     Notes
     -----
@@ -112,6 +126,21 @@ class RestrictedOperator(OperatorAlgebra):
     """``T`` restricted to some rows of its range: ``T_S f = (T f)[rows]`` along the first data axis (the angles of
     a ray transform, the tilts of a tilt series, the parts of a stack); it computes ``T f`` and selects.
 
+    Parameters
+    ----------
+    operator : LinearOperator
+        ``T``.
+    rows : int or array_like of int
+        The rows kept: strictly increasing indices in ``[0, T.range_shape[0])`` (integer-valued floats
+        accepted).
+
+    Raises
+    ------
+    TypeError
+        ``operator`` is no operator, or ``rows`` is not integer indices (None, a string, booleans).
+    ValueError
+        ``rows`` empty, not 1D, not strictly increasing, out of range or not integer-valued.
+
     Notes
     -----
     - ``range_shape`` ``(len(rows), *T.range_shape[1:])``; ``rows`` strictly increasing indices in
@@ -188,10 +217,44 @@ def _indices(rows, count: int) -> torch.Tensor:
 
 
 def stack(*operators) -> StackedOperator:
-    """``f -> (T_1 f, ..., T_K f)`` (``StackedOperator``, as deepinv's ``stack``)."""
+    """``f -> (T_1 f, ..., T_K f)`` (``StackedOperator``, as deepinv's ``stack``).
+
+    Parameters
+    ----------
+    *operators : LinearOperator
+        ``T_1 .. T_K`` (K >= 1) of one domain and one range shape.
+
+    Returns
+    -------
+    StackedOperator
+        The stack, range shape ``(K, *T_1.range_shape)``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As ``StackedOperator``.
+    """
     return StackedOperator(list(operators))
 
 
 def restrict(operator, rows) -> RestrictedOperator:
-    """``f -> (T f)[rows]`` along the first data axis (``RestrictedOperator``)."""
+    """``f -> (T f)[rows]`` along the first data axis (``RestrictedOperator``).
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        ``T``.
+    rows : int or array_like of int
+        Strictly increasing indices in ``[0, T.range_shape[0])``.
+
+    Returns
+    -------
+    RestrictedOperator
+        ``T`` restricted, range shape ``(len(rows), *T.range_shape[1:])``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        As ``RestrictedOperator``.
+    """
     return RestrictedOperator(operator, rows)

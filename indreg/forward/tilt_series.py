@@ -33,24 +33,50 @@ def _axis_index(tilt_axis) -> int:
 class TiltSeriesGeometry:
     """Rotation of the specimen about one image axis (the tilt axis), parallel beam, flat 2D detector.
 
-    Convention (tilt axis ``t``; the two other axes ``(u, v)`` in increasing order: ``(x, z)`` for the
-    default ``t = y``, ``(y, z)`` for ``t = x``, ``(x, y)`` for ``t = z``):
-        - Slice ``j`` (the cells at ``t = t_j``) is a 2D image ``(n_u, n_v)`` imaged by
-          ``ParallelBeamGeometry(angles, det_count, det_min, det_max)``: datum ``p(theta_k, t_j, s_d)`` is the
-          integral over ``{s_d w + r w_perp}`` in the ``(u, v)`` plane with ``w = (cos theta, sin theta)``,
-          ``w_perp = (-sin theta, cos theta)``. At tilt 0 the beam runs along +v (+z for ``t = y``) and the
-          detector columns along u (x).
-        - Data ``(..., num_tilts, det_rows, det_cols)``: ``det_rows = n_t`` rows at the slices' ``t_j`` (row
-          spacing = the cell side along ``t``), ``det_cols = det_count`` cell-centred bins on
-          ``[det_min, det_max]`` along ``s``. For ``t = y`` this is an MRC/IMOD stack ``(tilt, Y, X)`` as stored.
-        - Angles: ``angle_unit`` is required (``"deg"`` or ``"rad"``; no guessing), any order, non-uniform.
-        - Data inner product ``angle_cell * det_cell * row_cell * sum`` with ``angle_cell = pi / num_tilts``
-          (the 2D weight times the row spacing), so the L2 adjoint is ``(data_weight / cell_volume) A^T``
-          slice by slice. FBP weighs tilt ``k`` by ``angle_weights[k]`` (midpoint cells: the step of a
-          regular tilt series).
-        - ``det_min = det_max = None``: the detector is fitted to the slice (its half-diagonal), see
-          ``ParallelBeamGeometry``; for data measured on a detector as wide as the volume pass
-          ``det_min, det_max = domain.min_pt[u], domain.max_pt[u]``.
+    Parameters
+    ----------
+    angles : array_like
+        Tilt angles (1D, finite, any order, non-uniform allowed), in ``angle_unit``.
+    det_count : int
+        Detector columns (bins along ``s``, >= 1).
+    det_min, det_max : float, optional
+        Detector extent along ``s`` (physical units); both None: fitted to the slice.
+    tilt_axis : {"y", "x", "z"} or {0, 1, 2}
+        The image axis the specimen turns about.
+    angle_unit : {"deg", "rad"}
+        The unit of ``angles`` (keyword, required: no guessing).
+    angle_weights : array_like, optional
+        FBP quadrature cells (radians, positive), default the midpoint cells.
+
+    Raises
+    ------
+    ValueError
+        A missing or unknown ``angle_unit``, an unknown ``tilt_axis``, and the angle and detector errors of
+        ``ParallelBeamGeometry``.
+    TypeError
+        As ``ParallelBeamGeometry``.
+
+    Notes
+    -----
+    Tilt axis ``t``; the two other axes ``(u, v)`` in increasing order: ``(x, z)`` for the default ``t = y``,
+    ``(y, z)`` for ``t = x``, ``(x, y)`` for ``t = z``.
+
+    - Slice ``j`` (the cells at ``t = t_j``) is a 2D image ``(n_u, n_v)`` imaged by
+      ``ParallelBeamGeometry(angles, det_count, det_min, det_max)``: datum ``p(theta_k, t_j, s_d)`` is the
+      integral over ``{s_d w + r w_perp}`` in the ``(u, v)`` plane with ``w = (cos theta, sin theta)``,
+      ``w_perp = (-sin theta, cos theta)``. At tilt 0 the beam runs along +v (+z for ``t = y``) and the
+      detector columns along u (x).
+    - Data ``(..., num_tilts, det_rows, det_cols)``: ``det_rows = n_t`` rows at the slices' ``t_j`` (row
+      spacing = the cell side along ``t``), ``det_cols = det_count`` cell-centred bins on
+      ``[det_min, det_max]`` along ``s``. For ``t = y`` this is an MRC/IMOD stack ``(tilt, Y, X)`` as stored.
+    - Angles: ``angle_unit`` is required (``"deg"`` or ``"rad"``; no guessing), any order, non-uniform.
+    - Data inner product ``angle_cell * det_cell * row_cell * sum`` with ``angle_cell = pi / num_tilts``
+      (the 2D weight times the row spacing), so the L2 adjoint is ``(data_weight / cell_volume) A^T``
+      slice by slice. FBP weighs tilt ``k`` by ``angle_weights[k]`` (midpoint cells: the step of a
+      regular tilt series).
+    - ``det_min = det_max = None``: the detector is fitted to the slice (its half-diagonal), see
+      ``ParallelBeamGeometry``; for data measured on a detector as wide as the volume pass
+      ``det_min, det_max = domain.min_pt[u], domain.max_pt[u]``.
 
     Examples
     --------
@@ -146,6 +172,20 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
     ``(T f)(theta_k, t_j, s_d)`` is the 2D parallel-beam ray transform of the slice ``f(., t_j, .)``
     (``TiltSeriesGeometry``), discretised by the 2D Joseph matrix ``A`` of that slice geometry, the same for
     every slice: ``T f = A`` applied slice by slice, in one batched sparse product.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The 3D volume domain ``(nx, ny, nz)``.
+    geometry : TiltSeriesGeometry
+        The tilts and the detector (resolved for ``domain`` here).
+
+    Raises
+    ------
+    ValueError
+        A domain that is not 3D.
+    TypeError
+        A geometry that is no ``TiltSeriesGeometry``.
 
     Notes
     -----

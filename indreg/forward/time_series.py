@@ -25,11 +25,19 @@ class TimeSeriesOperator(StackedOperator):
     """The forward operators ``T_1 .. T_K`` of the frames of a time series: their ``StackedOperator``
     (``indreg.forward.stacking``), one part per time point (module docstring).
 
+    Parameters
+    ----------
+    operators : list or tuple of LinearOperator
+        ``T_1 .. T_K`` (K >= 1) on one ``domain`` with one ``range_shape`` ``R`` (e.g.
+        ``(num_angles, det_count)``: the same number of angles per time point, at different angles).
+
+    Raises
+    ------
+    ValueError, TypeError
+        As ``StackedOperator``.
+
     Notes
     -----
-    - ``operators``: a non-empty sequence of linear operators (``indreg.forward.LinearOperator``) on one
-      ``domain`` with one ``range_shape`` ``R`` (e.g. ``(num_angles, det_count)``: the same number of angles
-      per time point, at different angles).
     - ``range_shape`` ``(K, *R)``: the frames' data stacked on axis ``-len(R) - 1`` (frame ``k`` = ``T_k``'s).
     - ``frames``: ``(..., K, *domain.shape) -> (..., K, *R)``; ``frames_adjoint``: back; ``__call__``:
       ``(..., *domain.shape) -> (..., K, *R)``; ``adjoint``: ``(..., K, *R) -> (..., *domain.shape)``.

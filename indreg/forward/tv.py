@@ -67,11 +67,31 @@ def divergence(p: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
 def total_variation(f: torch.Tensor, domain: ImageDomain, smoothing: float = 0.0) -> torch.Tensor:
     """Isotropic total variation ``TV(f) = int sqrt(|grad f|^2 + eps^2) dx`` (eps = ``smoothing``).
 
-    Convention: ``f (..., *shape)`` on a 2D or 3D ``domain``; ``grad f`` by forward differences in physical
-    units with zero padding (``gradient``, ODL's default); the integral is the Riemann sum with the cell
-    volume; batch dims kept. ``smoothing = 0`` gives plain TV, whose autograd gradient is taken as 0 where
-    ``grad f = 0`` (a subgradient); ``smoothing > 0`` gives the smooth approximation (``TV_eps >= TV``,
-    ``TV_eps - TV <= eps |Omega|``), differentiable everywhere.
+    ``grad f`` by forward differences in physical units with zero padding (``gradient``, ODL's default); the
+    integral is the Riemann sum with the cell volume.
+
+    Parameters
+    ----------
+    f : torch.Tensor
+        Images ``(..., *domain.shape)`` (non-finite values show in the sum).
+    domain : ImageDomain
+        A 2D or 3D domain.
+    smoothing : float
+        ``eps >= 0``. 0 gives plain TV, whose autograd gradient is taken as 0 where ``grad f = 0`` (a
+        subgradient); ``eps > 0`` the smooth approximation (``TV_eps >= TV``, ``TV_eps - TV <= eps |Omega|``),
+        differentiable everywhere.
+
+    Returns
+    -------
+    torch.Tensor
+        ``TV(f)``, the batch dims kept.
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``.
+    ValueError
+        ``f`` of the wrong shape, ``smoothing < 0``.
     """
     if not isinstance(domain, ImageDomain):
         raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")
@@ -104,7 +124,27 @@ def intensity_scale(T, y: torch.Tensor) -> float:
     """The data's intensity unit: ``max |T^* y| / max T^* T 1``, the intensity of a uniform image on the domain
     whose backprojection peaks as high as the data's (``1`` image of ones). It scales with the data (``y -> c y``
     gives ``c`` times it) and not with the geometry's sampling; times a length squared it is the unit of a TV weight
-    (``tv_weight_unit``, the app's ``baseline.tv_mu``). Convention: ``y`` ``T.range_shape``."""
+    (``tv_weight_unit``, the app's ``baseline.tv_mu``).
+
+    Parameters
+    ----------
+    T : LinearOperator
+        The forward operator.
+    y : torch.Tensor
+        Data ``T.range_shape`` (finite).
+
+    Returns
+    -------
+    float
+        The intensity unit (its maximum over the ranks of a split operator).
+
+    Raises
+    ------
+    TypeError
+        ``T`` is no operator.
+    ValueError
+        Data of another shape or non-finite.
+    """
     check_operator(T, "T")
     check_tensor(y, "y", tuple(T.range_shape))
     with torch.no_grad():
@@ -121,7 +161,25 @@ def tv_weight_unit(T, y: torch.Tensor) -> float:
     times ``s`` on a detector measure times ``s^(d-1)``, so ``||T x - y||^2`` grows by ``s^(d+1)``, while ``TV(x) = int
     |grad x| dx`` grows by ``s^(d-1)``: the two balance when ``mu`` grows by ``s^2`` times the intensity's factor, that
     is ``mu / u`` is a length squared in 2D and 3D. The box side ``L`` (not the cell side) keeps ``mu_rel`` for the
-    same object sampled finer. ``y`` ``T.range_shape``."""
+    same object sampled finer.
+
+    Parameters
+    ----------
+    T : LinearOperator
+        The forward operator (a slab's: the whole box counts).
+    y : torch.Tensor
+        Data ``T.range_shape``.
+
+    Returns
+    -------
+    float
+        ``intensity_scale(T, y) * L^2``.
+
+    Raises
+    ------
+    TypeError, ValueError
+        As :func:`intensity_scale`.
+    """
     return intensity_scale(T, y) * max(whole_domain(T.domain).extent) ** 2   # a slab's: the whole box
 
 
@@ -191,9 +249,11 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     ``G`` = 0 (or the indicator of ``x >= 0`` when ``nonneg``); an anchor moves ``F2`` to ``mu int |w - grad a|``,
     whose conjugate's prox is ``P_mu(. - sigma_q grad a)``. Each iteration, for duals ``p`` (data) and ``q``
     (vector field), a primal step ``tau``, dual steps ``sigma_p``, ``sigma_q`` and ``x_bar`` the extrapolated primal:
-        ``p <- (p + sigma_p (T x_bar - y)) / (1 + sigma_p / 2)``        (prox of sigma_p F1^*)
-        ``q <- P_mu(q + sigma_q (grad x_bar - grad a))``                 (projection on ``|q(x)| <= mu``)
-        ``x_new <- prox_G(x - tau (T^* p - div q))``,  ``x_bar = 2 x_new - x``.
+
+    - ``p <- (p + sigma_p (T x_bar - y)) / (1 + sigma_p / 2)`` (prox of sigma_p F1^*)
+    - ``q <- P_mu(q + sigma_q (grad x_bar - grad a))`` (projection on ``|q(x)| <= mu``)
+    - ``x_new <- prox_G(x - tau (T^* p - div q))``,  ``x_bar = 2 x_new - x``.
+
     ``K x_bar`` is formed as ``2 K x_new - K x`` (linearity), so an iteration costs one ``T`` and one ``T^*``.
 
     Steps. Balanced (default; Pock & Chambolle's block-diagonal preconditioning, 2011): ``sigma_p = 0.3``
@@ -208,25 +268,50 @@ def tv_reconstruction(T, y: torch.Tensor, mu: float, num_iter: int = 1000, x0: t
     and ``||grad||`` differ by orders of magnitude (e.g. nm units: 53 against 0.26 / nm) ``q`` then moves too
     slowly to reach ``mu`` in hundreds of iterations and ``mu`` does not act.
 
-    Args:
-        T: a ``LinearOperator``: ``T(x)``, ``T.adjoint(y)`` (L2 adjoint), ``T.inner_data``, ``T.domain``,
-            ``T.range_shape``; the norms are estimated by power iteration, so no operator norm is needed.
-        y: data ``(..., *T.range_shape)``.
-        mu: TV weight (> 0); the paper uses 3.0 (suite 1) and 1.0 (suite 2).
-        num_iter: iterations (the paper: 1000). x0: start (default zeros), shape ``(..., *T.domain.shape)``.
-        callback: called as ``callback(i, x)`` after iteration ``i`` (0-based).
-        nonneg: constrain ``x >= 0``.  opnorm_iter: power iterations for each norm.
-        balanced: the balanced steps (default) or the equal ones (above).
-        anchor: ``a``, shape ``T.domain.shape`` (a template-anchored TV: ``indreg.problems.residual``).
-        norms: the norms that set the steps, ``history["norms"]`` of an earlier run with the same ``T``, dtype and
-            ``balanced``: the power iterations are skipped (a parameter scan: the same iterates, bit for bit, at a
-            third less cost per run of 200 iterations).
+    Parameters
+    ----------
+    T : LinearOperator
+        ``T(x)``, ``T.adjoint(y)`` (L2 adjoint), ``T.inner_data``, ``T.domain``, ``T.range_shape``; the norms are
+        estimated by power iteration, so no operator norm is needed.
+    y : torch.Tensor
+        Data ``(..., *T.range_shape)``.
+    mu : float
+        TV weight (> 0); the paper uses 3.0 (suite 1) and 1.0 (suite 2).
+    num_iter : int
+        Iterations (the paper: 1000).
+    x0 : torch.Tensor, optional
+        Start (default zeros), shape ``(..., *T.domain.shape)`` with the data's batch dims.
+    callback : callable, optional
+        Called as ``callback(i, x)`` after iteration ``i`` (0-based).
+    nonneg : bool
+        Constrain ``x >= 0``.
+    opnorm_iter : int
+        Power iterations for each norm.
+    balanced : bool
+        The balanced steps (default) or the equal ones (above).
+    anchor : torch.Tensor, optional
+        ``a``, shape ``T.domain.shape`` (a template-anchored TV: ``indreg.problems.residual``).
+    norms : tuple of float, optional
+        The norms that set the steps, ``history["norms"]`` of an earlier run with the same ``T``, dtype and
+        ``balanced``: the power iterations are skipped (a parameter scan: the same iterates, bit for bit, at a
+        third less cost per run of 200 iterations).
 
-    Returns:
-        ``(x, history)``: ``x`` ``(..., *T.domain.shape)``; ``history["objective"]`` float64 CPU tensor
-        ``(num_iter, ...)`` with ``E`` of each iterate, ``history["step"]`` = ``tau``, ``history["dual_steps"]`` =
-        ``(sigma_p, sigma_q)``, ``history["opnorm"]`` = the estimated ``||T||`` (balanced) or ``||K||`` (equal),
-        ``history["norms"]`` = ``(||T||, ||grad||)`` (balanced) or ``(||K||,)`` (equal).
+    Returns
+    -------
+    x : torch.Tensor
+        The reconstruction ``(..., *T.domain.shape)``.
+    history : dict
+        ``"objective"``: float64 CPU tensor ``(num_iter, ...)`` with ``E`` of each iterate; ``"step"``: ``tau``;
+        ``"dual_steps"``: ``(sigma_p, sigma_q)``; ``"opnorm"``: the estimated ``||T||`` (balanced) or ``||K||``
+        (equal); ``"norms"``: ``(||T||, ||grad||)`` (balanced) or ``(||K||,)`` (equal).
+
+    Raises
+    ------
+    TypeError
+        ``T`` is no operator, or an argument of the wrong type.
+    ValueError
+        Data, ``x0`` or ``anchor`` of the wrong shape or non-finite, ``mu <= 0``, ``num_iter < 1``, ``norms`` of
+        the wrong count, an operator that maps every image to 0.
     """
     check_operator(T, "T")
     check_tensor(y, "y", tuple(T.range_shape))
