@@ -33,6 +33,21 @@ def _corner(point, name: str, ndim: int) -> tuple:
 class ImageDomain:
     """A box ``[min_pt, max_pt]`` in R^d (d = 2 or 3) discretised by ``shape`` cells, sampled at cell centres.
 
+    Parameters
+    ----------
+    shape : int or tuple of int
+        Cells per axis, ``(nx, ny)`` or ``(nx, ny, nz)`` (each >= 1); one integer ``n`` means ``(n, n)``.
+    min_pt, max_pt : tuple of float, optional
+        The box's corners, d finite entries each, ``min_pt < max_pt`` on every axis; default
+        ``(-16, ..., -16)`` and ``(16, ..., 16)``.
+
+    Raises
+    ------
+    TypeError
+        A shape or corner that is not numbers (a string, None entries).
+    ValueError
+        Not 2 or 3 axes, a count < 1, corners of another length, non-finite, or ``min_pt >= max_pt``.
+
     Notes
     -----
     - d = ``len(shape)``. An image is a tensor ``(..., nx, ny)`` (2D) or ``(..., nx, ny, nz)`` (3D): array

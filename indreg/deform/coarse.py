@@ -12,7 +12,25 @@ BACKWARDS = ("exact", "autograd")
 
 
 def coarse_domain(domain: ImageDomain, factor: int) -> ImageDomain:
-    """The grid of ``domain``'s box coarsened ``factor`` times per axis; ``factor`` must divide every axis."""
+    """The grid of ``domain``'s box coarsened ``factor`` times per axis.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The image's grid.
+    factor : int
+        The coarsening (``velocity_factor``, >= 1), dividing every axis.
+
+    Returns
+    -------
+    ImageDomain
+        The same box with ``shape // factor`` cells.
+
+    Raises
+    ------
+    ValueError
+        A factor that is no integer >= 1 or does not divide every axis.
+    """
     if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
         raise ValueError(f"velocity_factor must be an integer >= 1, got {factor!r}")
     if any(n % factor for n in domain.shape):
@@ -49,6 +67,31 @@ class CoarseVelocityDeformation(LDDMMDeformation):
     - ``jacobian_determinant`` / ``deformation``: of ``Id + P u_N`` on the image's grid; ``min_jacobian`` (the
       folding check of every step): of the coarse map ``Id + u_N`` on the velocity grid, whose interpolation is
       applied (``f^d`` times cheaper: at 256^3 with ``f = 4`` the fine determinant cost more than half a gradient).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The template's and the operator's grid.
+    velocity_domain : ImageDomain
+        The velocity's grid: the box of ``domain`` with at most its cells per axis.
+    num_steps : int
+        Time steps N (>= 1).
+    action : {"geometric", "mass_preserving"}
+        The group action.
+    backward : {"exact", "autograd"}
+        The backward (above).
+    interpolation : {"compose"}
+        The only one on a coarser grid.
+    scheme : {"central", "forward"}
+        The finite differences.
+
+    Raises
+    ------
+    TypeError
+        ``domain`` or ``velocity_domain`` is no ``ImageDomain``.
+    ValueError
+        Another ``backward`` or ``interpolation``, a ``velocity_domain`` of another box or dimension or finer
+        than ``domain``, and the errors of ``LDDMMDeformation``.
 
     Notes
     -----

@@ -84,6 +84,22 @@ class GaussianKernel:
     ``eps(dtype)`` relative to the largest one, so they agree with ``"matrix"`` to the dense form's own
     rounding level (float32: max relative difference ~6e-7, float64 ~1e-14; tests/deform/test_kernel.py).
 
+    Parameters
+    ----------
+    domain : ImageDomain
+        The grid of the fields (2D or 3D).
+    sigma : float
+        The kernel's width (physical units, > 0, at least ``SIGMA_MIN``).
+    method : {"auto", "matrix", "lowrank", "fft"}
+        How the sum is computed (above).
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``, or ``sigma`` is no number (a string, a bool).
+    ValueError
+        An unknown ``method``, ``sigma`` not positive and finite or below ``SIGMA_MIN``.
+
     Notes
     -----
     vector fields ``(..., 2, nx, ny)`` on ``domain`` (component 0 = x, 1 = y), any batch dims;

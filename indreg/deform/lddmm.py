@@ -224,6 +224,28 @@ class LDDMMDeformation(torch.nn.Module):
     the discrete map uses ``nu(t_{i+1} .. t_N)`` (Remark re:inverse_linear_deformation). Both gradients
     converge to the same continuous L2 gradient (test_gradient_scale_relation).
 
+    Parameters
+    ----------
+    domain : ImageDomain
+        The images' grid (2D or 3D), also the velocity's.
+    num_steps : int
+        Time steps N (>= 1).
+    action : {"geometric", "mass_preserving"}
+        The group action.
+    backward : {"paper", "autograd", "exact"}
+        The backward (above).
+    interpolation : {"reinterpolate", "compose"}
+        Re-interpolate the image every step (the paper's) or compose the displacements (above).
+    scheme : {"central", "forward"}
+        The finite differences.
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``.
+    ValueError
+        An unknown ``action``, ``backward``, ``interpolation`` or ``scheme``, ``num_steps < 1``.
+
     Notes
     -----
     ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, 1 = y; physical units per unit time),

@@ -258,6 +258,24 @@ class MetamorphosisDeformation(torch.nn.Module):
     Gradient scale: ``dL/dzeta_i = (cell_volume / N) * (its L2([0,1], L2) gradient)``, as ``dL/dnu_i``
     (``LDDMMDeformation``, "Gradient scale").
 
+    Parameters
+    ----------
+    domain : ImageDomain
+        The images' grid (2D or 3D).
+    num_steps : int
+        Time steps N (>= 1).
+    backward : {"adjoint", "autograd"}
+        The backward (above).
+    interpolation : {"reinterpolate", "compose"}
+        How the template part is interpolated (above).
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain``.
+    ValueError
+        An unknown ``backward`` or ``interpolation``, ``num_steps < 1``.
+
     Notes
     -----
     ``velocity (..., N+1, 2, nx, ny)`` (component 0 = x, physical units per unit time), ``source (..., N+1,

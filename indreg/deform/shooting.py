@@ -28,14 +28,22 @@ from .lddmm import LDDMMDeformation
 class ShootingResult(NamedTuple):
     """Everything ``GeodesicShooting(..., return_all=True)`` computes.
 
-    Convention (batch dims ``...`` of the momentum, ``N = num_steps``, ``t_i = i / N``):
-        deformed     ``(..., nx, ny)``           W(nu, I) = the deformed template at t = 1
-        trajectory   ``(..., N+1, nx, ny)``      W(nu, I)(t_i) (the template deformed up to t_i)
-        deformation  ``(..., 2, nx, ny)``        phi_{1,0} as physical points (component 0 = x, 1 = y)
-        velocity     ``(..., N+1, 2, nx, ny)``   nu(t_i) = K m_{t_i}: input of ``LDDMMDeformation`` and a
-                                                 warm start for Algorithm 1 (which runs on momenta: use
-                                                 ``momentum``)
-        momentum     ``(..., N+1, 2, nx, ny)``   m_{t_i}, the transported momentum
+    Batch dims ``...`` of the momentum, ``N = num_steps``, ``t_i = i / N``; 3D: ``(nx, ny, nz)`` and 3
+    components.
+
+    Attributes
+    ----------
+    deformed : torch.Tensor
+        ``(..., nx, ny)``: ``W(nu, I)``, the deformed template at t = 1.
+    trajectory : torch.Tensor
+        ``(..., N+1, nx, ny)``: ``W(nu, I)(t_i)``, the template deformed up to ``t_i``.
+    deformation : torch.Tensor
+        ``(..., 2, nx, ny)``: ``phi_{1,0}`` as physical points (component 0 = x, 1 = y).
+    velocity : torch.Tensor
+        ``(..., N+1, 2, nx, ny)``: ``nu(t_i) = K m_{t_i}``, input of ``LDDMMDeformation`` and a warm start for
+        Algorithm 1 (which runs on momenta: use ``momentum``).
+    momentum : torch.Tensor
+        ``(..., N+1, 2, nx, ny)``: ``m_{t_i}``, the transported momentum.
     """
 
     deformed: torch.Tensor
@@ -133,6 +141,34 @@ class GeodesicShooting(torch.nn.Module):
     gradient, not the derivative of this forward map: measured at 32^2 (L2 misfit to a shot target) its
     momentum gradient has cosine 0.99 with the exact one but a relative error of 14-16 % at N = 5, 10, 20
     (template gradient: 2-7 %), and the error does not vanish as N grows.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        The images' grid (2D or 3D).
+    kernel : GaussianKernel
+        The kernel of V on ``domain``.
+    num_steps : int
+        Time steps N (>= 1).
+    action : {"geometric", "mass_preserving"}
+        The deformation's group action.
+    backward : {"autograd", "paper", "exact"}
+        The deformation's backward (keyword; above).
+    interpolation : {"reinterpolate", "compose"}
+        The deformation's interpolation (keyword).
+    scheme : {"central", "forward"}
+        The deformation's finite differences (keyword).
+    corrector_steps : int
+        Corrector steps per time step (>= 0).
+    checkpoint : bool
+        Recompute each step in the backward pass (memory above).
+
+    Raises
+    ------
+    TypeError
+        ``domain`` is no ``ImageDomain`` or ``kernel`` no ``GaussianKernel``.
+    ValueError
+        A kernel on another domain, counts out of range, and the errors of ``LDDMMDeformation``.
 
     Notes
     -----
