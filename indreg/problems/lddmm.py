@@ -51,20 +51,37 @@ class IndirectRegistration(RegistrationProblem):
 
     ``E(nu) = (gamma/2) sum_{i=0..N} (1/N) ||nu_i||_V^2 + (1/2) ||T W(nu, I) - g||^2_data + tv_weight TV(W(nu, I))``
 
-    Args:
-        ray_transform: the forward operator ``T``: ``indreg.RayTransform`` or any ``indreg.forward.LinearOperator``
-            (``domain``, ``range_shape``, ``__call__``, ``adjoint``, weighted data norm ``inner_data``).
-        deformation: ``indreg.LDDMMDeformation`` ``W`` (geometric or mass-preserving action, eq:DeforOpX), or
-            ``indreg.CoarseVelocityDeformation`` (the velocity on a coarser grid of the box).
-        kernel: ``indreg.GaussianKernel`` ``K`` of V, on the velocity's grid ``deformation.velocity_domain``.
-        template: the template ``I`` (nx, ny).
-        data: the data ``g``, shape ``T.range_shape`` (``(num_angles, det_count)`` for a ray transform), same
-            dtype/device as ``template``.
-        gamma: regularisation weight (>= 0), the code's ``lamb`` (see the module docstring for the factor 2).
-        tv_weight: weight (>= 0) of the TV term on the deformed template (eq:VarRegExactShape). E is half
-            the paper's printed objective, so the paper's ``mu`` is ``tv_weight = mu / 2`` (the TV baseline
-            ``indreg.forward.tv_reconstruction`` uses ``||T x - y||^2 + mu TV``, no 1/2).
-        tv_smoothing: ``eps`` of the smoothed isotropic TV (``total_variation``); 0 is plain TV.
+    Parameters
+    ----------
+    ray_transform : LinearOperator
+        The forward operator ``T``: ``indreg.RayTransform`` or any ``indreg.forward.LinearOperator`` (``domain``,
+        ``range_shape``, ``__call__``, ``adjoint``, weighted data norm ``inner_data``).
+    deformation : LDDMMDeformation
+        ``W`` (geometric or mass-preserving action, eq:DeforOpX), or ``indreg.CoarseVelocityDeformation`` (the
+        velocity on a coarser grid of the box); its ``domain`` is ``T``'s.
+    kernel : GaussianKernel
+        ``K`` of V, on the velocity's grid ``deformation.velocity_domain``.
+    template : torch.Tensor
+        The template ``I``, ``T.domain.shape``.
+    data : torch.Tensor
+        The data ``g``, shape ``T.range_shape`` (``(num_angles, det_count)`` for a ray transform), same
+        dtype / device as ``template``.
+    gamma : float
+        Regularisation weight (>= 0), the code's ``lamb`` (see the module docstring for the factor 2).
+    tv_weight : float
+        Weight (>= 0) of the TV term on the deformed template (eq:VarRegExactShape). E is half the paper's
+        printed objective, so the paper's ``mu`` is ``tv_weight = mu / 2`` (the TV baseline
+        ``indreg.forward.tv_reconstruction`` uses ``||T x - y||^2 + mu TV``, no 1/2).
+    tv_smoothing : float
+        ``eps`` (>= 0) of the smoothed isotropic TV (``total_variation``); 0 is plain TV.
+
+    Raises
+    ------
+    TypeError
+        A deformation, kernel or operator of the wrong kind, tensors that are not real floating tensors.
+    ValueError
+        Parts on different grids, a template or data of the wrong shape, non-finite values, dtypes or devices
+        that differ, a negative weight.
 
     Notes
     -----

@@ -54,21 +54,39 @@ __all__ = ["MetamorphosisRegistration", "template_support", "data_support", "noi
 class MetamorphosisRegistration(RegistrationProblem):
     """Indirect metamorphosis ``min_{m, zeta} E(K m, zeta)`` (eq:Metam:ODE in the code's scale, module docstring).
 
-    Args:
-        ray_transform, kernel, template, data, gamma, tv_weight, tv_smoothing: as ``IndirectRegistration``.
-        deformation: a ``MetamorphosisDeformation``.
-        tau: weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``), or None with
-            ``tau_rel``.
-        source_kernel: None (the paper's L2 norm) or a ``GaussianKernel`` ``K_s`` on the domain: RKHS source
-            ``zeta = K_s s`` (module docstring).
-        source_mask: None or a ``domain.shape`` tensor with values in [0, 1] (the template's dtype / device): the
-            source is multiplied by it (module docstring; ``template_support`` builds one).
-        tau_rel: None (``tau`` given), or ``tau`` relative to the data term: ``tau = tau_rel * tau_scale`` (module
-            docstring); exactly one of ``tau`` and ``tau_rel`` is given.
-        uniform_region: None or a 0 / 1 ``domain.shape`` tensor (the template's dtype / device), where the source is
-            uniform (its mean over the region at each time) and on from the first iteration (module docstring).
-        source_start: with ``uniform_region``, the iterations (Algorithm 1's, ``at_iteration``) during which only
-            the uniform part of the source is on; the rest of it stays 0 until then.
+    Parameters
+    ----------
+    ray_transform, kernel, template, data, gamma, tv_weight, tv_smoothing
+        As ``IndirectRegistration``.
+    deformation : MetamorphosisDeformation
+        The image path ``M(nu, zeta, I)``.
+    tau : float or None
+        Weight (>= 0) of the source term's ``L2([0,1], L2)`` norm (the paper's ``tau``), or None with
+        ``tau_rel``.
+    source_kernel : GaussianKernel, optional
+        None (the paper's L2 norm) or ``K_s`` on the kernel's domain: RKHS source ``zeta = K_s s`` (module
+        docstring).
+    source_mask : torch.Tensor, optional
+        A ``domain.shape`` tensor with values in [0, 1] (the template's dtype / device): the source is multiplied
+        by it (module docstring; ``template_support`` builds one).
+    tau_rel : float, optional
+        ``tau`` relative to the data term: ``tau = tau_rel * tau_scale`` (module docstring); exactly one of
+        ``tau`` and ``tau_rel`` is given.
+    uniform_region : torch.Tensor, optional
+        A 0 / 1 ``domain.shape`` tensor (the template's dtype / device), where the source is uniform (its mean
+        over the region at each time) and on from the first iteration (module docstring).
+    source_start : int
+        With ``uniform_region``, the iterations (Algorithm 1's, ``at_iteration``) during which only the uniform
+        part of the source is on; the rest of it stays 0 until then.
+
+    Raises
+    ------
+    TypeError
+        A deformation that is no ``MetamorphosisDeformation``, and the errors of ``IndirectRegistration``.
+    ValueError
+        Both or neither of ``tau`` and ``tau_rel``, a negative weight, a source kernel on another domain, a mask
+        of the wrong shape or outside [0, 1], a region not 0 / 1 or all 0, and the errors of
+        ``IndirectRegistration``.
 
     ``lddmm`` is the LDDMM problem with the same data (``deformation.lddmm``, gamma, TV): ``lddmm.deformed(m)``
     is the pure-deformation part ``W(nu, I)``.

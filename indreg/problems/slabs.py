@@ -161,15 +161,27 @@ class SlabwiseRegistration(IndirectRegistration):
     the tilt axis (module docstring), on this process's slabs of ``group`` (a ``torch.distributed`` process group:
     the default group when it is initialised with more than one rank, else None; ``False``: none).
 
-    Args:
-        ray_transform, deformation, kernel, template, data, gamma, tv_weight, tv_smoothing: as
-            ``IndirectRegistration``; ``ray_transform`` a ``TiltSeriesTransform``, ``deformation`` a
-            ``CoarseVelocityDeformation`` with ``backward="exact"``, ``tv_weight`` 0 (``slab_refusal``: a
-            ``ValueError`` with its reason otherwise).
-        slab_size: fine slices per slab (None: ``choose_slab_size`` from ``max_memory``, and at least
-            ``SLABS_PER_RANK`` slabs a rank; in a group of ``k`` ranks at most ``ceil(n / k)``, so that every rank has
-            slabs).
-        max_memory: bytes for a gradient's working set (None: half the free memory of the template's device).
+    Parameters
+    ----------
+    ray_transform, deformation, kernel, template, data, gamma, tv_weight, tv_smoothing
+        As ``IndirectRegistration``; ``ray_transform`` a ``TiltSeriesTransform``, ``deformation`` a
+        ``CoarseVelocityDeformation`` with ``backward="exact"``, ``tv_weight`` 0.
+    slab_size : int, optional
+        Fine slices per slab (None: ``choose_slab_size`` from ``max_memory``, and at least ``SLABS_PER_RANK``
+        slabs a rank; in a group of ``k`` ranks at most ``ceil(n / k)``, so that every rank has slabs).
+    max_memory : int, optional
+        Bytes for a gradient's working set (None: half the free memory of the template's device).
+    group : torch.distributed.ProcessGroup or False, optional
+        The ranks that share the slabs (None: the default group when initialised with more than one rank;
+        ``False``: none).
+
+    Raises
+    ------
+    ValueError
+        A problem that cannot be split (``slab_refusal``'s reason), a ``slab_size`` that is no integer >= 1,
+        fewer slices along the tilt axis than ranks; and the errors of ``IndirectRegistration``.
+    TypeError
+        As ``IndirectRegistration``.
 
     ``slab_ranges`` / ``own``: all slabs and the indices of this rank's (contiguous, balanced); ``allreduce_bytes``:
     what one gradient's ``all_reduce`` sends (the coarse ``dL/du_N``, ``dL/dJ_N`` when mass-preserving, the fit).

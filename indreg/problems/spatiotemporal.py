@@ -77,19 +77,39 @@ def time_indices(times, num_steps: int, count: int) -> list:
 class SpatiotemporalRegistration(RegistrationProblem):
     """``min_{m [, I]} E`` (module docstring) over data at ``K`` time points.
 
-    Args:
-        operator: an ``indreg.forward.TimeSeriesOperator`` (one ``T_k`` per time point).
-        deformation: an ``indreg.LDDMMDeformation`` ``W`` (its ``backward``: module docstring).
-        kernel: the ``GaussianKernel`` of V on the deformation's domain.
-        template: the template ``I`` ``domain.shape``, or None: unknown, reconstructed jointly (the iterate
-            becomes ``(m, I)``, starting from ``initial_template``, default 0).
-        data: ``(K, *R)``, ``operator.range_shape``, the template's dtype / device.
-        times: ``K`` increasing times in ``[0, 1]`` on the grid ``j / N`` (None: ``k / K``, ``k = 1..K``).
-        gamma, tv_weight (on every frame), tv_smoothing: as ``IndirectRegistration``.
-        template_tv_weight: weight of ``TV(I)`` when the template is unknown.
-        dtype, device: of the run when ``template`` is None (else the template's).
+    Parameters
+    ----------
+    operator : TimeSeriesOperator
+        One ``T_k`` per time point (``indreg.forward.TimeSeriesOperator``).
+    deformation : LDDMMDeformation
+        ``W`` on the image's grid, ``backward`` ``"autograd"`` or ``"exact"`` (module docstring).
+    kernel : GaussianKernel
+        ``K`` of V on the deformation's domain.
+    template : torch.Tensor or None
+        The template ``I``, ``domain.shape``; None: unknown, reconstructed jointly (the iterate becomes
+        ``(m, I)``, starting from ``initial_template``).
+    data : torch.Tensor
+        ``(K, *R)``, ``operator.range_shape``, the template's dtype / device.
+    times : sequence of float, optional
+        ``K`` strictly increasing times in ``[0, 1]`` on the grid ``j / N`` (None: ``k / K``, ``k = 1..K``).
+    gamma, tv_weight, tv_smoothing : float
+        As ``IndirectRegistration`` (``tv_weight`` on every frame).
+    template_tv_weight : float
+        Weight of ``TV(I)`` when the template is unknown.
+    initial_template : torch.Tensor, optional
+        The unknown template's start (default zeros in the data's dtype and device).
 
-    Convention: momentum / velocity ``(N+1, d, *shape)`` at ``t_i = i / N``; frames ``(K, *shape)`` at ``t_k``;
+    Raises
+    ------
+    TypeError
+        An operator that is no ``TimeSeriesOperator``, a deformation not on the image's grid.
+    ValueError
+        Another backward, a kernel or operator on another domain, data or template of the wrong shape, times
+        not increasing, outside [0, 1] or off the time grid, a negative weight.
+
+    Notes
+    -----
+    Momentum / velocity ``(N+1, d, *shape)`` at ``t_i = i / N``; frames ``(K, *shape)`` at ``t_k``;
     ``reconstruction`` is the last frame ``f_{t_K}``; ``outputs``: ``frames`` and, template unknown, ``template``.
     """
 
