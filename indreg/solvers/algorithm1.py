@@ -32,30 +32,49 @@ class Algorithm1(IterativeSolver):
     arithmetic; the regulariser ``<m, K m>`` stays exact). Metamorphosis (``x = (m, s)``) descends the source
     with its own step ``beta`` (eq:Metam:ODE's gradient in ``zeta``).
 
-    Args:
-        problem: a ``RegistrationProblem``.
-        step_size: ``alpha > 0`` for the momentum (the paper's values work unchanged); None: relative to the data
-            term, ``step_rel / S`` (``indreg.units``; ``step_rel``: ``indreg.units.STEP_REL``).
-        max_iter: maximum number of iterations ``K``.
-        grad_tol: stop when the gradient norm (``hypot`` of the entries' ``L2([0,1], L2)`` norms) is
-            ``<= grad_tol``; 0 disables the test.
-        step_halving, max_halvings: ``StepControl``: reject a step whose objective is non-finite, larger than
-            the current one, or folds (``min Jacobian <= 0``); halve every step and retry, at most
-            ``max_halvings`` times (the halved steps are kept for later iterations; ``info["halvings"]`` counts
-            them). If all retries fail the iterate is kept and ``info["rejected"]`` is True. Without it such steps
-            are taken and reported in ``info["warning"]`` (an increase only beyond float rounding,
-            ``rounding_tolerance``).
-        jacobian_every: compute ``min_jacobian`` (one extra Jacobian recursion, about the cost of the
-            deformation's forward) every this many iterations, ``nan`` in between; with ``step_halving``
-            it is computed at every step (folding must be checked).
-        steps: step sizes of the entries after the momentum by name (``None`` or absent:
-            ``problem.default_step(name)``).
-        frozen: iterations during which an entry is kept fixed, by name (e.g. ``{"source": 300}``).
-        cycle: block-alternating descent: ``((names, iterations), ...)``, e.g. ``((("template",), 5),
-            (("momentum",), 5))``: the first 5 iterations move only the template, the next 5 only the momentum,
-            and so on (iteration ``i`` at position ``i mod 10`` of the cycle); step halving halves the block's
-            steps only. None (default): every entry moves.
+    Parameters
+    ----------
+    problem : RegistrationProblem
+        The objective to descend.
+    step_size : float, optional
+        ``alpha > 0`` for the momentum (the paper's values work unchanged); None: relative to the data term,
+        ``step_rel / S`` (``indreg.units``; ``step_rel``: ``indreg.units.STEP_REL``).
+    max_iter : int
+        Maximum number of iterations ``K`` (>= 0).
+    grad_tol : float
+        Stop when the gradient norm (``hypot`` of the entries' ``L2([0,1], L2)`` norms) is ``<= grad_tol``; 0
+        disables the test.
+    step_halving, max_halvings : bool, int
+        ``StepControl``: reject a step whose objective is non-finite, larger than the current one, or folds
+        (``min Jacobian <= 0``); halve every step and retry, at most ``max_halvings`` times (the halved steps are
+        kept for later iterations; ``info["halvings"]`` counts them). If all retries fail the iterate is kept and
+        ``info["rejected"]`` is True. Without it such steps are taken and reported in ``info["warning"]`` (an
+        increase only beyond float rounding, ``rounding_tolerance``).
+    jacobian_every : int
+        Compute ``min_jacobian`` (one extra Jacobian recursion, about the cost of the deformation's forward)
+        every this many iterations, ``nan`` in between; with ``step_halving`` it is computed at every step
+        (folding must be checked).
+    steps : dict, optional
+        Step sizes of the entries after the momentum by name (``None`` or absent:
+        ``problem.default_step(name)``).
+    frozen : dict, optional
+        Iterations during which an entry is kept fixed, by name (e.g. ``{"source": 300}``).
+    cycle : tuple, optional
+        Block-alternating descent: ``((names, iterations), ...)``, e.g. ``((("template",), 5),
+        (("momentum",), 5))``: the first 5 iterations move only the template, the next 5 only the momentum, and
+        so on (iteration ``i`` at position ``i mod 10`` of the cycle); step halving halves the block's steps
+        only. None (default): every entry moves.
 
+    Raises
+    ------
+    TypeError
+        ``problem`` is no registration problem, or an argument of the wrong type.
+    ValueError
+        A step that is not positive and finite in the problem's dtype, ``steps`` / ``frozen`` / ``cycle`` naming
+        no entry of the iterate after the momentum, a count out of range.
+
+    Notes
+    -----
     ``step(state)`` performs one iteration and returns the report at the new iterate (``make_info``):
     objective and its terms, grad_norm, min_jacobian (of ``phi_{1,0}``), step_size, evaluations (cumulative
     forward/backward evaluations, one per tried step plus one at the start), rejected, warning. The gradient

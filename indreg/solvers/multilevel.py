@@ -79,36 +79,60 @@ class MultilevelSolver(IterativeSolver):
     level's grid, comparable across levels) with ``level`` (0 = coarsest; the last = the problem's grid) and
     ``grid`` (its size on axis 0) added; ``evaluations`` counts all levels.
 
-    Args:
-        problem: a registration problem whose iterate is the momentum (``IndirectRegistration``, 2D or 3D);
-            with coarse levels it must have ``coarsened`` and its operator ``on_domain`` (``RayTransform``,
-            ``TiltSeriesTransform``).
-        levels: coarsening factors of the coarse levels, coarse to fine (e.g. ``(4, 2)``: 64^2 and 128^2 for a
-            256^2 problem); ``()`` is the problem's grid only.
-        level_steps: time steps N of each coarse level.
-        level_iter: iteration budget of each coarse level.
-        max_iter: iterations in all (coarse levels included).
-        grad_tol: stop when the gradient norm of the problem's grid is ``<= grad_tol`` (0: never).
-        rtol: a level ends (the last one: the run converges) when its objective decreased at every one of
-            its last ``window`` iterations, by less than ``rtol`` (relative) per iteration on average; 0
-            disables it.
-        window: see ``rtol``.
-        inner: "algorithm1" (``Algorithm1`` on every level with ``step_size``, ``step_halving``,
-            ``max_halvings`` and the problem's deformation backward) or "lbfgs" (``TorchOptimSolver``, strong
-            Wolfe line search, with the exact gradient of the discrete map, ``backward``, and ``history_size``).
-        step_size: Algorithm 1's step (the same on every level: the domain is physical); a new level starts
-            at this step again.
-        step_halving, max_halvings: Algorithm 1's safeguard (a step that increases the objective or folds is
-            halved and the halved step kept for the level).
-        backward: the deformation's backward for "lbfgs" (an entry of ``LDDMMDeformation``'s ``BACKWARDS``
-            other than "paper").
-        history_size: L-BFGS memory.
-        min_size: smallest grid of a coarse level.
-        jacobian_every: compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
+    Parameters
+    ----------
+    problem : RegistrationProblem
+        A problem whose iterate is the momentum (``IndirectRegistration``, 2D or 3D); with coarse levels it must
+        have ``coarsened`` and its operator ``on_domain`` (``RayTransform``, ``TiltSeriesTransform``).
+    levels : tuple of int
+        Coarsening factors of the coarse levels, coarse to fine (e.g. ``(4, 2)``: 64^2 and 128^2 for a 256^2
+        problem); ``()`` is the problem's grid only.
+    level_steps : tuple of int
+        Time steps N of each coarse level.
+    level_iter : tuple of int
+        Iteration budget of each coarse level.
+    max_iter : int
+        Iterations in all (coarse levels included).
+    grad_tol : float
+        Stop when the gradient norm of the problem's grid is ``<= grad_tol`` (0: never).
+    rtol : float
+        A level ends (the last one: the run converges) when its objective decreased at every one of its last
+        ``window`` iterations, by less than ``rtol`` (relative) per iteration on average; 0 disables it.
+    window : int
+        See ``rtol``.
+    inner : {"algorithm1", "lbfgs"}
+        ``Algorithm1`` on every level with ``step_size``, ``step_halving``, ``max_halvings`` and the problem's
+        deformation backward, or ``TorchOptimSolver`` (strong Wolfe line search, with the exact gradient of the
+        discrete map, ``backward``, and ``history_size``).
+    step_size : float
+        Algorithm 1's step (the same on every level: the domain is physical); a new level starts at this step
+        again.
+    step_halving, max_halvings : bool, int
+        Algorithm 1's safeguard (a step that increases the objective or folds is halved and the halved step kept
+        for the level).
+    backward : str
+        The deformation's backward for ``"lbfgs"`` (an entry of ``LDDMMDeformation``'s ``BACKWARDS`` other than
+        ``"paper"``).
+    history_size : int
+        L-BFGS memory.
+    min_size : int
+        Smallest grid of a coarse level.
+    jacobian_every : int
+        Compute ``min_jacobian`` every this many iterations of a level (``nan`` in between).
 
-    Convention: ``state.momentum`` ``(N+1, d, *shape)`` of the problem (``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny,
-    nz)``); ``restrict`` / ``prolong`` act on the image axes (x, y[, z]), ``resample_time`` on axis 0
-    (``t_i = i/N``); a level's ``grid`` is its size on axis 0 (x).
+    Raises
+    ------
+    TypeError
+        ``problem`` is no registration problem or its iterate is more than the momentum.
+    ValueError
+        An unknown ``inner``, a ``backward`` without the exact gradient for ``"lbfgs"``, levels and their
+        budgets of different lengths, factors not > 1 and decreasing, a count out of range.
+
+    Notes
+    -----
+    ``state.momentum`` ``(N+1, d, *shape)`` of the problem (``(N+1, 2, nx, ny)`` or ``(N+1, 3, nx, ny, nz)``);
+    ``restrict`` / ``prolong`` act on the image axes (x, y[, z]), ``resample_time`` on axis 0 (``t_i = i/N``);
+    a level's ``grid`` is its size on axis 0 (x).
     """
 
     def __init__(self, problem, levels=(4, 2), level_steps=(10, 10), level_iter=(40, 100),

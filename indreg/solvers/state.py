@@ -15,7 +15,15 @@ class SolverState:
     (never in place). Optimizer internals (Adam moments, L-BFGS history, step size) live in
     ``solver.state_dict()``; save both to resume bit-identically.
 
-    Convention: ``momentum (N+1, d, *shape)`` at ``t_i = i/N``; other entries as their problem says.
+    Parameters
+    ----------
+    momentum : torch.Tensor
+        ``m``, ``(N+1, d, *shape)`` at ``t_i = i/N``.
+    iteration : int
+        Iterations done.
+    **rest : torch.Tensor
+        The further entries of the iterate by name, in the problem's ``iterate_names`` order (as their problem
+        says).
     """
 
     def __init__(self, momentum: torch.Tensor, iteration: int = 0, **rest):
@@ -114,9 +122,16 @@ class StepControl:
     times (the halved sizes are kept for later iterations). Without ``halving`` the first trial is taken and its
     problems are only reported, an increase only when larger than ``rtol |objective|`` (``rounding_tolerance``).
 
-    Returns ``(result, min_jacobian, steps_tried, warnings, rejected, halvings)``: ``rejected`` when every trial
-    failed (the caller keeps its iterate); ``steps_tried`` are the sizes of the last trial; ``halvings`` how
-    many times the sizes were halved.
+    ``search`` returns ``(result, min_jacobian, steps_tried, warnings, rejected, halvings)``: ``rejected`` when
+    every trial failed (the caller keeps its iterate); ``steps_tried`` are the sizes of the last trial;
+    ``halvings`` how many times the sizes were halved.
+
+    Parameters
+    ----------
+    halving : bool
+        Halve and retry rejected steps.
+    max_halvings : int
+        The most halvings in one search.
     """
 
     def __init__(self, halving: bool, max_halvings: int):

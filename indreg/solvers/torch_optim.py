@@ -50,24 +50,45 @@ class TorchOptimSolver(IterativeSolver):
     V-gradient descent preconditioned once more by ``s K`` (not Algorithm 1; use ``Algorithm1`` for that),
     so its ``lr`` is much smaller than the paper's step sizes.
 
-    Args:
-        problem: a ``RegistrationProblem``.
-        optimizer: "lbfgs", "adam", "sgd" (any ``torch.optim`` class name, case-insensitive) or a class.
-        lr: learning rate of the momentum (default 1.0 for L-BFGS; required otherwise).
-        max_iter: number of solver iterations (one ``optimizer.step`` each; L-BFGS does one iteration
-            per step: ``max_iter=1``, ``max_eval=25``, ``history_size=10`` are passed to it, with
-            ``line_search_fn="strong_wolfe"`` and zero tolerances unless overridden in ``optimizer_kwargs``).
-        grad_tol: stop when ``grad_norm`` (as ``Algorithm1``) is ``<= grad_tol``; 0 disables the test.
-        backward: the deformation's backward; ``None`` (default): ``problem.for_line_search()`` (LDDMM's
-            "paper" becomes "exact", the hand-written adjoint of the discrete forward map: the exact gradient at
-            about the paper's cost); "autograd": the same gradient through autograd (about 2x the time and
-            memory); LDDMM's "paper" (the continuous-gradient formula, whose mismatch with the discrete forward
-            can make a line search fail) only when asked for.
-        jacobian_every: compute ``min_jacobian`` every this many iterations (``nan`` in between).
-        lrs: learning rates of the entries after the momentum by name (default ``lr``; L-BFGS takes one
-            parameter group, so they must equal ``lr``).
-        **optimizer_kwargs: passed to the optimizer.
+    Parameters
+    ----------
+    problem : RegistrationProblem
+        The objective to minimise.
+    optimizer : str or type
+        ``"lbfgs"``, ``"adam"``, ``"sgd"`` (any ``torch.optim`` class name, case-insensitive) or a subclass of
+        ``torch.optim.Optimizer``.
+    lr : float, optional
+        Learning rate of the momentum (default 1.0 for L-BFGS; required otherwise).
+    max_iter : int
+        Number of solver iterations (one ``optimizer.step`` each; L-BFGS does one iteration per step:
+        ``max_iter=1``, ``max_eval=25``, ``history_size=10`` are passed to it, with
+        ``line_search_fn="strong_wolfe"`` and zero tolerances unless overridden in ``optimizer_kwargs``).
+    grad_tol : float
+        Stop when ``grad_norm`` (as ``Algorithm1``) is ``<= grad_tol``; 0 disables the test.
+    backward : str, optional
+        The deformation's backward; None (default): ``problem.for_line_search()`` (LDDMM's ``"paper"`` becomes
+        ``"exact"``, the hand-written adjoint of the discrete forward map: the exact gradient at about the
+        paper's cost); ``"autograd"``: the same gradient through autograd (about 2x the time and memory); LDDMM's
+        ``"paper"`` (the continuous-gradient formula, whose mismatch with the discrete forward can make a line
+        search fail) only when asked for.
+    jacobian_every : int
+        Compute ``min_jacobian`` every this many iterations (``nan`` in between).
+    lrs : dict, optional
+        Learning rates of the entries after the momentum by name (default ``lr``; L-BFGS takes one parameter
+        group, so they must equal ``lr``).
+    **optimizer_kwargs
+        Passed to the optimizer.
 
+    Raises
+    ------
+    TypeError
+        ``problem`` is no registration problem.
+    ValueError
+        An unknown optimizer, no ``lr`` for an optimizer other than L-BFGS, a rate that is not positive,
+        ``lrs`` naming no entry after the momentum or differing from ``lr`` with L-BFGS, a count out of range.
+
+    Notes
+    -----
     Evaluations (forward + backward of W and T) are counted by the closure; a closure call at a point
     already evaluated (L-BFGS re-evaluates the accepted line-search point) reuses the stored result. After
     ``load_state_dict`` the first evaluation recomputes the stored result at the saved parameters and is not
