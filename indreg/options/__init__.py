@@ -27,12 +27,33 @@ _NONE = object()
 # ---------------------------------------------------------------------------------------------------- options
 @dataclass(frozen=True)
 class Option:
-    """One option. ``group`` / ``key``: its config key ``group.key`` (group ``run``: ``register()`` only);
-    ``solvers``: the registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None:
-    all);
-    ``models``: the models it applies to (None: all); ``app_default``: the app schema's default if not
-    ``default`` (the paper's: the solver classes take it too, :func:`default`); ``type``: its type in the Hydra schema; ``resumable``: it may change between an interrupted run
-    and its resumption (the iterates do not depend on it: the iteration budget, how the work is split)."""
+    """One option of the table: a keyword of ``register()`` and (unless its group is ``run``) a config key.
+
+    Parameters
+    ----------
+    name : str
+        The keyword of ``register()``.
+    group, key : str
+        Its config key ``group.key`` (group ``run``: ``register()`` only).
+    default : object
+        ``register()``'s default.
+    check : callable
+        ``check(value, label) -> value`` normalised, or an ``OptionError`` naming ``label`` (``indreg.options.checks``).
+    doc : str
+        The help line (``help(indreg.register)``, configs/README.md).
+    type : type
+        Its type in the Hydra schema.
+    solvers : tuple of str, optional
+        The registered solvers it applies to (``"torch"``: the family of every torch.optim optimizer; None: all).
+    models : tuple of str, optional
+        The models it applies to (None: all).
+    app_default : object, optional
+        The app schema's default if not ``default`` (the paper's: the solver classes take it too,
+        :func:`default`).
+    resumable : bool
+        It may change between an interrupted run and its resumption (the iterates do not depend on it: the
+        iteration budget, how the work is split).
+    """
     name: str
     group: str
     key: str
@@ -76,11 +97,29 @@ MODELS: dict = {}
 
 @dataclass(frozen=True)
 class Model:
-    """A deformation model: ``build(operator, template, data, kernel, options) -> (problem, solver_options)``
-    (``template`` None, unknown, only for a model with ``template_optional``);
-    ``solver_options``: keyword arguments of a solver's build, keyed by the registered solver's name
-    (:class:`Solver`; ``steps`` / ``frozen`` for ``"algorithm1"``, ``lrs`` for ``"torch"``), and ``"wrap"``: a
-    function of the solver built that returns the solver to run (an alternation around it)."""
+    """A deformation model, the entry of ``register(model=...)`` / ``deformation.model`` (``docs/extending.md``).
+
+    Parameters
+    ----------
+    name : str
+        The value of ``model=``.
+    build : callable
+        ``build(operator, template, data, kernel, options) -> (problem, solver_options)`` (``template`` None,
+        unknown, only with ``template_optional``); ``solver_options``: keyword arguments of a solver's build,
+        keyed by the registered solver's name (:class:`Solver`; ``steps`` / ``frozen`` for ``"algorithm1"``,
+        ``lrs`` for ``"torch"``), and ``"wrap"``: a function of the solver built that returns the solver to run
+        (an alternation around it).
+    options : tuple of Option
+        Its own options (``models=(name,)``: keywords of ``register()`` and config keys).
+    doc : str
+        One line for listings.
+    check : callable, optional
+        ``check(options, label)``: checks across options, errors via ``label(name)``.
+    template_optional : bool
+        ``template=None`` (unknown) is allowed: the model reconstructs it.
+    defaults : callable, optional
+        ``defaults(options)``: fills options left None by the model's own rules.
+    """
     name: str
     build: Callable
     options: tuple = ()
@@ -121,16 +160,31 @@ SOLVERS: dict = {}
 
 @dataclass(frozen=True)
 class Solver:
-    """A solver: ``build(problem, options, model_kwargs) -> solver`` (an iterative solver: ``step(state) -> info``,
-    ``status(info)``, ``state_dict`` / ``load_state_dict``, ``halves_steps``; ``indreg.solvers.state.IterativeSolver``
-    gives all but ``step``), ``model_kwargs`` the model's ``solver_options[name]`` (e.g. Algorithm 1's ``steps``).
+    """A solver, the entry of ``register(solver=...)`` / ``solver.name`` (``docs/extending.md``).
 
-    ``name``: the value of ``solver=`` (the app's ``solver.name``) and the key of a model's ``solver_options``;
-    ``options``: its own ``Option``s (``solvers=(name,)``: keywords of ``register()`` and config keys, as a model's);
-    ``accepts``: a family's test of other names it serves (``accepts(value) -> the value normalised, or None``: the
-    torch.optim optimizers by class name); ``check(options, label)``: checks across options (errors via
-    ``OptionError(label(name), ...)``); ``expected``: how the list of solvers names it (default ``'name'``);
-    ``family``: how an option's error names its solvers (default ``solver='name'``)."""
+    Parameters
+    ----------
+    name : str
+        The value of ``solver=`` (the app's ``solver.name``) and the key of a model's ``solver_options``.
+    build : callable
+        ``build(problem, options, model_kwargs) -> solver``: an iterative solver (``step(state) -> info``,
+        ``status(info)``, ``state_dict`` / ``load_state_dict``, ``halves_steps``;
+        ``indreg.solvers.state.IterativeSolver`` gives all but ``step``); ``model_kwargs``: the model's
+        ``solver_options[name]`` (e.g. Algorithm 1's ``steps``).
+    options : tuple of Option
+        Its own options (``solvers=(name,)``: keywords of ``register()`` and config keys, as a model's).
+    doc : str
+        One line for listings.
+    accepts : callable, optional
+        A family's test of other names it serves (``accepts(value) -> the value normalised, or None``: the
+        torch.optim optimizers by class name).
+    check : callable, optional
+        ``check(options, label)``: checks across options (errors via ``OptionError(label(name), ...)``).
+    expected : str
+        How the list of solvers names it (default ``'name'``).
+    family : str
+        How an option's error names its solvers (default ``solver='name'``).
+    """
     name: str
     build: Callable
     options: tuple = ()
@@ -147,7 +201,23 @@ class Solver:
 
 
 def register_solver(entry: Solver) -> Solver:
-    """Add ``entry`` to the solver registry (a name already there is replaced)."""
+    """Add ``entry`` to the solver registry (a name already there is replaced).
+
+    Parameters
+    ----------
+    entry : Solver
+        The solver to register.
+
+    Returns
+    -------
+    Solver
+        ``entry``.
+
+    Raises
+    ------
+    TypeError
+        ``entry`` is no :class:`Solver`.
+    """
     return add_to_registry(SOLVERS, entry, Solver, "register_solver takes an indreg.registration.solver_registry.Solver")
 
 
@@ -232,7 +302,23 @@ class Correction:
 
 def register_correction(entry: Correction) -> Correction:
     """Add ``entry`` to the chain of corrections, after those registered before it (a name already there is
-    replaced in place)."""
+    replaced in place).
+
+    Parameters
+    ----------
+    entry : Correction
+        The correction to register.
+
+    Returns
+    -------
+    Correction
+        ``entry``.
+
+    Raises
+    ------
+    TypeError
+        ``entry`` is no :class:`Correction`.
+    """
     return add_to_registry(CORRECTIONS, entry, Correction,
                            "register_correction takes an indreg.registration.corrections.Correction")
 
@@ -247,7 +333,23 @@ def add_to_registry(registry: dict, entry, cls: type, expected: str):
 
 
 def register_model(model: Model) -> Model:
-    """Add ``model`` to the registry (a name already there is replaced)."""
+    """Add ``model`` to the registry (a name already there is replaced).
+
+    Parameters
+    ----------
+    model : Model
+        The model to register.
+
+    Returns
+    -------
+    Model
+        ``model``.
+
+    Raises
+    ------
+    TypeError
+        ``model`` is no :class:`Model`.
+    """
     return add_to_registry(MODELS, model, Model, "register_model takes an indreg.registration.models.Model")
 
 
