@@ -77,11 +77,27 @@ _CONVENTIONS_FAN = ("indreg", "odl")
 class RegistrationInputs:
     """What :func:`load` returns: ``indreg.register(d.template, d.data, d.operator, target=d.target)``.
 
-    ``template`` / ``target`` ``operator.domain.shape``, ``data`` ``operator.range_shape``: float64 on the CPU;
-    ``geometry`` is the operator's (detector extent resolved); ``target`` is ``None`` without a ground truth;
-    ``label`` names the template (its file name, ``"array"`` for an array). A tilt series also has
-    ``tilt_axis_angle`` (the rotation applied, degrees; None: none) and ``tilt_axis`` (the consistency check of the
-    data as returned, ``indreg.alignment.tilt_axis.TiltAxisCheck``)."""
+    Attributes
+    ----------
+    template : torch.Tensor
+        ``operator.domain.shape``, float64 on the CPU.
+    data : torch.Tensor
+        ``operator.range_shape``, float64 on the CPU.
+    operator : LinearOperator
+        The forward operator (an ``AlignedOperator`` with an alignment file).
+    domain : ImageDomain
+        The template's domain.
+    geometry : object
+        The operator's geometry (detector extent resolved).
+    target : torch.Tensor or None
+        The ground truth (the template's shape), None without one.
+    label : str
+        Names the template: its file name, ``"array"`` for an array.
+    tilt_axis_angle : float or None
+        Tilt series: the rotation applied (degrees); None: none.
+    tilt_axis : TiltAxisCheck or None
+        Tilt series: the consistency check of the data as returned (``indreg.alignment.tilt_axis``).
+    """
     template: torch.Tensor
     data: torch.Tensor
     operator: object
@@ -106,27 +122,73 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
          convention: str = "indreg", integer_scale: str = "fraction", names: Optional[dict] = None,
          alignment=None) -> RegistrationInputs:
     """Template, data, operator (and optionally the ground truth ``target``) of a registration from files or
-    arrays (see the module's Convention).
+    arrays (layouts and units: the module's Notes).
 
-    ``geometry``: ``parallel``, ``fan_flat`` (needs ``src_radius``; ``det_radius`` origin to detector) or
-    ``tilt_series`` (rotation about ``tilt_axis``, ``"x"``, ``"y"`` or ``"z"``, the volume's axis).
-    ``tilt_axis_angle`` (tilt series): the angle of the tilt axis in the detector image, degrees from the image's
-    Y towards -X (counterclockwise; IMOD / SerialEM's), the stack is rotated by its opposite before anything else
-    (``indreg.alignment.tilt_axis.align_tilt_axis``: exact for multiples of 90, interpolated otherwise); None: the
-    ``.mdoc`` next to a stack file (``name.mrc.mdoc`` or ``name.mdoc``, its ``TiltAxisAngle`` / ``Tilt axis
-    angle``), else no rotation. The rotated stack is then checked (``indreg.alignment.tilt_axis.check_tilt_axis``): a
-    stack whose axis still runs along X is an error when an angle was given (by the argument or the ``.mdoc``)
-    and a warning otherwise. ``det_min`` / ``det_max``: the
-    detector's extent (at the detector, in the domain's length unit). ``names``: how messages call the arguments
-    (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram", ...}``). ``alignment`` (tilt series): an
-    IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.alignment.files``): its shifts and per-tilt maps
-    become the operator's own (an ``AlignedOperator``; ``register(..., align=...)`` refines them), its tilt angles
-    (the ``.aln``'s, or the ``.xf``'s ``.tlt`` unless ``angles`` is given) the geometry's, its dark frames are left
-    out, and the stack is not rotated (the file's maps hold the tilt axis' angle).
+    Parameters
+    ----------
+    template : str or os.PathLike or array_like
+        The template: a path (any format of :mod:`indreg.io`: ``file.npz:key``, ``file.h5:/dataset``, ...) or an
+        array (numpy, torch) in indreg's layout; 2D square ``(n, n)``, or 3D ``(nx, ny, nz)`` for a tilt series.
+    data : str or os.PathLike or array_like
+        The measured data, a path or an array: ``(num_angles, det_count)``, or ``(num_tilts, det_rows,
+        det_cols)`` for a tilt series.
+    geometry : {"parallel", "fan_flat", "tilt_series"}
+        The acquisition geometry (``fan_flat`` needs ``src_radius``).
+    angles : str or os.PathLike or sequence of float, optional
+        A text file (one angle a line, IMOD ``.tlt``) or a list, in ``angle_unit``; None: the ``.tlt`` /
+        ``.rawtlt`` next to the data file.
+    angle_unit : {"deg", "rad"}
+        The unit of ``angles``.
+    target : str or os.PathLike or array_like, optional
+        The ground truth, the template's shape (for SSIM / PSNR).
+    half_width : float
+        The domain's half side (the longest axis of a volume), > 0.
+    det_min, det_max : float, optional
+        The detector's extent (at the detector, in the domain's length unit); None: in 2D fitted to the
+        domain, a tilt series gets columns as wide as the voxels, centred on the tilt axis.
+    det_count, num_angles : int, optional
+        If given, they must agree with the data (``det_count``: its width).
+    tilt_axis : {"y", "x", "z"}
+        Tilt series: the volume's axis the specimen turns about.
+    tilt_axis_angle : float, optional
+        Tilt series: the angle of the tilt axis in the detector image, degrees from the image's Y towards -X
+        (counterclockwise; IMOD / SerialEM's); the stack is rotated by its opposite before anything else
+        (``indreg.alignment.tilt_axis.align_tilt_axis``: exact for multiples of 90, interpolated otherwise).
+        None: the ``.mdoc`` next to a stack file (``name.mrc.mdoc`` or ``name.mdoc``, its ``TiltAxisAngle`` /
+        ``Tilt axis angle``), else no rotation. The rotated stack is then checked
+        (``indreg.alignment.tilt_axis.check_tilt_axis``): a stack whose axis still runs along X is an error when
+        an angle was given (by the argument or the ``.mdoc``) and a warning otherwise.
+    src_radius : float, optional
+        ``fan_flat``: source-to-origin distance.
+    det_radius : float
+        ``fan_flat``: origin-to-detector distance.
+    convention : str
+        The tool whose layout, angles, units and detector centre the files and arrays follow
+        (``indreg.io.conventions``: ``indreg`` default, ``skimage``, ``astra``, ``tomopy``, ``imod``, ``odl``); a
+        tilt series takes ``indreg`` or ``imod``.
+    integer_scale : {"fraction", "raw"}
+        8- / 16-bit pictures as a fraction of their full scale (default) or raw.
+    names : dict, optional
+        How messages call the arguments (:data:`NAMES` by default; the app passes ``{"data": "data.sinogram",
+        ...}``).
+    alignment : str or os.PathLike, optional
+        Tilt series: an IMOD ``.xf`` or AreTomo ``.aln`` file of the raw stack (``indreg.alignment.files``): its
+        shifts and per-tilt maps become the operator's own (an ``AlignedOperator``; ``register(..., align=...)``
+        refines them), its tilt angles (the ``.aln``'s, or the ``.xf``'s ``.tlt`` unless ``angles`` is given)
+        the geometry's, its dark frames are left out, and the stack is not rotated (the file's maps hold the
+        tilt axis' angle).
 
-    Raises:
-        DataFileError: a problem with a file, a count or shape that does not fit, a geometry that cannot be built.
-        ValueError, TypeError: a bad argument value.
+    Returns
+    -------
+    RegistrationInputs
+        The template, data, operator, domain, geometry and target (float64 on the CPU).
+
+    Raises
+    ------
+    DataFileError
+        A problem with a file (naming it), a count or shape that does not fit, a geometry that cannot be built.
+    ValueError, TypeError
+        A bad argument value (inline angles, ``angle_unit``, ``half_width``, an array).
     """
     key = {**NAMES, **(names or {})}
     _check_arguments(geometry, angle_unit, half_width, tilt_axis, tilt_axis_angle, key)

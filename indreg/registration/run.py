@@ -369,31 +369,64 @@ class RegistrationLoop:
 # ---------------------------------------------------------------------------------------------------- the result
 @dataclass
 class RegistrationResult:
-    """What a run returns (:func:`build_result`).
+    """What a run returns (:func:`build_result`): ``indreg.register``'s result, the app's ``final.npy`` and
+    metrics. Tensors are in the run's dtype / device; ``d`` is the domain's dimension.
 
-    Convention: ``deformed`` ``(nx, ny)`` = the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1));
-    ``trajectory`` ``(N+1, nx, ny)`` = the image path at ``t_i``; ``momentum`` and ``velocity`` ``(N+1, d, *shape)``
-    (``nu = K m``, component 0 = x); ``deformation`` ``(d, *shape)`` = phi_{1,0} (points, physical units);
-    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (on the fitted
-    data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
-    ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
-    step, ``indreg.registration.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
-    ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
-    non-finite objective or gradient: see ``history[-1]["warning"]``) or ``stopped`` (the callback returned True).
-    ``units`` (``indreg.units.Units``): what was done to the inputs before the run (``template_scale``,
-    ``background``), what was measured (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale``
-    of the relative options. ``ssim`` / ``psnr`` only with a target, in its units: the data's, or the template's as
-    given (the reconstruction divided by ``template_scale``: ``Units.locate_target``). ``holdout`` (with ``holdout=``):
-    ``holdout_residual`` (the final reconstruction's relative residual on the held-out angles),
-    ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every ``log_every``
-    iterations; the curve is in ``history``) and ``holdout_indices``; empty without. ``alignment`` (with
-    ``align=``): the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
-    ``corrections``: the final estimates of the in-the-fit corrections by name (``indreg.registration.corrections``:
-    ``alignment``, ``intensity``, a plug-in's), those that ran.
-    ``poor_fit``: the warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a
-    layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
-    ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
-    docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
+    Attributes
+    ----------
+    deformed : torch.Tensor
+        ``(nx, ny)`` (3D: ``(nx, ny, nz)``): the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1)).
+    momentum, velocity : torch.Tensor
+        ``(N+1, d, *shape)``, ``nu = K m``, component 0 = x.
+    deformation : torch.Tensor
+        ``(d, *shape)``: phi_{1,0} (points, physical units).
+    trajectory : torch.Tensor or None
+        ``(N+1, *shape)``: the image path at ``t_i``.
+    history : list of dict
+        One dict per iteration (the solver's report plus ``seconds``).
+    iterations : int
+        Iterations run.
+    objective : float
+        The final objective.
+    terms : dict
+        Its terms (``data_fit``, ``regulariser``, ``tv``, a model's own).
+    min_jacobian : float
+        The least Jacobian determinant of the final map (folding when <= 0).
+    residual : float
+        ``||T f - g|| / ||g||`` in the data norm (on the fitted data, ``g`` after the background).
+    status : str
+        ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
+        step, ``indreg.registration.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations
+        without a new minimum), ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse
+        than a zero image), ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``) or
+        ``stopped`` (the callback returned True).
+    warnings : int
+        The iterations that reported a warning.
+    seconds : float
+        Wall time of the loop.
+    problem : RegistrationProblem
+        The problem that was solved.
+    outputs : dict
+        The model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
+        docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
+    ssim, psnr : float or None
+        Only with a target, in its units: the data's, or the template's as given (the reconstruction divided
+        by ``template_scale``: ``Units.locate_target``).
+    units : indreg.units.Units
+        What was done to the inputs before the run (``template_scale``, ``background``), what was measured
+        (``projection_ratio``, ``scale_fit``) and the data-term scale ``data_scale`` of the relative options.
+    holdout : dict
+        With ``holdout=``: ``holdout_residual`` (the final reconstruction's relative residual on the held-out
+        angles), ``holdout_best_residual`` / ``holdout_best_iteration`` (the least on the curve, evaluated every
+        ``log_every`` iterations; the curve is in ``history``) and ``holdout_indices``; empty without.
+    alignment : dict
+        With ``align=``: the estimated shifts and tilt-axis angle (``indreg.alignment.summary``); empty without.
+    poor_fit : str
+        The warning of a run that ended far above what the data's noise explains (:func:`poor_fit`: a layout
+        mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
+    corrections : dict
+        The final estimates of the in-the-fit corrections by name (``indreg.registration.corrections``:
+        ``alignment``, ``intensity``, a plug-in's), those that ran.
     """
     deformed: torch.Tensor
     momentum: torch.Tensor
