@@ -254,7 +254,7 @@ def _binned_operator(T, M: np.ndarray, d: np.ndarray, b: int, delta: np.ndarray,
 
 
 def _raw_alignment(M: np.ndarray, d: np.ndarray, quarter: int, raw_shape: tuple, radians: np.ndarray):
-    """The maps of the quarter-turned stack in pixels of the raw stack as stored (module Convention)."""
+    """The maps of the quarter-turned stack in pixels of the raw stack as stored (module Notes)."""
     from .files import Alignment
 
     Q = np.round(_rotation(90.0 * quarter))                            # raw = R(90 q) rotated (centred)

@@ -51,9 +51,25 @@ MAX_XTILT_DEG = 0.05
 
 @dataclass
 class Alignment:
-    """Per-tilt maps from the aligned image to the raw one (module Convention): ``matrices`` ``(K, 2, 2)``,
-    ``shifts`` ``(K, 2)`` pixels (x, y), ``tilt_angles_deg`` ``(K,)``, ``frames`` the raw stack's sections they
-    belong to (dark frames left out), ``raw_size`` ``(nx, ny, sections)`` when the file says it, ``source``."""
+    """Per-tilt maps from the aligned image to the raw one (module Notes): ``p = M_k q + d_k``.
+
+    Parameters
+    ----------
+    matrices : numpy.ndarray
+        ``M_k``, ``(K, 2, 2)``.
+    shifts : numpy.ndarray
+        ``d_k``, ``(K, 2)`` pixels (x, y).
+    tilt_angles_deg : numpy.ndarray
+        ``(K,)`` degrees.
+    frames : numpy.ndarray
+        The raw stack's sections they belong to (dark frames left out).
+    raw_size : tuple, optional
+        ``(nx, ny, sections)`` when the file says it.
+    source : str
+        Where it came from (e.g. ``"IMOD name.xf"``).
+    notes : list of str
+        Remarks made while reading it.
+    """
     matrices: np.ndarray
     shifts: np.ndarray
     tilt_angles_deg: np.ndarray
@@ -103,7 +119,7 @@ def _numbers(path: Path, name: str, width: Optional[int] = None) -> list:
 
 
 def xf_of(alignment: Alignment) -> np.ndarray:
-    """IMOD's ``(K, 6)`` ``A11 A12 A21 A22 DX DY`` of ``alignment`` (module Convention)."""
+    """IMOD's ``(K, 6)`` ``A11 A12 A21 A22 DX DY`` of ``alignment`` (module Notes)."""
     A = np.linalg.inv(alignment.matrices)
     D = -np.einsum("kij,kj->ki", A, alignment.shifts)
     return np.concatenate([A.reshape(-1, 4), D], axis=1)
@@ -165,7 +181,7 @@ ALN_COLUMNS = ("SEC", "ROT", "GMAG", "TX", "TY", "SMEAN", "SFIT", "SCALE", "BASE
 
 
 def read_aln(path, *, name: str = "alignment") -> Alignment:
-    """AreTomo's ``.aln`` (module Convention): the global alignment rows, ``RawSize`` and the dark frames."""
+    """AreTomo's ``.aln`` (module Notes): the global alignment rows, ``RawSize`` and the dark frames."""
     path = _as_path(path, name)
     if not path.is_file():
         raise _fail(name, path, "no such file")
@@ -245,7 +261,28 @@ def write_aln(path, alignment: Alignment) -> Path:
 
 
 def read_alignment(path, angles=None, *, name: str = "alignment") -> Alignment:
-    """An ``.xf`` (:func:`read_xf`, ``angles`` its tilt angles) or ``.aln`` (:func:`read_aln`) file."""
+    """An ``.xf`` (:func:`read_xf`) or ``.aln`` (:func:`read_aln`) file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file; its suffix names the format.
+    angles : str or os.PathLike or sequence of float, optional
+        ``.xf``: its tilt angles (degrees, a list or a ``.tlt`` path); None: the ``stem.tlt`` next to it.
+    name : str
+        How messages call the file.
+
+    Returns
+    -------
+    Alignment
+        The per-tilt maps.
+
+    Raises
+    ------
+    DataFileError
+        One line naming the file (and the line): an unknown suffix, a missing or malformed file, a singular map,
+        a tilt about X.
+    """
     path = _as_path(path, name)
     suffix = path.suffix.lower()
     if suffix == ".xf":
@@ -268,8 +305,29 @@ def _frame(T) -> tuple:
 
 def to_operator(T, alignment: Alignment, **options) -> AlignedOperator:
     """``T`` (a ``TiltSeriesTransform`` of the raw stack's frames ``alignment.frames``) with ``alignment`` as its
-    own: ``AlignedOperator(T, shifts, 0, matrices=B)`` (module Convention); ``options``: ``interpolation``,
-    ``edge``."""
+    own: ``AlignedOperator(T, shifts, 0, matrices=B)`` (module Notes).
+
+    Parameters
+    ----------
+    T : TiltSeriesTransform
+        The raw stack's frames' operator.
+    alignment : Alignment
+        The maps, one per tilt of ``T``.
+    **options
+        ``interpolation``, ``edge`` of the ``AlignedOperator``.
+
+    Returns
+    -------
+    AlignedOperator
+        ``T`` with the alignment's shifts and matrices (angle 0).
+
+    Raises
+    ------
+    TypeError
+        ``T`` is no ``TiltSeriesTransform``.
+    ValueError
+        A count of maps other than the tilts'.
+    """
     D, c = _frame(T)
     K = T.geometry.num_tilts
     if len(alignment.shifts) != K:
@@ -282,7 +340,29 @@ def to_operator(T, alignment: Alignment, **options) -> AlignedOperator:
 
 def from_operator(op: AlignedOperator, frames=None, raw_size=None, source: str = "indreg") -> Alignment:
     """The alignment of ``op`` (its shifts, tilt-axis angle and matrices) in pixels of the stack: what
-    :func:`to_operator` turns back into ``op``'s model."""
+    :func:`to_operator` turns back into ``op``'s model.
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        A tilt series' aligned operator.
+    frames : array_like, optional
+        The raw stack's sections of its tilts (default ``0 .. K-1``).
+    raw_size : tuple, optional
+        ``(nx, ny, sections)`` of the raw stack.
+    source : str
+        Recorded as ``Alignment.source``.
+
+    Returns
+    -------
+    Alignment
+        The maps.
+
+    Raises
+    ------
+    TypeError
+        ``op``'s operator is no ``TiltSeriesTransform``.
+    """
     D, c = _frame(op.operator)
     Dinv = np.linalg.inv(D)
     K = op.num_projections
@@ -310,8 +390,26 @@ CONVENTIONS = {
 def write_alignment(directory, alignment, stem: str = "alignment", pixel_size: Optional[float] = None,
                     extra: Optional[dict] = None) -> dict:
     """``stem.xf`` + ``stem.tlt``, ``stem.aln`` (when the maps are rotations) and ``stem.json`` (the numbers,
-    units and conventions) of ``alignment`` (an :class:`Alignment`, or an ``AlignedOperator``:
-    :func:`from_operator`) into ``directory``; returns the JSON record."""
+    units and conventions) of ``alignment`` into ``directory``.
+
+    Parameters
+    ----------
+    directory : str or os.PathLike
+        Where the files go (it must exist).
+    alignment : Alignment or AlignedOperator
+        The maps (an operator through :func:`from_operator`).
+    stem : str
+        The files' name before the suffix.
+    pixel_size : float, optional
+        Angstrom per pixel, recorded in the JSON.
+    extra : dict, optional
+        More entries of the JSON record.
+
+    Returns
+    -------
+    dict
+        The JSON record (files written, conventions, units, the numbers).
+    """
     directory = Path(directory)
     if isinstance(alignment, AlignedOperator):
         alignment = from_operator(alignment)

@@ -72,9 +72,10 @@ def aligned(operator, mode: str, label: str = "align", gauge: str = ALIGN_GAUGES
 
     Returns
     -------
-    tuple
-        ``(operator, state)``: an ``AlignedOperator`` and its :class:`AlignmentState`; ``(operator, None)`` for
-        mode ``"none"``.
+    operator : AlignedOperator or LinearOperator
+        The data model ``T_s`` (``operator`` itself for mode ``"none"``).
+    state : AlignmentState or None
+        The fit's state (None for mode ``"none"``).
 
     Raises
     ------
@@ -108,7 +109,22 @@ def first_start(op: AlignedOperator, state: AlignmentState, projection: torch.Te
                 data: torch.Tensor) -> torch.Tensor:
     """Where the first estimate starts: the operator's own shifts when the fit was started from them
     (``state.started``), else the cross-correlation peaks (:func:`coarse_shifts`) of the data with the projection
-    moved by the operator's angle and matrices at zero shift (the identity without them), in the gauge."""
+    moved by the operator's angle and matrices at zero shift (the identity without them), in the gauge.
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model.
+    state : AlignmentState
+        The fit's state (``started``, ``gauge``).
+    projection, data : torch.Tensor
+        ``P = T f`` and ``g``, ``op.range_shape``.
+
+    Returns
+    -------
+    torch.Tensor
+        Shifts ``(K, c)`` in pixels.
+    """
     if state.started:
         return op.shifts
     P = projection.double()
@@ -118,16 +134,41 @@ def first_start(op: AlignedOperator, state: AlignmentState, projection: torch.Te
 
 
 def bounds(op: AlignedOperator) -> torch.Tensor:
-    """``|s|`` bounds per component (pixels, float64): ``MAX_SHIFT_FRACTION`` of the detector's pixels."""
+    """``|s|`` bounds per component: ``MAX_SHIFT_FRACTION`` of the detector's pixels.
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(c,)`` float64, pixels (across, [along]).
+    """
     sizes = [op.columns, op.rows][:op.components]
     return torch.tensor([MAX_SHIFT_FRACTION * n for n in sizes], dtype=torch.float64)
 
 
 def gauge(op: AlignedOperator, shifts: torch.Tensor, kind: str = ALIGN_GAUGES[0]) -> torch.Tensor:
-    """``shifts`` with what a translation of the object explains removed (module Convention), by ``kind``:
-    ``"offset+translation"`` across the axis the least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``,
-    along it the mean; ``"translation"`` keeps ``c``, the tilt axis' offset from the detector's middle; ``"none"``
-    returns ``shifts`` as they are."""
+    """``shifts`` with what a translation of the object explains removed (module Notes).
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model (its angles).
+    shifts : torch.Tensor
+        ``(K, c)``, pixels.
+    kind : {"offset+translation", "translation", "none"}
+        ``"offset+translation"``: across the axis the least-squares fit of ``c + a cos(theta_k) + b sin(theta_k)``
+        removed, along it the mean; ``"translation"`` keeps ``c``, the tilt axis' offset from the detector's
+        middle; ``"none"`` removes nothing.
+
+    Returns
+    -------
+    torch.Tensor
+        The shifts in the gauge (a new tensor).
+    """
     if kind == "none":
         return shifts.clone()
     theta = op.operator.geometry.angles.to(shifts)
@@ -141,7 +182,20 @@ def gauge(op: AlignedOperator, shifts: torch.Tensor, kind: str = ALIGN_GAUGES[0]
 def coarse_shifts(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor) -> torch.Tensor:
     """Shifts ``(K, c)`` at the peak of every projection's cross-correlation with ``data`` within the bound
     (zero-padded FFTs, so no wrap-around), refined by a parabola through the peak and its neighbours along each
-    axis (a start off the integers: there bilinear interpolation has its kinks)."""
+    axis (a start off the integers: there bilinear interpolation has its kinks).
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model (its frame and bounds).
+    projection, data : torch.Tensor
+        ``P`` and ``g``, ``op.range_shape``.
+
+    Returns
+    -------
+    torch.Tensor
+        Shifts ``(K, c)``, float64 on the CPU, pixels.
+    """
     K, R, D = op.num_projections, op.rows, op.columns
     p, g = projection.reshape(K, R, D), data.reshape(K, R, D)
     size = (2 * R, 2 * D)
@@ -198,8 +252,33 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
              kind: str = ALIGN_GAUGES[0]) -> tuple:
     """Gauss-Newton (Levenberg-damped) on ``(1/2) ||S_{s, alpha} P - g||^2`` from ``(shifts, angle)`` with the
     projection ``P`` fixed; shifts kept in the gauge ``kind`` (:func:`gauge`) and within the bounds (:func:`bounds`).
-    Returns ``(shifts, angle, at_bound)`` (float64, CPU; ``at_bound``: how many shifts or angles ended at their
-    bound)."""
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model.
+    projection, data : torch.Tensor
+        ``P`` and ``g``, ``op.range_shape``.
+    shifts : torch.Tensor
+        The start, ``(K, c)`` pixels.
+    angle : torch.Tensor
+        The start of the tilt-axis angle (radians, 0-d).
+    axis : bool
+        Fit the angle too.
+    iterations : int
+        At most this many Gauss-Newton iterations (stops earlier when nothing moves more than ``GN_TOL``).
+    kind : str
+        The gauge (:func:`gauge`).
+
+    Returns
+    -------
+    shifts : torch.Tensor
+        ``(K, c)`` float64 on the CPU.
+    angle : torch.Tensor
+        Radians, float64 on the CPU.
+    at_bound : int
+        How many shifts or angles ended at their bound.
+    """
     P, g = projection.detach().double(), data.detach().double()
     K, c = op.num_projections, op.components
     bound, amax = bounds(op).to(P.device), math.radians(MAX_ANGLE_DEG)
@@ -273,8 +352,14 @@ def fit_scale(op: AlignedOperator, state: AlignmentState, template: torch.Tensor
 
     Returns
     -------
-    tuple
-        ``(c, shifts, angle, rounds done)``.
+    c : float
+        The scale (nan when the projection is zero).
+    shifts : torch.Tensor
+        ``(K, c)`` pixels.
+    angle : torch.Tensor
+        Radians.
+    rounds : int
+        Rounds done.
     """
     with torch.no_grad():
         P, g = op.operator(template).detach().double(), data.detach().double()
@@ -292,7 +377,20 @@ def turn_projection(operator, image: torch.Tensor) -> torch.Tensor:
     """``T(L f)`` for a ``TiltSeriesTransform`` ``T``: the projection of the derivative of the image ``f`` turned
     about the beam at tilt 0 (the axis orthogonal to the tilt axis and the detector columns), at no turn; ``L f =
     u d_t f - t d_u f`` with ``u`` across the axis, ``t`` along it (central differences). At tilt ``theta`` this turn
-    is an in-plane rotation of the projection by ``cos(theta)`` times the turn, plus an out-of-plane part."""
+    is an in-plane rotation of the projection by ``cos(theta)`` times the turn, plus an out-of-plane part.
+
+    Parameters
+    ----------
+    operator : TiltSeriesTransform
+        ``T``.
+    image : torch.Tensor
+        ``f``, ``operator.domain.shape``.
+
+    Returns
+    -------
+    torch.Tensor
+        ``T(L f)``, ``operator.range_shape``, in ``image``'s dtype.
+    """
     g = operator.geometry
     u, t = g.slice_axes[0], g.axis
     f = image.detach().double()
@@ -307,9 +405,24 @@ def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tens
     deformation can carry such a turn, and at low tilts it looks like the angle): Gauss-Newton's normal matrix of
     ``(1/2) ||S_{s, alpha}(T f + beta T(L f)) - g||^2`` in the shifts, the angle and the turn ``beta``
     (:func:`turn_projection`) at ``op``'s alignment and ``beta = 0``, its inverse's angle entry times the residual's
-    variance per datum (``2 cost / (data - unknowns)``). ``inf`` when the data cannot tell the angle from a turn of
-    the object (a narrow tilt range, an object that looks alike at every turn); above :data:`MAX_ANGLE_SE_DEG`
-    the angle is not determined by the data."""
+    variance per datum (``2 cost / (data - unknowns)``).
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model at its alignment (a tilt series).
+    image : torch.Tensor
+        ``f``, ``op.domain.shape``.
+    data : torch.Tensor
+        ``g``, ``op.range_shape``.
+
+    Returns
+    -------
+    float
+        Degrees; ``inf`` when the data cannot tell the angle from a turn of the object (a narrow tilt range, an
+        object that looks alike at every turn). Above :data:`MAX_ANGLE_SE_DEG` the angle is not determined by
+        the data.
+    """
     T = op.operator
     P, g = T(image.detach()).double(), data.detach().double()
     s, a = op.shifts.to(P.device), op.angle.to(P.device)
@@ -338,9 +451,39 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     bilinear interpolation.
     ``operator`` may be an ``AlignedOperator`` (an imported alignment, a known tilt-axis rotation): the estimates
     start from its shifts (from the cross-correlation when they are all zero) and keep its matrices.
-    ``progress(round, record)``, if given, is called after every round.
-    Returns ``(aligned operator, its SIRT reconstruction, records)``, ``records`` one ``(SIRT residual, largest
-    move in px)`` per round (the relative residual before the round's estimate)."""
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        A parallel-beam ``RayTransform``, a ``TiltSeriesTransform`` or an ``AlignedOperator``.
+    data : torch.Tensor
+        ``g``, ``operator.range_shape``.
+    mode : {"shifts", "shifts+axis"}
+        What is estimated (``"shifts+axis"``: a tilt series).
+    rounds : int
+        SIRT-then-estimate rounds.
+    iters : int
+        SIRT iterations per reconstruction.
+    interpolation : {"linear", "cubic"}
+        The estimates' interpolation.
+    progress : callable, optional
+        ``progress(round, record)``, called after every round.
+
+    Returns
+    -------
+    operator : AlignedOperator
+        The aligned data model.
+    image : torch.Tensor
+        Its SIRT reconstruction.
+    records : list of tuple
+        One ``(SIRT residual, largest move in px)`` per round (the relative residual before the round's
+        estimate).
+
+    Raises
+    ------
+    ValueError, TypeError
+        Mode ``"none"`` and the errors of :func:`aligned`.
+    """
     from ..forward.sirt import sirt
 
     if mode == "none":

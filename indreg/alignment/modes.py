@@ -1,14 +1,17 @@
 """The alignment's choices and bounds, declared once and importable without torch (the option table,
 ``indreg.options``, and the aligner app's argument checks read them before torch loads).
 
-Convention (docs/alignment.md):
-    - ``mode``: what the fit estimates; ``gauge``: what the shifts leave to the deformation (a translation of the
-      object moves projection ``k`` by ``a cos(theta_k) + b sin(theta_k)`` across the axis, and every projection
-      alike along it; ``indreg.alignment.fit.gauge``); ``interpolation`` / ``edge``: how the data model ``T_s``
-      moves a projection image (``indreg.alignment.operator``). The first entry of each is the default.
-    - Bounds: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's pixels along the component, ``|alpha| <=
-      MAX_ANGLE_DEG``; a parameter that ends at its bound is reported (a warning, and ``at_bound`` in the
-      summary).
+Notes
+-----
+See docs/alignment.md.
+
+- ``mode``: what the fit estimates; ``gauge``: what the shifts leave to the deformation (a translation of the
+  object moves projection ``k`` by ``a cos(theta_k) + b sin(theta_k)`` across the axis, and every projection
+  alike along it; ``indreg.alignment.fit.gauge``); ``interpolation`` / ``edge``: how the data model ``T_s``
+  moves a projection image (``indreg.alignment.operator``). The first entry of each is the default.
+- Bounds: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's pixels along the component, ``|alpha| <=
+  MAX_ANGLE_DEG``; a parameter that ends at its bound is reported (a warning, and ``at_bound`` in the
+  summary).
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ __all__ = ["ALIGN_MODES", "ALIGN_GAUGES", "INTERPOLATIONS", "EDGES", "ALIGN_EVER
 
 #: What the fit estimates: nothing, per-projection shifts, or shifts and the tilt-axis angle (a tilt series).
 ALIGN_MODES = ("none", "shifts", "shifts+axis")
-#: What the shifts are kept orthogonal to (module Convention).
+#: What the shifts are kept orthogonal to (module Notes).
 ALIGN_GAUGES = ("offset+translation", "translation", "none")
 #: How ``T_s`` moves a projection image: bilinear, or Keys' cubic convolution.
 INTERPOLATIONS = ("linear", "cubic")

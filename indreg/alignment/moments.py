@@ -66,15 +66,30 @@ MAX_PIXELS = 128
 class AxisEstimate:
     """The tilt-axis angle from the stack (:func:`estimate_axis_angle`).
 
-    ``angle_deg``: the estimate (indreg's convention); ``se_deg``: its standard error (``inf``: the criterion is
-    flat or has no interior minimum); ``determined``: ``se_deg <= MAX_SE_DEG``; ``chi2_per_dof``: the criterion at
-    the minimum over its degrees of freedom (about 1 when the conditions fit to the noise); ``shifts_px``
-    ``(tilts, 2)`` across / along; ``tilts_used``: which tilts entered (those whose specimen stays inside the
-    detector across the axis, :func:`support_columns`); ``scan``: the trial angles and their ``chi2``; ``reason``:
-    why the stack could not be used, where it could not (:meth:`refused`: no angle, not determined); ``scales``
-    ``(tilts,)``: every tilt's fitted intensity scale (mean 1 over the tilts used; ``None``: not fitted);
-    ``binning``: the stack was binned by this factor for the estimate (:data:`MAX_PIXELS`; the shifts are in the
-    stack's own pixels)."""
+    Attributes
+    ----------
+    angle_deg : float
+        The estimate (indreg's convention).
+    se_deg : float
+        Its standard error (``inf``: the criterion is flat or has no interior minimum).
+    determined : bool
+        ``se_deg <= MAX_SE_DEG``.
+    chi2_per_dof : float
+        The criterion at the minimum over its degrees of freedom (about 1 when the conditions fit to the noise).
+    shifts_px : numpy.ndarray
+        ``(tilts, 2)``, across / along, in the stack's own pixels.
+    tilts_used : numpy.ndarray
+        Which tilts entered (bool): those whose specimen stays inside the detector across the axis
+        (:func:`support_columns`).
+    scan : tuple
+        The trial angles and their ``chi2``.
+    reason : str
+        Why the stack could not be used, where it could not (:meth:`refused`: no angle, not determined).
+    scales : numpy.ndarray or None
+        ``(tilts,)``: every tilt's fitted intensity scale (mean 1 over the tilts used; None: not fitted).
+    binning : int
+        The stack was binned by this factor for the estimate (:data:`MAX_PIXELS`).
+    """
     angle_deg: float
     se_deg: float
     determined: bool
@@ -176,7 +191,7 @@ def _design(theta: np.ndarray, orders: int) -> list:
 
 
 def _transforms(S: _Setup, alpha: float, c: np.ndarray, d: np.ndarray, derivatives: bool = False) -> tuple:
-    """``G (tilts, 3, freqs)`` (module Convention), the standard deviations of their real and imaginary parts
+    """``G (tilts, 3, freqs)`` (module Notes), the standard deviations of their real and imaginary parts
     ``(2, tilts, 3, freqs)`` and, with ``derivatives``, ``dG/dc`` and ``dG/dd`` ``(tilts, 3, freqs)`` each.
 
     A tilt's shift along the axis ``d_k`` enters the phase as a factor of its own, ``exp(-2 pi i rho v) = exp(-2 pi
@@ -380,16 +395,45 @@ def binned(stack: np.ndarray, factor: int) -> np.ndarray:
 def estimate_axis_angle(stack, tilt_angles, band: float = 0.25, margin: float = 1.0, scan_deg: float = SCAN_DEG,
                         sigma: float | None = None, orders: int = 2, scales: bool = True,
                         max_pixels: int | None = MAX_PIXELS) -> AxisEstimate:
-    """The tilt-axis angle of ``stack`` ``(tilts, rows, columns)`` (module Convention) from the Helgason-Ludwig
-    conditions of orders ``0 .. orders``, with per-tilt shifts across and along the axis; ``tilt_angles`` in
-    radians. ``band``: the highest frequency along the axis (cycles per pixel); ``margin``: rows kept from the
-    window's ends beyond the shifts and the trial turn (px); ``scan_deg``: the trial angles' range (every degree,
-    then every quarter within one degree of the least, a parabola fitted there); ``sigma``: the noise's standard
-    deviation (default :func:`noise_level`). Tilts whose specimen runs off the detector across the axis are left
-    out (:func:`support_columns`). ``scales``: fit an intensity scale per tilt too (exposure, a signal that changes
-    with the path length), alternating with the shifts; ``False``: every tilt's scale 1. ``max_pixels``: a stack
-    larger along either image axis is binned first (:func:`binned`, the smallest factor that brings it within;
-    ``None``: never)."""
+    """The tilt-axis angle of ``stack`` (module Notes) from the Helgason-Ludwig conditions of orders
+    ``0 .. orders``, with per-tilt shifts across and along the axis. Tilts whose specimen runs off the detector
+    across the axis are left out (:func:`support_columns`).
+
+    Parameters
+    ----------
+    stack : array_like
+        ``(tilts, rows, columns)``, finite.
+    tilt_angles : array_like
+        One angle per tilt, radians.
+    band : float
+        The highest frequency along the axis (cycles per pixel).
+    margin : float
+        Rows kept from the window's ends beyond the shifts and the trial turn (px).
+    scan_deg : float
+        The trial angles' range (every degree, then every quarter within one degree of the least, a parabola
+        fitted there).
+    sigma : float, optional
+        The noise's standard deviation (default :func:`noise_level`).
+    orders : int
+        The highest order of the conditions.
+    scales : bool
+        Fit an intensity scale per tilt too (exposure, a signal that changes with the path length), alternating
+        with the shifts; False: every tilt's scale 1.
+    max_pixels : int, optional
+        A stack larger along either image axis is binned first (:func:`binned`, the smallest factor that brings
+        it within; None: never).
+
+    Returns
+    -------
+    AxisEstimate
+        The angle, its standard error and whether the data determine it.
+
+    Raises
+    ------
+    ValueError
+        A stack that is not 3D or has non-finite values, a count of angles other than the tilts', too few tilts
+        whose specimen stays on the detector, too few rows.
+    """
     a, sigma, factor = _within(np.asarray(stack), max_pixels, sigma)
     S, used = _prepare(a, tilt_angles, band, margin, scan_deg, sigma, orders)
     S.scales = np.ones(len(S.theta)) if scales else None

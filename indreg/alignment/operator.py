@@ -111,10 +111,32 @@ def _same(a, b) -> bool:
 class AlignedOperator(OperatorAlgebra):
     """``T_s f = S_{s, alpha} T f`` for a parallel-beam ``T`` (module docstring), a ``LinearOperator`` in ``f``.
 
-    ``shifts`` (pixels, ``(num_projections, c)``) and ``angle`` (radians, 0-dim) are the current alignment, held
-    as float64 tensors; ``matrices`` ``(num_projections, 2, 2)`` (or None) a fixed per-projection map ``B_k`` and set by the estimation (``indreg.alignment``); :meth:`apply` takes them as arguments
-    (differentiable in all three). ``interpolation``: ``"linear"`` (bilinear) or ``"cubic"``; ``edge``:
-    ``"nearest"`` or ``"zero"`` (module docstring). ``range_shape`` and ``inner_data`` are ``T``'s.
+    ``shifts`` and ``angle`` are the current alignment, held as float64 tensors and set by the estimation
+    (``indreg.alignment``); :meth:`apply` takes them as arguments (differentiable in all three). ``range_shape``
+    and ``inner_data`` are ``T``'s.
+
+    Parameters
+    ----------
+    operator : RayTransform or TiltSeriesTransform
+        ``T``, parallel beam.
+    shifts : array_like, optional
+        ``(num_projections, c)`` pixels (default zeros).
+    angle : float
+        The tilt-axis angle ``alpha``, radians.
+    interpolation : {"linear", "cubic"}
+        Bilinear or cubic convolution (module docstring).
+    edge : {"nearest", "zero"}
+        Beyond the detector: its nearest edge pixel or zero.
+    matrices : array_like, optional
+        ``(num_projections, 2, 2)``: a fixed per-projection map ``B_k`` (tilt series only).
+
+    Raises
+    ------
+    TypeError
+        ``operator`` is no operator, or not a parallel-beam ray transform or tilt series.
+    ValueError
+        An unknown ``interpolation`` or ``edge``, shifts or matrices of the wrong shape or non-finite, singular
+        matrices or matrices of a 2D sinogram.
     """
 
     def __init__(self, operator, shifts=None, angle=0.0, interpolation: str = "linear", edge: str = "nearest",

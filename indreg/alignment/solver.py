@@ -30,8 +30,24 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor, started: bool = False):
     """The tilt-axis angle of ``data`` from the stack alone, by the moment conditions of every detector row
     (``indreg.alignment.moments.estimate_axis_angle``): no reconstruction, so no turn of the object about the beam can
     take part of it up. ``None`` where it does not apply: pixels not square, a given alignment (``started``: the fit
-    starts from imported shifts; an angle, per-tilt matrices); :meth:`~indreg.alignment.moments.AxisEstimate.refused` (not determined, with the reason)
-    for a stack that cannot tell the angle (too few tilts whose specimen stays on the detector, too few rows)."""
+    starts from imported shifts; an angle, per-tilt matrices).
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model (a tilt series).
+    data : torch.Tensor
+        The stack, ``op.range_shape``.
+    started : bool
+        The fit starts from imported shifts (then None).
+
+    Returns
+    -------
+    AxisEstimate or None
+        The estimate; :meth:`~indreg.alignment.moments.AxisEstimate.refused` (not determined, with the reason)
+        for a stack that cannot tell the angle (too few tilts whose specimen stays on the detector, too few
+        rows); None where it does not apply.
+    """
     from .moments import AxisEstimate, estimate_axis_angle
 
     _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
@@ -53,8 +69,23 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor, started: bool = False):
 def hold_stack_angle(op: AlignedOperator, state: AlignmentState, data: torch.Tensor) -> bool:
     """Estimate the angle from the stack (:func:`stack_angle`), once per fit, before anything else fits the
     alignment (the template's scale, ``indreg.alignment.fit.fit_scale``, or the first in-fit estimate), and set it
-    on ``op``: ``True`` (``state.held``: hold it in the fit) where the data determine it; else a warning, and the
-    fit estimates it."""
+    on ``op``; else a warning, and the fit estimates it.
+
+    Parameters
+    ----------
+    op : AlignedOperator
+        The data model (its ``angle`` is set).
+    state : AlignmentState
+        The fit's state (``stack_tried``, ``stack_estimate``, ``held``, ``angle_se`` are set).
+    data : torch.Tensor
+        The stack.
+
+    Returns
+    -------
+    bool
+        ``state.held``: the data determine the angle and the fit holds it (False for a mode other than
+        ``"shifts+axis"``).
+    """
     if state.mode != "shifts+axis":
         return False
     if state.stack_tried:
@@ -146,7 +177,18 @@ class AlignmentSolver(RefitSolver):
 
 
 def find_aligned(operator) -> AlignedOperator | None:
-    """The ``AlignedOperator`` in ``operator`` (itself, or under a ``RestrictedOperator``), else None."""
+    """The ``AlignedOperator`` in ``operator`` (itself, or under a ``RestrictedOperator``).
+
+    Parameters
+    ----------
+    operator : LinearOperator or None
+        An operator.
+
+    Returns
+    -------
+    AlignedOperator or None
+        The aligned operator found by following ``.operator``, else None.
+    """
     while operator is not None and not isinstance(operator, AlignedOperator):
         operator = getattr(operator, "operator", None)
     return operator
@@ -154,7 +196,18 @@ def find_aligned(operator) -> AlignedOperator | None:
 
 def summary(problem) -> dict:
     """``result.alignment`` of a run on ``problem`` whose alignment was not estimated (an imported alignment used as
-    it is): :func:`operator_summary` of its ``AlignedOperator`` with mode ``fixed``; ``{}`` without one."""
+    it is).
+
+    Parameters
+    ----------
+    problem : RegistrationProblem
+        The problem (its ``ray_transform``).
+
+    Returns
+    -------
+    dict
+        :func:`operator_summary` of its ``AlignedOperator`` with mode ``fixed``; ``{}`` without one.
+    """
     op = find_aligned(getattr(problem, "ray_transform", None))
     return {} if op is None else operator_summary(op)
 
@@ -209,7 +262,15 @@ def _angle_summary(op: AlignedOperator, state: AlignmentState) -> dict:
 
 def plot_shifts(alignment: dict, path: str | Path) -> None:
     """Shifts (px) against the tilt angle (deg), one line per component, the axis angle in the title when it was
-    estimated (a mode with ``axis``)."""
+    estimated (a mode with ``axis``).
+
+    Parameters
+    ----------
+    alignment : dict
+        A summary (:func:`operator_summary`, ``result.alignment``).
+    path : str or pathlib.Path
+        The figure's file (PNG).
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -231,6 +292,24 @@ def plot_shifts(alignment: dict, path: str | Path) -> None:
 
 def wrap(solver, operator: AlignedOperator, state: AlignmentState, data: torch.Tensor, label: str = "align"):
     """``solver`` with the alignment of ``operator`` in the fit: an :class:`AlignmentSolver` owning ``state``.
+
+    Parameters
+    ----------
+    solver : IterativeSolver
+        The registration's solver.
+    operator : AlignedOperator
+        The data model.
+    state : AlignmentState
+        The fit's state.
+    data : torch.Tensor
+        The data the alignment is fitted to.
+    label : str
+        The option's name in messages.
+
+    Returns
+    -------
+    AlignmentSolver
+        The solver with the alignment re-estimated every ``ALIGN_EVERY`` iterations.
 
     Raises
     ------

@@ -39,7 +39,7 @@ FLOOR = 1e-3
 
 def align_tilt_axis(stack: np.ndarray, tilt_axis_angle: float) -> np.ndarray:
     """``stack`` ``(num_tilts, rows, cols)`` with every image rotated by ``-tilt_axis_angle`` degrees about its
-    centre: the tilt axis then runs along the rows' index (module Convention). Exact (``np.rot90``) for multiples
+    centre: the tilt axis then runs along the rows' index (module Notes). Exact (``np.rot90``) for multiples
     of 90 degrees, bilinear interpolation for the rest; returns a new float64 array."""
     quarter = round(tilt_axis_angle / 90.0)
     rest = tilt_axis_angle - 90.0 * quarter                       # in [-45, 45]
@@ -127,7 +127,7 @@ def frame_level(a: np.ndarray) -> float:
 
 def check_tilt_axis(stack) -> TiltAxisCheck:
     """Which way the tilt axis of ``stack`` ``(num_tilts, rows, cols)`` runs, and how consistent the stack is
-    (module Convention): the per-row sums (over the columns) and the per-column sums (over the rows) of each tilt,
+    (module Notes): the per-row sums (over the columns) and the per-column sums (over the rows) of each tilt,
     compared across the tilts up to one scale per tilt, after the level of the images' outer frame is subtracted
     (``frame_level``: an offset adds the same to every profile and hides their differences)."""
     a = np.asarray(stack, dtype=np.float64)
