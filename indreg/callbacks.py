@@ -14,7 +14,9 @@ Built in: :class:`UserCallback`,
 :class:`HeldOut` (``holdout=``: the held-out residual every ``every`` iterations, early stopping). The app adds
 TensorBoard, evaluation, checkpoints and its stop requests the same way (``indreg.experiments.runner``).
 
-Convention: ``loop`` is the running ``RegistrationLoop`` (``loop.state``, ``loop.problem``, ``loop.solver``,
+Notes
+-----
+``loop`` is the running ``RegistrationLoop`` (``loop.state``, ``loop.problem``, ``loop.solver``,
 ``loop.history``, ``loop.every``); ``info`` the solver's report of the step (a dict, also the last entry of
 ``loop.history``); iterations count from 1.
 """

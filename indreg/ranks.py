@@ -6,7 +6,9 @@ slab-wise registration (``indreg.problems.slabs``), the baselines over ranks (``
 built by rows (``indreg.experiments.split_setup``) and the app's runner. A problem says whether it splits over the
 ranks by ``splits_over_ranks`` (``indreg.problems.problem.RegistrationProblem``).
 
-Convention: ``counts[r]`` is rank ``r``'s number of rows along ``axis`` (rank 0's rows first, then rank 1's, ...);
+Notes
+-----
+``counts[r]`` is rank ``r``'s number of rows along ``axis`` (rank 0's rows first, then rank 1's, ...);
 every rank passes the same ``counts``. The exchange runs on the group's device (the CPU for gloo, this rank's GPU
 for NCCL) and the whole comes back on the device of ``part``.
 """

@@ -19,7 +19,9 @@ absolute numbers convert both ways with the ``S`` of the data (``indreg.register
 ``result.units.data_scale``); the defaults ``gamma_rel`` and ``step_rel`` (``indreg.options``) are the paper's
 suite-1 ``gamma = 1e-6`` and ``step = 0.02`` converted with its ``S``.
 
-Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (torch tensors of one dtype
+Notes
+-----
+``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (torch tensors of one dtype
 and device); norms in the weighted data inner product ``operator.inner_data``.
 """
 from __future__ import annotations

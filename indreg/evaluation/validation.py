@@ -9,7 +9,9 @@ range), the held-out angles are compared with the same reconstruction every ``ev
 iterations (the loop's log period): ``||T_H f - g_H|| / ||g_H||``. With ``patience`` the run stops
 (``early_stopped``) after ``patience`` such evaluations without a new minimum.
 
-Convention: indices along the data's first axis (``operator.range_shape[0]``: angles of a sinogram, tilts of a
+Notes
+-----
+indices along the data's first axis (``operator.range_shape[0]``: angles of a sinogram, tilts of a
 tilt series); the residual uses the operator's data inner product.
 """
 from __future__ import annotations

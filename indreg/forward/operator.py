@@ -13,7 +13,9 @@ Operators combine into operators (``indreg.forward.algebra``, ``indreg.forward.s
 ``A + B`` for those that inherit ``OperatorAlgebra`` (indreg's own), ``compose`` / ``add`` / ``scale`` / ``stack`` /
 ``restrict`` for any.
 
-Convention: inner products are weighted (``domain.inner`` uses the cell volume; ``inner_data`` whatever
+Notes
+-----
+inner products are weighted (``domain.inner`` uses the cell volume; ``inner_data`` whatever
 weight the data space has, e.g. ``angle_cell * det_cell`` for ray transforms), so ``adjoint`` is the
 weighted L2 adjoint, not the matrix transpose, unless both weights are equal.
 """

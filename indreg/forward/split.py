@@ -15,7 +15,9 @@ is carried by the slab's domain (``SlabDomain``), so that the solvers' bodies st
   (a random start drawn whole, so that it does not depend on the number of ranks), ``gather_rows`` assembles the
   ranks' rows on one rank.
 
-Convention: volumes ``(..., nx, ny, nz)``, data ``(..., num_tilts, det_rows, det_cols)``; the tilt axis ``t`` =
+Notes
+-----
+volumes ``(..., nx, ny, nz)``, data ``(..., num_tilts, det_rows, det_cols)``; the tilt axis ``t`` =
 ``T.geometry.axis``; a slab is the half-open range ``[start, stop)`` of slices along ``t`` (the same rows of the
 data); rank ``r`` of ``k`` owns the ``r``-th of ``k`` contiguous, balanced shares (``rank_rows``). Without a group
 the slab is all there is (sums are local, the halo is zero). CPU tensors with gloo, CUDA with NCCL.

@@ -23,7 +23,9 @@ displayed, or as an MRC section, read as indreg's), and a tilt series for its st
 columns reversed) and, with square projections, by 90 degrees. A fan beam: the detector alone; other operators
 (composed, user-defined): not probed.
 
-Convention: ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
+Notes
+-----
+``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
 ``indreg.registration.run.setup``); the angles on the first data axis, detector columns on the last.
 """
 from __future__ import annotations

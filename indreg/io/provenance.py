@@ -105,7 +105,7 @@ _READERS = {".npy": _npy, ".mrc": _mrc, ".zarr": _zarr}
 
 
 def describe(path, root=None, **conventions) -> dict:
-    """The record of one output file (module Convention): its format, writer and version, size, what it says of
+    """The record of one output file (module Notes): its format, writer and version, size, what it says of
     itself, and the caller's ``conventions``."""
     path = Path(path)
     suffix = path.suffix.lower()

@@ -42,7 +42,7 @@ def _checked(volume, voxel_size, origin, path: Path) -> tuple:
 
 def write_mrc(path, volume, voxel_size, origin=(0.0, 0.0, 0.0)) -> dict:
     """``volume`` as MRC (float32, sections ``(z, y, x)``) with ``voxel_size`` and ``origin`` (Angstrom) in the
-    header (module Convention)."""
+    header (module Notes)."""
     import mrcfile
 
     path = _as_path(path, "output")
@@ -70,7 +70,7 @@ def ome_zarr_available() -> bool:
 
 def write_ome_zarr(path, volume, voxel_size, origin=(0.0, 0.0, 0.0)) -> dict:
     """``volume`` as a single-scale OME-Zarr image ``(z, y, x)`` in Angstrom with ``scale`` = the voxel size and
-    ``translation`` = ``origin`` (module Convention), written by ``ome-zarr``; a one-line error without it."""
+    ``translation`` = ``origin`` (module Notes), written by ``ome-zarr``; a one-line error without it."""
     path = _as_path(path, "output")
     data, h, o = _checked(volume, voxel_size, origin, path)
     if not ome_zarr_available():

@@ -8,7 +8,9 @@ started from the one-shot geodesic, ``k`` iterations: ``k = K``, and the smalles
 sample (Algorithm 1's time per iteration) is at least the unrolled scheme's) and ``algorithm1`` (per sample from
 zero, ``eval.algorithm1.max_iter`` iterations).
 
-Convention: every scheme runs per sample (batch 1) and is timed from the sinogram to the deformed template (the FBP
+Notes
+-----
+every scheme runs per sample (batch 1) and is timed from the sinogram to the deformed template (the FBP
 included); metrics are means over the samples: ``ssim``, ``psnr`` (dB, range of the target), ``residual``
 (``||T f - g|| / ||g||``, Euclidean), ``min_jacobian`` (mean over samples of the minimum of ``det D phi_{1,0}``;
 ``min_jacobian_worst`` the smallest), ``seconds_per_sample``; ``per_sample_ssim`` lists the SSIMs. An

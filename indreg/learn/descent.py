@@ -24,7 +24,9 @@ Gradient of the scheme: ``h_k`` and the correction's inputs are computed without
 ``U_k(x_k)``: the training loss reaches ``a_k``, ``b_k`` and ``U_k`` directly, and the backward costs one pass
 through each ``U_k`` (no double backward).
 
-Convention: template, FBP, deformed templates and residuals ``(B, nx, ny)``; momenta and gradients ``(B, N+1, 2,
+Notes
+-----
+template, FBP, deformed templates and residuals ``(B, nx, ny)``; momenta and gradients ``(B, N+1, 2,
 nx, ny)`` (component 0 = x, 1 = y; N = the shooting layer's ``num_steps``); data ``(B, *range_shape)`` of the loss's
 ray transform. The correction networks see ``W(K m_k, I)``, ``r_k / residual_scale`` and ``I`` (3 channels);
 ``residual_scale`` is a buffer (saved with the weights), set once from a batch by ``calibrate`` (the mean RMS of

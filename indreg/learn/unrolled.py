@@ -17,7 +17,9 @@ Gradient of the scheme (``gradient``):
 Memory: with ``checkpoint=True`` each update network runs under ``torch.utils.checkpoint``; with detached
 gradients autograd keeps only the ``K`` step inputs (``O(K n^2)``).
 
-Convention: template, FBP and deformed templates ``(B, nx, ny)``, momenta and gradients ``(B, 2, nx, ny)``
+Notes
+-----
+template, FBP and deformed templates ``(B, nx, ny)``, momenta and gradients ``(B, 2, nx, ny)``
 (component 0 = x, 1 = y), data ``(B, *range_shape)`` of the loss's ray transform. The update networks see
 ``m_k / momentum_scale``, ``grad_k / gradient_scale`` and the three images (7 channels); ``gradient_scale`` is a
 buffer (saved with the weights), set once from a batch by ``calibrate`` (the mean RMS of ``grad_0``).

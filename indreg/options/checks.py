@@ -2,7 +2,9 @@
 normalised or raises :class:`OptionError` naming ``label`` (the keyword or the config key), the value and what was
 expected.
 
-Convention: ``label`` is the name shown to the user; ``OptionError.kind`` is the exception type ``register()``
+Notes
+-----
+``label`` is the name shown to the user; ``OptionError.kind`` is the exception type ``register()``
 raises (TypeError for a wrong type, ValueError else).
 """
 from __future__ import annotations

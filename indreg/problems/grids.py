@@ -3,7 +3,9 @@ piecewise-constant values on a finer one (``prolong``), a time-dependent field o
 (``resample_time``). Used by the coarse levels of a problem (``IndirectRegistration.coarsened``) and by the
 coarse-to-fine solver (``indreg.solvers.MultilevelSolver``).
 
-Convention: images ``(..., *shape)`` with the last ``len(shape)`` axes the grid (2D or 3D); time-dependent fields
+Notes
+-----
+images ``(..., *shape)`` with the last ``len(shape)`` axes the grid (2D or 3D); time-dependent fields
 ``(N+1, ...)`` at ``t_i = i / N``.
 """
 from __future__ import annotations

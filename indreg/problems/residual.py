@@ -9,7 +9,9 @@ and ``f`` keeps the template's shape, where they disagree with every deformation
 template lacks) ``r`` fits them, piecewise constant. ``r = 0`` throughout (``mu`` infinite, or the residual frozen
 for every iteration: ``residual_start >= max_iter``) is LDDMM.
 
-Convention: ``r`` on ``image_domain`` (the template's grid), in the data's intensity units; ``mu`` (``tv_weight``
+Notes
+-----
+``r`` on ``image_domain`` (the template's grid), in the data's intensity units; ``mu`` (``tv_weight``
 of the residual, ``residual_tv``) absolute; ``TV_eps`` the smoothed isotropic TV of ``indreg.forward.tv``
 (``eps`` = ``smoothing``, an intensity per length); the L2 gradient in ``r`` is the torch gradient divided by
 the cell volume. Algorithm 1's default step for ``r`` is ``1 / (||T||^2 + mu 4 d / (h^2 eps))`` (the data term's

@@ -17,7 +17,9 @@ are summed by one ``all_reduce`` per gradient, so every rank runs the same coars
 iterates are identical on all ranks. Each rank keeps the whole template and data (a 256^3 float32 template is
 64 MiB, against ~3 GiB of a whole-volume gradient): no halo to bound, whatever the displacement.
 
-Convention: volumes ``(nx, ny, nz)`` on ``image_domain`` (tilt axis ``t`` = ``ray_transform.geometry.axis``),
+Notes
+-----
+volumes ``(nx, ny, nz)`` on ``image_domain`` (tilt axis ``t`` = ``ray_transform.geometry.axis``),
 data ``(num_tilts, det_rows, det_cols)`` with row ``j`` the slice ``j`` along ``t``; a slab is the half-open range
 ``[start, stop)`` of fine slice indices; coarse fields ``(C, *velocity_domain.shape)``; displacements in grid units
 (``2 / extent`` times physical lengths, the same on both grids); ``slab_size`` counts fine slices, ``max_memory``

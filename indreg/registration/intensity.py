@@ -15,7 +15,9 @@ the old template). The first fit (iteration 0) is the ``"auto"`` fit (with the o
 it fills the whole box, where an object on an empty background has none, and SSIM against such a target punishes
 a small one hard (a fitted -0.008 took the limited-angle Shepp-Logan case from 0.626 to 0.555).
 
-Convention: ``I`` the template as prepared (``indreg.units.prepare``: the first factor applied); ``c`` and ``b``
+Notes
+-----
+``I`` the template as prepared (``indreg.units.prepare``: the first factor applied); ``c`` and ``b``
 in the data's units; the result's ``units.template_scale`` / ``units.template_offset`` are the final ones
 (``template_scale`` relative to the template as given).
 """

@@ -6,7 +6,9 @@
 model or on the operator type: a problem is used only through ``indreg.solvers.RegistrationProblem``'s protocol.
 The app adds checkpoints, TensorBoard, figures and files around the same three steps.
 
-Convention: ``template`` ``operator.domain.shape`` (axis 0 = x), ``data`` ``operator.range_shape``; torch tensors
+Notes
+-----
+``template`` ``operator.domain.shape`` (axis 0 = x), ``data`` ``operator.range_shape``; torch tensors
 or numpy arrays, real and finite; the run's dtype / device default to the template's (numpy: the CPU, float64
 arrays stay float64, others become float32).
 """

@@ -1,7 +1,9 @@
 """The solvers of metamorphosis (``indreg.problems.metamorphosis``): Algorithm 1 on ``(nu, zeta)`` with the
 source's own step (``MetamorphosisDescent``), and torch.optim on both (``MetamorphosisTorchOptim``).
 
-Convention: as :mod:`indreg.problems.metamorphosis` (the iterate ``x = (m, s)``).
+Notes
+-----
+as :mod:`indreg.problems.metamorphosis` (the iterate ``x = (m, s)``).
 """
 from __future__ import annotations
 

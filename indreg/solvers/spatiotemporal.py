@@ -2,7 +2,9 @@
 every outer iteration a TV reconstruction of the template from all frames pulled back through the current motion,
 then Algorithm 1's steps on the momentum.
 
-Convention: as :mod:`indreg.problems.spatiotemporal` (the iterate ``x = (m, I)``).
+Notes
+-----
+as :mod:`indreg.problems.spatiotemporal` (the iterate ``x = (m, I)``).
 """
 from __future__ import annotations
 

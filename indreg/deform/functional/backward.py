@@ -2,7 +2,9 @@
 8-10; ``gradient_record`` / ``paper_gradient``) and the exact derivative of the discrete map, its hand-written
 discrete adjoint (``exact_record`` / ``exact_gradient``).
 
-Convention: as the recursions (``flows``): batch dims already agreed, velocities ``(..., N+1, d, *shape)``,
+Notes
+-----
+as the recursions (``flows``): batch dims already agreed, velocities ``(..., N+1, d, *shape)``,
 images ``(..., *shape)``, physical units of ``ImageDomain``; gradients w.r.t. tensor entries.
 """
 from __future__ import annotations

@@ -9,7 +9,9 @@ deformation is ``W(nu, I) = I o (Id + P u_N)`` (geometric) or ``(P J_N) I o (Id 
 of this discrete map (``P^T`` after the fine warp's adjoint, then ``exact_gradient``'s reverse sweep on the coarse
 grid).
 
-Convention: as the recursions (``flows``): batch dims already agreed; velocities ``(..., N+1, d, *coarse)`` on
+Notes
+-----
+as the recursions (``flows``): batch dims already agreed; velocities ``(..., N+1, d, *coarse)`` on
 ``coarse``, images ``(..., *fine)`` on ``fine`` (two ``ImageDomain`` of the same box); displacements in the record
 in grid units (``2 / extent`` times physical lengths: the same on both grids); gradients w.r.t. tensor entries.
 """
