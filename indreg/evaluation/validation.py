@@ -11,8 +11,8 @@ iterations (the loop's log period): ``||T_H f - g_H|| / ||g_H||``. With ``patien
 
 Notes
 -----
-indices along the data's first axis (``operator.range_shape[0]``: angles of a sinogram, tilts of a
-tilt series); the residual uses the operator's data inner product.
+Indices along the data's first axis (``operator.range_shape[0]``: angles of a sinogram, tilts of a tilt series);
+the residual uses the operator's data inner product.
 """
 from __future__ import annotations
 
@@ -27,11 +27,29 @@ from ..options import OptionError
 
 
 def holdout_rows(spec, count: int, name: str = "holdout") -> tuple:
-    """``(kept, held)`` index lists of ``count`` angles for ``spec`` (an integer k >= 2 or a list of indices, as
-    ``indreg.options.holdout`` normalises it).
+    """The kept and held-out angles of ``count`` for ``spec``.
 
-    Raises ``OptionError`` (a ValueError) naming ``name``: an index out of range, a holdout that holds out no
-    angle or leaves none to fit."""
+    Parameters
+    ----------
+    spec : int or list of int
+        An integer ``k >= 2`` (every ``k``-th angle from ``k // 2``) or a list of indices, as
+        ``indreg.options.holdout`` normalises it.
+    count : int
+        The number of angles.
+    name : str
+        The option's name in messages.
+
+    Returns
+    -------
+    kept, held : list of int
+        The indices fitted and the indices held out, increasing.
+
+    Raises
+    ------
+    OptionError
+        A ``ValueError`` naming ``name``: an index out of range, a holdout that holds out no angle or leaves none
+        to fit.
+    """
     if isinstance(spec, int):
         held = list(range(spec // 2, count, spec))
         if not held:
@@ -50,8 +68,19 @@ def holdout_rows(spec, count: int, name: str = "holdout") -> tuple:
 class Validation:
     """The held-out data and the early-stopping record of a run.
 
-    ``operator`` / ``data``: ``T`` and ``g`` restricted to the held-out rows ``held``; ``patience``: stop after
-    this many evaluations without a new minimum (None: never). ``curve``: ``[(iteration, residual), ...]``."""
+    Parameters
+    ----------
+    operator : LinearOperator
+        ``T_H``: ``T`` restricted to the held-out rows.
+    data : torch.Tensor
+        ``g_H``: the data of the held-out rows.
+    held : list of int
+        The held-out rows.
+    patience : int, optional
+        Stop after this many evaluations without a new minimum (None: never).
+    curve : list of tuple
+        ``[(iteration, residual), ...]`` so far.
+    """
     operator: object
     data: torch.Tensor
     held: list
@@ -98,8 +127,35 @@ class Validation:
 
 
 def split(operator, data: torch.Tensor, spec, patience: Optional[int] = None, name: str = "holdout") -> tuple:
-    """``(fit_operator, fit_data, validation)``: the operator and data restricted to the kept angles, and the
-    :class:`Validation` of the held-out ones (``spec``: :func:`holdout_rows`)."""
+    """The operator and data restricted to the kept angles, and the :class:`Validation` of the held-out ones.
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        ``T``; its first data axis holds the angles.
+    data : torch.Tensor
+        ``g``, ``(..., *operator.range_shape)``.
+    spec : int or list of int
+        The holdout (:func:`holdout_rows`).
+    patience : int, optional
+        Early stopping (:class:`Validation`).
+    name : str
+        The option's name in messages.
+
+    Returns
+    -------
+    fit_operator : RestrictedOperator
+        ``T`` on the kept rows.
+    fit_data : torch.Tensor
+        Their data.
+    validation : Validation
+        The held-out rows' operator, data and record.
+
+    Raises
+    ------
+    OptionError
+        As :func:`holdout_rows`.
+    """
     kept, held = holdout_rows(spec, int(operator.range_shape[0]), name)
     k = len(operator.range_shape)
     axis = data.dim() - k
