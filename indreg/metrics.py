@@ -122,32 +122,132 @@ def _ssim_pair(x, gt) -> tuple:
 
 
 def ssim(x, gt) -> float:
-    """Structural similarity, ``data_range = gt.max() - gt.min()`` (1 for identical images)."""
+    """Structural similarity, ``data_range = gt.max() - gt.min()``.
+
+    Parameters
+    ----------
+    x : torch.Tensor or numpy.ndarray
+        The result, a 2D image or 3D volume (at least 7 cells per axis).
+    gt : torch.Tensor or numpy.ndarray
+        The ground truth, ``x``'s shape.
+
+    Returns
+    -------
+    float
+        SSIM; 1 for identical images.
+
+    Raises
+    ------
+    TypeError
+        An input that is no tensor / array, or complex, boolean or non-numeric.
+    ValueError
+        Empty, not 2D / 3D, non-finite, shapes that differ, fewer than 7 cells on an axis, a constant ``gt``.
+    """
     x, gt = _ssim_pair(x, gt)
     return _ssim(x, gt, _gt_range(gt))
 
 
 def psnr(x, gt) -> float:
-    """``10 log10(R^2 / MSE)`` in dB with ``R = gt.max() - gt.min()``; ``inf`` for identical images."""
+    """``10 log10(R^2 / MSE)`` in dB with ``R = gt.max() - gt.min()``.
+
+    Parameters
+    ----------
+    x : torch.Tensor or numpy.ndarray
+        The result, a 2D image or 3D volume.
+    gt : torch.Tensor or numpy.ndarray
+        The ground truth, ``x``'s shape.
+
+    Returns
+    -------
+    float
+        PSNR in dB; ``inf`` for identical images.
+
+    Raises
+    ------
+    TypeError
+        An input that is no tensor / array, or complex, boolean or non-numeric.
+    ValueError
+        Empty, not 2D / 3D, non-finite, shapes that differ, a constant ``gt``.
+    """
     x, gt = _pair(x, gt)
     return _psnr(x, gt, _gt_range(gt))
 
 
 def ssim_paper(x, gt) -> float:
-    """Structural similarity as the paper computed it (2017 ``compare_ssim`` on floats: data range 2)."""
+    """Structural similarity as the paper computed it (2017 ``compare_ssim`` on floats: data range 2).
+
+    Parameters
+    ----------
+    x : torch.Tensor or numpy.ndarray
+        The result, a 2D image or 3D volume (at least 7 cells per axis).
+    gt : torch.Tensor or numpy.ndarray
+        The ground truth, ``x``'s shape.
+
+    Returns
+    -------
+    float
+        SSIM; 1 for identical images.
+
+    Raises
+    ------
+    TypeError
+        An input that is no tensor / array, or complex, boolean or non-numeric.
+    ValueError
+        Empty, not 2D / 3D, non-finite, shapes that differ, fewer than 7 cells on an axis.
+    """
     x, gt = _ssim_pair(x, gt)
     return _ssim(x, gt, 2.0)
 
 
 def psnr_paper(x, gt) -> float:
     """PSNR as the paper computed it (2017 ``compare_psnr`` on floats): data range 2 if ``x`` or ``gt`` has
-    negative values, else 1; ``inf`` for identical images."""
+    negative values, else 1.
+
+    Parameters
+    ----------
+    x : torch.Tensor or numpy.ndarray
+        The result, a 2D image or 3D volume.
+    gt : torch.Tensor or numpy.ndarray
+        The ground truth, ``x``'s shape.
+
+    Returns
+    -------
+    float
+        PSNR in dB; ``inf`` for identical images.
+
+    Raises
+    ------
+    TypeError
+        An input that is no tensor / array, or complex, boolean or non-numeric.
+    ValueError
+        Empty, not 2D / 3D, non-finite, shapes that differ.
+    """
     x, gt = _pair(x, gt)
     return _psnr(x, gt, 2.0 if min(float(x.min()), float(gt.min())) < 0 else 1.0)
 
 
 def relative_error(x, gt) -> float:
-    """``||x - gt|| / ||gt||`` (Frobenius norms; a cell-volume weight cancels)."""
+    """``||x - gt|| / ||gt||`` (Frobenius norms; a cell-volume weight cancels).
+
+    Parameters
+    ----------
+    x : torch.Tensor or numpy.ndarray
+        The result, a 2D image or 3D volume.
+    gt : torch.Tensor or numpy.ndarray
+        The ground truth, ``x``'s shape.
+
+    Returns
+    -------
+    float
+        The relative error.
+
+    Raises
+    ------
+    TypeError
+        An input that is no tensor / array, or complex, boolean or non-numeric.
+    ValueError
+        Empty, not 2D / 3D, non-finite, shapes that differ, a zero ``gt``.
+    """
     x, gt = _pair(x, gt)
     if x.ndim == 2:
         error, ref = float(np.linalg.norm(x - gt)), float(np.linalg.norm(gt))

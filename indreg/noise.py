@@ -39,8 +39,32 @@ def _centred_norm(x: torch.Tensor, event_dims: int) -> torch.Tensor:
 
 
 def snr_db(ideal: torch.Tensor, noise: torch.Tensor, convention: str = "code", event_dims: int = 2) -> torch.Tensor:
-    """SNR in dB of ``ideal + noise`` (batch dims kept): ``factor * log10(||ideal - mean|| / ||noise - mean||)``
-    with ``factor`` 10 (``"code"``) or 20 (``"paper"``, the printed formula ``snr``)."""
+    """SNR in dB of ``ideal + noise``: ``factor * log10(||ideal - mean|| / ||noise - mean||)`` with ``factor`` 10
+    (``"code"``) or 20 (``"paper"``, the printed formula ``snr``).
+
+    Parameters
+    ----------
+    ideal : torch.Tensor
+        The noise-free data ``(..., *event)``.
+    noise : torch.Tensor
+        The noise, ``ideal``'s last ``event_dims`` axes (its batch broadcasts).
+    convention : {"code", "paper"}
+        The SNR convention (module Notes).
+    event_dims : int
+        The axes of one data set (>= 1).
+
+    Returns
+    -------
+    torch.Tensor
+        The SNR in dB per data set, the batch dims kept.
+
+    Raises
+    ------
+    ValueError
+        An unknown convention, shapes that do not fit, non-finite values.
+    TypeError
+        Inputs that are not real floating tensors.
+    """
     factor = _check_convention(convention)
     k = check_int(event_dims, "event_dims", 1)
     check_tensor(ideal, "ideal", min_dim=k)
@@ -58,15 +82,41 @@ def _generator(seed) -> torch.Generator:
 
 def add_white_noise(data: torch.Tensor, snr_db: float | None = None, std: float | None = None,
                     convention: str = "code", seed=0, event_dims: int = 2) -> tuple:
-    """Add seeded white Gaussian noise: returns ``(noisy, noise)`` with ``noisy = data + noise``.
+    """Add seeded white Gaussian noise ``noise = c z`` (``z`` a standard normal draw) at an SNR or a standard
+    deviation.
 
-    Give exactly one of
-        ``snr_db``: a standard normal draw ``z`` is scaled, per data set, to
-            ``noise = c z`` with ``c = ||g - mean g|| / (||z - mean z|| 10^(snr_db / factor))``,
-            so that :func:`snr_db` ``(data, noise, convention)`` equals the request exactly (factor as there);
-        ``std``: ``noise = std * z`` (suite 1 of the authors' code: ``std = 1.0``).
-    ``seed`` is an int >= 0 or a CPU ``torch.Generator`` (advanced by the draw). Shapes: ``data`` is
-    ``(..., *event)`` with ``event`` its last ``event_dims`` axes.
+    Parameters
+    ----------
+    data : torch.Tensor
+        ``(..., *event)``, ``event`` its last ``event_dims`` axes (one data set each).
+    snr_db : float, optional
+        The SNR in dB (``|snr_db| <= 300``): ``z`` is scaled per data set by
+        ``c = ||g - mean g|| / (||z - mean z|| 10^(snr_db / factor))``, so that :func:`snr_db`
+        ``(data, noise, convention)`` equals the request exactly (``factor`` as there).
+    std : float, optional
+        ``noise = std * z`` (suite 1 of the authors' code: ``std = 1.0``). Give exactly one of ``snr_db`` and
+        ``std``.
+    convention : {"code", "paper"}
+        The SNR convention (module Notes).
+    seed : int or torch.Generator
+        An int >= 0 or a CPU ``torch.Generator`` (advanced by the draw).
+    event_dims : int
+        The axes of one data set (>= 1).
+
+    Returns
+    -------
+    noisy : torch.Tensor
+        ``data + noise``.
+    noise : torch.Tensor
+        The noise, in the data's dtype and device.
+
+    Raises
+    ------
+    ValueError
+        Both or neither of ``snr_db`` and ``std``, an unknown convention, an SNR out of range, constant data (no
+        signal power), a generator not on the CPU, a negative ``std``.
+    TypeError
+        Data that are not a real floating tensor.
     """
     k = check_int(event_dims, "event_dims", 1)
     check_tensor(data, "data", min_dim=k)

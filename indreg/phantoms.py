@@ -83,6 +83,25 @@ SHEPP_LOGAN_TEMPLATE_EXTRA_ELLIPSES = SHEPP_LOGAN_TEMPLATE_ELLIPSES + ((0.30, .0
 def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torch.Tensor:
     """Sum of constant-valued ellipses, averaged over ``supersample^2`` points per pixel.
 
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain.
+    ellipses : sequence of tuple
+        Rows ``(value, a, b, cx, cy, rotation_deg)`` (Notes).
+    supersample : int
+        Sub-samples per pixel and axis (>= 1).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny)``.
+
+    Raises
+    ------
+    ValueError
+        A row without 6 entries, a semi-axis <= 0, ``supersample < 1``.
+
     Notes
     -----
     ``ellipses`` rows are ``(value, a, b, cx, cy, rotation_deg)`` in the normalised frame ``[-1, 1]^2``
@@ -101,7 +120,25 @@ def ellipse_phantom(domain: ImageDomain, ellipses, supersample: int = 4) -> torc
 
 
 def ellipse_values(ellipses, X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
-    """The sum of the ellipses' values at the normalised points ``(X, Y)`` (``ellipse_phantom``'s rows)."""
+    """The sum of the ellipses' values at the normalised points ``(X, Y)`` (``ellipse_phantom``'s rows).
+
+    Parameters
+    ----------
+    ellipses : sequence of tuple
+        Rows ``(value, a, b, cx, cy, rotation_deg)``.
+    X, Y : torch.Tensor
+        The points' normalised coordinates (one shape).
+
+    Returns
+    -------
+    torch.Tensor
+        ``X``'s shape.
+
+    Raises
+    ------
+    ValueError
+        A row without 6 entries, a semi-axis <= 0.
+    """
     import torch
 
     fine = torch.zeros_like(X)
@@ -123,18 +160,49 @@ def shepp_logan(domain: ImageDomain) -> torch.Tensor:
 
     Upright under ``np.rot90``: the three small ellipses are at the bottom (negative y). Values: 1.0 on the
     skull rim, 0.2 in the brain, 0.0 in the ventricles, 0.3 in the small ellipses.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
     """
     return ellipse_phantom(domain, SHEPP_LOGAN_ELLIPSES)
 
 
 def shepp_logan_template(domain: ImageDomain) -> torch.Tensor:
-    """Suite-3 template: the authors' "compressed" ellipse list, modified Shepp-Logan intensities."""
+    """Suite-3 template: the authors' "compressed" ellipse list, modified Shepp-Logan intensities.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     return ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_ELLIPSES)
 
 
 def shepp_logan_template_missing(domain: ImageDomain) -> torch.Tensor:
     """Suite-4 template lacking an object of the target: the suite-3 template without its larger dark
     ventricle (radius 0.13, centre (-0.25, 0.2), left half). The paper's image is not public; this is our choice.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
     """
     return ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_MISSING_ELLIPSES)
 
@@ -142,7 +210,18 @@ def shepp_logan_template_missing(domain: ImageDomain) -> torch.Tensor:
 def missing_ventricle_mask(domain: ImageDomain) -> torch.Tensor:
     """Where the suite-4 "missing" template must gain an object: the pixels at least half covered by the target's
     ventricle that it lacks (row 3 of ``SHEPP_LOGAN_ELLIPSES``, centre (-0.22, 0)), ``(nx, ny)`` bool. The RMS error
-    of a result inside it is the ventricle error of docs/metamorphosis.md."""
+    of a result inside it is the ventricle error of docs/metamorphosis.md.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Bool ``domain.shape``.
+    """
     return ellipse_phantom(domain, ((1.0, *SHEPP_LOGAN_ELLIPSES[3][1:]),)) >= 0.5
 
 
@@ -150,6 +229,16 @@ def shepp_logan_template_extra(domain: ImageDomain) -> torch.Tensor:
     """Suite-4 template with an object the target lacks: the suite-3 template plus a bright disc of
     value +0.3 (0.5 on the 0.2 brain), radius 0.08, centre (-0.25, -0.15), lower left of the brain, touching
     no other ellipse. The paper's image is not public; this is our choice.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
     """
     return ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_EXTRA_ELLIPSES)
 
@@ -157,7 +246,18 @@ def shepp_logan_template_extra(domain: ImageDomain) -> torch.Tensor:
 def shepp_logan_template_contrast(domain: ImageDomain) -> torch.Tensor:
     """The suite-3 template with other grey values (an atlas or a scan of another contrast): ``0.6 I + 0.1``
     on the head (where the head's outer ellipse covers the pixel), 0 outside. Skull 0.7, brain 0.22,
-    ventricles 0.1 where the target has 1.0, 0.2, 0.0: a case for metamorphosis (LDDMM cannot change them)."""
+    ventricles 0.1 where the target has 1.0, 0.2, 0.0: a case for metamorphosis (LDDMM cannot change them).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     template = shepp_logan_template(domain)
     head = ellipse_phantom(domain, SHEPP_LOGAN_TEMPLATE_ELLIPSES[:1]) / SHEPP_LOGAN_TEMPLATE_ELLIPSES[0][0]
     return 0.6 * template + 0.1 * head
@@ -187,7 +287,18 @@ SWIRL_ANGLE, SWIRL_RADIUS, SWIRL_HEIGHT, BEND = 0.7, 0.45, 0.5, 0.12
 
 def ellipsoid_rotation(phi: float, theta: float, psi: float) -> torch.Tensor:
     """ZXZ Euler rotation (degrees) ``R`` of an ellipsoid: ``p`` is inside when ``|R (p - c) / axes| <= 1``.
-    With ``theta = psi = 0`` it is the 2D ``R(phi) = [[cos, sin], [-sin, cos]]`` about z (module docstring)."""
+    With ``theta = psi = 0`` it is the 2D ``R(phi) = [[cos, sin], [-sin, cos]]`` about z (module docstring).
+
+    Parameters
+    ----------
+    phi, theta, psi : float
+        The ZXZ Euler angles, degrees.
+
+    Returns
+    -------
+    torch.Tensor
+        ``R``, float64 ``(3, 3)``.
+    """
     import torch
 
     f, t, s = (math.radians(a) for a in (phi, theta, psi))
@@ -216,7 +327,25 @@ def _ellipsoids(rows) -> list:
 
 def ellipsoid_values(ellipsoids, u: torch.Tensor) -> torch.Tensor:
     """Sum of constant-valued ellipsoids at normalised points ``u`` ``(3, ...)`` (rows as
-    ``SHEPP_LOGAN_3D_ELLIPSOIDS``); returns ``u.shape[1:]``."""
+    ``SHEPP_LOGAN_3D_ELLIPSOIDS``); returns ``u.shape[1:]``.
+
+    Parameters
+    ----------
+    ellipsoids : sequence of tuple
+        Rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)``.
+    u : torch.Tensor
+        Normalised points ``(3, ...)``.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``u.shape[1:]``.
+
+    Raises
+    ------
+    ValueError
+        A row without 10 entries, non-finite, or with a semi-axis <= 0.
+    """
     import torch
 
     out = torch.zeros(u.shape[1:], dtype=torch.float64)
@@ -234,7 +363,29 @@ def supersampled(domain: ImageDomain, fn, supersample: int = 2, rows: tuple | No
     below glibc's mmap threshold (32 MiB): larger ones are mapped afresh and page-faulted at every operation, which
     made 64^3 take 5.8 s instead of 2.0 s. Returns float64 ``(nx, ny, nz)``; with ``rows = (axis, start, stop)``
     only the cells whose index along ``axis`` is in ``[start, stop)`` (that axis cut to ``stop - start``: those rows
-    of the whole volume to rounding, e.g. one process's share of a tilt series' slices)."""
+    of the whole volume to rounding, e.g. one process's share of a tilt series' slices).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 3D domain.
+    fn : callable
+        ``fn(u) -> values``, ``u`` normalised points ``(3, ...)``.
+    supersample : int
+        Sub-samples per cell and axis (>= 1).
+    rows : tuple of int, optional
+        ``(axis, start, stop)``: the share of the cells along ``axis``.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny, nz)`` (the ``rows`` axis cut to ``stop - start``).
+
+    Raises
+    ------
+    ValueError
+        A domain that is not 3D, ``rows`` out of range, ``supersample < 1``.
+    """
     import torch
 
     s = check_int(supersample, "supersample", 1)
@@ -271,7 +422,30 @@ def ellipsoid_phantom(domain: ImageDomain, ellipsoids, supersample: int = 2, row
         -> torch.Tensor:
     """Sum of constant-valued ellipsoids on a 3D domain, averaged over ``supersample^3`` points per cell.
 
-    Convention: rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` in the normalised frame ``[-1, 1]^3``
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 3D domain.
+    ellipsoids : sequence of tuple
+        Rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` (Notes).
+    supersample : int
+        Sub-samples per cell and axis.
+    rows : tuple of int, optional
+        ``(axis, start, stop)``: a share of the cells along one axis, as :func:`supersampled`.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny, nz)``.
+
+    Raises
+    ------
+    ValueError
+        Malformed rows, a domain that is not 3D, ``rows`` out of range.
+
+    Notes
+    -----
+    rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` in the normalised frame ``[-1, 1]^3``
     mapped affinely onto ``[min_pt, max_pt]`` (as the 2D ``ellipse_phantom``); returns float64 ``(nx, ny, nz)``
     (``rows``: a share of the cells along one axis, as ``supersampled``).
     Analytic line integrals: ``ellipsoid_line_integrals``.
@@ -285,7 +459,30 @@ def ellipsoid_line_integrals(ellipsoids, domain: ImageDomain, points: torch.Tens
                              directions: torch.Tensor) -> torch.Tensor:
     """Exact integrals of ``ellipsoid_phantom``'s function over the lines ``{p + t d : t in R}``.
 
-    Convention: ``points`` and ``directions`` ``(..., 3)`` in physical units (x, y, z), directions of unit
+    Parameters
+    ----------
+    ellipsoids : sequence of tuple
+        Rows as :func:`ellipsoid_phantom`'s.
+    domain : ImageDomain
+        The 3D box the normalised frame is mapped onto.
+    points : torch.Tensor
+        ``p``, ``(..., 3)``, physical units (x, y, z).
+    directions : torch.Tensor
+        ``d``, ``(..., 3)``, unit length.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(...)``.
+
+    Raises
+    ------
+    ValueError
+        Malformed rows.
+
+    Notes
+    -----
+    ``points`` and ``directions`` ``(..., 3)`` in physical units (x, y, z), directions of unit
     length; returns ``(...)``. Each ellipsoid contributes ``value * chord length``: in the normalised frame
     ``u = (x - centre_box) / half_extent`` the line is ``q + t e`` (``q = R (u_p - c) / axes``,
     ``e = R (d / half_extent) / axes``) and the chord is ``2 sqrt(b^2 - |e|^2 (|q|^2 - 1)) / |e|^2``,
@@ -308,7 +505,22 @@ def ellipsoid_line_integrals(ellipsoids, domain: ImageDomain, points: torch.Tens
 def ellipsoid_tilt_series(ellipsoids, domain: ImageDomain, geometry) -> torch.Tensor:
     """Exact tilt-series data ``(num_tilts, det_rows, det_cols)`` of ``ellipsoid_phantom(domain, ellipsoids)``
     for a resolved ``TiltSeriesGeometry`` (``TiltSeriesTransform(...).geometry``): the line through
-    ``s_d w + t_j e_t`` along ``w_perp`` in the slice plane (``TiltSeriesGeometry``)."""
+    ``s_d w + t_j e_t`` along ``w_perp`` in the slice plane (``TiltSeriesGeometry``).
+
+    Parameters
+    ----------
+    ellipsoids : sequence of tuple
+        Rows as :func:`ellipsoid_phantom`'s.
+    domain : ImageDomain
+        The 3D domain.
+    geometry : TiltSeriesGeometry
+        Resolved for ``domain``.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(num_tilts, det_rows, det_cols)``.
+    """
     import torch
 
     u, v = geometry.slice_axes
@@ -330,6 +542,18 @@ def swirl_bend(u: torch.Tensor, inverse: bool = False) -> torch.Tensor:
     centre); ``B`` bends along x: ``(x, y, z) -> (x + BEND cos(pi z / 2), y, z)``. Both Jacobian matrices are
     unit-triangular in suitable coordinates, so ``det D phi = 1`` everywhere (positive, volume-preserving), and
     both are inverted in closed form (``r`` and ``z`` are invariant): ``phi^-1 = S^-1 o B^-1`` (``inverse=True``).
+
+    Parameters
+    ----------
+    u : torch.Tensor
+        Normalised points ``(3, ...)``.
+    inverse : bool
+        ``phi^-1`` instead of ``phi``.
+
+    Returns
+    -------
+    torch.Tensor
+        The mapped points, ``u``'s shape.
     """
     import torch
 
@@ -347,14 +571,52 @@ def swirl_bend(u: torch.Tensor, inverse: bool = False) -> torch.Tensor:
 
 def shepp_logan_3d(domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
     """3D modified Shepp-Logan (``SHEPP_LOGAN_3D_ELLIPSOIDS``) on a 3D domain: suite ET-3D's template (``rows``:
-    only a share of the cells along one axis, ``supersampled``)."""
+    only a share of the cells along one axis, ``supersampled``).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 3D domain.
+    rows : tuple of int, optional
+        ``(axis, start, stop)``: only the cells whose index along ``axis`` is in ``[start, stop)``
+        (:func:`supersampled`).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny, nz)`` (the ``rows`` axis cut to ``stop - start``).
+
+    Raises
+    ------
+    ValueError
+        A domain that is not 3D, ``rows`` out of range.
+    """
     return ellipsoid_phantom(domain, SHEPP_LOGAN_3D_ELLIPSOIDS, rows=rows)
 
 
 def shepp_logan_3d_swirl(domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
     """Suite ET-3D's target: the 3D Shepp-Logan deformed by ``swirl_bend``, ``I o phi^-1`` evaluated exactly
     (the ellipsoids at ``phi^-1(u)``) at the sub-sample points, so no registration code is involved (``rows``: as
-    ``shepp_logan_3d``)."""
+    ``shepp_logan_3d``).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 3D domain.
+    rows : tuple of int, optional
+        ``(axis, start, stop)``: only the cells whose index along ``axis`` is in ``[start, stop)``
+        (:func:`supersampled`).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny, nz)`` (the ``rows`` axis cut to ``stop - start``).
+
+    Raises
+    ------
+    ValueError
+        A domain that is not 3D, ``rows`` out of range.
+    """
     return supersampled(domain, lambda u: ellipsoid_values(SHEPP_LOGAN_3D_ELLIPSOIDS, swirl_bend(u, inverse=True)),
                         rows=rows)
 
@@ -382,6 +644,18 @@ def sample_raster(img: np.ndarray, domain: ImageDomain) -> torch.Tensor:
 
     Linear interpolation, zero beyond the frame (``scipy.ndimage.map_coordinates``, ``grid-constant``).
     On the raster's own grid the values are returned unchanged.
+
+    Parameters
+    ----------
+    img : numpy.ndarray
+        The raster ``(n_x, n_y)``.
+    domain : ImageDomain
+        A 2D domain.
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
     """
     import torch
     from scipy import ndimage
@@ -398,22 +672,66 @@ def sample_raster(img: np.ndarray, domain: ImageDomain) -> torch.Tensor:
 
 
 def j(domain: ImageDomain) -> torch.Tensor:
-    """Suite-1 template: the letter J (``data/j.png``, 64 x 64, grey values in [0, 1])."""
+    """Suite-1 template: the letter J (``data/j.png``, 64 x 64, grey values in [0, 1]).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     return sample_raster(_raster("j.png"), domain)
 
 
 def v(domain: ImageDomain) -> torch.Tensor:
-    """Suite-1 target: the letter V (``data/v.png``, 64 x 64, grey values in [0, 1])."""
+    """Suite-1 target: the letter V (``data/v.png``, 64 x 64, grey values in [0, 1]).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     return sample_raster(_raster("v.png"), domain)
 
 
 def six_objects_target(domain: ImageDomain) -> torch.Tensor:
-    """Suite-2 target: six star-like objects (public 256 x 256 copy of the 438 x 438 original)."""
+    """Suite-2 target: six star-like objects (public 256 x 256 copy of the 438 x 438 original).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     return sample_raster(_raster("six_objects_target_256.npy"), domain)
 
 
 def six_objects_template(domain: ImageDomain) -> torch.Tensor:
-    """Suite-2 template: six triangles (public 256 x 256 copy of the 438 x 438 original)."""
+    """Suite-2 template: six triangles (public 256 x 256 copy of the 438 x 438 original).
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain (the image is sampled at its cell centres).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``domain.shape``.
+    """
     return sample_raster(_raster("six_objects_template_256.npy"), domain)
 
 
@@ -436,12 +754,34 @@ _3D = ("shepp_logan_3d", "shepp_logan_3d_swirl")
 
 
 def names() -> list:
-    """Names accepted by :func:`get`."""
+    """Names accepted by :func:`get`.
+
+    Returns
+    -------
+    list of str
+        The phantoms' names.
+    """
     return list(_REGISTRY)
 
 
 def ndim(name: str) -> int:
-    """The dimension (2 or 3) of the domain the phantom ``name`` is defined on."""
+    """The dimension (2 or 3) of the domain the phantom ``name`` is defined on.
+
+    Parameters
+    ----------
+    name : str
+        A name of :func:`names`.
+
+    Returns
+    -------
+    int
+        2 or 3.
+
+    Raises
+    ------
+    ValueError
+        An unknown name (the message lists the valid ones).
+    """
     if name not in _REGISTRY:
         raise ValueError(f"unknown phantom {name!r}; valid names: {', '.join(names())}")
     return 3 if name in _3D else 2
@@ -450,7 +790,30 @@ def ndim(name: str) -> int:
 def get(name: str, domain: ImageDomain, rows: tuple | None = None) -> torch.Tensor:
     """The phantom called ``name`` sampled on ``domain``: float64 ``(nx, ny)`` or, for 3D phantoms,
     ``(nx, ny, nz)``; ``rows = (axis, start, stop)`` (3D phantoms only): the cells whose index along ``axis`` is in
-    ``[start, stop)``, those rows of the whole volume to rounding (``supersampled``)."""
+    ``[start, stop)``, those rows of the whole volume to rounding (``supersampled``).
+
+    Parameters
+    ----------
+    name : str
+        A name of :func:`names`.
+    domain : ImageDomain
+        A domain of the phantom's dimension (:func:`ndim`).
+    rows : tuple of int, optional
+        ``(axis, start, stop)``, 3D phantoms only: the cells whose index along ``axis`` is in ``[start, stop)``,
+        those rows of the whole volume to rounding (:func:`supersampled`).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny)`` or, for 3D phantoms, ``(nx, ny, nz)``.
+
+    Raises
+    ------
+    ValueError
+        An unknown name, a domain of another dimension, ``rows`` for a 2D phantom or out of range.
+    TypeError
+        ``domain`` is no ``ImageDomain``.
+    """
     d = ndim(name)
     if not isinstance(domain, ImageDomain):
         raise TypeError(f"domain must be an ImageDomain, got {type(domain).__name__}")

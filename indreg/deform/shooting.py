@@ -62,7 +62,9 @@ def _half_extent(domain: ImageDomain, like: torch.Tensor) -> torch.Tensor:
 def jacobian_matrix(displacement: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """``D phi = Id + D u`` for ``phi = Id + u`` by central differences (one-sided at the domain's edge).
 
-    Convention: ``displacement`` u ``(..., d, *shape)`` in physical units -> ``(..., d, d, *shape)`` with
+    Notes
+    -----
+    ``displacement`` u ``(..., d, *shape)`` in physical units -> ``(..., d, d, *shape)`` with
     entry ``[a, b] = d phi^a / d x_b``. Differencing the displacement (not the points) keeps the identity
     part exact. Central differences as ``functional.gradient(scheme="central")``, but one-sided at the edge
     instead of zero padding, because the displacement is continued constantly there (``"border"``
@@ -80,7 +82,9 @@ def jacobian_matrix(displacement: torch.Tensor, domain: ImageDomain) -> torch.Te
 def coadjoint_transport(momentum: torch.Tensor, displacement: torch.Tensor, domain: ImageDomain) -> torch.Tensor:
     """The coadjoint action ``|D phi| (D phi)^T (m o phi)`` of ``phi = Id + displacement`` on a momentum.
 
-    Convention: ``momentum``, ``displacement`` (physical units) ``(..., d, *shape)`` with equal batch dims;
+    Notes
+    -----
+    ``momentum``, ``displacement`` (physical units) ``(..., d, *shape)`` with equal batch dims;
     ``m o phi`` by the bi/trilinear interpolation of ``functional.sample`` (``m`` is 0 outside the domain).
     Component b of the result is ``det(D phi) * sum_a (D phi)[a, b] (m^a o phi)``: ``m_t`` of EPDiff for
     ``phi = phi_{t,0}``.
@@ -98,7 +102,9 @@ def advance_inverse_flow(displacement: torch.Tensor, velocity: torch.Tensor, num
                          domain: ImageDomain) -> torch.Tensor:
     """One step of eq:ODEflow1b, ``phi_{t_i,0} = phi_{t_{i-1},0} o (Id - nu(t_i)/N)``, on displacements.
 
-    Convention: ``phi = Id + u``; ``displacement`` = u of ``phi_{t_{i-1},0}`` in *grid units*
+    Notes
+    -----
+    ``phi = Id + u``; ``displacement`` = u of ``phi_{t_{i-1},0}`` in *grid units*
     (``functional.to_grid_units``), ``velocity`` = nu(t_i) in physical units, both ``(..., d, *shape)``;
     returns u of ``phi_{t_i,0}`` in grid units, ``u_i = u_{i-1} o (Id - nu/N) - nu/N``: the step of
     ``functional.displacements_t0`` (same interpolation, "border" padding), so the composed flow is the one
@@ -230,7 +236,9 @@ class GeodesicShooting(torch.nn.Module):
     def shoot(self, momentum: torch.Tensor) -> tuple:
         """Integrate EPDiff from ``m0``: returns ``(velocity, momenta, displacement)``.
 
-        Convention: ``momentum (..., d, *shape)`` -> velocity ``nu(t_i)`` and momenta ``m_{t_i}``, both
+        Notes
+        -----
+        ``momentum (..., d, *shape)`` -> velocity ``nu(t_i)`` and momenta ``m_{t_i}``, both
         ``(..., N+1, d, *shape)``, and the displacement ``u = phi_{1,0} - Id`` ``(..., d, *shape)`` (physical units).
         """
         m0 = self._check_momentum(momentum)

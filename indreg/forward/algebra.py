@@ -157,7 +157,9 @@ class WeightedDataMixin(OperatorAlgebra):
     def inner_data(self, y1: torch.Tensor, y2: torch.Tensor) -> torch.Tensor:
         """Weighted data inner product ``data_weight * sum(y1 * y2)`` over the data axes; batch dims kept.
 
-        Convention: ``y1``, ``y2`` ``(..., *range_shape)``, float32 / float64 alike, batch dims broadcast; values
+        Notes
+        -----
+        ``y1``, ``y2`` ``(..., *range_shape)``, float32 / float64 alike, batch dims broadcast; values
         are not checked for finiteness (a residual may hold nan / inf, which the sum then reports)."""
         dims = check_data_pair(y1, y2, self.range_shape)
         return self.geometry.data_weight * (y1 * y2).sum(dim=dims)

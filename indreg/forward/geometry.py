@@ -191,23 +191,6 @@ def _check_weights(weights, n: int) -> torch.Tensor:
 class ParallelBeamGeometry(_Geometry):
     """Angles ``theta_k`` (radians) and a detector line ``[det_min, det_max]`` split into ``det_count`` cells.
 
-    Notes
-    -----
-    - A datum ``p(theta_k, s_d)`` is the line integral over ``{s_d w + t w_perp : t in R}`` with
-      ``w = (cos theta, sin theta)`` and ``w_perp = (-sin theta, cos theta)`` (see ``RayTransform``);
-      this is ODL's ``Parallel2dGeometry`` with its default axes, and ASTRA's ``parallel``.
-    - Detector bins are cell-centred: ``s_d = det_min + (d + 1/2) * det_cell``,
-      ``det_cell = (det_max - det_min) / det_count``, in the image domain's physical units.
-    - Data are tensors ``(..., num_angles, det_count)``.
-    - The data-space inner product is ``<p, q> = data_weight * sum p q`` with
-      ``data_weight = angle_cell * det_cell`` and ``angle_cell = pi / num_angles``, as ODL weights its
-      data space (every angle gets the same weight, whatever the angles are).
-    - FBP weighs angle ``k`` by its quadrature cell ``angle_weights[k]`` (midpoint rule on the
-      half-turn, ``midpoint_cells``): ``pi / n`` for ``n`` uniform angles on ``[0, pi)``, the step for a
-      tilt series.
-    - ``det_min = det_max = None``: the operator fits a symmetric detector reaching the domain's
-      farthest corner (the half-diagonal for a centred domain), see ``resolve``.
-
     Parameters
     ----------
     num_angles : int, optional
@@ -234,6 +217,23 @@ class ParallelBeamGeometry(_Geometry):
         weights of the wrong length or not positive.
     TypeError
         Complex, boolean or non-numeric angles or weights, a non-integer count.
+
+    Notes
+    -----
+    - A datum ``p(theta_k, s_d)`` is the line integral over ``{s_d w + t w_perp : t in R}`` with
+      ``w = (cos theta, sin theta)`` and ``w_perp = (-sin theta, cos theta)`` (see ``RayTransform``);
+      this is ODL's ``Parallel2dGeometry`` with its default axes, and ASTRA's ``parallel``.
+    - Detector bins are cell-centred: ``s_d = det_min + (d + 1/2) * det_cell``,
+      ``det_cell = (det_max - det_min) / det_count``, in the image domain's physical units.
+    - Data are tensors ``(..., num_angles, det_count)``.
+    - The data-space inner product is ``<p, q> = data_weight * sum p q`` with
+      ``data_weight = angle_cell * det_cell`` and ``angle_cell = pi / num_angles``, as ODL weights its
+      data space (every angle gets the same weight, whatever the angles are).
+    - FBP weighs angle ``k`` by its quadrature cell ``angle_weights[k]`` (midpoint rule on the
+      half-turn, ``midpoint_cells``): ``pi / n`` for ``n`` uniform angles on ``[0, pi)``, the step for a
+      tilt series.
+    - ``det_min = det_max = None``: the operator fits a symmetric detector reaching the domain's
+      farthest corner (the half-diagonal for a centred domain), see ``resolve``.
 
     Examples
     --------

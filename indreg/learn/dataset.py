@@ -54,7 +54,9 @@ class SyntheticDeformationDataset(torch.utils.data.Dataset):
     once, in float64 and in batches, then stored in ``dtype``; the same seed gives the same data set on
     every process (what data-parallel training relies on).
 
-    Convention: items are dicts of tensors ``template``, ``target``, ``fbp`` ``(nx, ny)``, ``data``
+    Notes
+    -----
+    items are dicts of tensors ``template``, ``target``, ``fbp`` ``(nx, ny)``, ``data``
     ``(num_angles, det_count)``, ``momentum`` ``(2, nx, ny)`` and ``index`` (the sample number).
     """
 

@@ -23,7 +23,9 @@ class MomentumUNet(nn.Module):
     ``momentum_scale = displacement / (2 pi sigma^2)`` makes the output a velocity in physical units).
     The last convolution starts at zero, so an untrained net predicts ``m0 = 0`` (the identity deformation).
 
-    Convention: input ``(B, in_channels, nx, ny)`` with ``nx``, ``ny`` divisible by ``2^(levels-1)``; output
+    Notes
+    -----
+    input ``(B, in_channels, nx, ny)`` with ``nx``, ``ny`` divisible by ``2^(levels-1)``; output
     ``(B, 2, nx, ny)`` (component 0 = x, 1 = y, as ``GeodesicShooting`` expects).
     """
 

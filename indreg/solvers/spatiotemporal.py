@@ -27,7 +27,9 @@ class IntertwinedSolver:
     stopping rule and state (step sizes, evaluations) are this solver's: a checkpoint of it resumes the same
     sequence (the template steps are deterministic and fall on ``iteration % registration_steps == 0``).
 
-    Convention: the iterate ``(m, I)`` as ``SpatiotemporalRegistration``'s (template unknown); one iteration of
+    Notes
+    -----
+    the iterate ``(m, I)`` as ``SpatiotemporalRegistration``'s (template unknown); one iteration of
     this solver is one Algorithm 1 step, an outer iteration ``registration_steps`` of them.
     """
 

@@ -132,7 +132,9 @@ def jacobian_determinant(points: torch.Tensor, domain: ImageDomain) -> torch.Ten
     cell); differencing ``u`` rather than ``phi`` is the same formula (differences of ``Id`` are exact) with
     less cancellation in float32. Exact for affine maps. Plain tensor ops (differentiable by autograd).
 
-    Convention: component 0 of ``points`` = x, 1 = y (, 2 = z) in physical units of ``domain``; any batch
+    Notes
+    -----
+    component 0 of ``points`` = x, 1 = y (, 2 = z) in physical units of ``domain``; any batch
     dims, float dtype and device (the input's).
     """
     u = points - domain.points(points.dtype, points.device)
