@@ -17,6 +17,20 @@ def random_template(domain, generator: torch.Generator, max_ellipses: int = 3) -
 
     Ellipses (normalised frame ``[-1, 1]^2``, ``phantoms.ellipse_phantom``) have semi-axes in [0.15, 0.4],
     centres within 0.3 of the origin and any rotation, so a deformed copy stays inside the domain.
+
+    Parameters
+    ----------
+    domain : ImageDomain
+        A 2D domain.
+    generator : torch.Generator
+        The random draws (advanced).
+    max_ellipses : int
+        The most ellipses (>= 1).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(nx, ny)`` in [0, 1].
     """
     count = int(torch.randint(1, max_ellipses + 1, (1,), generator=generator))
     u = torch.rand(count, 5, generator=generator, dtype=torch.float64)
@@ -32,6 +46,22 @@ def random_momentum(kernel: GaussianKernel, generator: torch.Generator, displace
     White noise smoothed by a Gaussian of width ``smoothness`` (physical units), tapered by a Gaussian
     window of width a quarter of the domain around its centre (the deformation vanishes near the edge),
     then scaled so that ``max |K m0| = displacement * U(0.5, 1)``.
+
+    Parameters
+    ----------
+    kernel : GaussianKernel
+        ``K`` of V on the domain.
+    generator : torch.Generator
+        The random draws (advanced).
+    displacement : float
+        The largest velocity, physical units (before the factor ``U(0.5, 1)``).
+    smoothness : float
+        Width of the smoothing Gaussian (physical units, > 0).
+
+    Returns
+    -------
+    torch.Tensor
+        Float64 ``(2, nx, ny)``.
     """
     domain = kernel.domain
     noise = torch.randn(2, *domain.shape, generator=generator, dtype=torch.float64)
@@ -53,6 +83,34 @@ class SyntheticDeformationDataset(torch.utils.data.Dataset):
     ``indreg.noise``) and the FBP of ``g`` (Hamming, 0.4, as the paper's baseline). Everything is generated
     once, in float64 and in batches, then stored in ``dtype``; the same seed gives the same data set on
     every process (what data-parallel training relies on).
+
+    Parameters
+    ----------
+    shooting : GeodesicShooting
+        The geodesic layer (its domain and kernel).
+    ray_transform : RayTransform
+        ``T`` on the shooting's domain.
+    num_samples : int
+        Samples (>= 1).
+    snr_db : float
+        The data's SNR (dB, code convention).
+    displacement : float
+        The momenta's largest velocity (:func:`random_momentum`, > 0).
+    smoothness : float
+        The momenta's smoothing width (> 0).
+    templates : list of str, optional
+        Phantom names cycled through as templates (``indreg.phantoms``); None: random shapes.
+    seed : int
+        The data set's seed (>= 0).
+    dtype : torch.dtype
+        The stored tensors' dtype.
+    batch_size : int
+        Samples generated per batch.
+
+    Raises
+    ------
+    ValueError, TypeError
+        A count or width out of range, an unknown phantom name.
 
     Notes
     -----

@@ -61,7 +61,31 @@ def descent_terms(loss: IndirectShootingLoss, momentum: torch.Tensor, template: 
                   deformation: LDDMMDeformation | None = None) -> dict:
     """Per-sample terms ``(B,)`` of ``2 E`` at the time-dependent ``momentum`` ``(B, N+1, 2, nx, ny)`` in the
     loss's scale: ``data_fit = ||T f - g||^2_data``, ``regulariser = sum_i (1/N) <m_i, K m_i>``, ``loss = data_fit
-    + gamma regulariser``, and ``deformed = f = W(K m, I)`` (differentiable through the paper's backward)."""
+    + gamma regulariser``, and ``deformed = f = W(K m, I)`` (differentiable through the paper's backward).
+
+    Parameters
+    ----------
+    loss : IndirectShootingLoss
+        Its shooting layer, operator(s) and ``gamma``.
+    momentum : torch.Tensor
+        ``m``, ``(B, N+1, 2, nx, ny)``.
+    template : torch.Tensor
+        ``I``, ``(B, nx, ny)`` or ``(nx, ny)``.
+    data : torch.Tensor or list of torch.Tensor
+        ``g`` as the loss takes it.
+    deformation : LDDMMDeformation, optional
+        Algorithm 1's operator (default: the loss's grid, N and action, the paper's backward).
+
+    Returns
+    -------
+    dict
+        ``loss``, ``data_fit``, ``regulariser`` ``(B,)`` and ``deformed`` ``(B, nx, ny)``.
+
+    Raises
+    ------
+    ValueError
+        A momentum of another shape.
+    """
     shooting = loss.shooting
     if momentum.dim() != 5 or tuple(momentum.shape[1:]) != (shooting.num_steps + 1, 2, *shooting.domain.shape):
         raise ValueError(f"momentum must have shape (B, {shooting.num_steps + 1}, 2, "
@@ -78,7 +102,30 @@ def descent_gradient(loss: IndirectShootingLoss, momentum: torch.Tensor, templat
     """``(h, deformed, residual)`` at ``momentum`` ``(B, N+1, 2, nx, ny)``, without a graph: Algorithm 1's L2
     gradient ``h = gamma m + (N / cell_volume) dL/dnu`` of every sample (``IndirectRegistration.l2_gradient``, batched),
     ``W(K m, I)`` and the back-projected residual ``T^*(T f - g)`` in torch's scale (``dL/df``, ``L = (1/2)||T f -
-    g||^2_data``)."""
+    g||^2_data``).
+
+    Parameters
+    ----------
+    loss : IndirectShootingLoss
+        Its shooting layer, operator(s) and ``gamma``.
+    momentum : torch.Tensor
+        ``m``, ``(B, N+1, 2, nx, ny)``.
+    template : torch.Tensor
+        ``I``.
+    data : torch.Tensor or list of torch.Tensor
+        ``g`` as the loss takes it.
+    deformation : LDDMMDeformation, optional
+        Algorithm 1's operator (default as :func:`descent_terms`).
+
+    Returns
+    -------
+    h : torch.Tensor
+        ``(B, N+1, 2, nx, ny)``.
+    deformed : torch.Tensor
+        ``W(K m, I)``, ``(B, nx, ny)``.
+    residual : torch.Tensor
+        ``T^*(T f - g)`` in torch's scale, ``(B, nx, ny)``.
+    """
     nu = loss.shooting.kernel.apply(momentum.detach())
     with torch.enable_grad():
         leaf = nu.requires_grad_(True)
@@ -99,6 +146,34 @@ class UnrolledDescent(nn.Module):
     network's ``(B, 2, nx, ny)`` prediction. ``step_size`` is Algorithm 1's step ``alpha`` (``step_sizes``: the learned
     ``alpha_k``); ``heavy_ball`` adds the learned ``beta_k`` (``inertias``); ``correction`` adds the network ``U``
     (``shared``: one ``U`` for all steps). The initial network gets no gradient (it is trained on its own first).
+
+    Parameters
+    ----------
+    loss : IndirectShootingLoss
+        The training loss (its shooting layer sets the grid, N and the kernel; its operator the data).
+    num_updates : int
+        ``K`` (>= 1).
+    step_size : float
+        Algorithm 1's step ``alpha`` (> 0).
+    width, levels : int
+        The correction networks' (``MomentumUNet``).
+    shared : bool
+        One correction network for all steps.
+    correction : bool
+        Add the correction networks ``U_k``.
+    initial : torch.nn.Module, optional
+        ``(B, 2, nx, ny)`` (template, FBP) -> the one-shot momentum; None: start from zero.
+    momentum_scale : float
+        The correction networks' output scale (``MomentumUNet``).
+    heavy_ball : bool
+        Learn the heavy-ball coefficients ``beta_k``.
+
+    Raises
+    ------
+    TypeError
+        A loss that is no ``IndirectShootingLoss``, an ``initial`` that is no module.
+    ValueError
+        A count or scale out of range.
 
     Examples
     --------

@@ -38,6 +38,24 @@ class IndirectShootingLoss(nn.Module):
     tensor/list), or ``ray_transform[b]`` when ``index`` is omitted (one transform per sample). Samples sharing
     a transform are projected in one batched call.
 
+    Parameters
+    ----------
+    shooting : GeodesicShooting
+        ``W(m0, I)``.
+    ray_transform : LinearOperator or sequence of LinearOperator
+        ``T``, one for the batch or one per geometry (above), on the shooting's domain.
+    gamma : float
+        The regularisation weight (>= 0).
+    reduction : {"mean", "sum", "none"}
+        How the per-sample losses are combined.
+
+    Raises
+    ------
+    TypeError
+        No ``GeodesicShooting``, no operator or an empty sequence of them.
+    ValueError
+        An operator on another domain, an unknown ``reduction``, ``gamma < 0``.
+
     Notes
     -----
     ``momentum (B, 2, nx, ny)``, ``template (B, nx, ny)`` or ``(nx, ny)``, ``data`` a tensor

@@ -23,6 +23,22 @@ class MomentumUNet(nn.Module):
     ``momentum_scale = displacement / (2 pi sigma^2)`` makes the output a velocity in physical units).
     The last convolution starts at zero, so an untrained net predicts ``m0 = 0`` (the identity deformation).
 
+    Parameters
+    ----------
+    in_channels : int
+        Input channels (2: template and FBP).
+    width : int
+        Channels at the finest level.
+    levels : int
+        Resolutions (>= 1).
+    momentum_scale : float
+        The output's factor (> 0).
+
+    Raises
+    ------
+    ValueError, TypeError
+        A count or scale out of range.
+
     Notes
     -----
     input ``(B, in_channels, nx, ny)`` with ``nx``, ``ny`` divisible by ``2^(levels-1)``; output

@@ -55,7 +55,28 @@ def indirect_gradient(loss: IndirectShootingLoss, momentum: torch.Tensor, templa
     """``(grad, deformed)``: the L2 gradient of the per-sample indirect loss at ``momentum`` ``(B, 2, nx, ny)`` and
     the deformed templates ``W(momentum, template)`` ``(B, nx, ny)``; without ``create_graph`` both carry no graph
     (the momentum is detached first). The shooting keeps its whole graph for this one gradient (no checkpointing of
-    its time steps: measured 0.12 s instead of 0.25 s per sample at 64^2, N = 10, on a busy CPU core)."""
+    its time steps: measured 0.12 s instead of 0.25 s per sample at 64^2, N = 10, on a busy CPU core).
+
+    Parameters
+    ----------
+    loss : IndirectShootingLoss
+        The indirect loss.
+    momentum : torch.Tensor
+        ``m``, ``(B, 2, nx, ny)``.
+    template : torch.Tensor
+        ``I``.
+    data : torch.Tensor or list of torch.Tensor
+        ``g`` as the loss takes it.
+    create_graph : bool
+        Keep the gradient's graph (double backward).
+
+    Returns
+    -------
+    grad : torch.Tensor
+        ``(B, 2, nx, ny)``.
+    deformed : torch.Tensor
+        ``W(m, I)``, ``(B, nx, ny)``.
+    """
     loss = _unchecked(loss)
     with torch.enable_grad():
         m = momentum if create_graph else momentum.detach().requires_grad_(True)
@@ -73,6 +94,34 @@ class UnrolledMomentum(nn.Module):
     initial network alone), ``trajectory`` returns ``[m_0, ..., m_K]``. The update networks' last layers start at
     zero, so an untrained scheme returns ``m_0``. The initial network gets a gradient only from ``num_updates=0``
     (it is trained on its own first and fixed inside the scheme) unless ``train_initial``.
+
+    Parameters
+    ----------
+    loss : IndirectShootingLoss
+        The indirect loss whose gradient the updates see.
+    num_updates : int
+        ``K`` (>= 1).
+    width, levels : int
+        The update networks' (``MomentumUNet``).
+    shared : bool
+        One update network for all steps.
+    initial : torch.nn.Module, optional
+        ``(B, 2, nx, ny)`` (template, FBP) -> ``m_0``; None: zero.
+    momentum_scale : float
+        The update networks' output scale.
+    gradient : {"detached", "exact"}
+        The scheme's gradient (module docstring).
+    checkpoint : bool
+        Run each update network under ``torch.utils.checkpoint``.
+    train_initial : bool
+        Let the training loss reach the initial network too.
+
+    Raises
+    ------
+    TypeError
+        A loss that is no ``IndirectShootingLoss``, an ``initial`` that is no module.
+    ValueError
+        An unknown ``gradient``, a count or scale out of range.
 
     Examples
     --------
