@@ -48,7 +48,27 @@ INTEGER_SCALES = ("fraction", "raw")
 
 @dataclass(frozen=True)
 class Convention:
-    """One tool's layout, angles, units and detector centre (module docstring); ``source``: where it comes from."""
+    """One tool's layout, angles, units and detector centre (module docstring); ``source``: where it comes from.
+
+    Parameters
+    ----------
+    name : str
+        Its name (``convention=``).
+    image : {"xy", "displayed", "yx"}
+        An image array's layout: indreg's ``(x, y)``, as displayed, or ``(y, x)``.
+    sinogram : {"angle_bin", "bin_angle"}
+        A sinogram's axes.
+    angle_sense : float
+        ``+1`` or ``-1``: the sense of its angles against indreg's.
+    angle_offset : float
+        Degrees added to its angles.
+    pixel_units : bool
+        Its line integrals are pixel sums (times the pixel side in indreg's).
+    bins : {"fit", "index", "middle"}
+        Where its detector's centre lies.
+    source : str
+        Where it comes from.
+    """
     name: str
     image: str = "xy"
     sinogram: str = "angle_bin"
@@ -76,7 +96,25 @@ CONVENTIONS = {c.name: c for c in (
 
 
 def get_convention(name, key: str = "convention") -> Convention:
-    """The :class:`Convention` called ``name``; anything else is a one-line ``ValueError`` naming ``key``."""
+    """The :class:`Convention` called ``name``; anything else is a one-line ``ValueError`` naming ``key``.
+
+    Parameters
+    ----------
+    name : str or Convention
+        A name of ``CONVENTIONS`` (a ``Convention`` is returned as it is).
+    key : str
+        The argument's name in messages.
+
+    Returns
+    -------
+    Convention
+        The convention.
+
+    Raises
+    ------
+    ValueError
+        An unknown name.
+    """
     if isinstance(name, Convention):
         return name
     if name not in CONVENTIONS:
@@ -87,7 +125,22 @@ def get_convention(name, key: str = "convention") -> Convention:
 # --- arrays ---------------------------------------------------------------------------------------------------
 
 def image_to_indreg(a: np.ndarray, convention, picture: bool = False) -> np.ndarray:
-    """An image array as read from a file, ``(nx, ny)`` in indreg's layout (pictures: always as displayed)."""
+    """An image array as read from a file, ``(nx, ny)`` in indreg's layout (pictures: always as displayed).
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        The array as read.
+    convention : str or Convention
+        The tool whose layout it follows.
+    picture : bool
+        A picture (``.png`` / ``.tif``): as displayed, whatever the convention.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(nx, ny)``, axis 0 = x.
+    """
     layout = "displayed" if picture else get_convention(convention).image
     if layout == "displayed":
         return np.ascontiguousarray(np.rot90(a, k=-1))
@@ -113,7 +166,22 @@ def sinogram_units(g: np.ndarray, convention, h: float) -> np.ndarray:
 
 
 def sinogram_to_indreg(g: np.ndarray, convention, h: float = 1.0) -> np.ndarray:
-    """The tool's sinogram as indreg's ``(num_angles, det_count)`` in the domain's length unit (pixel side ``h``)."""
+    """The tool's sinogram as indreg's ``(num_angles, det_count)`` in the domain's length unit (pixel side ``h``).
+
+    Parameters
+    ----------
+    g : numpy.ndarray
+        The tool's sinogram array.
+    convention : str or Convention
+        The tool.
+    h : float
+        The pixel side (the domain's length unit).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(num_angles, det_count)``.
+    """
     return sinogram_units(sinogram_layout(g, convention), convention, h)
 
 
@@ -125,7 +193,20 @@ def sinogram_from_indreg(g: np.ndarray, convention, h: float = 1.0) -> np.ndarra
 
 
 def angles_to_indreg(radians: np.ndarray, convention) -> np.ndarray:
-    """The tool's angles (radians) as indreg's: ``angle_sense * angle + angle_offset``."""
+    """The tool's angles (radians) as indreg's: ``angle_sense * angle + angle_offset``.
+
+    Parameters
+    ----------
+    radians : array_like
+        The tool's angles, radians.
+    convention : str or Convention
+        The tool.
+
+    Returns
+    -------
+    numpy.ndarray
+        indreg's angles, float64 radians.
+    """
     c = get_convention(convention)
     return c.angle_sense * np.asarray(radians, dtype=np.float64) + math.radians(c.angle_offset)
 

@@ -95,7 +95,20 @@ def _plane(operator) -> Optional[tuple]:
 
 
 def readings(operator, data_shape: tuple) -> list:
-    """The readings probed for ``operator`` (module docstring); the first is the data as given."""
+    """The readings probed for ``operator`` (module docstring); the first is the data as given.
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        The forward operator (a ray transform or tilt series has readings beyond the data as given).
+    data_shape : tuple of int
+        The data's shape.
+
+    Returns
+    -------
+    list of Reading
+        The readings, the data as given first.
+    """
     out = [Reading("as given", _same, _same, "")]
     if getattr(operator, "geometry", None) is None or len(data_shape) < 2:   # not a ray transform: no detector
         return out
@@ -195,7 +208,22 @@ def _fewer_slices(template: torch.Tensor, data: torch.Tensor, operator) -> tuple
 
 def scores(template: torch.Tensor, data: torch.Tensor, operator) -> dict:
     """``{reading name: (correlation, Reading)}`` of the template's projection with the data under each reading, at
-    the blur of :data:`BLUR` whose best reading fits best (noisy data: the wider one)."""
+    the blur of :data:`BLUR` whose best reading fits best (noisy data: the wider one).
+
+    Parameters
+    ----------
+    template : torch.Tensor
+        The template, ``operator.domain.shape``.
+    data : torch.Tensor
+        The data, ``operator.range_shape``.
+    operator : LinearOperator
+        The forward operator (a tilt series is probed on at most :data:`SLICES` slices).
+
+    Returns
+    -------
+    dict
+        ``{reading name: (correlation, Reading)}``.
+    """
     tables = []
     template, data, operator = _fewer_slices(template, data, operator)
     with torch.no_grad():
@@ -231,7 +259,31 @@ def verdict(table: dict) -> tuple:
 def check(template, data, operator, mode: str = "check", key: str = "orientation") -> str:
     """Probe (``mode`` in :data:`MODES`): log a warning, or raise ``ValueError`` (``mode="check"`` and a margin above
     :data:`REFUSE`) naming ``key`` to override; returns the warning (``""``: none, ``mode="off"``, no template, a
-    time series), which the run's poor-fit report repeats (``indreg.registration.run.poor_fit``)."""
+    time series), which the run's poor-fit report repeats (``indreg.registration.run.poor_fit``).
+
+    Parameters
+    ----------
+    template : torch.Tensor or None
+        The template (None: no probe).
+    data : torch.Tensor
+        The data.
+    operator : LinearOperator
+        The forward operator.
+    mode : {"check", "warn", "off"}
+        Refuse a large margin, only warn, or skip.
+    key : str
+        The option's name in messages.
+
+    Returns
+    -------
+    str
+        The warning, ``""`` for none.
+
+    Raises
+    ------
+    ValueError
+        ``mode="check"`` and the data fit another reading better by more than :data:`REFUSE`.
+    """
     from ..forward import TimeSeriesOperator
 
     if mode == "off" or template is None or isinstance(operator, TimeSeriesOperator) \
@@ -299,7 +351,26 @@ def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=N
     convention (``transposed``: the sinogram only fits transposed from that convention's layout).
 
     ``stored_f``, ``stored_g``: the arrays as stored (a picture's as displayed, with ``picture=True``),
-    ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any."""
+    ``radians``: the angles as given; ``det_min`` / ``det_max``: the user's, if any.
+
+    Parameters
+    ----------
+    stored_f, stored_g : numpy.ndarray
+        The template and the sinogram as stored (a picture's as displayed, with ``picture=True``).
+    radians : array_like
+        The angles as given.
+    half_width : float
+        The domain's half side.
+    det_min, det_max : float, optional
+        The user's detector extent, if any.
+    picture : bool
+        The template is a picture.
+
+    Returns
+    -------
+    dict
+        ``{convention: (correlation, transposed)}``, one convention per distinct reading.
+    """
     scores = {}
     for name in _distinct():
         if picture and CONVENTIONS[name].angle_sense < 0:   # no tool of the other sense writes pictures: a picture
@@ -311,7 +382,20 @@ def orientation_scores(stored_f, stored_g, radians, half_width: float, det_min=N
 
 
 def orientation_hint(scores: dict, current) -> str | None:
-    """A one-line hint naming the convention whose reading fits the data clearly better than ``current``'s."""
+    """A one-line hint naming the convention whose reading fits the data clearly better than ``current``'s.
+
+    Parameters
+    ----------
+    scores : dict
+        :func:`orientation_scores`'s.
+    current : str or Convention
+        The convention the files were read in.
+
+    Returns
+    -------
+    str or None
+        The hint, None when the current reading fits within :data:`MARGIN` of the best.
+    """
     c = get_convention(current)
     own = next(name for name, names in _distinct().items() if c.name in names)
     best = max(scores, key=lambda name: scores[name][0], default=own)

@@ -29,7 +29,23 @@ if TYPE_CHECKING:   # imported where used: the app's preflight loads this module
 
 
 def get(name: str) -> Model:
-    """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one)."""
+    """The registered model ``name`` (``indreg.options.model``: ``"package.module:attribute"`` imports one).
+
+    Parameters
+    ----------
+    name : str
+        A registered model's name or ``"package.module:attribute"``.
+
+    Returns
+    -------
+    Model
+        The registry entry.
+
+    Raises
+    ------
+    ValueError
+        An unknown name.
+    """
     return model(name)
 
 
