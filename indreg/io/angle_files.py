@@ -71,6 +71,27 @@ def _inline_angles(values, name: str) -> list:
 def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
     """Projection angles as float64 radians, 1D.
 
+    Parameters
+    ----------
+    spec : str or os.PathLike or array_like
+        A text file or an inline list of numbers (Notes).
+    unit : {"deg", "rad"}
+        The unit of the numbers.
+    name : str
+        How messages call the angles.
+
+    Returns
+    -------
+    numpy.ndarray
+        Float64 radians, 1D.
+
+    Raises
+    ------
+    DataFileError
+        A problem with the file (missing, junk line N, no angles, non-finite angle).
+    ValueError
+        Bad inline values, or ``angle_unit`` not ``"deg"``/``"rad"``.
+
     Notes
     -----
     - ``spec`` is a path to a text file (one angle per line, IMOD ``.tlt``/``.rawtlt`` style; blank
@@ -78,10 +99,6 @@ def read_angles(spec, unit: str = "deg", *, name: str = "angles") -> np.ndarray:
     - ``unit`` is ``"deg"`` or ``"rad"``: the unit of the given numbers. The angle ``theta`` is that of
       the detector direction ``w = (cos theta, sin theta)`` (see ``ParallelBeamGeometry``). Degrees that
       span at most about pi (:data:`RADIAN_SPAN`) log a warning that they may be radians.
-
-    Raises:
-        DataFileError: a problem with the file (missing, junk line N, no angles, non-finite angle).
-        ValueError: bad inline values, or ``angle_unit`` not ``"deg"``/``"rad"``.
     """
     if unit not in ANGLE_UNITS:
         raise ValueError(f"angle_unit must be 'deg' or 'rad', got {unit!r}")
@@ -109,6 +126,16 @@ def tilt_angles_for(sinogram_path) -> Path | None:
     """The sibling angle file of a sinogram: ``stem.tlt``, else ``stem.rawtlt``, else ``None``.
 
     A ``:key`` suffix (``data.h5:/sino``) is ignored: the sibling of ``data.h5`` is ``data.tlt``.
+
+    Parameters
+    ----------
+    sinogram_path : str or os.PathLike
+        The data file.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The angle file next to it, None if there is none.
     """
     path, _ = split_path(sinogram_path, "sinogram")
     for suffix in (".tlt", ".rawtlt"):
@@ -123,7 +150,18 @@ _TILT_AXIS = re.compile(r"tilt\s*axis\s*angle\s*=\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:
 
 def mdoc_for(stack_path) -> Path | None:
     """The SerialEM / IMOD metadata file of a stack: ``name.mrc.mdoc`` (SerialEM: the file name plus ``.mdoc``),
-    else ``name.mdoc``, else ``None``. A ``:key`` suffix is ignored."""
+    else ``name.mdoc``, else ``None``. A ``:key`` suffix is ignored.
+
+    Parameters
+    ----------
+    stack_path : str or os.PathLike
+        The stack file.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The ``.mdoc`` next to it, None if there is none.
+    """
     path, _ = split_path(stack_path, "tilt series")
     for candidate in (path.with_name(path.name + ".mdoc"), path.with_suffix(".mdoc")):
         if candidate.is_file():
@@ -136,8 +174,22 @@ def read_tilt_axis_angle(mdoc, *, name: str = "mdoc") -> float | None:
     a`` (also inside a ``[T = ...]`` title line), ``None`` when the file has none. The angle is IMOD's and
     SerialEM's: from the image's Y axis to the tilt axis, counterclockwise positive (``indreg.alignment.tilt_axis``).
 
-    Raises:
-        DataFileError: the file cannot be read.
+    Parameters
+    ----------
+    mdoc : str or os.PathLike
+        The ``.mdoc`` file.
+    name : str
+        How messages call the file.
+
+    Returns
+    -------
+    float or None
+        Degrees, None when the file has no tilt-axis angle.
+
+    Raises
+    ------
+    DataFileError
+        The file cannot be read.
     """
     path = Path(mdoc)
     try:
