@@ -161,30 +161,121 @@ def test_the_public_api_is_listed():
     assert len(API) > 100 and "indreg.register" in API and "indreg.options.check_value" in API
 
 
-@pytest.mark.parametrize("name", sorted(API))
-def test_public_docstring_has_its_sections(name):
-    """numpydoc sections: ``Parameters`` naming every parameter, ``Returns`` (``Yields`` for a generator) when the
-    function returns a value, each title underlined with as many dashes."""
-    obj = API[name]
+#: numpydoc's order of the sections.
+ORDER = ("Parameters", "Attributes", "Returns", "Yields", "Raises", "Warns", "See Also", "Notes", "References",
+         "Examples")
+
+
+def _problems(name: str, obj) -> list:
+    """What ``obj``'s docstring lacks: a docstring, ``Parameters`` naming every parameter (a record class:
+    ``Attributes``), ``Returns`` (``Yields`` for a generator) when the function returns a value, titles underlined
+    with as many dashes and in numpydoc's order, the default first in a ``{a, b}`` type (the API reference shows the
+    first as the default), no Google-style header."""
     doc = obj.__doc__
-    assert doc and doc.strip(), f"{name} has no docstring"
-    doc = inspect.cleandoc(doc)
-    for i, line in enumerate(lines := doc.splitlines()):
-        if i and re.fullmatch(r"-{3,}", line.strip()) and lines[i - 1].strip():
-            assert len(line.strip()) == len(lines[i - 1].strip()), f"{name}: underline of {lines[i - 1].strip()!r}"
+    if not (doc and doc.strip()):
+        return [f"{name} has no docstring"]
+    doc, out = inspect.cleandoc(doc), []
+    lines = doc.splitlines()
+    out += [f"{name}: underline of {lines[i - 1].strip()!r}" for i, line in enumerate(lines)
+            if i and re.fullmatch(r"-{3,}", line.strip()) and lines[i - 1].strip()
+            and len(line.strip()) != len(lines[i - 1].strip())]
     sections = _sections(doc)
+    known = [t for t in sections if t in ORDER]
+    if known != sorted(known, key=ORDER.index):
+        out.append(f"{name}: sections {known} not in numpydoc's order")
     params = [] if getattr(obj, "_is_protocol", False) else _parameters(obj)   # a Protocol is not constructed
     if params and (name, "Parameters") not in EXEMPT:
         record = inspect.isclass(obj) and "Attributes" in sections and "Parameters" not in sections
         listed = _documented(sections.get("Attributes" if record else "Parameters", []))
         missing = [p.name for p in params if p.name not in listed]
-        assert not missing, f"{name}: Parameters does not document {missing}"
+        if missing:
+            out.append(f"{name}: Parameters does not document {missing}")
+        defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+        for line in sections.get("Parameters", []):
+            m = re.match(r"^(\w+) : \{([^}]*)\}", line)
+            if m and m.group(1) in defaults and isinstance(defaults[m.group(1)], (str, int)) \
+                    and m.group(2).split(",")[0].strip().strip("'\"") != str(defaults[m.group(1)]):
+                out.append(f"{name}: list the default of {m.group(1)} first in its {{...}} type")
     if inspect.isfunction(obj) and (name, "Returns") not in EXEMPT:
-        if inspect.isgeneratorfunction(obj):
-            assert "Yields" in sections, f"{name} is a generator: a Yields section"
-        elif _returns_value(obj):
-            assert "Returns" in sections, f"{name} returns a value: a Returns section"
-    assert not GOOGLE.search(doc), f"{name}: a Google-style section header ({GOOGLE.search(doc).group(0).strip()})"
+        if inspect.isgeneratorfunction(obj) and "Yields" not in sections:
+            out.append(f"{name} is a generator: a Yields section")
+        elif not inspect.isgeneratorfunction(obj) and _returns_value(obj) and "Returns" not in sections:
+            out.append(f"{name} returns a value: a Returns section")
+    if GOOGLE.search(doc):
+        out.append(f"{name}: a Google-style section header ({GOOGLE.search(doc).group(0).strip()})")
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(API))
+def test_public_docstring_has_its_sections(name):
+    assert not _problems(name, API[name])
+
+
+def test_exemptions_name_public_callables():
+    assert {name for name, _ in EXEMPT} <= set(API) and all(reason for reason in EXEMPT.values())
+
+
+def _bad(x, mode="b"):
+    """Google style.
+
+    Args:
+        x: a value.
+    """
+    return x
+
+
+def _good(x, mode="b"):
+    """numpydoc.
+
+    Parameters
+    ----------
+    x : int
+        A value.
+    mode : {"b", "a"}
+        A choice, the default first.
+
+    Returns
+    -------
+    int
+        ``x``.
+    """
+    return x
+
+
+def test_the_checks_fail_on_a_bad_docstring():
+    """The checker is not vacuous: each defect of a docstring is reported."""
+    assert _problems("good", _good) == []
+    problems = " | ".join(_problems("bad", _bad))
+    for what in ("does not document ['x', 'mode']", "a Returns section", "Google-style"):
+        assert what in problems
+    assert _problems("none", lambda: None) == ["none has no docstring"]
+
+    def fake(doc):
+        def f(x, mode="b"):
+            return x
+        f.__doc__ = doc
+        return f
+    wrong = fake("""Wrong default, short underline, Notes first.
+
+    Notes
+    -----
+    x.
+
+    Parameters
+    ----------
+    x : int
+        A value.
+    mode : {"a", "b"}
+        The default listed second.
+
+    Returns
+    ------
+    int
+        ``x``.
+    """)
+    problems = " | ".join(_problems("wrong", wrong))
+    for what in ("list the default of mode first", "underline of 'Returns'", "not in numpydoc's order"):
+        assert what in problems
 
 
 def test_no_google_style_sections_in_the_package():
@@ -200,5 +291,9 @@ def test_register_docstring_lists_every_option():
     """``help(indreg.register)``: a Parameters entry for every option of the table, generated from it."""
     from indreg import options
 
-    listed = _documented(_sections(inspect.cleandoc(indreg.register.__doc__))["Parameters"])
-    assert {o.name for o in options.all_options()} <= listed
+    entries = _sections(inspect.cleandoc(indreg.register.__doc__))["Parameters"]
+    assert {"template", "data", "operator", "options"} | {o.name for o in options.all_options()} <= _documented(entries)
+    for o in options.all_options():
+        line = next(e for e in entries if e.startswith(f"{o.name} : "))
+        assert line.endswith(f", default {o.default!r}"), line
+    assert "{options}" not in indreg.register.__doc__
