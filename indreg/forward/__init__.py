@@ -17,6 +17,7 @@ from .time_series import TimeSeriesOperator
 from .fbp import fbp
 from .sirt import sirt
 from .tv import intensity_scale, tv_reconstruction, tv_weight_unit
+from .wide_box import WideBox, wide_box
 
 #: The forward operator of each geometry type (``operator_for``); a new geometry adds its entry here.
 OPERATORS = {ParallelBeamGeometry: RayTransform, FanBeamGeometry: RayTransform, TiltSeriesGeometry: TiltSeriesTransform}
@@ -54,4 +55,4 @@ __all__ = ["ParallelBeamGeometry", "FanBeamGeometry", "RayTransform", "register_
            "check_operator", "adjointness", "fbp", "sirt", "tv_reconstruction", "intensity_scale", "TiltSeriesGeometry",
            "TiltSeriesTransform", "TimeSeriesOperator", "OPERATORS", "operator_for", "OperatorAlgebra", "ImageOperator",
            "ComposedOperator", "SumOperator", "ScaledOperator", "StackedOperator", "RestrictedOperator", "compose",
-           "add", "scale", "stack", "restrict", "tv_weight_unit"]
+           "add", "scale", "stack", "restrict", "tv_weight_unit", "WideBox", "wide_box"]
