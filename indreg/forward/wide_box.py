@@ -100,8 +100,9 @@ def _clip(points, directions, t_min, lo, hi) -> np.ndarray:
         t0 = np.where(flat, t0, np.maximum(t0, np.minimum(ta, tb)))
         t1 = np.where(flat, t1, np.minimum(t1, np.maximum(ta, tb)))
         t1 = np.where(outside, -math.inf, t1)
-    hit = t0 <= t1
-    ends = p[:, None, :] + np.stack([t0, t1], -1)[:, :, None] * d[:, None, :]
+    hit = (t0 <= t1) & np.isfinite(t0) & np.isfinite(t1)
+    with np.errstate(invalid="ignore"):
+        ends = p[:, None, :] + np.stack([t0, t1], -1)[:, :, None] * d[:, None, :]
     return np.where(hit[:, None, None], ends, np.nan)
 
 
