@@ -29,14 +29,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 if TYPE_CHECKING:   # imported where used: the app's preflight loads this module without torch
     import torch
 
 __all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units",
            "apply_units", "border_level", "check_offset", "compare_units", "data_term_scale", "measure", "noise_residual",
-           "prepare", "unit_factor"]
+           "noise_std", "prepare", "unit_factor"]
 
 log = logging.getLogger("indreg")
 
@@ -76,7 +76,12 @@ class Units:
     the scale of the relative options (``gamma = gamma_rel S``, ``step_size = step_rel / S``); ``noise_residual``:
     the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`);
     ``target_units``: ``"data"`` or ``"template"`` (as given), the units of a ground truth, where SSIM / PSNR
-    score the reconstruction (:meth:`locate_target`, :meth:`to_target_units`)."""
+    score the reconstruction (:meth:`locate_target`, :meth:`to_target_units`). ``transmission``: how ``I0`` was found
+    for intensities (``indreg.transmission``; ``""``: the data are line integrals), ``i0`` the ``I0`` of every
+    projection (None: none), ``i0_floor`` what values <= 0 were raised to; ``border``: what the detector's outermost
+    columns are (``indreg.border.check_border``: ``vacuum``, ``specimen`` or ``unclear``); ``box_width``,
+    ``slab_thickness``, ``slab_extent``: the wide box of a specimen wider than the field of view
+    (``indreg.registration.specimen``; 1.0 and NaN: none)."""
     template_scale: float = 1.0
     template_offset: float = 0.0
     background: float = 0.0
@@ -86,12 +91,26 @@ class Units:
     data_scale: float = math.nan
     noise_residual: float = math.nan
     target_units: str = "data"
+    transmission: str = ""
+    i0: Optional[list] = None
+    i0_floor: float = 0.0
+    border: str = ""
+    box_width: float = 1.0
+    slab_thickness: float = math.nan
+    slab_extent: float = math.nan
 
     def apply(self, template, data) -> tuple:
-        """``(template * template_scale + template_offset, data - background)``: the only place the inputs are
-        transformed (the run's tensors and the app's float64 copies alike); a template None (unknown) stays None."""
+        """``(template * template_scale + template_offset, -ln(data / i0) - background)`` (no logarithm without
+        ``i0``): the only place the inputs are transformed (the run's tensors and the app's float64 copies alike); a
+        template None (unknown) stays None."""
         if template is not None and (self.template_scale != 1.0 or self.template_offset != 0.0):
             template = template * self.template_scale + self.template_offset
+        if self.i0 is not None:
+            import torch
+
+            i0 = torch.as_tensor(self.i0, dtype=data.dtype, device=data.device)
+            floor = self.i0_floor if self.i0_floor > 0 else float(torch.finfo(data.dtype).tiny)
+            data = -torch.log(data.clamp(min=floor) / i0.reshape(-1, *([1] * (data.dim() - 1))))
         return template, (data - self.background if self.background != 0.0 else data)
 
     def locate_target(self, template, target) -> None:
@@ -139,16 +158,55 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b != 0 else (math.nan if a == 0 else math.inf)
 
 
-def check_offset(data: torch.Tensor, label: str) -> None:
+def check_offset(data: torch.Tensor, label: str, angles=None, check=None) -> None:
     """Warn when the data look offset: their border level or their median is far from zero (a fraction
-    ``OFFSET_FRACTION`` of their range) where projections of an object would be about zero outside it and
-    mostly positive."""
+    ``OFFSET_FRACTION`` of their range) where projections of an object would be about zero outside it and mostly
+    positive. The advice follows what the border is (``check``, else ``indreg.border.check_border`` with ``angles``):
+    vacuum: subtract its level (``label='auto'``); specimen: never its level, the slab law's intercept where a tilt
+    series shows one; unclear: a number, the vacuum's level if known."""
+    from .border import check_border, slab_offset
+
     spread = float(data.max() - data.min())
+    if not spread > 0:
+        return
     border, median = border_level(data), float(data.double().median())
-    if spread > 0 and (abs(border) > OFFSET_FRACTION * spread or median < -OFFSET_FRACTION * spread):
+    check = check_border(data, angles) if check is None else check
+    if check.kind == "specimen":
+        law = slab_offset(data, angles)
+        if law is not None and abs(law.b) > OFFSET_FRACTION * spread:
+            log.warning("the data look offset: the projections' means follow %.4g / cos(theta - theta0) + %.4g over "
+                        "the tilts, and a slab's line integrals have no such intercept; pass %s='auto' to subtract it, "
+                        "or %s=<number> (not the border's level: %s)", law.a, law.b, label, label, check.describe())
+        elif median < -OFFSET_FRACTION * spread:
+            log.warning("the data look offset: the median of all values is %.4g, with a range of %.4g (line integrals "
+                        "are mostly positive); give %s=<number> (not the border's level: %s)", median, spread, label,
+                        check.describe())
+        return
+    if abs(border) > OFFSET_FRACTION * spread or median < -OFFSET_FRACTION * spread:
+        advice = f"pass {label}='auto' to subtract the border level, or {label}=<number>" if check.kind == "vacuum" \
+            else f"{check.describe()}: give {label}=<number> (the vacuum's level, if you know it)"
         log.warning("the data look offset: the median of the outermost detector columns is %.4g and of all values "
-                    "%.4g, with a range of %.4g (projections are about 0 outside the object); pass %s='auto' to "
-                    "subtract the border level, or %s=<number>", border, median, spread, label, label)
+                    "%.4g, with a range of %.4g (projections are about 0 outside the object); %s", border, median,
+                    spread, advice)
+
+
+def _background(data: torch.Tensor, background, angles, check, label: str) -> float:
+    """The level that ``background`` (``"auto"`` or a number) subtracts (``indreg.border.background_level``); a number
+    that would make more than ``indreg.border.MOST`` of the data negative beyond the noise is refused."""
+    from .border import MOST, background_level, negative_fraction
+
+    if background == "auto":
+        level, check, how = background_level(data, angles, check)
+        (log.info if level != 0.0 or check.kind == "vacuum" else log.warning)(
+            "background %.6g subtracted from the data (%s='auto': %s)", level, label, how)
+        return level
+    level = float(background)
+    negative = negative_fraction(data, level, check.sigma)
+    if negative > MOST:
+        raise ValueError(f"{label}={background!r} would make {100 * negative:.0f} % of the data negative beyond their "
+                         f"noise (line integrals are >= 0; {check.describe()}): give a lower {label}, or 'auto'")
+    log.info("subtracted the background %.6g from the data (%s=%r)", level, label, background)
+    return level
 
 
 def compare_units(template: torch.Tensor, data: torch.Tensor, operator) -> tuple:
@@ -193,8 +251,21 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
     return 1.0
 
 
+def _transmission(units: Units, data: torch.Tensor, angles, transmission, label: str) -> None:
+    """``units.i0`` / ``i0_floor`` / ``transmission`` for intensities (``indreg.transmission.line_integrals``)."""
+    import numpy as np
+
+    from .transmission import line_integrals
+
+    _, t = line_integrals(data, angles, transmission, label=label)
+    units.i0 = [float(v) for v in np.atleast_1d(t.i0)]
+    units.i0_floor, units.transmission = t.floor, t.how
+    log.info("intensities to line integrals, p = -ln(I / I0) (%s=%r): I0 %s (median %.6g)%s", label, transmission,
+             t.how, float(np.median(t.i0)), f"; {t.raised} values <= 0 raised to {t.floor:.4g}" if t.raised else "")
+
+
 def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale=None, background=None,
-            label=lambda name: name) -> tuple:
+            label=lambda name: name, transmission=None) -> tuple:
     """Bring template and data to one unit before the run: :func:`measure`, then :func:`apply_units`.
 
     Returns
@@ -202,16 +273,21 @@ def prepare(template: torch.Tensor, data: torch.Tensor, operator, template_scale
     tuple
         ``(template, data, Units)``.
     """
-    units = measure(template, data, operator, background, label)
+    units = measure(template, data, operator, background, label, transmission)
     return apply_units(template, data, units, template_scale, label)
 
 
-def measure(template: torch.Tensor, data: torch.Tensor, operator, background=None, label=lambda name: name) -> Units:
+def measure(template: torch.Tensor, data: torch.Tensor, operator, background=None, label=lambda name: name,
+            transmission=None) -> Units:
     """What the inputs' units are, before anything is applied.
 
-    ``background`` (None, ``"auto"``: :func:`border_level`, or a number) is the offset to subtract from the data;
-    without it a warning when the data look offset (:func:`check_offset`). Then :func:`compare_units` compares the
-    template's projection with the data (a template None, unknown, is not compared).
+    ``transmission`` (None: the data are line integrals; ``"auto"`` or a number ``I0``): intensities become
+    ``-ln(I / I0)`` first (``indreg.transmission.line_integrals``). The detector's border is then checked for vacuum
+    or specimen (``indreg.border.check_border``, ``Units.border``). ``background`` (None, ``"auto"``:
+    ``indreg.border.background_level``, the vacuum's level or a slab law's intercept, or a number: refused when it
+    would make most of the data negative) is the offset to subtract from the data; without it a warning when the
+    data look offset (:func:`check_offset`). Then :func:`compare_units` compares the template's projection with the
+    data (a template None, unknown, is not compared).
 
     Parameters
     ----------
@@ -223,24 +299,35 @@ def measure(template: torch.Tensor, data: torch.Tensor, operator, background=Non
         The data's offset.
     label : callable
         ``label(name)`` names an option in messages (the app: its config key).
+    transmission : None, "auto" or float
+        Intensities: ``I0`` (``"auto"``: from the data).
 
     Returns
     -------
     Units
-        ``background``, ``projection_ratio`` and ``scale_fit`` set.
+        ``transmission`` / ``i0``, ``border``, ``background``, ``projection_ratio`` and ``scale_fit`` set.
 
     Raises
     ------
     ValueError
-        All-zero data (after the background).
+        All-zero data (after the background); a background that makes most of the data negative; intensities
+        ``transmission`` cannot take (naming it).
     """
+    from .border import check_border, projection_angles
+
     units = Units()
+    angles = projection_angles(operator)
+    if transmission is not None:
+        _transmission(units, data, angles, transmission, label("transmission"))
+    lines = units.apply(None, data)[1]   # line integrals (no background yet)
+    check = check_border(lines, angles)
+    units.border = check.kind
+    if check.kind == "specimen":
+        log.info("%s: the specimen is wider than the field of view", check.describe())
     if background is None:
-        check_offset(data, label("background"))
+        check_offset(lines, label("background"), angles, check)
     else:
-        units.background = border_level(data) if background == "auto" else float(background)
-        log.info("subtracted the background %.6g from the data (%s=%r)", units.background, label("background"),
-                 background)
+        units.background = _background(lines, background, angles, check, label("background"))
     _check_nonzero(operator, units.apply(None, data)[1], "" if background is None else
                    f"; {label('background')}={background!r} subtracted {units.background:.4g} from every value")
     if template is not None:   # None: unknown (reconstructed by the model), no units to compare
@@ -276,11 +363,12 @@ def apply_units(template: torch.Tensor, data: torch.Tensor, units: Units, templa
     return template, data, units
 
 
-def data_term_scale(operator, data: torch.Tensor) -> float:
+def data_term_scale(operator, data: torch.Tensor, length: Optional[float] = None) -> float:
     """``S = ||g||^2_data / L^2``: the data's squared norm in ``operator.inner_data`` over the squared largest side
-    ``L`` of the box (physical units), the scale of the relative options (module docstring). Raises ValueError for
-    all-zero data (nothing to register to)."""
-    return _check_nonzero(operator, data) / max(operator.domain.extent) ** 2
+    ``L`` of the box (physical units; ``length``: another, e.g. the given box's where the run's is a wide box), the
+    scale of the relative options (module docstring). Raises ValueError for all-zero data (nothing to register to)."""
+    side = max(operator.domain.extent) if length is None else length
+    return _check_nonzero(operator, data) / side ** 2
 
 
 def _check_nonzero(operator, data: torch.Tensor, why: str = "") -> float:
@@ -296,16 +384,21 @@ def _check_nonzero(operator, data: torch.Tensor, why: str = "") -> float:
     return gg
 
 
-def noise_residual(data: torch.Tensor) -> float:
-    """The relative residual ``||n|| / ||g||`` that white noise in the data explains, estimated from the data alone:
-    the noise's standard deviation from the median absolute second difference along each of the last two axes
-    (``sigma = median|d^2 g| / (0.6745 sqrt 6)``; projections are smooth along the detector, so the smoother axis
-    shows the noise), the smaller of the two. An upper estimate: the signal's own curvature adds to it (0.24 for
-    0.24 on the paper's suite 1, 0.027 for 0.024 at 15 dB, 0.002 for noise-free data)."""
+def noise_std(data: torch.Tensor) -> float:
+    """The standard deviation of white noise in the data, from the median absolute second difference along each of
+    the last two axes (``sigma = median|d^2 g| / (0.6745 sqrt 6)``; projections are smooth along the detector, so the
+    smoother axis shows the noise), the smaller of the two; NaN when no axis has 3 samples."""
     g = data.detach().double()
     axes = [a for a in (-1, -2) if g.dim() >= -a and g.shape[a] >= 3]
     if not axes:
         return math.nan
-    sigma = min(float(g.diff(n=2, dim=a).abs().median()) for a in axes) / (0.6745 * math.sqrt(6.0))
-    norm = float(g.norm())
-    return sigma * math.sqrt(g.numel()) / norm if norm > 0 else math.nan
+    return min(float(g.diff(n=2, dim=a).abs().median()) for a in axes) / (0.6745 * math.sqrt(6.0))
+
+
+def noise_residual(data: torch.Tensor) -> float:
+    """The relative residual ``||n|| / ||g||`` that white noise in the data explains, estimated from the data alone
+    (:func:`noise_std`). An upper estimate: the signal's own curvature adds to it (0.24 for 0.24 on the paper's
+    suite 1, 0.027 for 0.024 at 15 dB, 0.002 for noise-free data)."""
+    sigma = noise_std(data)
+    norm = float(data.detach().double().norm())
+    return sigma * math.sqrt(data.numel()) / norm if norm > 0 and math.isfinite(sigma) else math.nan

@@ -37,7 +37,7 @@ from .._checks import check_positive
 from ..domain import ImageDomain
 from .geometry import FanBeamGeometry, ParallelBeamGeometry
 
-__all__ = ["MAX_WIDTH", "PADDINGS", "WideBox", "wide_box", "specimen_box", "slab_thickness"]
+__all__ = ["MAX_WIDTH", "PADDINGS", "WideBox", "wide_box", "specimen_box", "slab_thickness", "slice_axes"]
 
 #: Without ``extent`` each axis of the wide box is at most this many times the given box's extent: a +-70 degree
 #: tilt series of a slab as thick as the box needs 3.7x (``(1 + |sin 70|) / cos 70`` halves), a full-angle scan of
@@ -56,6 +56,13 @@ def _slice_frame(operator) -> tuple:
         return geometry, operator.domain, (0, 1)
     raise TypeError(f"a wide box needs a RayTransform (parallel or fan beam) or a TiltSeriesTransform, got "
                     f"{type(operator).__name__}")
+
+
+def slice_axes(operator) -> tuple:
+    """The array axes ``(u, v)`` of ``operator``'s slice plane: ``(0, 1)`` in 2D, the tilt series' ``slice_axes``
+    (an aligned operator: its ``operator``'s)."""
+    inner = operator.operator if hasattr(operator, "shifts") and hasattr(operator, "operator") else operator
+    return _slice_frame(inner)[2]
 
 
 def _edge_rays(geometry) -> tuple:

@@ -108,7 +108,7 @@ def register(template, data, operator, **options) -> RegistrationResult:
         if handler is not None:
             log.removeHandler(handler)
     return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                        orientation=s.orientation, solver=s.solver)
+                        orientation=s.orientation, solver=s.solver, box=s.box)
 
 
 register.__doc__ = fill(register.__doc__)   # the options' entries, from the table (indreg.options.docs)

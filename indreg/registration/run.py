@@ -31,7 +31,8 @@ from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration
 from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
 from ..kernel_width import default_sigma
 from ..solvers.state import rounding_tolerance
-from ..units import Units, apply_units, data_term_scale, measure, noise_residual
+from ..units import Units, apply_units, compare_units, data_term_scale, measure, noise_residual
+from .specimen import plan_box
 
 log = logging.getLogger("indreg")
 
@@ -81,14 +82,16 @@ def make_solver(problem, o: dict, solver_options: dict):
 class Setup:
     """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
     did to the inputs, ``validation``: the held-out angles (``indreg.evaluation.validation.Validation``) when ``holdout``
-    is set, else None, and ``orientation``: the orientation probe's warning (``indreg.io.orientation.check``), ``""``
-    for none."""
+    is set, else None, ``orientation``: the orientation probe's warning (``indreg.io.orientation.check``), ``""``
+    for none, and ``box``: the wide box (``indreg.forward.wide_box.WideBox``) the problem lives on, None for the
+    operator's own."""
     problem: object
     solver: object
     options: dict
     units: Units = field(default_factory=Units)
     validation: object = None
     orientation: str = ""
+    box: object = None
 
 
 def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
@@ -136,30 +139,38 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     names = {option.name: option for option in opts.all_options()}
     key = lambda name: label(names[name])   # noqa: E731  (the option as the user named it)
     fit = corrections.Fit(o, key, operator)
+    fit.units = measure(template, data, operator, o["background"], key, o["transmission"])
+    box = plan_box(template, fit.units.apply(None, data)[1], operator, o, fit.units, key)
+    if box is not None:   # a specimen wider than the field of view: the problem on the wide box
+        fit.operator = box.widen(operator)
+        template = None if template is None else box.pad_image(template, o["template_padding"])
+        if template is not None:   # the units compared on the wide box (Units.apply commutes with the padding)
+            fit.units.projection_ratio, fit.units.scale_fit = compare_units(template, fit.units.apply(None, data)[1],
+                                                                            fit.operator)
     corrections.data_model(fit)   # e.g. T_s (alignment)
-    fit.units = measure(template, data, operator, o["background"], key)
     corrections.start(fit, template, fit.units.apply(None, data)[1])   # e.g. the scale through the alignment
     template, data, units = apply_units(template, data, fit.units, o["template_scale"], key)
+    given = template if box is None or template is None else box.crop(template)   # on the operator's own box
     if o["target"] is not None and template is not None:   # SSIM / PSNR in the target's units
-        units.locate_target(template, o["target"])
-    probe = orientation.check(template, data, operator, o["orientation"], key("orientation"))
+        units.locate_target(given, o["target"])
+    probe = orientation.check(given, data, operator, o["orientation"], key("orientation"))
     operator, fit.data = fit.operator, data
     validation = None
     if o["holdout"] is not None:   # the split is of the prepared data (background removed)
         operator, data, validation = split(operator, data, o["holdout"], o["patience"], label(names["holdout"]))
-    units.data_scale = data_term_scale(operator, data)
+    units.data_scale = data_term_scale(operator, data, max(domain.extent))   # the given box's side, wide or not
     units.noise_residual = noise_residual(data)
     opts.relative(o, units.data_scale, lambda: tv_weight_unit(operator, data))   # relative weights and step
     for name in ("step_size", "lr"):     # a step must stay finite (and nonzero) in the run's dtype
         if o[name] is not None:
             check_finite_in(o[name], label(names[name]), dtype)
     if o["sigma"] is None:
-        o["sigma"] = default_sigma(domain)
-    kernel = GaussianKernel(domain, o["sigma"])
+        o["sigma"] = default_sigma(domain)   # the given box's: the specimen's scale, not the wide box's
+    kernel = GaussianKernel(box.domain if box is not None else domain, o["sigma"])
     problem, solver_options = model.make(operator, template, data, kernel, o)
     fit.problem = problem
     solver = corrections.chain(make_solver(problem, o, solver_options), fit)   # the in-the-fit corrections
-    return Setup(problem, solver, o, units, validation, probe)
+    return Setup(problem, solver, o, units, validation, probe, box)
 
 
 def auto_sigma(template, data, operator, label, strict: bool, options: dict) -> float:
@@ -429,6 +440,10 @@ class RegistrationResult:
     corrections : dict
         The final estimates of the in-the-fit corrections by name (``indreg.registration.corrections``:
         ``alignment``, ``intensity``, a plug-in's), those that ran.
+    box : indreg.forward.wide_box.WideBox or None
+        The wide box of a specimen wider than the field of view (option ``wide_box``), None without: the images are
+        then on ``box.domain``, ``box.crop(result.deformed)`` is the field of view (where SSIM / PSNR score against
+        a target given on the operator's box).
     """
     deformed: torch.Tensor
     momentum: torch.Tensor
@@ -453,6 +468,7 @@ class RegistrationResult:
     alignment: dict = field(default_factory=dict)
     poor_fit: str = ""
     corrections: dict = field(default_factory=dict)
+    box: object = None
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -492,12 +508,26 @@ def final_status(status: str, residual: float) -> str:
     return status
 
 
+def wider_hint(units: Units, box) -> str:
+    """What a poor fit's warning says of a specimen wider than the box: where the detector's border is specimen
+    (``units.border``), the material outside the box adds to the data; ``""`` otherwise."""
+    if units.border != "specimen":
+        return ""
+    if box is None:
+        return ("; the detector's outermost columns are specimen, not vacuum: the object is wider than the box and "
+                "adds to the data from outside it: widen the box (wide_box=True, slab_thickness, slab_extent)")
+    return (f"; the detector's outermost columns are specimen and the wide box ({box.width_factor:.3g} x) may still be "
+            "too narrow or too thin for it (slab_extent, slab_thickness), or the template's padding unlike it "
+            "(template_padding)")
+
+
 def poor_fit(status: str, residual: float, noise: float, history: list, held_out: Optional[float] = None,
-             orientation: str = "") -> str:
+             orientation: str = "", wider: str = "") -> str:
     """The poor-fit warning of a finished run (:data:`POOR_FIT`), ``""`` for none; the larger of the fitted and the
     ``held_out`` residual counts. ``orientation``: the probe's warning before the run (``indreg.io.orientation``), which
     makes any finished run a poor fit (the residual cannot tell: a mis-read run may end below the right reading's).
-    The status stays what it was: the warning is the word that goes with it."""
+    ``wider``: :func:`wider_hint`, appended where the data point to an object wider than the box. The status stays
+    what it was: the warning is the word that goes with it."""
     if status not in ("completed", "converged", "stalled", "early_stopped"):
         return ""
     if orientation:
@@ -510,20 +540,21 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
         return ""
     far = f"a relative data residual{where} {value:.4g}, far above the {noise:.4g} that the data's noise explains"
     if levelled_off(history):
-        return f"poor fit: the objective levelled off at {far}; {_CHECK}"
+        return f"poor fit: the objective levelled off at {far}; {_CHECK}{wider}"
     return f"poor fit: the run ended at {far}, its objective still falling: more iterations (max_iter) may fit " \
-           f"better; if not, {_CHECK}"
+           f"better; if not, {_CHECK}{wider}"
 
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
                  units: Optional[Units] = None, validation=None, trajectory: bool = True,
-                 orientation: str = "", solver=None) -> RegistrationResult:
+                 orientation: str = "", solver=None, box=None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
     ``validation`` if given, the summaries of the in-the-fit corrections around ``solver`` if given
     (``indreg.registration.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
-    ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning.
+    ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning;
+    ``box``: the wide box (``Setup.box``): SSIM / PSNR on its field of view.
     A problem with a ``finish(x, validation)`` method (``indreg.problems.residual``) replaces the final iterate by
     its result first."""
     units = units or Units()
@@ -543,14 +574,16 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
         problem=problem, outputs=problem.outputs(x), units=units, corrections=fitted,
-        alignment=fitted.get("alignment", {}))
+        alignment=fitted.get("alignment", {}), box=box)
     if target is not None:
         scored = units.to_target_units(image)   # the target's units (template_scale: maybe the template's)
+        if box is not None and tuple(scored.shape) != tuple(target.shape):   # the field of view
+            scored = box.crop(scored)
         result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)
     if validation is not None:
         result.holdout = validation.summary(image)
     result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,
-                               result.holdout.get("holdout_residual"), orientation)
+                               result.holdout.get("holdout_residual"), orientation, wider_hint(units, box))
     if result.poor_fit:
         log.warning("%s", result.poor_fit)
     return result
