@@ -56,11 +56,12 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     if _broadcast(rec is not None, group):
         return rec or {}
     t0 = time.perf_counter()
-    T, g = exp.ray_transform, exp.noisy_data_64.to(exp.template.device, exp.template.dtype if volume else None)
+    T, g = exp.wide_transform, exp.noisy_data_64.to(exp.template.device, exp.template.dtype if volume else None)
     how, rec = _split(cfg, exp, T, g, mu, group, rank)
     if rank != 0:
         return {}
-    rec = {k: v.detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
+    rec = {k: exp.field(v).detach().to("cpu", g.dtype if volume else torch.float64) for k, v in rec.items()}
+    how += "" if exp.box is None else f", on the wide box {tuple(exp.box.domain.shape)} (the field of view kept)"
     log.info("baselines (%s) in %.1f s%s", ", ".join(rec).upper().replace(
         "TV", f"TV {b.tv_iterations} iterations, mu {mu:.4g} = {b.tv_mu:g} x the TV weight unit"),
         time.perf_counter() - t0, how)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import random
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -30,7 +31,9 @@ class Experiment:
     (``indreg.registration.run.Setup``: problem, solver, resolved options, units, validation) and the inputs as the run uses
     them: ``template`` in the run's dtype / device, ``template_64`` / ``noisy_data_64`` on the CPU for metrics,
     baselines and figures (both through ``setup.units.apply``, the one transformation of the inputs). Images:
-    ``data`` and the ``_64`` arrays in float64; volumes: in the run's dtype (:func:`fine_arrays_in`).
+    ``data`` and the ``_64`` arrays in float64; volumes: in the run's dtype (:func:`fine_arrays_in`). A run on a wide
+    box (``setup.box``) computes there (``wide_transform``) and shows, saves and scores the field of view
+    (:meth:`field`).
     The source's and the setup's fields read through (``exp.domain``, ``exp.problem``, ...)."""
     data: sources.Data
     setup: run.Setup
@@ -53,6 +56,22 @@ class Experiment:
     options = property(lambda self: self.setup.options)
     units = property(lambda self: self.setup.units)
     validation = property(lambda self: self.setup.validation)
+    box = property(lambda self: self.setup.box)
+
+    @cached_property
+    def wide_transform(self):
+        """The operator on the run's box: the wide box's (``setup.box``, a specimen wider than the field of view),
+        else the source's own."""
+        return self.data.operator if self.box is None else self.box.widen(self.data.operator)
+
+    def field(self, image):
+        """``image`` on the field of view, the source's domain (what figures, files and scores show): an image of
+        the wide box (trailing axes ``box.domain.shape``) cropped, anything else as it is."""
+        box = self.box
+        if box is None or image is None or tuple(image.shape[image.dim() - box.domain.ndim:]) != \
+                tuple(box.domain.shape):
+            return image
+        return box.crop(image)
 
 
 def seed_everything(seed: int) -> None:

@@ -16,6 +16,7 @@ import json
 import logging
 import math
 from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +153,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver)
+                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver, box=exp.box)
+    wide = r.deformed
+    if exp.box is not None:   # a wide box: files, figures and scores of the field of view; final_wide.npy whole
+        r = replace(r, **{k: exp.field(getattr(r, k)) for k in ("deformed", "velocity", "momentum", "deformation",
+                                                                 "trajectory")},
+                    outputs={k: exp.field(v) for k, v in r.outputs.items()})
     target = exp.target_64
     result = {}
     if target is not None:
@@ -190,6 +196,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     arrays = {"final": r.deformed, "velocity": r.velocity, "momentum": r.momentum, "deformation": r.deformation,
               "template": exp.template_64, "data": exp.noisy_data_64, **rec, **r.outputs}
     arrays.update({} if volume else {"trajectory": r.trajectory})
+    arrays.update({} if exp.box is None else {"final_wide": wide})
     if target is not None:
         arrays["target"] = target
     if exp.clean_data_64 is not None:
@@ -203,10 +210,10 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         with replacing(out / "final.mrc") as path:
             write_volume(path, r.deformed.detach().cpu().numpy(), exp.domain)
         shown = shown_frames(r.velocity.shape[0] - 1) if cfg.logging.figure or writer.enabled else ()
-        frames = save_frames(out / "trajectory.npy", problem.image_frames(state.iterate), r.velocity.shape[0],
-                             shown)
+        frames = save_frames(out / "trajectory.npy", (exp.field(f) for f in problem.image_frames(state.iterate)),
+                             r.velocity.shape[0], shown)
     write_json(out, history, result)
-    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames, result)
+    write_figures(cfg, exp, r, rec, quality(result, exp, r.outputs), out, writer, it, frames, result, wide)
     writer.baselines(result, rec, it)
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
@@ -250,6 +257,11 @@ def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
     conventions = {f"{name}.npy": data if name.startswith("data") else {**image, "axis_order": layouts.get(
         name, f"(..., *{grid_axes}): a model's output, its leading axes its own")} for name in (*arrays, "trajectory")}
     conventions["final.mrc"] = {"voxel_size_unit": "the domain's length unit (MRC readers: Angstrom)"}
+    if exp.box is not None:   # the whole wide box: its own grid
+        w = exp.box.domain
+        conventions["final_wide.npy"] = {**image, "voxel_size": list(w.cell_sides), "origin": [
+            a + c / 2 for a, c in zip(w.min_pt, w.cell_sides)], "note": "the wide box (data.wide_box); the other "
+            "images are its field of view"}
     return write_record(out / "outputs.json", out, conventions, run="indreg-register")
 
 

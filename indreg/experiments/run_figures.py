@@ -31,13 +31,14 @@ def shown_frames(n: int) -> set:
 
 
 def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: int, kept=None,
-                  result=None) -> None:
+                  result=None, wide=None) -> None:
     """figure.png (the paper's layout and a row of errors for images, orthogonal slices for volumes), parts.png
     when the model splits its reconstruction (two outputs of kind ``"parts"``, ``problem.output_kinds``),
     frames.png and frames.gif when it has an output of kind ``"frames"``, and TensorBoard's final images (the
     residual sinogram included); ``quality``: the figures of merit in the titles, ``result``: metrics.json's dict
     (every method's score in its panel). ``kept``: the trajectory's frames :func:`shown_frames` by index, when
-    ``r.trajectory`` is None (a volume's run: its trajectory is written frame by frame)."""
+    ``r.trajectory`` is None (a volume's run: its trajectory is written frame by frame). ``wide``: the reconstruction
+    on a wide box (``exp.box``; ``r`` then holds its field of view), for the data residual."""
     if kept is None:
         traj = to_numpy(r.trajectory)
         n, frame = traj.shape[0] - 1, traj.__getitem__
@@ -50,7 +51,7 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
     parts = tuple(r.outputs[n] for n in part_names) if len(part_names) == 2 else None   # the summands of f(1)
     frames_name = next((n for n, kind in kinds.items() if kind == "frames" and n in r.outputs), None)
     score = scores(result or {}, exp, rec)
-    residual = residual_sinogram(exp, r.deformed) if frames_name is None else None
+    residual = residual_sinogram(exp, r.deformed if wide is None else wide) if frames_name is None else None
     model = str(exp.options.get("model", "lddmm"))
     if cfg.logging.figure:
         figure = _ortho_figure(exp, frame, n, rec, f"{cfg.name}: {quality}", score, unit, residual) if volume else \
@@ -121,6 +122,8 @@ def scores(result: dict, exp, rec: dict) -> dict:
 
 def _relative_residual(exp, image):
     """``||T x - g|| / ||g||`` in the data norm of the fitted data (None where the operator does not apply)."""
+    if getattr(exp, "box", None) is not None:   # a baseline's field of view: the wide box's rays need all of it
+        return None
     try:
         T, g = exp.ray_transform, exp.noisy_data_64
         with torch.no_grad():
@@ -139,17 +142,19 @@ def residual_sinogram(exp, deformed):
     from ..forward.ray_transform import RayTransform
 
     g = exp.noisy_data_64
+    T = getattr(exp, "wide_transform", exp.ray_transform)   # a wide box's reconstruction: its operator
+    d = T.domain
     try:
         with torch.no_grad():
-            if exp.domain.ndim == 2:
-                res = exp.ray_transform(deformed.detach().to("cpu", g.dtype)) - g
+            if d.ndim == 2:
+                res = T(deformed.detach().to("cpu", g.dtype)) - g
                 return to_numpy(res.reshape(-1, res.shape[-1])) if res.shape == g.shape else None
             geometry = exp.geometry
             if getattr(geometry, "tilt_axis", None) != "y" or g.dim() != 3:
                 return None
-            j = exp.domain.shape[1] // 2
-            lo, hi = exp.domain.min_pt, exp.domain.max_pt
-            plane = ImageDomain((exp.domain.shape[0], exp.domain.shape[2]), (lo[0], lo[2]), (hi[0], hi[2]))
+            j = d.shape[1] // 2
+            lo, hi = d.min_pt, d.max_pt
+            plane = ImageDomain((d.shape[0], d.shape[2]), (lo[0], lo[2]), (hi[0], hi[2]))
             T = RayTransform(plane, geometry.slice_geometry)
             res = T(deformed.detach()[:, j, :].to("cpu", torch.float64)) - g[:, j, :].to(torch.float64)
             return to_numpy(res)

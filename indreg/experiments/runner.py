@@ -127,7 +127,7 @@ class Evaluation(Callback):
         self.text = ""
         if it % self.every or done:
             return
-        deformed = loop.problem.reconstruction(loop.state.iterate)
+        deformed = exp.field(loop.problem.reconstruction(loop.state.iterate))
         if exp.target_64 is not None:
             fom = figures_of_merit(deformed, exp.target_64, exp.paper, exp.units)
             self.writer.metrics(fom, it)

@@ -505,24 +505,25 @@ INPUTS = (
            "with the deformation: model lddmm with the geometric action; indreg.registration.intensity) or a number",
            Optional[Any]),
     Option("transmission", "data", "transmission", None, auto_or(_positive, "a finite number > 0 (I0)"),
-           "the data are bright-field / transmission intensities, made line integrals -ln(I / I0) first: None (they "
-           "are line integrals), 'auto' (I0 from the frames' vacuum, else the slab law -ln<I> = a / cos(theta - "
-           "theta0) + b; indreg.transmission) or I0", Optional[Any]),
+           "bright-field / transmission intensities made line integrals -ln(I / I0): 'auto' or I0 (None: the data "
+           "are line integrals); 'auto' takes I0 from the frames' vacuum, else the slab law -ln<I> = a / cos(theta "
+           "- theta0) + b (indreg.transmission)", Optional[Any]),
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
-           "an offset subtracted from the data: None (a warning when they look offset), 'auto' (the vacuum's level "
-           "at the detector's border, or a slab tilt series' intercept; never the level of a border that is "
-           "specimen: indreg.border) or a number (refused when it makes most of the data negative)", Optional[Any]),
+           "an offset subtracted from the data: None (a warning when they look offset), 'auto' or a number; 'auto' "
+           "takes the vacuum's level at the detector's border, or a slab tilt series' intercept, never the level of "
+           "a border that is specimen (indreg.border); a number that makes most of the data negative is refused",
+           Optional[Any]),
     Option("wide_box", "data", "wide_box", "auto", choice(("auto", True, False)),
-           "a reconstruction box wider than the detector for a specimen wider than the field of view: 'auto' (when "
-           "the detector's border is specimen), True or False; wide enough that every ray reaching the detector "
-           "crosses the specimen inside it (indreg.forward.wide_box; the data term stays on the detector's pixels)",
+           "a box wider than the detector for a specimen wider than it: 'auto' (where the border is specimen), True "
+           "or False; wide enough that every ray reaching the detector crosses the specimen inside it "
+           "(indreg.forward.wide_box; the data term stays on the detector's pixels)",
            Any),
     Option("slab_thickness", "data", "slab_thickness", None, optional(_positive),
-           "the specimen's thickness along the beam at angle 0 (physical units) for the wide box; None: the "
-           "template's support along the beam, else the box's thickness", Optional[float]),
+           "the specimen's thickness along the beam at angle 0 for the wide box (None: the template's support "
+           "along the beam, else the box's thickness)", Optional[float]),
     Option("slab_extent", "data", "slab_extent", None, optional(_positive),
-           "the specimen's lateral extent (physical units) for the wide box; None: unbounded (a slab), or for a "
-           "full-angle scan the chord law of the data's mean profile", Optional[float]),
+           "the specimen's lateral extent for the wide box (None: unbounded, a slab; for a full-angle scan the chord "
+           "law of the data's mean profile)", Optional[float]),
     Option("template_padding", "data", "template_padding", "edge", choice(("edge", "zero", "level")),
            "how a template on the given box fills the wide box: 'edge' (its outermost cells repeated outwards), "
            "'zero' or 'level' (the median of its faces)", str),

@@ -33,7 +33,7 @@ __all__ = ["chord_extent", "plan_box"]
 
 def chord_extent(data: torch.Tensor, operator) -> Optional[float]:
     """A parallel-beam scan over at least 150 degrees: the specimen's diameter ``2 R`` from the angle-averaged profile
-    (module docstring) when it exceeds the detector, else None (also for other operators)."""
+    (module docstring), None where the profile does not fall off as a chord's (or for other operators)."""
     geometry = getattr(operator, "geometry", None)
     if not isinstance(geometry, ParallelBeamGeometry) or tuple(data.shape[-2:]) != tuple(geometry.shape):
         return None
@@ -48,8 +48,7 @@ def chord_extent(data: torch.Tensor, operator) -> Optional[float]:
     (alpha, beta), *_ = np.linalg.lstsq(design, profile[keep] ** 2, rcond=None)
     if not (alpha > 0 and beta > 0):
         return None
-    diameter = 2 * math.sqrt(alpha / beta)
-    return diameter if diameter > geometry.det_max - geometry.det_min else None
+    return 2 * math.sqrt(alpha / beta)
 
 
 def plan_box(template, data: torch.Tensor, operator, o: dict, units, label) -> Optional[WideBox]:
