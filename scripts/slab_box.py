@@ -10,7 +10,10 @@ of view against the target, for the detector-wide box, the defaults (``wide_box=
 wide box with each template padding (LDDMM, sigma 4, 10 time steps, the other options the defaults), and SIRT
 (100 iterations, nonnegative) on both boxes.
 
-    python scripts/slab_box.py [--iters 100] [--snr-db 20]
+    python scripts/slab_box.py [--iters 100] [--snr-db 20] [--seed 3] [--ndim 3]
+
+``--ndim 3``: the same as a tilt series about y (8 slices of 0.5 along y, the ellipses ellipsoids, semi-axes 1.5 to
+3 along y), on a 64 x 8 x 24 box.
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import torch
 
 import indreg
 from indreg import metrics
-from indreg.forward import ParallelBeamGeometry, RayTransform, sirt
+from indreg.forward import ParallelBeamGeometry, RayTransform, TiltSeriesGeometry, TiltSeriesTransform, sirt
 from indreg.forward.wide_box import slab_thickness, wide_box
 
 W, THICK, HALF_V, CELLS = 32.0, 8.0, 6.0, 64
@@ -54,12 +57,13 @@ def chords_rectangle(theta, s, x0, x1, y0, y1):
 
 
 def specimen(seed: int, moved: bool) -> list:
-    """The slab and its ellipses ``(cx, cy, a, b, phi, value)``; ``moved``: the target's (each moved and resized)."""
+    """The slab's ellipses ``(cx, cz, a, b, phi, value, cy, ay)`` in the slice plane (x, beam), ``cy`` / ``ay`` their
+    centre and semi-axis along the tilt axis (3D: ellipsoids); ``moved``: the target's (each moved and resized)."""
     rng = np.random.default_rng(seed)
     shapes = []
     for cx in np.arange(-58.0, 59.0, 7.0):
         e = [cx + rng.uniform(-2, 2), rng.uniform(-1.5, 1.5), rng.uniform(1.5, 3.0), rng.uniform(0.8, 1.6),
-             rng.uniform(0, np.pi), rng.uniform(0.4, 1.0)]
+             rng.uniform(0, np.pi), rng.uniform(0.4, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(1.5, 3.0)]
         if moved:
             e[0] += rng.uniform(-1.5, 1.5)
             e[1] += rng.uniform(-0.6, 0.6)
@@ -69,27 +73,41 @@ def specimen(seed: int, moved: bool) -> list:
     return shapes
 
 
-def project(shapes, theta, s) -> np.ndarray:
-    p = chords_rectangle(theta, s, -2 * W, 2 * W, -THICK / 2, THICK / 2)
-    for cx, cy, a, b, phi, value in shapes:
-        p = p + value * chords_ellipse(theta, s, cx, cy, a, b, phi)
-    return p
+def _scale(y, cy, ay):
+    """An ellipsoid's section at height ``y`` along the tilt axis: its ellipse scaled by this (0: missed); 1 in 2D."""
+    return 1.0 if y is None else np.sqrt(np.clip(1 - ((y - cy) / ay) ** 2, 0, None))
+
+
+def project(shapes, theta, s, rows=None) -> np.ndarray:
+    """``(tilts, bins)``, or with ``rows`` (heights along the tilt axis) ``(tilts, rows, bins)``."""
+    out = []
+    for y in ([None] if rows is None else rows):
+        p = chords_rectangle(theta, s, -2 * W, 2 * W, -THICK / 2, THICK / 2)
+        for cx, cz, a, b, phi, value, cy, ay in shapes:
+            r = _scale(y, cy, ay)
+            if r > 0:
+                p = p + value * chords_ellipse(theta, s, cx, cz, a * r, b * r, phi)
+        out.append(p)
+    return out[0] if rows is None else np.stack(out, 1)
 
 
 def digitise(shapes, domain, supersample: int = 4) -> torch.Tensor:
-    """The specimen on ``domain``, each cell the mean of ``supersample^2`` points."""
-    (x0, y0), (hx, hy) = domain.min_pt, domain.cell_sides
-    nx, ny = domain.shape
+    """The specimen on ``domain`` (2D ``(x, z)``, or 3D ``(x, y, z)`` with the tilt axis y), each cell the mean of
+    ``supersample^d`` points."""
     off = (np.arange(supersample) + 0.5) / supersample
-    xs = x0 + (np.arange(nx)[:, None] + off[None]).reshape(-1) * hx
-    ys = y0 + (np.arange(ny)[:, None] + off[None]).reshape(-1) * hy
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    f = (np.abs(Y) <= THICK / 2).astype(float)
-    for cx, cy, a, b, phi, value in shapes:
-        u = (X - cx) * np.cos(phi) + (Y - cy) * np.sin(phi)
-        v = -(X - cx) * np.sin(phi) + (Y - cy) * np.cos(phi)
-        f = f + value * ((u / a) ** 2 + (v / b) ** 2 <= 1)
-    return torch.from_numpy(f.reshape(nx, supersample, ny, supersample).mean(axis=(1, 3)))
+    axes = [a + (np.arange(n)[:, None] + off[None]).reshape(-1) * h
+            for a, n, h in zip(domain.min_pt, domain.shape, domain.cell_sides)]
+    grids = np.meshgrid(*axes, indexing="ij")
+    X, Z = grids[0], grids[-1]
+    Y = grids[1] if domain.ndim == 3 else None
+    f = (np.abs(Z) <= THICK / 2).astype(float)
+    for cx, cz, a, b, phi, value, cy, ay in shapes:
+        r = 1.0 if Y is None else np.sqrt(np.clip(1 - ((Y - cy) / ay) ** 2, 0, None))
+        u = (X - cx) * np.cos(phi) + (Z - cz) * np.sin(phi)
+        v = -(X - cx) * np.sin(phi) + (Z - cz) * np.cos(phi)
+        f = f + value * ((r > 0) & ((u / np.maximum(a * r, 1e-12)) ** 2 + (v / np.maximum(b * r, 1e-12)) ** 2 <= 1))
+    shape = [x for n in domain.shape for x in (n, supersample)]
+    return torch.from_numpy(f.reshape(shape).mean(axis=tuple(range(1, 2 * domain.ndim, 2))))
 
 
 def held_out_sirt(T, data, rows, iters: int) -> float:
@@ -107,19 +125,26 @@ def main(argv=None) -> None:
     p.add_argument("--iters", type=int, default=100)
     p.add_argument("--snr-db", type=float, default=20.0)
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--ndim", type=int, default=2, choices=(2, 3), help="3: a tilt series about y, 8 slices")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     torch.set_num_threads(1)
-    domain = indreg.ImageDomain((CELLS, 24), (-W / 2, -HALF_V), (W / 2, HALF_V))
-    geometry = ParallelBeamGeometry(det_count=CELLS, det_min=-W / 2, det_max=W / 2,
-                                    angles=np.arange(-60.0, 60.1, 2.0), angle_unit="deg")
-    T = RayTransform(domain, geometry)
+    tilts = np.arange(-60.0, 60.1, 2.0)
+    if a.ndim == 2:
+        domain = indreg.ImageDomain((CELLS, 24), (-W / 2, -HALF_V), (W / 2, HALF_V))
+        geometry = ParallelBeamGeometry(det_count=CELLS, det_min=-W / 2, det_max=W / 2, angles=tilts,
+                                        angle_unit="deg")
+        T, rows_y = RayTransform(domain, geometry), None
+    else:
+        domain = indreg.ImageDomain((CELLS, 8, 24), (-W / 2, -2.0, -HALF_V), (W / 2, 2.0, HALF_V))
+        T = TiltSeriesTransform(domain, TiltSeriesGeometry(tilts, CELLS, -W / 2, W / 2, angle_unit="deg"))
+        geometry, rows_y = T.geometry, domain.axes()[1].numpy()
     theta, s = geometry.angles.numpy(), geometry.det_points.numpy()
-    clean = torch.from_numpy(project(specimen(a.seed, True), theta, s))
+    clean = torch.from_numpy(project(specimen(a.seed, True), theta, s, rows_y))
     data, _ = indreg.noise.add_white_noise(clean, snr_db=a.snr_db, seed=a.seed)
     template, target = digitise(specimen(a.seed, False), domain), digitise(specimen(a.seed, True), domain)
     rows = list(range(0, len(theta), 4))
-    box = wide_box(T, thickness=slab_thickness(template, domain, 1))
+    box = wide_box(T, thickness=slab_thickness(template, domain, domain.ndim - 1))
     print(f"detector-wide box {domain.shape}, wide box {box.domain.shape} ({box.width_factor:.2f} x; thickness "
           f"{box.thickness:g}); {len(theta)} tilts, every 4th held out; {a.snr_db:g} dB")
     print(f"{'run':34s} {'held-out residual':>18s} {'SSIM (FOV)':>11s} {'fit residual':>13s} {'min Jac':>8s} {'s':>6s}")
