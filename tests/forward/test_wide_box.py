@@ -8,7 +8,7 @@ import torch
 
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform
 from indreg.forward import FanBeamGeometry, TiltSeriesGeometry, TiltSeriesTransform, sirt
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.operator import AlignedOperator
 from indreg.forward.wide_box import MAX_WIDTH, WideBox, slab_thickness, specimen_box, wide_box
 
 TILTS = [-60.0, -37.0, -12.0, 0.0, 8.0, 33.0, 55.0]
