@@ -85,7 +85,9 @@ _DATA_DOC = """Where template and data come from: ``source`` is a built-in sourc
     ``dynamic``: the breathing phantom of ``indreg.dynamic`` measured at ``frames`` time points (``amplitude``;
     ``template_known: false`` hands the run no template: ``deformation=spatiotemporal`` reconstructs it).
     ``template_scale`` / ``background`` (``indreg.options``, the same as ``indreg.register``'s): the template's
-    intensity factor and the data's offset, applied before the run (``indreg.units.prepare``).
+    intensity factor and the data's offset, applied before the run (``indreg.units.prepare``); ``transmission``:
+    bright-field intensities made line integrals; ``wide_box`` / ``slab_thickness`` / ``slab_extent`` /
+    ``template_padding``: a box wider than the detector for a specimen wider than it (docs/slab.md).
     """
 
 
