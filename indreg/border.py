@@ -50,9 +50,21 @@ _OFFSETS = np.radians(np.arange(-15.0, 15.01, 0.25))   # theta0 searched (the sp
 
 @dataclass
 class SlabLaw:
-    """``level(theta) = a / cos(theta - theta0) + b [+ c extra(theta)]`` fitted by least squares (``theta0`` radians);
-    ``rms`` the residual, ``r2`` the variance explained, ``swing`` = ``a (max - min) 1 / cos`` over the fitted tilts,
-    ``c`` / ``c_se`` the coefficient of an ``extra`` regressor and its standard error (0 without)."""
+    """``level(theta) = a / cos(theta - theta0) + b [+ c extra(theta)]`` fitted by least squares (:func:`slab_law`).
+
+    Attributes
+    ----------
+    a, b : float
+        The law's slope (a slab: its attenuation times its thickness) and intercept (the data's offset).
+    theta0 : float
+        The specimen's own tilt (radians).
+    rms, r2 : float
+        The residual's root mean square and the fraction of the levels' variance explained.
+    swing : float
+        ``a (max - min) 1 / cos(theta - theta0)`` over the fitted tilts.
+    c, c_se : float
+        The coefficient of an ``extra`` regressor and its standard error (0 without).
+    """
     a: float
     b: float
     theta0: float
@@ -63,15 +75,40 @@ class SlabLaw:
     c_se: float = 0.0
 
     def predict(self, angles) -> np.ndarray:
-        """The law at ``angles`` (radians), without the extra term."""
+        """The law without its extra term.
+
+        Parameters
+        ----------
+        angles : array_like
+            Radians.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``a / cos(angles - theta0) + b``.
+        """
         return self.a / np.cos(np.asarray(angles, dtype=np.float64) - self.theta0) + self.b
 
 
 def slab_law(levels, angles, extra=None) -> Optional[SlabLaw]:
-    """Fit ``levels_k = a / cos(theta_k - theta0) + b`` (``angles`` radians, ``theta0`` within 15 degrees), plus
-    ``c extra_k`` when ``extra`` (K values) is given: linear least squares for every ``theta0`` on a 0.25 degree grid,
-    the best kept. None with fewer than 4 tilts (5 with ``extra``), tilts within 20 degrees of 90 (the law
-    diverges), or no spread in ``1 / cos``."""
+    """Fit ``levels_k = a / cos(theta_k - theta0) + b [+ c extra_k]``: linear least squares for every ``theta0``
+    within 15 degrees on a 0.25 degree grid, the best kept.
+
+    Parameters
+    ----------
+    levels : array_like
+        K values, one per tilt.
+    angles : array_like
+        K tilt angles (radians).
+    extra : array_like, optional
+        K values of a further regressor (e.g. ``ln cos theta`` for an exposure ``cos^-n theta``).
+
+    Returns
+    -------
+    SlabLaw or None
+        None with fewer than 4 tilts (5 with ``extra``), tilts within 20 degrees of 90 (the law diverges), or no
+        spread in ``1 / cos``.
+    """
     y = np.asarray(levels, dtype=np.float64).reshape(-1)
     th = np.asarray(angles, dtype=np.float64).reshape(-1)
     columns = [] if extra is None else [np.asarray(extra, dtype=np.float64).reshape(-1)]
@@ -104,10 +141,25 @@ def slab_law(levels, angles, extra=None) -> Optional[SlabLaw]:
 
 @dataclass
 class BorderCheck:
-    """What :func:`check_border` found: ``kind`` ``"vacuum"``, ``"specimen"`` or ``"unclear"``; ``level`` the
-    border's median (``indreg.units.border_level``); ``below`` the fraction of values more than 3 sigma below it;
-    ``texture`` its variation beyond the noise over the data's range; ``law`` the slab law of the border's levels
-    over the tilts (None without angles); ``reasons``: why, in words."""
+    """What :func:`check_border` found.
+
+    Attributes
+    ----------
+    kind : str
+        ``"vacuum"``, ``"specimen"`` or ``"unclear"``.
+    level : float
+        The border's median (``indreg.units.border_level``).
+    below : float
+        The fraction of values more than 3 sigma below their projection's border level.
+    texture : float
+        The border's variation beyond the noise over the data's range.
+    sigma : float
+        The data's noise (``indreg.units.noise_std``).
+    law : SlabLaw or None
+        The slab law of the border's levels over the tilts (None without angles).
+    reasons : list of str
+        Why, in words.
+    """
     kind: str
     level: float
     below: float
@@ -117,11 +169,24 @@ class BorderCheck:
     reasons: list = field(default_factory=list)
 
     def describe(self) -> str:
-        """One phrase: the kind and why."""
+        """The decision in one phrase.
+
+        Returns
+        -------
+        str
+            The kind and why.
+        """
         why = "; ".join(self.reasons) if self.reasons else "no sign of either"
         return f"the detector's outermost columns look like {self.kind} ({why})"
 
     def as_dict(self) -> dict:
+        """The decision's numbers for a run's metrics.
+
+        Returns
+        -------
+        dict
+            ``border``, ``border_level``, ``border_below``, ``border_texture``, ``border_reasons`` and the law's.
+        """
         return {"border": self.kind, "border_level": self.level, "border_below": self.below,
                 "border_texture": self.texture, "border_reasons": "; ".join(self.reasons),
                 **({} if self.law is None else {"border_law_a": self.law.a, "border_law_b": self.law.b,
@@ -130,8 +195,18 @@ class BorderCheck:
 
 
 def projection_angles(operator) -> Optional[np.ndarray]:
-    """The angles (radians) of ``operator``'s projections, the first axis of its data (a ray transform, a tilt series,
-    an aligned one around them); None for other operators."""
+    """The angles of an operator's projections, the first axis of its data.
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        A ray transform, a tilt series, an aligned one around them, or another.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        Radians; None for an operator without a geometry's angles.
+    """
     inner = getattr(operator, "operator", operator)
     angles = getattr(getattr(inner, "geometry", None), "angles", None)
     return None if angles is None else np.asarray(angles, dtype=np.float64)
@@ -146,7 +221,18 @@ def _frames(data: torch.Tensor, angles) -> Optional[torch.Tensor]:
 
 
 def border_columns(g: torch.Tensor) -> torch.Tensor:
-    """The outermost ``max(1, n // 16)`` columns on each side, ``(..., 2 k)``."""
+    """The detector's border.
+
+    Parameters
+    ----------
+    g : torch.Tensor
+        ``(..., n)``, the last axis the detector's columns.
+
+    Returns
+    -------
+    torch.Tensor
+        ``(..., 2 k)``: the outermost ``k = max(1, n // 16)`` columns on each side.
+    """
     n = g.shape[-1]
     k = max(1, n // 16)
     return torch.cat([g[..., :k], g[..., n - k:]], -1) if n > 1 else g
@@ -162,8 +248,22 @@ def _spread(g: torch.Tensor) -> float:
 
 
 def negative_fraction(data: torch.Tensor, level: float, sigma: Optional[float] = None) -> float:
-    """The fraction of ``data - level`` below ``-3 sigma`` (``sigma``: the noise, :func:`indreg.units.noise_std`,
-    at least 1e-6 of the data's range): values made negative beyond what the noise explains."""
+    """The values that subtracting ``level`` makes negative beyond what the noise explains.
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        Any shape.
+    level : float
+        The level subtracted.
+    sigma : float, optional
+        The noise; None: :func:`indreg.units.noise_std` (at least 1e-6 of the data's range either way).
+
+    Returns
+    -------
+    float
+        The fraction of ``data - level`` below ``-3 sigma``.
+    """
     g = data.detach().double()
     if sigma is None:
         sigma = noise_std(g)
@@ -172,8 +272,20 @@ def negative_fraction(data: torch.Tensor, level: float, sigma: Optional[float] =
 
 
 def check_border(data: torch.Tensor, angles=None) -> BorderCheck:
-    """Vacuum, specimen or unclear at the detector's border (module docstring). ``data``: ``(..., columns)``, the
-    last axis the detector's columns; ``angles`` (radians): one per entry of the first axis, for the tilt law."""
+    """Vacuum, specimen or unclear at the detector's border (module docstring).
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        ``(..., columns)``, the last axis the detector's columns; projections along the first.
+    angles : array_like, optional
+        Radians, one per projection, for the tilt law (None: none).
+
+    Returns
+    -------
+    BorderCheck
+        The decision, its numbers and reasons.
+    """
     g = data.detach().double()
     sigma = noise_std(g)
     sigma = sigma if math.isfinite(sigma) else 0.0
@@ -210,16 +322,45 @@ def check_border(data: torch.Tensor, angles=None) -> BorderCheck:
 
 def slab_offset(data: torch.Tensor, angles) -> Optional[SlabLaw]:
     """The slab law of the projections' means over the tilts (its ``b``: the data's offset, since a slab's line
-    integrals have none), where ``angles`` match the data's first axis and the law has ``a > 0``; else None."""
+    integrals have none).
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        ``(K, columns)`` or ``(K, rows, columns)``.
+    angles : array_like or None
+        K radians.
+
+    Returns
+    -------
+    SlabLaw or None
+        None where the angles do not match the data's first axis or the law has no ``a > 0``.
+    """
     frames = _frames(data, angles)
     law = None if frames is None else slab_law(frames.mean(dim=(1, 2)).numpy(), angles)
     return law if law is not None and law.a > 0 else None
 
 
 def background_level(data: torch.Tensor, angles=None, check: Optional[BorderCheck] = None) -> tuple:
-    """``(level, check, how)``: what ``background='auto'`` subtracts (module docstring) and why (``how``, words).
+    """What ``background='auto'`` subtracts (module docstring), and why.
+
     Vacuum: the border's level; a slab tilt series: the slab law's intercept over the projections' means; else 0.
-    A level that would make more than ``MOST`` of the values negative is not taken (0, and ``how`` says so)."""
+    A level that would make more than ``MOST`` of the values negative is not taken (0, and ``how`` says so).
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        Line integrals ``(..., columns)``, projections along the first axis.
+    angles : array_like, optional
+        Radians, one per projection.
+    check : BorderCheck, optional
+        :func:`check_border`'s decision, if made already.
+
+    Returns
+    -------
+    tuple
+        ``(level, check, how)``: the level, the decision, and why in words.
+    """
     check = check_border(data, angles) if check is None else check
     law = slab_offset(data, angles) if check.kind == "specimen" else None
     if check.kind == "vacuum":

@@ -45,10 +45,23 @@ MIN_POWER = 0.25
 
 @dataclass
 class Transmission:
-    """What :func:`line_integrals` did: ``i0`` the intensity without specimen per projection (numpy ``(K,)``, or one
-    value), ``how`` in words, ``law`` the slab law fitted to ``-ln<I_k>`` (None for vacuum or a given ``I0``),
-    ``exposure_power`` the ``n`` of a ``cos^-n`` exposure kept from the data (None: not), ``raised`` the count of
-    values <= 0 raised to ``floor`` (half the smallest positive value; 0 when none was)."""
+    """What :func:`line_integrals` did.
+
+    Attributes
+    ----------
+    i0 : numpy.ndarray
+        ``(K,)``: the intensity without specimen, per projection.
+    how : str
+        How it was found, in words.
+    law : SlabLaw or None
+        The slab law fitted to the mean transmission (None for vacuum or a given ``I0``).
+    exposure_power : float or None
+        The ``n`` of an exposure ``cos^-n theta`` kept from the data (None: none).
+    raised : int
+        The count of values <= 0 raised to ``floor``.
+    floor : float
+        Half the smallest positive value (0 when none was raised).
+    """
     i0: np.ndarray
     how: str
     law: Optional[object] = None
@@ -57,6 +70,14 @@ class Transmission:
     floor: float = 0.0
 
     def as_dict(self) -> dict:
+        """The numbers for a run's metrics.
+
+        Returns
+        -------
+        dict
+            ``i0`` (the median), ``i0_min``, ``i0_max``, ``i0_how``, ``exposure_power``, ``raised_values``,
+            ``raised_to``.
+        """
         i0 = np.atleast_1d(self.i0)
         return {"i0": float(np.median(i0)), "i0_min": float(i0.min()), "i0_max": float(i0.max()),
                 "i0_how": self.how, "exposure_power": self.exposure_power, "raised_values": self.raised,

@@ -161,9 +161,20 @@ def _ratio(a: float, b: float) -> float:
 def check_offset(data: torch.Tensor, label: str, angles=None, check=None) -> None:
     """Warn when the data look offset: their border level or their median is far from zero (a fraction
     ``OFFSET_FRACTION`` of their range) where projections of an object would be about zero outside it and mostly
-    positive. The advice follows what the border is (``check``, else ``indreg.border.check_border`` with ``angles``):
-    vacuum: subtract its level (``label='auto'``); specimen: never its level, the slab law's intercept where a tilt
-    series shows one; unclear: a number, the vacuum's level if known."""
+    positive. The advice follows what the border is: vacuum: subtract its level (``label='auto'``); specimen: never
+    its level, the slab law's intercept where a tilt series shows one; unclear: a number, the vacuum's level if known.
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        Line integrals.
+    label : str
+        The background option as the user names it.
+    angles : array_like, optional
+        Radians, one per projection (the slab law).
+    check : indreg.border.BorderCheck, optional
+        The border's decision, if made (else ``indreg.border.check_border``).
+    """
     from .border import check_border, slab_offset
 
     spread = float(data.max() - data.min())
@@ -387,7 +398,18 @@ def _check_nonzero(operator, data: torch.Tensor, why: str = "") -> float:
 def noise_std(data: torch.Tensor) -> float:
     """The standard deviation of white noise in the data, from the median absolute second difference along each of
     the last two axes (``sigma = median|d^2 g| / (0.6745 sqrt 6)``; projections are smooth along the detector, so the
-    smoother axis shows the noise), the smaller of the two; NaN when no axis has 3 samples."""
+    smoother axis shows the noise), the smaller of the two.
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        Any shape.
+
+    Returns
+    -------
+    float
+        NaN when no axis has 3 samples.
+    """
     g = data.detach().double()
     axes = [a for a in (-1, -2) if g.dim() >= -a and g.shape[a] >= 3]
     if not axes:

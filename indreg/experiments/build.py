@@ -65,8 +65,18 @@ class Experiment:
         return self.data.operator if self.box is None else self.box.widen(self.data.operator)
 
     def field(self, image):
-        """``image`` on the field of view, the source's domain (what figures, files and scores show): an image of
-        the wide box (trailing axes ``box.domain.shape``) cropped, anything else as it is."""
+        """An image on the field of view, the source's domain (what figures, files and scores show).
+
+        Parameters
+        ----------
+        image : torch.Tensor or None
+            Any image of the run.
+
+        Returns
+        -------
+        torch.Tensor or None
+            An image of the wide box (trailing axes ``box.domain.shape``) cropped, anything else as it is.
+        """
         box = self.box
         if box is None or image is None or tuple(image.shape[image.dim() - box.domain.ndim:]) != \
                 tuple(box.domain.shape):

@@ -59,8 +59,23 @@ def _slice_frame(operator) -> tuple:
 
 
 def slice_axes(operator) -> tuple:
-    """The array axes ``(u, v)`` of ``operator``'s slice plane: ``(0, 1)`` in 2D, the tilt series' ``slice_axes``
-    (an aligned operator: its ``operator``'s)."""
+    """The array axes ``(u, v)`` of ``operator``'s slice plane.
+
+    Parameters
+    ----------
+    operator : RayTransform, TiltSeriesTransform or an aligned one around them
+        The operator.
+
+    Returns
+    -------
+    tuple
+        ``(0, 1)`` in 2D, the tilt series' ``slice_axes`` in 3D.
+
+    Raises
+    ------
+    TypeError
+        Another operator.
+    """
     inner = operator.operator if hasattr(operator, "shifts") and hasattr(operator, "operator") else operator
     return _slice_frame(inner)[2]
 
@@ -115,10 +130,25 @@ def _clip(points, directions, t_min, lo, hi) -> np.ndarray:
 
 def specimen_box(geometry, domain: ImageDomain, thickness: float | None = None, extent: float | None = None,
                  max_width: float = MAX_WIDTH) -> tuple:
-    """The physical bounds ``((u_lo, u_hi), (v_lo, v_hi), capped)`` of the specimen's part that rays reaching the
-    detector cross, joined with ``domain`` (2D, the slice plane) and capped at ``max_width`` times its extent per axis
-    about its centre (``capped``: whether the cap bound it). ``geometry``: a resolved 2D parallel- or fan-beam
-    geometry (module docstring)."""
+    """The bounds of the specimen's part that rays reaching the detector cross (module docstring).
+
+    Parameters
+    ----------
+    geometry : ParallelBeamGeometry or FanBeamGeometry
+        A resolved 2D geometry (detector extent set).
+    domain : ImageDomain
+        The given box's slice plane (2D).
+    thickness, extent : float, optional
+        The specimen's extent along v and u (physical units); None: the box's thickness, and unbounded.
+    max_width : float
+        The cap, times ``domain``'s extent per axis, about its centre.
+
+    Returns
+    -------
+    tuple
+        ``((u_lo, u_hi), (v_lo, v_hi), capped)``: physical bounds joined with ``domain``'s, and whether the cap bound
+        them.
+    """
     lo0, hi0 = np.array(domain.min_pt), np.array(domain.max_pt)
     centre, size = (lo0 + hi0) / 2, hi0 - lo0
     wanted = np.array([math.inf if extent is None else extent, size[1] if thickness is None else thickness]) / 2
@@ -137,9 +167,26 @@ def specimen_box(geometry, domain: ImageDomain, thickness: float | None = None, 
 
 
 def slab_thickness(template: torch.Tensor, domain: ImageDomain, axis: int, fraction: float = 0.05) -> float | None:
-    """The specimen's thickness that a template shows: twice the largest distance from the box's centre along
-    ``axis`` (v) of the planes whose mean differs from the empty faces' level by more than ``fraction`` of the
-    template's range; None when the template fills the box along ``axis`` (or is constant)."""
+    """The specimen's thickness that a template shows.
+
+    Parameters
+    ----------
+    template : torch.Tensor
+        ``domain.shape``.
+    domain : ImageDomain
+        The template's box.
+    axis : int
+        The array axis of the beam at angle 0 (v).
+    fraction : float
+        A plane belongs to the specimen where its mean differs from the emptier face's by more than this fraction
+        of the template's range.
+
+    Returns
+    -------
+    float or None
+        Twice the largest distance from the box's centre along ``axis`` of the specimen's planes (their cells
+        whole); None when the template fills the box along ``axis`` (or is constant).
+    """
     f = template.detach().double().movedim(axis - domain.ndim, -1)
     profile = f.reshape(-1, f.shape[-1]).mean(0)
     faces = float(torch.stack([profile[0], profile[-1]]).min())
@@ -157,9 +204,23 @@ def slab_thickness(template: torch.Tensor, domain: ImageDomain, axis: int, fract
 
 @dataclass(frozen=True)
 class WideBox:
-    """A wide box: ``domain`` (the wide one) around ``field`` (the box as given, as wide as the detector: the field
-    of view), with the same cell sides; ``pad``: ``(before, after)`` cells added per array axis; ``thickness`` /
-    ``extent``: the specimen's (physical units; ``extent`` None: a slab); ``capped``: ``MAX_WIDTH`` bound it."""
+    """A wide box around the box as given (:func:`wide_box` makes it).
+
+    Attributes
+    ----------
+    field : ImageDomain
+        The box as given, as wide as the detector: the field of view.
+    domain : ImageDomain
+        The wide box: the same cell sides, more cells along the slice plane's axes.
+    pad : tuple
+        ``(before, after)`` cells added per array axis.
+    thickness : float
+        The specimen's thickness it was made for (physical units).
+    extent : float or None
+        The specimen's lateral extent (None: a slab, unbounded).
+    capped : bool
+        Whether ``max_width`` bound it.
+    """
     field: ImageDomain
     domain: ImageDomain
     pad: tuple
@@ -178,22 +239,64 @@ class WideBox:
         return max(w / f for w, f in zip(self.domain.extent, self.field.extent))
 
     def crop(self, image: torch.Tensor) -> torch.Tensor:
-        """``(..., *domain.shape) -> (..., *field.shape)``: the field of view."""
+        """The field of view of an image of the wide box.
+
+        Parameters
+        ----------
+        image : torch.Tensor
+            ``(..., *domain.shape)``.
+
+        Returns
+        -------
+        torch.Tensor
+            ``(..., *field.shape)``, a view.
+        """
         out = image
         for axis, (a, b) in zip(self.domain.dims, self.pad):
             out = out.narrow(axis, a, out.shape[axis] - a - b)
         return out
 
     def field_mask(self, dtype=torch.float64, device=None) -> torch.Tensor:
-        """1 on the field's cells, 0 on the added ones, on ``domain``."""
+        """The field of view as a mask on the wide box.
+
+        Parameters
+        ----------
+        dtype : torch.dtype
+            Its dtype.
+        device : torch.device, optional
+            Its device.
+
+        Returns
+        -------
+        torch.Tensor
+            ``domain.shape``: 1 on the field's cells, 0 on the added ones.
+        """
         mask = self.domain.zeros(dtype=dtype, device=device)
         self.crop(mask).fill_(1.0)
         return mask
 
     def pad_image(self, image: torch.Tensor, mode: str = "edge") -> torch.Tensor:
-        """``(..., *field.shape) -> (..., *domain.shape)``: ``edge`` repeats the outermost cells outwards (a slab's
-        profile across its thickness continues), ``zero`` pads with 0 (vacuum), ``level`` with the median of the
-        image's faces along each widened axis (a constant background)."""
+        """An image of the given box on the wide box.
+
+        Parameters
+        ----------
+        image : torch.Tensor
+            ``(..., *field.shape)``.
+        mode : {'edge', 'zero', 'level'}
+            ``edge`` repeats the outermost cells outwards (a slab's profile across its thickness continues),
+            ``zero`` pads with 0 (vacuum), ``level`` with the median of the image's faces along each widened axis (a
+            constant background).
+
+        Returns
+        -------
+        torch.Tensor
+            ``(..., *domain.shape)``.
+
+        Raises
+        ------
+        ValueError
+            Another mode.
+        """
         if mode not in PADDINGS:
             raise ValueError(f"template padding must be one of {', '.join(PADDINGS)}, got {mode!r}")
         out = image
@@ -213,8 +316,24 @@ class WideBox:
         return out
 
     def widen(self, operator):
-        """``operator`` (on ``field``) on the wide box: the same geometry and detector (``operator.on_domain``); an
-        aligned operator (``shifts``, ``angle`` around an ``operator``) keeps its alignment."""
+        """An operator of the given box on the wide box: the same geometry and detector.
+
+        Parameters
+        ----------
+        operator : LinearOperator
+            On ``field``, with ``on_domain`` (a ray transform, a tilt series), or an aligned operator around one
+            (``shifts`` and ``angle`` around an ``operator``: it keeps its alignment).
+
+        Returns
+        -------
+        LinearOperator
+            ``operator.on_domain(domain)``; ``operator`` itself when nothing was added.
+
+        Raises
+        ------
+        ValueError
+            An operator of another box. TypeError: one without ``on_domain``.
+        """
         if tuple(operator.domain.shape) != tuple(self.field.shape):
             raise ValueError(f"the operator's domain {tuple(operator.domain.shape)} is not the box this wide box was "
                              f"made for, {tuple(self.field.shape)}")
@@ -231,13 +350,33 @@ class WideBox:
 
 def wide_box(operator, thickness: float | None = None, extent: float | None = None,
              max_width: float = MAX_WIDTH) -> WideBox:
-    """The wide box of ``operator`` (a ``RayTransform`` or a ``TiltSeriesTransform`` on the detector-wide box) for a
-    specimen of ``thickness`` and lateral ``extent`` (physical units; module docstring): whole cells added along the
-    slice plane's axes until every specimen point on a ray reaching the detector is inside, at most ``max_width``
-    times the given extent per axis.
+    """The wide box of an operator for a specimen of ``thickness`` and lateral ``extent`` (module docstring).
 
-    Raises:
-        TypeError: another operator. ValueError: a thickness / extent / max_width that is not a positive number.
+    Whole cells are added along the slice plane's axes until every specimen point on a ray reaching the detector is
+    inside, at most ``max_width`` times the given extent per axis.
+
+    Parameters
+    ----------
+    operator : RayTransform, TiltSeriesTransform or an aligned one around them
+        On the detector-wide box.
+    thickness : float, optional
+        The specimen's thickness along the beam at angle 0 (physical units); None: the box's.
+    extent : float, optional
+        Its lateral extent (physical units); None: unbounded (a slab).
+    max_width : float
+        The cap, times the given box's extent per axis (>= 1).
+
+    Returns
+    -------
+    WideBox
+        The wide box (``widened`` False where nothing was needed).
+
+    Raises
+    ------
+    TypeError
+        Another operator.
+    ValueError
+        A thickness, extent or max_width that is not a positive number (max_width below 1).
     """
     geometry, plane, (u, v) = _slice_frame(getattr(operator, "operator", operator) if hasattr(operator, "shifts")
                                            else operator)

@@ -509,8 +509,21 @@ def final_status(status: str, residual: float) -> str:
 
 
 def wider_hint(units: Units, box) -> str:
-    """What a poor fit's warning says of a specimen wider than the box: where the detector's border is specimen
-    (``units.border``), the material outside the box adds to the data; ``""`` otherwise."""
+    """What a poor fit's warning says of a specimen wider than the box.
+
+    Parameters
+    ----------
+    units : Units
+        The run's (its ``border``).
+    box : WideBox or None
+        The run's wide box.
+
+    Returns
+    -------
+    str
+        Where the detector's border is specimen: that the material outside the box adds to the data, and what to
+        give; ``""`` otherwise.
+    """
     if units.border != "specimen":
         return ""
     if box is None:

@@ -32,8 +32,21 @@ __all__ = ["chord_extent", "plan_box"]
 
 
 def chord_extent(data: torch.Tensor, operator) -> Optional[float]:
-    """A parallel-beam scan over at least 150 degrees: the specimen's diameter ``2 R`` from the angle-averaged profile
-    (module docstring), None where the profile does not fall off as a chord's (or for other operators)."""
+    """The specimen's diameter ``2 R`` that a parallel-beam scan over at least 150 degrees shows (the chord law of its
+    angle-averaged profile, module docstring).
+
+    Parameters
+    ----------
+    data : torch.Tensor
+        ``operator.range_shape`` (any leading batch axes averaged too).
+    operator : RayTransform
+        Its operator.
+
+    Returns
+    -------
+    float or None
+        None where the profile does not fall off as a chord's, the angles span less, or the operator is another.
+    """
     geometry = getattr(operator, "geometry", None)
     if not isinstance(geometry, ParallelBeamGeometry) or tuple(data.shape[-2:]) != tuple(geometry.shape):
         return None
@@ -52,9 +65,34 @@ def chord_extent(data: torch.Tensor, operator) -> Optional[float]:
 
 
 def plan_box(template, data: torch.Tensor, operator, o: dict, units, label) -> Optional[WideBox]:
-    """The wide box of a run (module docstring), None where none is called for or nothing would be added; logs what it
-    chose and why. ``o``: the run's options, ``units``: what ``indreg.units.prepare`` found (its ``border``),
-    ``label(name)`` names an option in messages."""
+    """The wide box of a run (module docstring); logs what it chose and why, and records it in ``units``.
+
+    Parameters
+    ----------
+    template : torch.Tensor or None
+        On the operator's box (its support along the beam gives the thickness).
+    data : torch.Tensor
+        The line integrals (background removed).
+    operator : LinearOperator
+        On the detector-wide box.
+    o : dict
+        The run's options (``wide_box``, ``slab_thickness``, ``slab_extent``, ``template_padding``).
+    units : indreg.units.Units
+        What ``indreg.units.measure`` found (its ``border``); ``box_width``, ``slab_thickness`` and ``slab_extent``
+        set where a box is made.
+    label : callable
+        ``label(name)`` names an option in messages.
+
+    Returns
+    -------
+    WideBox or None
+        None where none is called for or nothing would be added.
+
+    Raises
+    ------
+    TypeError
+        ``wide_box=True`` with an operator that has no slice plane.
+    """
     mode = o["wide_box"]
     if mode is False or (mode == "auto" and units.border != "specimen"):
         return None
