@@ -13,7 +13,8 @@ A bright-field electron micrograph or an X-ray radiograph records the transmitte
   scaled with the tilt), ``-ln<I_k>`` gains ``n ln cos theta_k``; ``exposure="auto"`` fits ``n`` too and keeps it where
   the data say so: the plain law fails (its ``a <= 0``: the means fall with the tilt) or its residual at least halves,
   and ``|n|`` exceeds 3 standard errors and ``MIN_POWER``. The two terms are nearly collinear over +-60 degrees, so
-  ``I0`` is then rough (7.5 % off for ``n = 1`` on a structured synthetic slab, noise-free). A per-tilt exposure known from
+  ``I0`` is then rough (``n = 1.07`` and ``I0`` 5 % off for ``n = 1`` on the structured synthetic slab of
+  tests/test_transmission.py, noise-free). A per-tilt exposure known from
   the acquisition (the ``.mdoc``'s ``ExposureTime`` / dose) is given as ``exposure=[...]`` (relative values).
 
 Neither (a full-angle scan of an object wider than the detector): ``I0`` cannot be told from the data; give it.
