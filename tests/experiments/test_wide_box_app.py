@@ -33,7 +33,8 @@ def slab_files(d):
     write_volume(d / "template.mrc", box.crop(slab).numpy(), dom)
     write_volume(d / "target.mrc", box.crop(truth).numpy(), dom)
     write_tilt_series(d / "tilts.mrc", box.widen(T)(truth).numpy(), g.angles, pixel_size=1.0)
-    return [f"data.template={d / 'template.mrc'}", f"data.target={d / 'target.mrc'}", f"data.sinogram={d / 'tilts.mrc'}"]
+    return [f"data.template={d / 'template.mrc'}", f"data.target={d / 'target.mrc'}",
+            f"data.sinogram={d / 'tilts.mrc'}"]
 
 
 @pytest.mark.slow
