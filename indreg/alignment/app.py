@@ -114,7 +114,18 @@ def _parser() -> argparse.ArgumentParser:
                                     "the stack")
     p.add_argument("--out", help="output directory (default: STACK's name + _align)")
     p.add_argument("--convention", default="imod", choices=("imod", "indreg"),
-                   help="the stack's layout (the same for a tilt series: docs/file_formats.md)")
+                   help="the tilt angles' sign: imod (the .tlt as IMOD writes it, negated inside; the written "
+                        ".tlt / .xf / .aln in IMOD's sign) or indreg's (docs/file_formats.md)")
+    p.add_argument("--specimen", default="auto", choices=("auto", "compact", "slab"),
+                   help="slab: wider than the detector (cryo-ET, a lamella; stretched cross-correlation, then "
+                        "projection matching through the wide box); auto: a slab when the detector's border is "
+                        "specimen, not vacuum (default)")
+    p.add_argument("--intensities", action="store_true",
+                   help="the stack holds bright-field intensities: aligned as -ln(I / I0), I0 from vacuum or the "
+                        "slab law (indreg.transmission)")
+    p.add_argument("--max-shift", type=float, default=0.25,
+                   help="largest shift as a fraction of the detector's columns / rows (default 0.25); a shift at "
+                        "it is warned and recorded (align.json: at_bound)")
     p.add_argument("--tilt-axis-angle", type=float, help="degrees from Y, counter-clockwise (IMOD's); default: the "
                                                          ".mdoc's, else 0")
     p.add_argument("--axis-from-stack", action="store_true",
@@ -124,7 +135,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="refine the tilt-axis angle by projection matching (not validated: it stays near its start, "
                         "docs/alignment.md)")
     p.add_argument("--pixel-size", type=float, help="Angstrom per pixel (default: the MRC header's, else 1)")
-    p.add_argument("--thickness", type=int, help="volume depth in pixels of the stack (default: X / 2)")
+    p.add_argument("--thickness", type=int, help="volume depth in pixels of the stack (default: X / 2; a slab: "
+                                                 "measured from a WBP)")
     p.add_argument("--background", default="auto", help="level subtracted for the estimation: auto (the images' "
                                                          "outer frame), none, or a number (default auto)")
     p.add_argument("--bin", type=int, help="binning of the estimation (default: from --max-memory)")
@@ -189,30 +201,6 @@ def _background(stack: np.ndarray, spec: str) -> float:
         return float(spec)
     except ValueError:
         raise ValueError(f"--background must be auto, none or a number, got {spec!r}") from None
-
-
-def _stack_rest(stack: np.ndarray, radians: np.ndarray, rest: float) -> tuple:
-    """``--axis-from-stack``: the tilt axis' angle in the quarter-turned ``stack`` (less its background) from its
-    moment conditions where they determine it, else ``rest`` with a warning; and a record of the estimate."""
-    from .moments import SCAN_DEG, estimate_axis_angle
-
-    if abs(rest) >= SCAN_DEG - 1:
-        log.warning("--axis-from-stack: the given angle is %.2f deg from a quarter turn, beyond the estimate's scan "
-                    "(+-%g): kept", rest, SCAN_DEG - 1)
-        return rest, {"estimated": False, "reason": "beyond the scan"}
-    try:
-        e = estimate_axis_angle(stack, radians)
-    except ValueError as err:
-        log.warning("--axis-from-stack: not estimated (%s): the given angle kept", err)
-        return rest, {"estimated": False, "reason": str(err)}
-    log.info("--axis-from-stack: %s", e.describe())
-    record = {"estimated": True, "rest_deg": e.angle_deg, "se_deg": e.se_deg if math.isfinite(e.se_deg) else None,
-              "determined": e.determined, "given_rest_deg": rest}
-    if not e.determined:
-        log.warning("--axis-from-stack: the tilt-axis angle is not determined by the data (%s): the given angle "
-                    "kept", e.describe())
-        return rest, record
-    return e.angle_deg, record
 
 
 def _rotation(deg: float) -> np.ndarray:
@@ -311,7 +299,7 @@ def _residual(op, x, data) -> float:
     return float(op.inner_data(r, r).sqrt() / op.inner_data(data, data).sqrt())
 
 
-def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
+def _conventions(alignment_files: dict, pixel: float, voxel: float, convention: str = "indreg") -> dict:
     """The conventions of each output file for the run's record (``indreg.io.provenance``)."""
     from .files import CONVENTIONS
 
@@ -320,12 +308,13 @@ def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
               "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
     out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
            for name in alignment_files.values()}
-    out[alignment_files["tlt"]] = {"units": "degree", "contents": "the tilt angles, one a line (indreg's sign)"}
+    sense = "IMOD's sign (--convention imod)" if convention == "imod" else "indreg's sign (--convention indreg)"
+    out[alignment_files["tlt"]] = {"units": "degree", "contents": f"the tilt angles, one a line ({sense})"}
     out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
     out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
                           "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "
                                                             "(scipy.ndimage.affine_transform, bilinear)"}
-    out["aligned.tlt"] = {"units": "degree", "contents": "the aligned stack's tilt angles, one a line"}
+    out["aligned.tlt"] = {"units": "degree", "contents": f"the aligned stack's tilt angles, one a line ({sense})"}
     out["reconstruction.mrc"] = out["reconstruction.zarr"] = volume
     return out
 
@@ -339,8 +328,10 @@ def run(args) -> dict:
     import torch
 
     from .. import io
-    from .fit import projection_matching
     from .files import write_alignment
+    from .app_compact import compact_alignment
+    from .slab_app import (line_integrals, slab_alignment, slab_background, specimen_kind,
+                           wide_reconstruction)
     from .tilt_axis import check_tilt_axis
     from ..io.provenance import write_record
     from ..io.volume_files import write_mrc, write_ome_zarr
@@ -355,6 +346,10 @@ def run(args) -> dict:
     out = Path(args.out or Path(args.stack).with_suffix("").as_posix() + "_align")
     out.mkdir(parents=True, exist_ok=True)
     raw, radians, pixel, axis = _read(args)
+    if not 0 < args.max_shift <= 0.5:
+        raise ValueError(f"--max-shift must be a fraction of the detector in (0, 0.5], got {args.max_shift}")
+    sign = -1.0 if args.convention == "imod" else 1.0   # IMOD's .tlt: indreg's angle is minus IMOD's
+    radians = sign * radians
     quarter = round(axis / 90.0)
     rest = axis - 90.0 * quarter
     rotated = np.ascontiguousarray(np.rot90(raw, k=quarter, axes=(1, 2)))
@@ -365,74 +360,73 @@ def run(args) -> dict:
     if check.direction == "columns" and abs(rest) < 20:
         raise ValueError(f"{args.stack}: {check.describe()}; give --tilt-axis-angle (e.g. {axis + 90:g} or "
                          f"{axis - 90:g})")
+    if args.intensities:
+        rotated, how = line_integrals(rotated, radians)
+        log.info("--intensities: aligned as -ln(I / I0), I0 %s", how)
+    kind, why = specimen_kind(rotated, radians, args.specimen)
+    log.info("specimen: %s (%s)", kind, why)
     K, ny, nx = rotated.shape
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
-    level = _background(rotated, args.background)
-    from_stack = None
-    if args.axis_from_stack:   # binned first (the estimate's bound), so no full-size copy less the background
-        from .moments import binned_within
-
-        rest, from_stack = _stack_rest(binned_within(rotated)[0] - level, radians, rest)
-    M, d = np.tile(_rotation(rest), (K, 1, 1)), np.zeros((K, 2))
-    mode = "shifts+axis" if args.refine_axis else "shifts"
-    if args.refine_axis:
-        log.warning("--refine-axis: the refined tilt-axis angle is not validated: projection matching's SIRT "
-                    "reconstruction takes up a turn of the axis, and the angle stays near its start "
-                    "(docs/alignment.md, issue #39); measure it beforehand where it matters")
     steps = levels(nx, ny, b, args.coarse_bin)
-    history = []
-    for i, bl in enumerate(steps):
-        binned, delta = _bin(rotated, bl)
-        binned -= level
-        nz = max(thickness // bl, 4)
-        rounds = args.rounds if i == 0 else args.fine_rounds
-        log.info("level %d/%d: binned by %d, %d x %d px, volume %d x %d x %d, %d rounds (working set ~%.2f GiB of "
-                 "%.2f)", i + 1, len(steps), bl, binned.shape[2], binned.shape[1], binned.shape[2], binned.shape[1],
-                 nz, rounds, (3 * raw.nbytes + working_set(binned.shape[2], binned.shape[1], nz, K,
-                                                           args.interpolation)) / 2**30, budget / 2**30)
-        data = torch.from_numpy(binned)
-        op0 = _binned_operator(_operator(binned, radians, nz, 0.0).operator, M, d, bl, delta, radians)
-
-        def progress(r, rec, bl=bl, rounds=rounds):
-            log.info("bin %d, round %d/%d: SIRT residual %.4f, largest shift update %.3f px (binned), %.0f s", bl,
-                     r + 1, rounds, rec[0], rec[1], time.perf_counter() - start)
-
-        op, x, records = projection_matching(op0, data, mode, rounds, args.iters, args.interpolation, progress)
-        M, d = _in_stack_pixels(op, bl, delta)
-        history.append({"bin": bl, "shape": list(binned.shape), "rounds": records})
-    after = _residual(op, x, data)
-    alignment = _raw_alignment(M, d, quarter, raw.shape, radians)
+    if kind == "slab":
+        level = slab_background(rotated, radians, args.background, _background)
+        est = slab_alignment(rotated - level, radians, rest, steps, args.rounds, args.fine_rounds, args.thickness,
+                             (args.max_shift * nx, args.max_shift * ny), args.axis_from_stack)
+        M, d, res = est["M"], est["d"], est["result"]
+        history = [{"bin": r["bin"], "round": r["round"], "record": r} for r in res.history]
+        at_bound = [int(k) for k in np.flatnonzero(res.at_bound.any(1))]
+        from_stack = None if est["search"] is None else {"method": "common lines", **est["search"].__dict__}
+    else:
+        level = _background(rotated, args.background)
+        M, d, history, from_stack, op, x, data, at_bound = compact_alignment(
+            args, rotated, radians, rest, steps, level, thickness, raw.nbytes, budget, start)
+    if at_bound:
+        log.warning("%d tilt(s) with a shift at its bound (--max-shift %g of the detector: %s): the data may be "
+                    "misaligned beyond it; raise --max-shift, or check the tilt axis and the stack", len(at_bound),
+                    args.max_shift, at_bound)
+    alignment = _raw_alignment(M, d, quarter, raw.shape, sign * radians)
     record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack)})
     rot_full = _aligned_stack(rotated, M, d)
-    io.write_tilt_series(out / "aligned.mrc", rot_full, radians, pixel_size=pixel)
+    io.write_tilt_series(out / "aligned.mrc", rot_full, sign * radians, pixel_size=pixel)
     rb = args.recon_bin or b
-    if args.recon_bin:
+    if kind == "slab":
+        volume, after = wide_reconstruction(_bin(rot_full, rb)[0] - level, radians, res.thickness / rb,
+                                            res.centre / rb, args.iters)
+        before = None
+    elif args.recon_bin:
+        after = None
         stack_r = _bin(rot_full, rb)[0] - level
         nz = max(thickness // rb, 4)
         rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)
         log.info("reconstruction binned by %d: %d x %d x %d in slabs of %d rows", rb, stack_r.shape[2],
                  stack_r.shape[1], nz, rows)
-        del data, binned, x, op, op0
+        del data, x, op
         volume, after = _slab_sirt(stack_r, radians, nz, args.iters, rows)
     else:
+        after = _residual(op, x, data)
         volume = _reconstruct(op, data, x, args.recon, args.iters, args.tv_weight)
+    if kind != "slab":
+        before = history[0]["rounds"][0][0]
     h = rb * pixel
     origin = [-(n - 1) / 2 * h for n in volume.shape]
     write_mrc(out / "reconstruction.mrc", volume.float().numpy(), (h, h, h), origin)
     if args.zarr:
         write_ome_zarr(out / "reconstruction.zarr", volume.float().numpy(), (h, h, h), origin)
     shifts = alignment.shifts
-    summary = {"residual_before": history[0]["rounds"][0][0], "residual_after": after,
-               "axis_angle_deg": alignment.axis_angle_deg, "shift_range_px": [float(shifts.min()),
-                                                                             float(shifts.max())],
-               "binning": b, "levels": history, "recon_binning": rb, "background": level,
+    summary = {"residual_before": before, "residual_after": after, "specimen": kind, "specimen_reason": why,
+               "convention": args.convention, "axis_angle_deg": alignment.axis_angle_deg,
+               "shift_range_px": [float(shifts.min()), float(shifts.max())], "max_shift": args.max_shift,
+               "at_bound": at_bound, "binning": b, "levels": history, "recon_binning": rb, "background": level,
                "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
                "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
-               "rounds": [r for h_ in history for r in h_["rounds"]],
+               "rounds": [r for h_ in history for r in h_.get("rounds", [h_.get("record")])],
                "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack}
-    summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel),
-                                **summary))
+    if kind == "slab":
+        summary["slab"] = {"thickness_px": res.thickness, "centre_px": res.centre,
+                           "peaks": res.peaks.tolist(), "shifts_axis_frame_px": res.shifts.tolist()}
+    summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel,
+                                                                      args.convention), **summary))
     return summary
 
 
@@ -445,7 +439,8 @@ def main(argv=None) -> int:
     except (ValueError, TypeError, OSError) as e:
         print(f"indreg-align: error: {e}", file=sys.stderr)
         return 2
-    print(f"indreg-align: residual {s['residual_before']:.4f} -> {s['residual_after']:.4f}, tilt axis "
+    before = "slab" if s["residual_before"] is None else f"{s['residual_before']:.4f}"
+    print(f"indreg-align: residual {before} -> {s['residual_after']:.4f}, tilt axis "
           f"{s['axis_angle_deg']:.2f} deg, shifts {s['shift_range_px'][0]:.2f}..{s['shift_range_px'][1]:.2f} px, "
           f"bin {'>'.join(str(lv['bin']) for lv in s['levels'])}, peak {s['peak_rss_bytes'] / 2**30:.2f} GiB, "
           f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU)")

@@ -134,7 +134,8 @@ def first_start(op: AlignedOperator, state: AlignmentState, projection: torch.Te
 
 
 def bounds(op: AlignedOperator) -> torch.Tensor:
-    """``|s|`` bounds per component: ``MAX_SHIFT_FRACTION`` of the detector's pixels.
+    """``|s|`` bounds per component: ``MAX_SHIFT_FRACTION`` of the detector's pixels (or the operator's own
+    ``max_shift_fraction``, set by :func:`projection_matching`).
 
     Parameters
     ----------
@@ -147,7 +148,8 @@ def bounds(op: AlignedOperator) -> torch.Tensor:
         ``(c,)`` float64, pixels (across, [along]).
     """
     sizes = [op.columns, op.rows][:op.components]
-    return torch.tensor([MAX_SHIFT_FRACTION * n for n in sizes], dtype=torch.float64)
+    fraction = getattr(op, "max_shift_fraction", MAX_SHIFT_FRACTION)
+    return torch.tensor([fraction * n for n in sizes], dtype=torch.float64)
 
 
 def gauge(op: AlignedOperator, shifts: torch.Tensor, kind: str = ALIGN_GAUGES[0]) -> torch.Tensor:
@@ -441,7 +443,7 @@ def angle_uncertainty(op: AlignedOperator, image: torch.Tensor, data: torch.Tens
 
 
 def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", rounds: int = 4, iters: int = 50,
-                        interpolation: str = "linear", progress=None) -> tuple:
+                        interpolation: str = "linear", progress=None, max_shift: float | None = None) -> tuple:
     """Alignment without a template (e.g. of the scan a template is made from): ``rounds`` times a nonnegative SIRT
     reconstruction (``iters`` iterations) through the current alignment, then the alignment re-fitted to its
     projection (:func:`estimate`; the first start at the cross-correlation peaks, :func:`coarse_shifts`). The
@@ -468,6 +470,8 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
         The estimates' interpolation.
     progress : callable, optional
         ``progress(round, record)``, called after every round.
+    max_shift : float, optional
+        The shifts' bound as a fraction of the detector's pixels (default ``MAX_SHIFT_FRACTION``).
 
     Returns
     -------
@@ -489,6 +493,8 @@ def projection_matching(operator, data: torch.Tensor, mode: str = "shifts", roun
     if mode == "none":
         raise ValueError("projection_matching needs mode 'shifts' or 'shifts+axis', got 'none'")
     (op, state), records = aligned(operator, mode, "projection_matching", "translation", interpolation), []
+    if max_shift is not None:
+        op.max_shift_fraction = float(max_shift)
     for r in range(rounds):
         x, history = sirt(_bilinear(op), data, num_iter=iters, nonneg=True)
         P, before = op.operator(x), op.shifts.clone()
