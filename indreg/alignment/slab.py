@@ -57,9 +57,11 @@ def _highpass(frames: np.ndarray, sigma: float = HIGHPASS_PX) -> np.ndarray:
     return np.stack([f - gaussian_filter(f, sigma, mode="reflect") for f in frames])
 
 
-def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, centre: float = 0.0) -> tuple:
+def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, centre: float = 0.0,
+                   box_angles: np.ndarray | None = None) -> tuple:
     """The tilt series' operator on the wide box (unit voxels, the detector ``nx`` pixels wide) of a slab
-    ``thickness`` px deep about the depth ``centre``, and one operator per view on the same box."""
+    ``thickness`` px deep about the depth ``centre``, and one operator per view on the same box; the box is
+    widened for ``box_angles`` (default the angles themselves: give the whole series' to compare subsets)."""
     import torch
 
     from ..domain import ImageDomain
@@ -73,7 +75,7 @@ def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, c
         return TiltSeriesTransform(domain, TiltSeriesGeometry(torch.as_tensor(theta, dtype=torch.float64), nx,
                                                               -nx / 2, nx / 2, angle_unit="rad"))
     theta = np.asarray(angles_rad, dtype=np.float64)
-    box = wide_box(make(theta))
+    box = wide_box(make(theta if box_angles is None else np.asarray(box_angles, dtype=np.float64)))
     return box.widen(make(theta)), [box.widen(make(theta[k:k + 1])) for k in range(len(theta))]
 
 
