@@ -242,7 +242,7 @@ def _spread(g: torch.Tensor) -> float:
     """The data's range between the 0.5 and 99.5 percentiles (a subsample of at most 10^6 values)."""
     flat = g.reshape(-1)
     if flat.numel() > 10 ** 6:
-        flat = flat[torch.linspace(0, flat.numel() - 1, 10 ** 6).long()]
+        flat = flat[torch.linspace(0, flat.numel() - 1, 10 ** 6, dtype=torch.float64).long()]
     lo, hi = torch.quantile(flat, torch.tensor([0.005, 0.995], dtype=flat.dtype))
     return float(hi - lo)
 

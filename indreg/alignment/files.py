@@ -381,8 +381,8 @@ CONVENTIONS = {
     "map": "a point q of the aligned image is seen at p = matrix q + shift in the raw image",
     "xf": "IMOD: A = inverse(matrix), D = -A shift; newstack -xf makes the aligned stack (u' = A u + D)",
     "aln": "AreTomo: ROT = rotation angle of matrix (degrees, counter-clockwise), (TX, TY) = shift; SEC 0-based",
-    "tilt_angles": "degrees, indreg's angle (docs/tilt_series.md; IMOD's projection convention: "
-                   "docs/file_formats.md)",
+    "tilt_angles": "degrees, in the sign of the writer's convention (indreg-align: --convention, IMOD's by "
+                   "default; indreg's angle is minus IMOD's: docs/file_formats.md, IMOD's projection convention)",
     "axis_angle": "the maps' mean rotation, degrees from Y counter-clockwise (IMOD's rotation angle)",
 }
 
