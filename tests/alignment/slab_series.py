@@ -50,10 +50,11 @@ def axis_frame_shifts(shifts: np.ndarray, alpha_deg: float) -> np.ndarray:
     return shifts @ R
 
 
-def gauge_rms(v: np.ndarray, truth: np.ndarray, deg: np.ndarray) -> tuple:
-    """RMS (across, along) of ``v - truth`` with ``a cos + b sin`` removed across the axis and the mean along it."""
+def gauge_rms(v: np.ndarray, truth: np.ndarray, deg: np.ndarray, constant: bool = False) -> tuple:
+    """RMS (across, along) of ``v - truth`` with ``a cos + b sin`` (with ``constant`` also ``c``: the tilt axis'
+    offset) removed across the axis and the mean along it."""
     theta = np.radians(deg)
-    B = np.stack([np.cos(theta), np.sin(theta)], 1)
+    B = np.stack([np.cos(theta), np.sin(theta)] + ([np.ones_like(theta)] if constant else []), 1)
     e = v - truth
     across = e[:, 0] - B @ np.linalg.lstsq(B, e[:, 0], rcond=None)[0]
     along = e[:, 1] - e[:, 1].mean()
