@@ -34,13 +34,16 @@ import numpy as np
 
 from .xcorr import BAND, TAPER, axis_frame, coarse_alignment, correlate, taper_window
 
-__all__ = ["HIGHPASS_PX", "SlabAlignment", "binned", "gauge_fix", "leave_one_out", "match_views",
+__all__ = ["HIGHPASS_PX", "SEARCH_PX", "SlabAlignment", "binned", "gauge_fix", "leave_one_out", "match_views",
            "slab_operators", "slab_projection_matching", "specimen_depth"]
 
 log = logging.getLogger("indreg.align")
 
 #: Gaussian width (px of the level) of the smooth part subtracted before the WBP and the match.
 HIGHPASS_PX = 8.0
+#: Largest move of a view in one round (px of the level): the cross-correlation starts it within a few pixels, and
+#: a wider search lets a weak view (the highest tilts of a slab) jump to a false peak.
+SEARCH_PX = 3.0
 
 
 def binned(stack: np.ndarray, b: int) -> np.ndarray:
@@ -225,7 +228,7 @@ def slab_projection_matching(lines: np.ndarray, angles_rad: np.ndarray, alpha_de
             v = gauge_fix(coarse.shifts * b, angles)
             history.append({"bin": b, "round": "xcorr", "peak_mean": float(coarse.peaks.mean()),
                             "seconds": time.perf_counter() - clock})
-        limit = (max(2.0, lines_b.shape[2] / 16), max(2.0, lines_b.shape[1] / 16))
+        limit = (SEARCH_PX, SEARCH_PX)
         ops = slab_operators(angles, lines_b.shape[2], lines_b.shape[1], depth / b, centre / b)
         for r in range(count):
             v, d, peaks, volume = _round(lines_b, angles, alpha_deg, v, b, ops, bound_b, limit)
