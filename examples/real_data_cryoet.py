@@ -32,7 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import indreg   # noqa: F401  (first: it sets the OpenMP policy before torch loads)
+import indreg  # noqa: F401  (first: it sets the OpenMP policy before torch loads)
 import numpy as np
 import torch
 

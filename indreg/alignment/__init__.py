@@ -7,7 +7,10 @@ or without a template (``projection_matching``, the ``indreg-align`` app: :mod:`
 declared state (:mod:`~indreg.alignment.state`) and choices (:mod:`~indreg.alignment.modes`, importable without
 torch); the tilt-axis angle from the stack alone (:mod:`~indreg.alignment.moments`) and the tilt axis in the
 detector (:mod:`~indreg.alignment.tilt_axis`); other tools' alignment files (:mod:`~indreg.alignment.files`:
-IMOD ``.xf``, AreTomo ``.aln``, indreg's ``align.json``). See docs/alignment.md.
+IMOD ``.xf``, AreTomo ``.aln``, indreg's ``align.json``); for a slab wider than the detector the stretched
+cross-correlation (:mod:`~indreg.alignment.xcorr`), leave-one-out projection matching through the wide box
+(:mod:`~indreg.alignment.slab`, ``indreg-align``'s path: :mod:`~indreg.alignment.slab_app`) and the tilt axis by
+common lines (:mod:`~indreg.alignment.axis_search`). See docs/alignment.md.
 
 The public names are imported on first use: ``import indreg.alignment`` loads no torch.
 """
@@ -27,6 +30,9 @@ _HOME = {
                      "stack_angle", "summary", "wrap"), "solver"),
     **dict.fromkeys(("AxisEstimate", "estimate_axis_angle"), "moments"),
     **dict.fromkeys(("Alignment", "read_alignment", "write_alignment", "to_operator", "from_operator"), "files"),
+    **dict.fromkeys(("CoarseAlignment", "axis_frame", "coarse_alignment"), "xcorr"),
+    **dict.fromkeys(("SlabAlignment", "slab_projection_matching"), "slab"),
+    **dict.fromkeys(("AxisSearch", "search_axis_angle"), "axis_search"),
 }
 __all__ = sorted(_HOME)
 
