@@ -9,15 +9,16 @@ tilt, ``|s| <= (W / 2) cos(theta_k)`` (the mid-plane's ``|x| <= W / 2``, tapered
 (``indreg.alignment.slab``); no reconstruction takes part, so no turn of the specimen about the beam can take the
 angle up (the reason ``projection_matching``'s refinement is not trusted, docs/alignment.md).
 
-Convention:
-    - The score of a trial angle: the mean over the views of the correlation coefficient of the view's
-      high-passed profile with the views' mean profile, each view moved along the axis to its best match (within
-      :data:`ALONG_PX` px, a parabola through the peak).
-    - The scan: ``alpha0 +- span`` every ``step`` degrees; the estimate is the vertex of the parabola through the
-      best trial and its neighbours; the rows are split in halves (two independent parts of the specimen), each
-      scanned alike, and the standard error is the larger of half the halves' difference and the whole's
-      distance from their mean. Not determined (with the reason) where a best score lies at the scan's end, the
-      parabola has no maximum, or the standard error exceeds :data:`MAX_SE_DEG`.
+Notes
+-----
+- The score of a trial angle: the mean over the views of the correlation coefficient of the view's
+  high-passed profile with the views' mean profile, each view moved along the axis to its best match (within
+  :data:`ALONG_PX` px, a parabola through the peak).
+- The scan: ``alpha0 +- span`` every ``step`` degrees; the estimate is the vertex of the parabola through the
+  best trial and its neighbours; the rows are split in halves (two independent parts of the specimen), each
+  scanned alike, and the standard error is the larger of half the halves' difference and the whole's
+  distance from their mean. Not determined (with the reason) where a best score lies at the scan's end, the
+  parabola has no maximum, or the standard error exceeds :data:`MAX_SE_DEG`.
 """
 from __future__ import annotations
 
@@ -83,9 +84,23 @@ def _vertex(x: np.ndarray, y: np.ndarray) -> tuple:
 
 @dataclass(frozen=True)
 class AxisSearch:
-    """:func:`search_axis_angle`'s result: ``angle_deg`` (None when not found), ``se_deg`` (None when not
-    determined), ``determined``, ``reason`` (why not), ``halves_deg`` (the two halves' estimates), ``scan``
-    (``(trial, score)`` pairs)."""
+    """:func:`search_axis_angle`'s result.
+
+    Attributes
+    ----------
+    angle_deg : float or None
+        The estimate (None when not found).
+    se_deg : float or None
+        Its standard error (None when not determined).
+    determined : bool
+        Whether the data determine it (module Notes).
+    reason : str
+        Why not, where not.
+    halves_deg : tuple
+        The two halves' estimates.
+    scan : list
+        ``(trial, score)`` pairs.
+    """
     angle_deg: float | None
     se_deg: float | None
     determined: bool

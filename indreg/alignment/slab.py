@@ -7,21 +7,22 @@ contribution* (leave-one-out: a view's own back-projection would pull the match 
 band-passed, tapered cross-correlation's peak moves the view. The cross-correlation with cosine stretching starts
 it (``indreg.alignment.xcorr.coarse_alignment``).
 
-Convention:
-    - Line integrals in, a stack ``(K, ny, nx)`` (``indreg.transmission`` turns intensities into them); shifts
-      ``(K, 2)`` in pixels of the full-size stack, across / along the tilt axis in the axis frame
-      (``indreg.alignment.xcorr``'s Convention); levels binned by powers of 2 (``indreg.alignment.app.levels``).
-    - Leave-one-out: with ``q`` the WBP-filtered views and ``x = T^* q``, view ``k``'s reference is ``T_k x -
-      T_k T_k^* q_k`` (``T_k`` the view's own operator on the same wide box), exact for the discretised operator.
-    - Each view is compared where every view sees the same part of the slab: ``|s| <= (W / 2) cos(theta_k)``
-      across the axis (the mid-plane seen at tilt 0), tapered; both images high-passed (a Gaussian of
-      :data:`HIGHPASS_PX` px subtracted) before the WBP and the match, so the slab's smooth thickness profile and
-      the detector's edges take no part.
-    - Gauge: across the axis ``a cos(theta) + b sin(theta)`` (a translation of the specimen) is removed every
-      round, along it the mean; what is left is what the data determine.
-    - The box: ``thickness`` px deep about the depth ``centre`` (px from the volume's middle), widened so that every
-      ray of every tilt through it reaches it (``indreg.forward.wide_box.wide_box``). :func:`specimen_depth`
-      measures the depth from a WBP of a thick box.
+Notes
+-----
+- Line integrals in, a stack ``(K, ny, nx)`` (``indreg.transmission`` turns intensities into them); shifts
+  ``(K, 2)`` in pixels of the full-size stack, across / along the tilt axis in the axis frame
+  (``indreg.alignment.xcorr``'s Notes); levels binned by powers of 2 (``indreg.alignment.app.levels``).
+- Leave-one-out: with ``q`` the WBP-filtered views and ``x = T^* q``, view ``k``'s reference is ``T_k x -
+  T_k T_k^* q_k`` (``T_k`` the view's own operator on the same wide box), exact for the discretised operator.
+- Each view is compared where every view sees the same part of the slab: ``|s| <= (W / 2) cos(theta_k)``
+  across the axis (the mid-plane seen at tilt 0), tapered; both images high-passed (a Gaussian of
+  :data:`HIGHPASS_PX` px subtracted) before the WBP and the match, so the slab's smooth thickness profile and
+  the detector's edges take no part.
+- Gauge: across the axis ``a cos(theta) + b sin(theta)`` (a translation of the specimen) is removed every
+  round, along it the mean; what is left is what the data determine.
+- The box: ``thickness`` px deep about the depth ``centre`` (px from the volume's middle), widened so that every
+  ray of every tilt through it reaches it (``indreg.forward.wide_box.wide_box``). :func:`specimen_depth`
+  measures the depth from a WBP of a thick box.
 """
 from __future__ import annotations
 
@@ -97,7 +98,7 @@ def _filtered(T, frames):
 
 def leave_one_out(T, views: list, frames: np.ndarray) -> tuple:
     """Every view's reference: the re-projection of the WBP of ``frames`` (already high-passed) less the view's own
-    contribution (module Convention). Returns ``(references (K, ny, nx), volume)`` as numpy arrays."""
+    contribution (module Notes). Returns ``(references (K, ny, nx), volume)`` as numpy arrays."""
     q = _filtered(T, frames)
     x = T.adjoint(q)
     P = T(x)
@@ -110,7 +111,7 @@ def leave_one_out(T, views: list, frames: np.ndarray) -> tuple:
 def match_views(references: np.ndarray, frames: np.ndarray, angles_rad: np.ndarray, limit: tuple,
                 band: tuple = BAND, taper: float = TAPER) -> tuple:
     """Each view's shift against its reference (``indreg.alignment.xcorr.correlate``) where every view sees the same
-    part of the slab (module Convention), and the correlation coefficients: ``(d (K, 2), peaks (K,))``."""
+    part of the slab (module Notes), and the correlation coefficients: ``(d (K, 2), peaks (K,))``."""
     K, ny, nx = frames.shape
     d, peaks = np.zeros((K, 2)), np.zeros(K)
     for k in range(K):
@@ -147,10 +148,23 @@ def specimen_depth(volume, field: tuple, fraction: float = 0.25) -> tuple:
 
 @dataclass
 class SlabAlignment:
-    """:func:`slab_projection_matching`'s result: ``shifts`` ``(K, 2)`` px of the full-size stack (axis frame,
-    across / along, in the gauge), ``peaks`` ``(K,)`` the last round's correlation coefficients, ``at_bound``
-    ``(K, 2)``, ``bound`` (px), ``thickness`` / ``centre`` (px, the box used at the finest level), ``history``
-    one record per round."""
+    """:func:`slab_projection_matching`'s result.
+
+    Attributes
+    ----------
+    shifts : numpy.ndarray
+        ``(K, 2)`` px of the full-size stack (axis frame, across / along, in the gauge).
+    peaks : numpy.ndarray
+        ``(K,)`` the last round's correlation coefficients.
+    at_bound : numpy.ndarray
+        ``(K, 2)`` whether a shift ended at its bound.
+    bound : tuple
+        ``(across, along)`` px.
+    thickness, centre : float
+        The box used at the finest level (px, full size).
+    history : list
+        One record per round.
+    """
     shifts: np.ndarray
     peaks: np.ndarray
     at_bound: np.ndarray

@@ -3,11 +3,12 @@ line integrals of bright-field intensities (``--intensities``), the alignment (`
 stretched cross-correlation, then leave-one-out projection matching through the wide box), the tilt axis' angle by
 common lines (``indreg.alignment.axis_search``) and the reconstruction on the wide box.
 
-Convention:
-    - ``--specimen auto`` asks the detector's border (``indreg.border.check_border``): ``"specimen"`` (no vacuum:
-      the specimen runs beyond the detector) takes this path, ``"vacuum"`` or ``"unclear"`` the compact one.
-    - The shifts come back as the maps of the quarter-turned stack, ``p = M q + d`` with ``M = R(alpha)`` and ``d =
-      R(alpha) v`` (``indreg.alignment.xcorr``'s Convention), in its full-size pixels.
+Notes
+-----
+- ``--specimen auto`` asks the detector's border (``indreg.border.check_border``): ``"specimen"`` (no vacuum:
+  the specimen runs beyond the detector) takes this path, ``"vacuum"`` or ``"unclear"`` the compact one.
+- The shifts come back as the maps of the quarter-turned stack, ``p = M q + d`` with ``M = R(alpha)`` and ``d =
+  R(alpha) v`` (``indreg.alignment.xcorr``'s Notes), in its full-size pixels.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ SPECIMENS = ("auto", "compact", "slab")
 
 
 def specimen_kind(stack: np.ndarray, radians: np.ndarray, spec: str) -> tuple:
-    """``("slab" | "compact", reason)`` for ``--specimen spec`` (module Convention)."""
+    """``("slab" | "compact", reason)`` for ``--specimen spec`` (module Notes)."""
     if spec not in SPECIMENS:
         raise ValueError(f"--specimen must be one of {', '.join(SPECIMENS)}, got {spec!r}")
     if spec != "auto":
@@ -61,7 +62,7 @@ def slab_alignment(lines: np.ndarray, radians: np.ndarray, rest: float, steps: l
                    fine_rounds: int, thickness, bound: tuple, search_axis: bool) -> dict:
     """Align the quarter-turned stack of line integrals ``lines`` (tilt axis ``rest`` degrees from Y) coarse to
     fine over the binnings ``steps``; with ``search_axis`` the angle by common lines after the coarsest level
-    (kept where determined). Returns ``M`` ``(K, 2, 2)``, ``d`` ``(K, 2)`` (module Convention), the
+    (kept where determined). Returns ``M`` ``(K, 2, 2)``, ``d`` ``(K, 2)`` (module Notes), the
     ``SlabAlignment``, the axis search (or None), the angle used."""
     from .axis_search import search_axis_angle
     from .slab import binned, slab_projection_matching

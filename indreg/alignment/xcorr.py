@@ -6,21 +6,22 @@ It needs no reconstruction and no object inside the field of view, so it starts 
 (``indreg.alignment.slab``), and its correlation peaks measure how well a trial tilt-axis angle fits
 (``indreg.alignment.axis_search``).
 
-Convention:
-    - The axis frame: images ``(K, rows, columns)`` resampled so that the tilt axis runs along the rows (Y), the
-      columns across it; pixel ``(i, j)`` at ``q = (j - (nx - 1) / 2, i - (ny - 1) / 2)`` (x across, y along).
-    - A view's shift ``v_k = (across, along)`` in pixels of the axis frame: its content lies at ``q + v_k``, so the
-      raw stack holds it at ``p = R(alpha) (q + v_k)`` (:func:`axis_frame`; ``R`` counter-clockwise, ``alpha`` the
-      tilt axis' angle from Y, IMOD's). In ``indreg.alignment.files``' terms: the map ``M = R(alpha)`` and the shift
-      ``d = R(alpha) v``.
-    - Stretching: a point of the mid-plane at ``x`` across the axis projects to ``x cos(theta)``; the view at the
-      larger tilt is stretched by ``cos(theta_near) / cos(theta_far)`` about the axis before it is correlated
-      with its neighbour, so the measured shift ``r = v_far / c - v_near`` (``c`` the ratio) across the axis.
-    - Filter (IMOD's defaults for ``tiltxcorr``, in cycles per pixel): a Gaussian high-pass ``1 - exp(-f^2 /
-      2 sigma1^2)``, ``sigma1 = 0.03``, and a Gaussian fall-off above ``radius2 = 0.25`` with ``sigma2 = 0.05``;
-      a cosine taper over ``taper`` of each image side; the correlation padded (no wrap-around).
-    - Bound: ``|v| <= bound`` pixels per component (the peak searched within twice that between neighbours); a
-      shift that ends at its bound is counted in ``at_bound``.
+Notes
+-----
+- The axis frame: images ``(K, rows, columns)`` resampled so that the tilt axis runs along the rows (Y), the
+  columns across it; pixel ``(i, j)`` at ``q = (j - (nx - 1) / 2, i - (ny - 1) / 2)`` (x across, y along).
+- A view's shift ``v_k = (across, along)`` in pixels of the axis frame: its content lies at ``q + v_k``, so the
+  raw stack holds it at ``p = R(alpha) (q + v_k)`` (:func:`axis_frame`; ``R`` counter-clockwise, ``alpha`` the
+  tilt axis' angle from Y, IMOD's). In ``indreg.alignment.files``' terms: the map ``M = R(alpha)`` and the shift
+  ``d = R(alpha) v``.
+- Stretching: a point of the mid-plane at ``x`` across the axis projects to ``x cos(theta)``; the view at the
+  larger tilt is stretched by ``cos(theta_near) / cos(theta_far)`` about the axis before it is correlated
+  with its neighbour, so the measured shift ``r = v_far / c - v_near`` (``c`` the ratio) across the axis.
+- Filter (IMOD's defaults for ``tiltxcorr``, in cycles per pixel): a Gaussian high-pass ``1 - exp(-f^2 /
+  2 sigma1^2)``, ``sigma1 = 0.03``, and a Gaussian fall-off above ``radius2 = 0.25`` with ``sigma2 = 0.05``;
+  a cosine taper over ``taper`` of each image side; the correlation padded (no wrap-around).
+- Bound: ``|v| <= bound`` pixels per component (the peak searched within twice that between neighbours); a
+  shift that ends at its bound is counted in ``at_bound``.
 """
 from __future__ import annotations
 
@@ -44,9 +45,25 @@ def _rotation(deg: float) -> np.ndarray:
 
 
 def axis_frame(stack: np.ndarray, alpha_deg: float, shifts: np.ndarray | None = None, order: int = 1) -> np.ndarray:
-    """The raw ``stack`` ``(K, ny, nx)`` resampled into the axis frame (module Convention): ``frame_k(q) =
-    stack_k(R(alpha) (q + v_k))``, ``v = shifts`` ``(K, 2)`` px (zeros when None), spline ``order`` (1:
-    bilinear), the nearest edge pixel beyond the image."""
+    """The raw ``stack`` resampled into the axis frame (module Notes): ``frame_k(q) = stack_k(R(alpha) (q +
+    v_k))``, the nearest edge pixel beyond the image.
+
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(K, ny, nx)`` views as stored.
+    alpha_deg : float
+        The tilt axis' angle from Y, counter-clockwise (degrees).
+    shifts : numpy.ndarray, optional
+        ``v``, ``(K, 2)`` px (across, along); zeros when None.
+    order : int
+        The spline order (1: bilinear).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(K, ny, nx)`` float64, the tilt axis along the rows.
+    """
     from scipy.ndimage import affine_transform
 
     K, ny, nx = stack.shape
@@ -73,7 +90,7 @@ def taper_window(rows: int, columns: int, fraction: float = TAPER, half_width: f
 
 
 def band_pass(shape: tuple, band: tuple = BAND) -> np.ndarray:
-    """The real-FFT filter (module Convention) of images ``shape`` (the padded size), frequencies in cycles per
+    """The real-FFT filter (module Notes) of images ``shape`` (the padded size), frequencies in cycles per
     pixel."""
     sigma1, radius2, sigma2 = band
     f = np.hypot(np.fft.fftfreq(shape[0])[:, None], np.fft.rfftfreq(shape[1])[None, :])
@@ -127,10 +144,21 @@ def _prepared(image: np.ndarray, window: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CoarseAlignment:
-    """:func:`coarse_alignment`'s result: ``shifts`` ``(K, 2)`` px (across, along; module Convention), ``peaks``
-    ``(K,)`` the correlation coefficient of each view with its neighbour (1 at the zero tilt), ``at_bound``
-    ``(K, 2)`` whether a shift ended at its bound, ``bound`` (px per component), ``zero`` the zero tilt's
-    index."""
+    """:func:`coarse_alignment`'s result.
+
+    Attributes
+    ----------
+    shifts : numpy.ndarray
+        ``(K, 2)`` px (across, along; module Notes).
+    peaks : numpy.ndarray
+        ``(K,)`` the correlation coefficient of each view with its neighbour (1 at the zero tilt).
+    at_bound : numpy.ndarray
+        ``(K, 2)`` whether a shift ended at its bound.
+    bound : tuple
+        ``(across, along)`` px.
+    zero : int
+        The zero tilt's index.
+    """
     shifts: np.ndarray
     peaks: np.ndarray
     at_bound: np.ndarray
@@ -141,7 +169,7 @@ class CoarseAlignment:
 def coarse_alignment(frames: np.ndarray, angles_rad: np.ndarray, bound: tuple | None = None,
                      band: tuple = BAND, taper: float = TAPER) -> CoarseAlignment:
     """Shifts of ``frames`` (``(K, rows, columns)`` in the axis frame, line integrals or any contrast of one
-    sign) by stretched cross-correlation of neighbours, outward from the tilt nearest 0 (module Convention).
+    sign) by stretched cross-correlation of neighbours, outward from the tilt nearest 0 (module Notes).
 
     Parameters
     ----------
