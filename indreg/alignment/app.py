@@ -125,7 +125,7 @@ def _parser() -> argparse.ArgumentParser:
                         "specimen, not vacuum (default)")
     p.add_argument("--intensities", action="store_true",
                    help="the stack holds bright-field intensities: aligned as -ln(I / I0), I0 from vacuum or the "
-                        "slab law (indreg.transmission)")
+                        "slab law (indreg.units.transmission)")
     p.add_argument("--max-shift", type=float, default=0.25,
                    help="largest shift as a fraction of the detector's columns / rows (default 0.25); a shift at "
                         "it is warned and recorded (align.json: at_bound)")

@@ -9,7 +9,7 @@ it (``indreg.alignment.xcorr.coarse_alignment``).
 
 Notes
 -----
-- Line integrals in, a stack ``(K, ny, nx)`` (``indreg.transmission`` turns intensities into them); shifts
+- Line integrals in, a stack ``(K, ny, nx)`` (``indreg.units.transmission`` turns intensities into them); shifts
   ``(K, 2)`` in pixels of the full-size stack, across / along the tilt axis in the axis frame
   (``indreg.alignment.xcorr``'s Notes); levels binned by powers of 2 (``indreg.alignment.app.levels``).
 - Leave-one-out: with ``q`` the WBP-filtered views and ``x = T^* q``, view ``k``'s reference is ``T_k x -

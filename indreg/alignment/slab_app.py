@@ -5,7 +5,7 @@ common lines (``indreg.alignment.axis_search``) and the reconstruction on the wi
 
 Notes
 -----
-- ``--specimen auto`` asks the detector's border (``indreg.border.check_border``): ``"specimen"`` (no vacuum:
+- ``--specimen auto`` asks the detector's border (``indreg.units.border.check_border``): ``"specimen"`` (no vacuum:
   the specimen runs beyond the detector) takes this path, ``"vacuum"`` or ``"unclear"`` the compact one.
 - The shifts come back as the maps of the quarter-turned stack, ``p = M q + d`` with ``M = R(alpha)`` and ``d =
   R(alpha) v`` (``indreg.alignment.xcorr``'s Notes), in its full-size pixels.
@@ -32,7 +32,7 @@ def specimen_kind(stack: np.ndarray, radians: np.ndarray, spec: str) -> tuple:
         return spec, "given (--specimen)"
     import torch
 
-    from ..border import check_border
+    from ..units.border import check_border
     from .moments import binned_within
 
     small = binned_within(stack)[0]
@@ -42,11 +42,11 @@ def specimen_kind(stack: np.ndarray, radians: np.ndarray, spec: str) -> tuple:
 
 
 def line_integrals(stack: np.ndarray, radians: np.ndarray) -> tuple:
-    """``(p, how)``: ``-ln(I / I0)`` of bright-field intensities (``indreg.transmission.line_integrals``: I0 from
+    """``(p, how)``: ``-ln(I / I0)`` of bright-field intensities (``indreg.units.transmission.line_integrals``: I0 from
     vacuum at the border, else the slab law), float32."""
     import torch
 
-    from ..transmission import line_integrals as _line_integrals
+    from ..units.transmission import line_integrals as _line_integrals
 
     p, t = _line_integrals(torch.from_numpy(np.ascontiguousarray(stack, dtype=np.float64)), radians,
                            label="--intensities")
@@ -107,12 +107,12 @@ def wide_reconstruction(aligned: np.ndarray, radians: np.ndarray, thickness: flo
 
 def slab_background(stack: np.ndarray, radians: np.ndarray, spec: str, otherwise) -> float:
     """A slab's level for ``--background``: ``auto`` the slab law's intercept over the views' means (a slab's line
-    integrals have no offset; ``indreg.border.background_level``), else ``otherwise(stack, spec)``."""
+    integrals have no offset; ``indreg.units.border.background_level``), else ``otherwise(stack, spec)``."""
     if spec != "auto":
         return otherwise(stack, spec)
     import torch
 
-    from ..border import background_level
+    from ..units.border import background_level
 
     level, _, how = background_level(torch.from_numpy(np.ascontiguousarray(stack, dtype=np.float64)), radians)
     log.info("background: %s (%.6g subtracted)", how, level)

@@ -507,11 +507,11 @@ INPUTS = (
     Option("transmission", "data", "transmission", None, auto_or(_positive, "a finite number > 0 (I0)"),
            "bright-field / transmission intensities made line integrals -ln(I / I0): 'auto' or I0 (None: the data "
            "are line integrals); 'auto' takes I0 from the frames' vacuum, else the slab law -ln<I> = a / cos(theta "
-           "- theta0) + b (indreg.transmission)", Optional[Any]),
+           "- theta0) + b (indreg.units.transmission)", Optional[Any]),
     Option("background", "data", "background", None, auto_or(number(), "a finite number"),
            "an offset subtracted from the data: None (a warning when they look offset), 'auto' or a number; 'auto' "
            "takes the vacuum's level at the detector's border, or a slab tilt series' intercept, never the level of "
-           "a border that is specimen (indreg.border); a number that makes most of the data negative is refused",
+           "a border that is specimen (indreg.units.border); a number that makes most of the data negative is refused",
            Optional[Any]),
     Option("wide_box", "data", "wide_box", "auto", choice(("auto", True, False)),
            "a box wider than the detector for a specimen wider than it: 'auto' (where the border is specimen), True "

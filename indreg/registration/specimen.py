@@ -2,7 +2,7 @@
 template padded to it (the options ``wide_box``, ``slab_thickness``, ``slab_extent``, ``template_padding``).
 
 - **whether** (``wide_box="auto"``, the default): when the detector's border sees specimen, not vacuum
-  (``indreg.border.check_border``, recorded as ``Units.border``): material outside the detector-wide box then adds to
+  (``indreg.units.border.check_border``, recorded as ``Units.border``): material outside the detector-wide box then adds to
   the data. ``True``: always; ``False``: never.
 - **thickness** (``slab_thickness`` None): the template's support along the beam axis at angle 0 (the planes whose mean
   differs from the empty faces', ``indreg.forward.wide_box.slab_thickness``), else the box's own thickness.

@@ -1,4 +1,4 @@
-"""Vacuum or specimen at the detector's border (indreg.border): the slab law, the decision on vacuum, slab and
+"""Vacuum or specimen at the detector's border (indreg.units.border): the slab law, the decision on vacuum, slab and
 region-of-interest frames, the background 'auto' takes, the refusal of a background that makes most data negative and
 the offset advice that never names a specimen's border."""
 import logging
@@ -10,7 +10,7 @@ import torch
 
 import indreg
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform, phantoms
-from indreg.border import MOST, background_level, check_border, negative_fraction, slab_law
+from indreg.units.border import MOST, background_level, check_border, negative_fraction, slab_law
 from indreg.forward.wide_box import wide_box
 from indreg.units import check_offset
 

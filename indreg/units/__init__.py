@@ -77,9 +77,9 @@ class Units:
     the relative residual ``||n|| / ||g||`` that the data's noise alone explains (:func:`noise_residual`);
     ``target_units``: ``"data"`` or ``"template"`` (as given), the units of a ground truth, where SSIM / PSNR
     score the reconstruction (:meth:`locate_target`, :meth:`to_target_units`). ``transmission``: how ``I0`` was found
-    for intensities (``indreg.transmission``; ``""``: the data are line integrals), ``i0`` the ``I0`` of every
+    for intensities (``indreg.units.transmission``; ``""``: the data are line integrals), ``i0`` the ``I0`` of every
     projection (None: none), ``i0_floor`` what values <= 0 were raised to; ``border``: what the detector's outermost
-    columns are (``indreg.border.check_border``: ``vacuum``, ``specimen`` or ``unclear``); ``box_width``,
+    columns are (``indreg.units.border.check_border``: ``vacuum``, ``specimen`` or ``unclear``); ``box_width``,
     ``slab_thickness``, ``slab_extent``: the wide box of a specimen wider than the field of view
     (``indreg.registration.specimen``; 1.0 and NaN: none)."""
     template_scale: float = 1.0
@@ -172,8 +172,8 @@ def check_offset(data: torch.Tensor, label: str, angles=None, check=None) -> Non
         The background option as the user names it.
     angles : array_like, optional
         Radians, one per projection (the slab law).
-    check : indreg.border.BorderCheck, optional
-        The border's decision, if made (else ``indreg.border.check_border``).
+    check : indreg.units.border.BorderCheck, optional
+        The border's decision, if made (else ``indreg.units.border.check_border``).
     """
     from .border import check_border, slab_offset
 
@@ -202,8 +202,8 @@ def check_offset(data: torch.Tensor, label: str, angles=None, check=None) -> Non
 
 
 def _background(data: torch.Tensor, background, angles, check, label: str) -> float:
-    """The level that ``background`` (``"auto"`` or a number) subtracts (``indreg.border.background_level``); a number
-    that would make more than ``indreg.border.MOST`` of the data negative beyond the noise is refused."""
+    """The level that ``background`` (``"auto"`` or a number) subtracts (``indreg.units.border.background_level``); a number
+    that would make more than ``indreg.units.border.MOST`` of the data negative beyond the noise is refused."""
     from .border import MOST, background_level, negative_fraction
 
     if background == "auto":
@@ -263,7 +263,7 @@ def _template_factor(template_scale, units: Units, key: str) -> float:
 
 
 def _transmission(units: Units, data: torch.Tensor, angles, transmission, label: str) -> None:
-    """``units.i0`` / ``i0_floor`` / ``transmission`` for intensities (``indreg.transmission.line_integrals``)."""
+    """``units.i0`` / ``i0_floor`` / ``transmission`` for intensities (``indreg.units.transmission.line_integrals``)."""
     import numpy as np
 
     from .transmission import line_integrals
@@ -293,9 +293,9 @@ def measure(template: torch.Tensor, data: torch.Tensor, operator, background=Non
     """What the inputs' units are, before anything is applied.
 
     ``transmission`` (None: the data are line integrals; ``"auto"`` or a number ``I0``): intensities become
-    ``-ln(I / I0)`` first (``indreg.transmission.line_integrals``). The detector's border is then checked for vacuum
-    or specimen (``indreg.border.check_border``, ``Units.border``). ``background`` (None, ``"auto"``:
-    ``indreg.border.background_level``, the vacuum's level or a slab law's intercept, or a number: refused when it
+    ``-ln(I / I0)`` first (``indreg.units.transmission.line_integrals``). The detector's border is then checked for vacuum
+    or specimen (``indreg.units.border.check_border``, ``Units.border``). ``background`` (None, ``"auto"``:
+    ``indreg.units.border.background_level``, the vacuum's level or a slab law's intercept, or a number: refused when it
     would make most of the data negative) is the offset to subtract from the data; without it a warning when the
     data look offset (:func:`check_offset`). Then :func:`compare_units` compares the template's projection with the
     data (a template None, unknown, is not compared).

@@ -97,7 +97,7 @@ def test_suite1_at_255_with_auto_matches_the_x1_run(caplog):
     equals the x1 run (SSIM against the target within 0.005)."""
     import sys
     from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).parent / "experiments"))
+    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
     from golden_helpers import suite1_problem
 
     template, data, T, target = suite1_problem()

@@ -4,7 +4,7 @@ A bright-field electron micrograph or an X-ray radiograph records the transmitte
 ``I = I0 exp(-integral mu)`` (Beer-Lambert); the ray transform's data are the line integrals ``p = -ln(I / I0)``.
 ``I0``, the intensity without a specimen, is found from the data (:func:`line_integrals`):
 
-- **vacuum**: where the detector's border sees none of the specimen (``indreg.border.check_border`` on ``-ln I``),
+- **vacuum**: where the detector's border sees none of the specimen (``indreg.units.border.check_border`` on ``-ln I``),
   ``I0`` of projection k is its border's level, ``exp(-median(-ln I))`` there: a per-tilt exposure is then measured
   by every frame's own vacuum.
 - **slab law**: a specimen wider than the field of view (no vacuum in the frame) has a mean transmission that follows
@@ -14,7 +14,7 @@ A bright-field electron micrograph or an X-ray radiograph records the transmitte
   the data say so: the plain law fails (its ``a <= 0``: the means fall with the tilt) or its residual at least halves,
   and ``|n|`` exceeds 3 standard errors and ``MIN_POWER``. The two terms are nearly collinear over +-60 degrees, so
   ``I0`` is then rough (``n = 1.07`` and ``I0`` 5 % off for ``n = 1`` on the structured synthetic slab of
-  tests/test_transmission.py, noise-free). A per-tilt exposure known from
+  tests/units/test_transmission.py, noise-free). A per-tilt exposure known from
   the acquisition (the ``.mdoc``'s ``ExposureTime`` / dose) is given as ``exposure=[...]`` (relative values).
 
 Neither (a full-angle scan of an object wider than the detector): ``I0`` cannot be told from the data; give it.
@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from .border import border_columns, check_border, slab_law
-from .units import noise_std
+from . import noise_std
 
 __all__ = ["Transmission", "line_integrals", "NONPOSITIVE", "MIN_POWER"]
 
@@ -40,7 +40,7 @@ NONPOSITIVE = 0.01
 
 #: An exposure ``cos^-n theta`` is kept from the data only for ``|n|`` at least this (acquisitions use n = 0.5 to 1; the
 #: law's ``1 / cos`` and ``ln cos`` are nearly collinear over +-60 degrees, so a structured slab's deviations from the
-#: law fit a small ``n`` by themselves: 0.07 on the synthetic stack of tests/test_transmission.py).
+#: law fit a small ``n`` by themselves: 0.07 on the synthetic stack of tests/units/test_transmission.py).
 MIN_POWER = 0.25
 
 

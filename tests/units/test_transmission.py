@@ -1,4 +1,4 @@
-"""Intensities in, line integrals out (indreg.transmission): the -ln round trip, I0 from the frames' vacuum (exposure
+"""Intensities in, line integrals out (indreg.units.transmission): the -ln round trip, I0 from the frames' vacuum (exposure
 per frame) and from the slab law on a synthetic stack, an exposure cos^-n found where the data say so, a given
 exposure, bad input, and a registration given intensities against one given line integrals."""
 import math
@@ -11,7 +11,7 @@ import indreg
 from indreg import ImageDomain, ParallelBeamGeometry, RayTransform, phantoms
 from indreg.forward import TiltSeriesGeometry, TiltSeriesTransform
 from indreg.forward.wide_box import wide_box
-from indreg.transmission import NONPOSITIVE, line_integrals
+from indreg.units.transmission import NONPOSITIVE, line_integrals
 
 TILTS = np.arange(-60.0, 60.1, 3.0)
 

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .units import noise_std
+from . import noise_std
 
 __all__ = ["BELOW", "TEXTURE", "LAW_SWING", "MOST", "SlabLaw", "BorderCheck", "slab_law", "check_border",
            "background_level", "slab_offset", "negative_fraction", "projection_angles", "border_columns"]
