@@ -149,7 +149,8 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
     angle ``angle_deg`` (noise-free blue, noisy red, against the detector coordinate), FBP, TV; row 4 (when a
     target or a ``residual`` is given): the error ``result - target`` and that of the best baseline on one
     diverging scale, and the data residual ``T f - g`` per angle (``residual`` ``(num_angles, det_count)``,
-    ``angles_deg``). ``trajectory`` is ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of
+    ``angles_deg``). ``trajectory`` is ``(N + 1, nx, ny)`` = W(nu, I)(t_i). The data panel's y axis is labelled
+    ``data_unit`` (default: "line integral"). All images share the grey scale of
     the target (its colour bar on every panel); the FBP and TV titles give their own value range (the shared
     scale clips what lies outside). ``scores``: ``{"result" | "fbp" | "tv" | "template": {"ssim", "psnr"} or
     {"residual"}}``, in the panels' titles (:func:`score_text`). ``unit``: the domain's length unit (axes, scale
@@ -180,8 +181,7 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
             label="noisy" if clean_data0 is not None else "data")
     ax.set_title(rf"Data at ${angle_deg:.4g}^{{\circ}}$", fontsize="medium")
     ax.set_xlabel(axis_label("detector coordinate", unit))
-    if data_unit:
-        ax.set_ylabel(data_unit)
+    ax.set_ylabel(data_unit or "line integral")
     ax.legend(loc="upper right", fontsize="small")
     ax.set_box_aspect(1)
     for ax, img, key, label in ((axes[2, 1], fbp, "fbp", "FBP"), (axes[2, 2], tv, "tv", "TV")):
