@@ -246,3 +246,27 @@ def test_fetch_once_names_the_missing_files(example, tmp_path):
     (tmp_path / "HAADF.mrc").write_bytes(b"")
     with pytest.raises(FileNotFoundError, match=r"has no HAADF.rawtlt: pass --data a folder"):
         example.fetch_once(argparse.Namespace(data=tmp_path, cache=tmp_path / "cache"))
+
+
+DOCS = EXAMPLE.parents[1] / "docs"
+
+
+def test_the_pages_figure_shows_the_numbers_of_its_table():
+    """docs/real_data.md's figure is the default run's ``figure.png``; its sidecar ``real_data_haadf.json``, written
+    with it, holds its SHA-256 and the test-tilt residuals its titles print. They must be the page's: the raw-stack
+    test column of the table of the walk-through's defaults and the paragraph under the figure (a figure
+    regenerated without its sidecar, or a table rerun without the figure, fails here)."""
+    import hashlib
+    import re
+    side = json.loads((DOCS / "real_data_haadf.json").read_text())
+    assert hashlib.sha256((DOCS / "real_data_haadf.png").read_bytes()).hexdigest() == side["sha256"]
+    shown = side["test_residual"]
+    assert sorted(shown) == ["FBP", "SIRT", "TV", "registered", "template"]
+    page = (DOCS / "real_data.md").read_text()
+    after = page[page.index("**With the walk-through's defaults as they are now**"):]
+    block = after[after.index("| volume |"):].split("\n\n", 1)[0].splitlines()[2:]
+    table = {row.split("|")[1].strip().split(" (")[0]: row.split("|")[2].strip() for row in block}
+    assert {name: table[name] for name in shown} == shown
+    words = re.search(r"no method used: template ([0-9.]+), registered ([0-9.]+), FBP ([0-9.]+), SIRT ([0-9.]+), "
+                      r"TV ([0-9.]+);", page)
+    assert words and list(words.groups()) == [shown[k] for k in ("template", "registered", "FBP", "SIRT", "TV")]

@@ -208,6 +208,7 @@ def _paper_figure(exp, traj, rec: dict, title: str, score: dict, residual, unit)
                                 np.arange(noisy.shape[-1]) if det is None else det.numpy(), clean, noisy[0].numpy(),
                                 to_numpy(rec["fbp"]) if "fbp" in rec else None,
                                 to_numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
+                                sirt=to_numpy(rec["sirt"]) if "sirt" in rec else None,
                                 title=title, angle_deg=0.0 if angles is None else float(angles[0]),
                                 scores=score, residual=residual,
                                 angles_deg=None if angles is None or residual is None

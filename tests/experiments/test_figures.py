@@ -66,6 +66,25 @@ def test_paper_figure_scores_every_method_and_maps_errors_and_residuals_signed()
     assert sino.get_xlabel() == "detector coordinate (nm)"
 
 
+def test_sirt_joins_the_best_baseline_and_the_data_panel_names_its_axis():
+    """SIRT (given) is a candidate of the error row's best baseline; the data panel's y axis says what it plots;
+    the app names the length unit "a.u." when ``logging.length_unit`` is unset (the paper's box has none)."""
+    from indreg.experiments import run_figures
+
+    trajectory = _images(k=5)
+    score = {"result": {"ssim": 0.9, "psnr": 24.0}, "fbp": {"ssim": 0.3, "psnr": 17.0},
+             "sirt": {"ssim": 0.8, "psnr": 22.0}, "tv": {"ssim": 0.6, "psnr": 19.0}}
+    fig = figures.paper_figure(trajectory[0], trajectory, trajectory[-1] + 0.5, np.linspace(-1, 1, 8), None,
+                               np.ones(8), fbp=trajectory[1], tv=trajectory[2], sirt=trajectory[3],
+                               extent=(-16, 16, -16, 16), scores=score, unit="a.u.")
+    panels = _panels(fig)
+    assert panels[-2].get_title() == "error: SIRT $-$ target (same scale)"
+    data = next(ax for ax in panels if ax.get_title().startswith("Data at"))
+    assert data.get_ylabel() == "line integral" and data.get_xlabel() == "detector coordinate (a.u.)"
+    assert [b.txt_label.get_text() for b in panels[0].artists if hasattr(b, "txt_label")] == ["5 a.u."]
+    assert run_figures._unit(type("C", (), {"logging": type("L", (), {"length_unit": None})})()) == "a.u."
+
+
 def test_score_text_falls_back_to_the_residuals_without_truth():
     assert figures.score_text({"ssim": 0.5, "psnr": 20.0}) == "SSIM 0.5000, PSNR 20.00 dB"
     assert figures.score_text({"residual": 0.1, "holdout_residual": 0.2}) == "held-out residual 0.2000"
