@@ -199,16 +199,17 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
 
 
 def _error_row(row, result, target, baselines: dict, scores: dict, residual, angles_deg, det_points, extent, unit):
-    """The fourth row of :func:`paper_figure`: result - target, the best baseline's error on the same scale, and
-    the residual sinogram ``T f - g``."""
+    """The fourth row of :func:`paper_figure`: result - target, the best baseline's error on the same scale (the
+    larger of the two errors), and the residual sinogram ``T f - g``."""
     shown = [b for b in baselines.items() if b[1] is not None]
     if target is not None:
         err = np.asarray(result) - np.asarray(target)
         others = {k: np.asarray(v) - np.asarray(target) for k, v in shown}
-        bound = max([float(np.max(np.abs(e))) for e in (err, *others.values())] + [1e-12])
+        best = max(others, key=lambda k: scores.get(k.lower(), {}).get("ssim", -1.0)) if others else None
+        shared = (err,) if best is None else (err, others[best])   # the two panels' scale
+        bound = max([float(np.max(np.abs(e))) for e in shared] + [1e-12])
         show_image(row[0], err, "error: result $-$ target", -bound, bound, extent, unit=unit, cmap=DIVERGING)
-        if others:
-            best = max(others, key=lambda k: scores.get(k.lower(), {}).get("ssim", -1.0))
+        if best is not None:
             show_image(row[1], others[best], f"error: {best} $-$ target (same scale)", -bound, bound, extent,
                        unit=unit, cmap=DIVERGING)
         else:
