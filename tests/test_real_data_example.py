@@ -267,6 +267,6 @@ def test_the_pages_figure_shows_the_numbers_of_its_table():
     block = after[after.index("| volume |"):].split("\n\n", 1)[0].splitlines()[2:]
     table = {row.split("|")[1].strip().split(" (")[0]: row.split("|")[2].strip() for row in block}
     assert {name: table[name] for name in shown} == shown
-    words = re.search(r"no method used: template ([0-9.]+), registered ([0-9.]+), FBP ([0-9.]+), SIRT ([0-9.]+), "
-                      r"TV ([0-9.]+);", page)
+    words = re.search(r"no\s+method\s+used:\s+template\s+([0-9.]+),\s+registered\s+([0-9.]+),\s+FBP\s+([0-9.]+),"
+                      r"\s+SIRT\s+([0-9.]+),\s+TV\s+([0-9.]+);", page)
     assert words and list(words.groups()) == [shown[k] for k in ("template", "registered", "FBP", "SIRT", "TV")]
