@@ -253,7 +253,7 @@ def _convention(exp):
 
 def as_given(name: str, a, exp):
     """The output ``name`` (a tensor in indreg's layout) in the layout of the user's files (``data.convention``,
-    2D; ``indreg.conventions``): the data (``data``, ``data_clean``) as that tool holds a sinogram
+    2D; ``indreg.io.conventions``): the data (``data``, ``data_clean``) as that tool holds a sinogram
     (``sinogram_from_indreg``: its axis order, pixel sums), every image or stack of images ``(..., nx, ny)``
     turned or transposed (``images_from_indreg``); the :data:`VECTOR_FIELDS` as they are."""
     from ..io import conventions

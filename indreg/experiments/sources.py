@@ -65,7 +65,7 @@ class Data:
     ``psnr_paper``). ``template_known`` False: the run gets no template (a model that reconstructs it, e.g.
     ``spatiotemporal``; ``template_64`` is then only shown). ``targets``: ground truths of the model's outputs by
     name (``frames`` ``(K, *shape)``, ``template``), scored as ``<name>_ssim`` (mean over a leading frame axis).
-    ``convention``: the layout of the user's files (``indreg.conventions``; the arrays here are in indreg's), in
+    ``convention``: the layout of the user's files (``indreg.io.conventions``; the arrays here are in indreg's), in
     which the run writes its images and data back."""
     domain: ImageDomain
     geometry: object

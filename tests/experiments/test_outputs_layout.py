@@ -10,7 +10,8 @@ import pytest
 import torch
 
 import indreg
-from indreg import conventions, phantoms
+from indreg import phantoms
+from indreg.io import conventions
 from indreg.metrics import ssim
 
 from experiment_helpers import run_app

@@ -9,8 +9,9 @@ import pytest
 import torch
 
 import indreg
-from indreg import conventions, phantoms
-from indreg.conventions import CONVENTIONS
+from indreg import phantoms
+from indreg.io import conventions
+from indreg.io.conventions import CONVENTIONS
 from indreg.metrics import ssim
 
 N, HALF = 32, 16.0
@@ -26,7 +27,7 @@ def user_case(name: str) -> tuple:
     """``(template, sinogram, angles, truth)`` as the tool holds them (angles in radians): the paper's J (no
     mirror symmetry) as truth, shifted by one cell as template; the data by scikit-image's ``radon`` for
     ``skimage``, else indreg's operator on the convention's domain and detector, exported in the tool's layout,
-    angles and units (``indreg.conventions``; each checked against the tool in tests of the conventions)."""
+    angles and units (``indreg.io.conventions``; each checked against the tool in tests of the conventions)."""
     c = CONVENTIONS[name]
     domain = conventions.domain_for(c, N, HALF)
     truth = phantoms.get("j", domain).numpy()
