@@ -226,19 +226,12 @@ def test_bad_thread_count_is_one_line(stand_in):
         "real_data_haadf.py: error: --threads must be >= 1, got 0"]
 
 
-def test_missing_data_is_one_line_with_the_fetch_before_any_import(tmp_path):
+def test_missing_data_is_one_line_with_the_fetch_before_any_import(tmp_path, error_without_torch):
     """``--data`` a folder without the files: one line naming them and how to get them, before torch is imported (a
     ``torch`` that cannot be imported first on the path shows it)."""
-    import sys
-    fake = tmp_path / "fake"
-    (fake / "torch").mkdir(parents=True)
-    (fake / "torch" / "__init__.py").write_text("raise ImportError('torch was imported')\n")
-    run = subprocess.run([sys.executable, str(EXAMPLE), "--data", str(tmp_path / "empty")], capture_output=True,
-                         text=True, env={**os.environ, "PYTHONPATH": str(fake)}, timeout=120)
-    lines = run.stderr.strip().splitlines()
-    assert run.returncode == 1 and len(lines) == 1, run.stderr[-2000:]
-    assert lines[0].startswith(f"real_data_haadf.py: error: {tmp_path / 'empty'} has no HAADF.mrc or HAADF.rawtlt: ")
-    assert "pip download etspy==1.3.0 --no-deps" in lines[0] and "leave --data out to download" in lines[0]
+    line = error_without_torch(EXAMPLE, "--data", tmp_path / "empty")
+    assert line.startswith(f"real_data_haadf.py: error: {tmp_path / 'empty'} has no HAADF.mrc or HAADF.rawtlt: ")
+    assert "pip download etspy==1.3.0 --no-deps" in line and "leave --data out to download" in line
 
 
 def test_fetch_once_names_the_missing_files(example, tmp_path):
