@@ -194,6 +194,7 @@ def test_register_holds_the_angle_from_the_stack(caplog, options):
     held, stack = r.alignment["axis_angle_deg"], r.alignment["axis_angle_stack_deg"]
     assert held == pytest.approx(stack, rel=0, abs=1e-9)        # held through degrees -> radians -> degrees
     assert any("moment conditions" in m for m in caplog.messages)
+    assert any(m.startswith("tilt-axis angle from the stack's moment conditions: estimating (") for m in caplog.messages)
 
 
 @pytest.mark.slow
