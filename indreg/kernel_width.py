@@ -50,9 +50,22 @@ def candidates(domain) -> tuple:
 
 
 def choose_sigma(score: Callable[[float], float], widths: tuple, say: Callable[[str], None] = None) -> tuple:
-    """``(sigma, scores)``: the width of ``widths`` with the least ``score(width)`` (a held-out residual; the first
-    of equal ones), and ``scores`` ``{width: score}``; each score is said as it comes, then the choice, through
-    ``say(line)`` (default: logged at INFO)."""
+    """The width of ``widths`` with the least ``score(width)`` (a held-out residual; the first of equal ones).
+
+    Parameters
+    ----------
+    score : callable
+        ``score(width) -> float``, e.g. the held-out residual of a registration with that width.
+    widths : tuple of float
+        The candidates, in the order they are tried.
+    say : callable, optional
+        ``say(line)`` for each width's score as it comes, then the choice (default: logged at INFO).
+
+    Returns
+    -------
+    tuple
+        ``(sigma, scores)``: the chosen width and ``{width: score}``.
+    """
     say = say or (lambda line: log.info("%s", line))
     scores = {}
     for k, w in enumerate(widths, 1):

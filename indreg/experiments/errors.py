@@ -14,8 +14,20 @@ class ConfigError(ValueError):
 
 
 def dotted_keys(node, prefix: str = "") -> list:
-    """Every dotted key of a (nested) mapping ``node``, e.g. an OmegaConf ``DictConfig``: ``["data.template",
-    ...]``, the mappings' own keys included (``"data"``); values are not read (nothing is resolved)."""
+    """Every dotted key of a (nested) mapping; values are not read (nothing is resolved).
+
+    Parameters
+    ----------
+    node : mapping
+        E.g. an OmegaConf ``DictConfig``.
+    prefix : str
+        Put before every key.
+
+    Returns
+    -------
+    list of str
+        ``["data", "data.template", ...]``: the mappings' own keys too.
+    """
     out = []
     for key in node.keys():
         out.append(f"{prefix}{key}")
@@ -33,9 +45,22 @@ def _is_none(node) -> bool:
 
 
 def nearest_key(key: str, known) -> str | None:
-    """The valid key of ``known`` (dotted) nearest to the misspelt ``key`` (``difflib``'s ratio 0.6), None if none
-    is close: under a parent that exists, among its keys (``data.templat`` -> ``data.template``); else as a whole
-    (``sover.gamma`` -> ``solver.gamma``) or by its last part (``templat`` -> ``data.template``)."""
+    """The valid key nearest to a misspelt one (``difflib``'s ratio 0.6): under a parent that exists, among its
+    keys (``data.templat`` -> ``data.template``); else as a whole (``sover.gamma`` -> ``solver.gamma``) or by its
+    last part (``templat`` -> ``data.template``).
+
+    Parameters
+    ----------
+    key : str
+        The misspelt dotted key.
+    known : iterable of str
+        The valid dotted keys (:func:`dotted_keys`).
+
+    Returns
+    -------
+    str or None
+        The nearest valid key, None if none is close.
+    """
     known = list(dict.fromkeys(known))
     parent, _, last = key.rpartition(".")
     if parent in known:
@@ -53,6 +78,19 @@ def nearest_key(key: str, known) -> str | None:
 
 
 def did_you_mean(key: str, known) -> str:
-    """``"did you mean data.template?"`` for :func:`nearest_key`, ``""`` when none is close."""
+    """The hint for a misspelt key.
+
+    Parameters
+    ----------
+    key : str
+        The misspelt dotted key.
+    known : iterable of str
+        The valid dotted keys.
+
+    Returns
+    -------
+    str
+        ``"did you mean data.template?"`` (:func:`nearest_key`), ``""`` when none is close.
+    """
     near = nearest_key(key, known)
     return f"did you mean {near}?" if near and near != key else ""

@@ -252,10 +252,24 @@ def _convention(exp):
 
 
 def as_given(name: str, a, exp):
-    """The output ``name`` (a tensor in indreg's layout) in the layout of the user's files (``data.convention``,
-    2D; ``indreg.io.conventions``): the data (``data``, ``data_clean``) as that tool holds a sinogram
-    (``sinogram_from_indreg``: its axis order, pixel sums), every image or stack of images ``(..., nx, ny)``
-    turned or transposed (``images_from_indreg``); the :data:`VECTOR_FIELDS` as they are."""
+    """An output in the layout of the user's files (``data.convention``, 2D; ``indreg.io.conventions``).
+
+    Parameters
+    ----------
+    name : str
+        The output's name (its file's stem): ``data`` / ``data_clean`` are written as that tool holds a sinogram
+        (``sinogram_from_indreg``: its axis order, pixel sums), every image or stack of images ``(..., nx, ny)``
+        turned or transposed (``images_from_indreg``), the :data:`VECTOR_FIELDS` as they are.
+    a : torch.Tensor
+        The output in indreg's layout.
+    exp : Experiment
+        The run (its data's convention and domain).
+
+    Returns
+    -------
+    torch.Tensor
+        ``a`` in that layout (a view where it can be).
+    """
     from ..io import conventions
 
     c = _convention(exp)

@@ -159,8 +159,20 @@ def image_from_indreg(f: np.ndarray, convention) -> np.ndarray:
 
 
 def images_from_indreg(images, convention):
-    """Images ``(..., nx, ny)`` in indreg's layout (any leading axes: a stack, a trajectory) as the tool holds them:
-    :func:`image_from_indreg` on the last two axes; a numpy array or a torch tensor, returned as the same kind."""
+    """Images in indreg's layout as the tool holds them: :func:`image_from_indreg` on the last two axes.
+
+    Parameters
+    ----------
+    images : numpy.ndarray or torch.Tensor
+        ``(..., nx, ny)``, any leading axes (a stack, a trajectory).
+    convention : str or Convention
+        The tool.
+
+    Returns
+    -------
+    numpy.ndarray or torch.Tensor
+        The same kind as ``images``, its last two axes turned (``"displayed"``) or swapped (``"yx"``).
+    """
     layout = get_convention(convention).image
     if layout == "xy":
         return images
@@ -171,7 +183,18 @@ def images_from_indreg(images, convention):
 
 
 def describe_layout(convention) -> str:
-    """How a convention's arrays hold an image, for messages and records."""
+    """How a convention's arrays hold an image, for messages and records.
+
+    Parameters
+    ----------
+    convention : str or Convention
+        The tool.
+
+    Returns
+    -------
+    str
+        E.g. ``"as displayed: rows = y from the top down, columns = x (...)"``.
+    """
     layout = get_convention(convention).image
     return {"xy": "(nx, ny), axis 0 = x",
             "displayed": "as displayed: rows = y from the top down, columns = x (np.rot90 of indreg's (nx, ny))",

@@ -168,7 +168,18 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
 
 def shows_progress(progress) -> bool:
     """The ``progress`` option resolved: None (the default) is a bar on a terminal only (stderr a tty), so that
-    scripts, pipes and tests stay quiet."""
+    scripts, pipes and tests stay quiet.
+
+    Parameters
+    ----------
+    progress : bool or None
+        The option's value.
+
+    Returns
+    -------
+    bool
+        Whether to show progress.
+    """
     return sys.stderr.isatty() if progress is None else bool(progress)
 
 
@@ -219,7 +230,18 @@ def count_warnings(history) -> int:
 
 def count_rises(history) -> int:
     """Iterations of a fixed step whose objective rose (``objective_rose``: the paper's step takes every step,
-    :class:`RegistrationLoop`), counted apart from the warnings."""
+    :class:`RegistrationLoop`), counted apart from the warnings.
+
+    Parameters
+    ----------
+    history : list of dict
+        The run's reports.
+
+    Returns
+    -------
+    int
+        How many rose.
+    """
     return sum(1 for h in history if h.get("objective_rose"))
 
 
