@@ -64,6 +64,17 @@ def test_auto_says_each_width_and_the_choice(case, capfd, caplog):
     assert lines[-1] == f"sigma='auto': chose sigma {r.sigma:.4g} of {', '.join(f'{w:.4g}' for w in widths)}"
 
 
+def test_auto_scores_the_last_iterate_of_a_run_shorter_than_log_every(case):
+    """With fewer iterations than ``log_every`` the held-out curve is empty: each width is scored on its last
+    iterate (not NaN, which would leave the choice to the order of the widths)."""
+    template, data, T = case
+    r = indreg.register(template, data, T, sigma="auto", **dict(OPTIONS, log_every=10))
+    widths = candidates(T.domain)
+    last = {s: indreg.register(template, data, T, sigma=s, holdout=AUTO_HOLDOUT, **dict(OPTIONS, log_every=10))
+            .holdout["holdout_residual"] for s in widths}
+    assert r.sigma_scores == pytest.approx(last, rel=1e-12) and r.sigma == min(last, key=last.get)
+
+
 def test_a_given_width_is_in_the_result_without_scores(case):
     template, data, T = case
     r = indreg.register(template, data, T, sigma=3.0, **OPTIONS)

@@ -197,10 +197,12 @@ def auto_sigma(template, data, operator, label, strict: bool, options: dict, pro
     def held_out(sigma: float) -> float:
         s = setup(template, data, operator, label, strict, **dict(trial, sigma=sigma))
         o = s.options
-        k = widths.index(sigma) + 1
-        RegistrationLoop(s.problem, s.solver, initial_state(s.problem), o["max_iter"], every=o["log_every"],
+        k, state = widths.index(sigma) + 1, initial_state(s.problem)
+        RegistrationLoop(s.problem, s.solver, state, o["max_iter"], every=o["log_every"],
                          validation=s.validation, progress=progress,
                          desc=f"sigma='auto' {k}/{len(widths)}: sigma {sigma:.4g}").run()
+        if not s.validation.curve:   # fewer iterations than log_every: the held-out residual of the last one
+            s.validation.record(state.iteration, s.problem.reconstruction(state.iterate))
         return s.validation.best[1]
 
     return choose_sigma(held_out, widths, say=_say if progress else None)
