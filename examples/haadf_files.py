@@ -7,6 +7,8 @@ pixels, etspy's ``[row, column]`` of the stored images, indreg's ``[across, alon
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import subprocess
 import sys
 import tempfile
@@ -99,7 +101,9 @@ def figure(volumes: dict, path: Path, cell_nm: float, scores: dict | None = None
     """Central slices of every volume, one column each: the x-z slice across the rod (orthogonal to the tilt
     axis) and the x-y slice along it, each volume on its own grey scale with its colour bar, axes and a scale bar
     in nm, and its held-out score in the title (``scores[name]["test_residual"]``: the relative residual on the
-    test tilts, which no method used; no ground truth exists). Drawn by ``indreg.experiments.figures``."""
+    test tilts, which no method used; no ground truth exists). Drawn by ``indreg.experiments.figures``. Beside it,
+    ``<stem>.json``: the numbers as the titles print them and the figure's SHA-256 (docs/real_data.md's figure is
+    checked against its table with them: tests/test_real_data_example.py)."""
     from matplotlib.figure import Figure
 
     from indreg.experiments import figures
@@ -120,6 +124,11 @@ def figure(volumes: dict, path: Path, cell_nm: float, scores: dict | None = None
         ax[1, j].axvline(0.0, color="cyan", ls="--", lw=0.8)   # the tilt axis (y) in the x-y slice
     fig.suptitle("HAADF tilt series: central slices (own grey scale per volume; dashed: the tilt axis)")
     fig.savefig(path, dpi=100)
+    shown = {name: f"{s['test_residual']:.4f}" for name, s in scores.items() if name in volumes and
+             s.get("test_residual") is not None}
+    path.with_suffix(".json").write_text(json.dumps(
+        {"figure": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "test_residual": shown},
+        indent=1) + "\n")
 
 
 def save(volumes: dict, domain: ImageDomain, out: Path) -> None:

@@ -34,13 +34,37 @@ length), z the beam at tilt 0; the domain is in nm.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import logging
-import math
 import sys
-import time
 from pathlib import Path
+
+#: The data folder's files (``--data``), and how to get them: checked before the imports below (~10 s of torch).
+DATA_FILES = ("HAADF.mrc", "HAADF.rawtlt")
+FETCH_HINT = ("pass --data a folder holding HAADF.mrc and HAADF.rawtlt (the etspy 1.3.0 wheel's etspy/tests/test_data/"
+              "HAADF*: pip download etspy==1.3.0 --no-deps, then unzip the .whl), or leave --data out to download them "
+              "into --cache")
+
+
+def missing_data(argv) -> str | None:
+    """The one-line error of a ``--data`` folder without :data:`DATA_FILES` (with :data:`FETCH_HINT`), else None
+    (no ``--data``: they are fetched into ``--cache``; ``--reprint`` reads no data)."""
+    import argparse
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--data", type=Path)
+    p.add_argument("--reprint", action="store_true")
+    given = p.parse_known_args(argv)[0]
+    missing = [] if given.data is None or given.reprint else [f for f in DATA_FILES if not (given.data / f).is_file()]
+    return f"{given.data} has no {' or '.join(missing)}: {FETCH_HINT}" if missing else None
+
+
+if __name__ == "__main__" and missing_data(sys.argv[1:]):
+    sys.exit(f"real_data_haadf.py: error: {missing_data(sys.argv[1:])}")
+
+import argparse  # noqa: E402 (after the data check)
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import time  # noqa: E402
 
 import indreg   # first: it sets OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (indreg._openmp; 2 threads)
 import numpy as np
@@ -559,7 +583,10 @@ def main(argv=None) -> None:
 
 
 def fetch_once(a: argparse.Namespace) -> Path:
-    """The data's folder: ``--data``, or the cache (downloaded there the first time)."""
+    """The data's folder: ``--data`` (an error naming how to get the files if they are not there), or the cache
+    (downloaded there the first time)."""
+    if a.data is not None and missing_data(["--data", str(a.data)]):
+        raise FileNotFoundError(missing_data(["--data", str(a.data)]))
     return a.data if a.data is not None else fetch(a.cache)
 
 

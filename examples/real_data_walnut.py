@@ -27,15 +27,37 @@ rotation axis; indreg's ``FanBeamGeometry`` (docs/geometry.md).
 """
 from __future__ import annotations
 
-import argparse
-import json
-import logging
-import subprocess
 import sys
-import tarfile
-import tempfile
-import time
 from pathlib import Path
+
+#: The data folder's file (``--data``), and how to get it: checked before the imports below (~10 s of torch).
+DATA_FILE = "walnut_sinogram.png"
+FETCH_HINT = ("pass --data a folder holding walnut_sinogram.png (gratopy 0.1.0's tests/walnut_sinogram.png: pip "
+              "download gratopy==0.1.0 --no-deps --no-binary gratopy, then untar the .tar.gz), or leave --data out "
+              "to download it into --cache")
+
+
+def missing_data(argv) -> str | None:
+    """The one-line error of a ``--data`` folder without :data:`DATA_FILE` (with :data:`FETCH_HINT`), else None
+    (no ``--data``: it is fetched into ``--cache``)."""
+    import argparse
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--data", type=Path)
+    data = p.parse_known_args(argv)[0].data
+    return None if data is None or (data / DATA_FILE).is_file() else f"{data} has no {DATA_FILE}: {FETCH_HINT}"
+
+
+if __name__ == "__main__" and missing_data(sys.argv[1:]):
+    sys.exit(f"real_data_walnut.py: error: {missing_data(sys.argv[1:])}")
+
+import argparse  # noqa: E402 (after the data check)
+import json  # noqa: E402
+import logging  # noqa: E402
+import subprocess  # noqa: E402
+import tarfile  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
 
 import numpy as np
 import torch
@@ -93,8 +115,7 @@ def read_sinogram(folder: Path) -> tuple:
 
     path = folder / "walnut_sinogram.png"
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: pass --data a folder holding walnut_sinogram.png, or no --data "
-                                f"to download {SDIST}")
+        raise FileNotFoundError(f"{folder} has no {DATA_FILE}: {FETCH_HINT}")
     stored = np.asarray(Image.open(path))
     if stored.dtype != np.uint16 or stored.ndim != 2:
         raise ValueError(f"{path}: expected a 16-bit greyscale sinogram, got {stored.dtype} {stored.shape}")

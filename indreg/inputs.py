@@ -35,7 +35,8 @@ Notes
 - Detector: ``det_count`` (columns) is the data's width; ``det_count=`` and ``num_angles=``, if given, must
   agree with the data. ``det_min = det_max = None``: in 2D the operator fits the detector to the domain, a
   tilt series gets columns as wide as the voxels, centred on the tilt axis.
-- The returned tensors are float64 on the CPU.
+- The returned tensors are float64 on the CPU, in indreg's layout whatever the convention (so is what
+  ``indreg.register`` returns from them); ``d.as_given(result.deformed)`` is the result in the files' layout.
 - Bad input raises one line before any computation: :class:`indreg.io.DataFileError` for a file (naming it),
   a count or shape that does not fit, or a geometry that cannot be built; ``ValueError`` / ``TypeError`` for
   an argument's value (inline angles, ``angle_unit``, ``half_width``, an array).
@@ -97,6 +98,10 @@ class RegistrationInputs:
         Tilt series: the rotation applied (degrees); None: none.
     tilt_axis : TiltAxisCheck or None
         Tilt series: the consistency check of the data as returned (``indreg.alignment.tilt_axis``).
+    convention : str
+        How the files were read (``indreg.io.conventions``). The tensors here are in indreg's layout (axis 0 = x),
+        and so is what ``indreg.register`` returns from them (it must fit the operator and these tensors):
+        :meth:`as_given` turns an image of the run back into the files' layout.
     """
     template: torch.Tensor
     data: torch.Tensor
@@ -107,6 +112,31 @@ class RegistrationInputs:
     label: str = "array"
     tilt_axis_angle: Optional[float] = None
     tilt_axis: Optional[TiltAxisCheck] = None
+    convention: str = "indreg"
+
+    def as_given(self, images) -> np.ndarray:
+        """Images of the run ``(..., nx, ny)`` (``result.deformed``, ``result.trajectory``, a baseline) as float64
+        numpy in the layout of the files given to :func:`load` (``convention``); a volume as it is.
+
+        Parameters
+        ----------
+        images : torch.Tensor or numpy.ndarray
+            In indreg's layout (axis 0 = x), as ``indreg.register`` returns them.
+
+        Returns
+        -------
+        numpy.ndarray
+            The last two axes in the convention's layout (``indreg.io.conventions.images_from_indreg``).
+
+        Raises
+        ------
+        ValueError
+            The last axes are not the domain's shape.
+        """
+        a = images.detach().cpu().double().numpy() if isinstance(images, torch.Tensor) else np.asarray(images, float)
+        if a.shape[a.ndim - self.domain.ndim:] != tuple(self.domain.shape):
+            raise ValueError(f"images of shape {a.shape}: the last axes must be the domain's {tuple(self.domain.shape)}")
+        return a if self.domain.ndim == 3 else conventions.images_from_indreg(a, self.convention)
 
     def report(self) -> dict:
         """The tilt series' numbers for a run's metrics: the angle applied and the check's (empty in 2D)."""
@@ -248,7 +278,7 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
     return RegistrationInputs(template=torch.from_numpy(f), data=torch.from_numpy(g), operator=operator,
                               domain=domain,
                               geometry=T.geometry, target=truth, label=label, tilt_axis_angle=tilt_axis_angle,
-                              tilt_axis=axis)
+                              tilt_axis=axis, convention=conv.name)
 
 
 def square_domain(n: int, half_width: float, ndim: int = 2) -> ImageDomain:

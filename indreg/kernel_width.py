@@ -49,13 +49,28 @@ def candidates(domain) -> tuple:
     return tuple(f * box_side(domain) for f in AUTO_FRACTIONS)
 
 
-def choose_sigma(score: Callable[[float], float], widths: tuple) -> tuple:
-    """``(sigma, scores)``: the width of ``widths`` with the least ``score(width)`` (a held-out residual; the first
-    of equal ones), and ``scores`` ``{width: score}``; each score is logged."""
+def choose_sigma(score: Callable[[float], float], widths: tuple, say: Callable[[str], None] = None) -> tuple:
+    """The width of ``widths`` with the least ``score(width)`` (a held-out residual; the first of equal ones).
+
+    Parameters
+    ----------
+    score : callable
+        ``score(width) -> float``, e.g. the held-out residual of a registration with that width.
+    widths : tuple of float
+        The candidates, in the order they are tried.
+    say : callable, optional
+        ``say(line)`` for each width's score as it comes, then the choice (default: logged at INFO).
+
+    Returns
+    -------
+    tuple
+        ``(sigma, scores)``: the chosen width and ``{width: score}``.
+    """
+    say = say or (lambda line: log.info("%s", line))
     scores = {}
-    for w in widths:
+    for k, w in enumerate(widths, 1):
         scores[w] = score(w)
-        log.info("sigma='auto': sigma %.4g gives held-out residual %.4f", w, scores[w])
+        say(f"sigma='auto' {k}/{len(widths)}: sigma {w:.4g} gives held-out residual {scores[w]:.4f}")
     best = min(widths, key=lambda w: scores[w])
-    log.info("sigma='auto': chose sigma %.4g of %s", best, ", ".join(f"{w:.4g}" for w in widths))
+    say(f"sigma='auto': chose sigma {best:.4g} of {', '.join(f'{w:.4g}' for w in widths)}")
     return best, scores

@@ -52,6 +52,27 @@ def _seeded():
     torch.manual_seed(0)
 
 
+@pytest.fixture
+def error_without_torch(tmp_path):
+    """``error_without_torch(script, *args)``: the one stderr line of ``python script *args`` run where ``torch``
+    cannot be imported (a package of that name that raises, first on ``PYTHONPATH``), and asserted to exit 1 with
+    that one line: what a script says before it imports torch (a walk-through's missing data)."""
+    import subprocess
+    import sys
+
+    fake = tmp_path / "unimportable"
+    (fake / "torch").mkdir(parents=True)
+    (fake / "torch" / "__init__.py").write_text("raise ImportError('torch was imported')\n")
+
+    def run(script, *args) -> str:
+        done = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(fake)}, timeout=120)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 1 and len(lines) == 1, done.stderr[-2000:]
+        return lines[0]
+    return run
+
+
 def _asked_for_slow(config) -> bool:
     """``-m`` given (even empty), or a test named by its node id on the command line."""
     args = [str(a) for a in config.invocation_params.args]

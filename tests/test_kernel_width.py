@@ -44,8 +44,41 @@ def test_auto_chooses_the_width_with_the_least_held_out_residual(case):
               .holdout["holdout_best_residual"] for s in candidates(T.domain)}
     assert len(set(scores.values())) == len(scores)                      # the choice is not a tie
     chosen = indreg.register(template, data, T, sigma="auto", **OPTIONS)
-    assert chosen.problem.kernel.sigma == min(scores, key=scores.get)
+    assert chosen.problem.kernel.sigma == chosen.sigma == min(scores, key=scores.get)
+    assert chosen.sigma_scores == pytest.approx(scores, rel=1e-12)        # each width's held-out residual
     assert not chosen.holdout                                             # the run itself fits every angle
+
+
+def test_auto_says_each_width_and_the_choice(case, capfd, caplog):
+    """Off a terminal (as here) the default prints nothing; the lines, one per width with its score and the width
+    chosen, go through logging (with ``progress=True`` and no logging set up: to stderr; on a terminal: above the
+    bars)."""
+    template, data, T = case
+    with caplog.at_level("INFO", logger="indreg"):
+        r = indreg.register(template, data, T, sigma="auto", **OPTIONS)
+    assert capfd.readouterr().err == ""
+    lines = [m for m in caplog.messages if m.startswith("sigma='auto'")]
+    widths = candidates(T.domain)
+    assert [line.split("gives held-out residual ")[1] for line in lines[:-1]] == \
+        [f"{r.sigma_scores[w]:.4f}" for w in widths]
+    assert lines[-1] == f"sigma='auto': chose sigma {r.sigma:.4g} of {', '.join(f'{w:.4g}' for w in widths)}"
+
+
+def test_auto_scores_the_last_iterate_of_a_run_shorter_than_log_every(case):
+    """With fewer iterations than ``log_every`` the held-out curve is empty: each width is scored on its last
+    iterate (not NaN, which would leave the choice to the order of the widths)."""
+    template, data, T = case
+    r = indreg.register(template, data, T, sigma="auto", **dict(OPTIONS, log_every=10))
+    widths = candidates(T.domain)
+    last = {s: indreg.register(template, data, T, sigma=s, holdout=AUTO_HOLDOUT, **dict(OPTIONS, log_every=10))
+            .holdout["holdout_residual"] for s in widths}
+    assert r.sigma_scores == pytest.approx(last, rel=1e-12) and r.sigma == min(last, key=last.get)
+
+
+def test_a_given_width_is_in_the_result_without_scores(case):
+    template, data, T = case
+    r = indreg.register(template, data, T, sigma=3.0, **OPTIONS)
+    assert r.sigma == 3.0 and r.sigma_scores == {}
 
 
 def test_choose_sigma_takes_the_least_score_and_the_first_of_equal_ones():

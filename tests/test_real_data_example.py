@@ -224,3 +224,42 @@ def test_bad_thread_count_is_one_line(stand_in):
                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(EXAMPLE.parents[1])})
     assert run.returncode != 0 and run.stderr.strip().splitlines() == [
         "real_data_haadf.py: error: --threads must be >= 1, got 0"]
+
+
+def test_missing_data_is_one_line_with_the_fetch_before_any_import(tmp_path, error_without_torch):
+    """``--data`` a folder without the files: one line naming them and how to get them, before torch is imported (a
+    ``torch`` that cannot be imported first on the path shows it)."""
+    line = error_without_torch(EXAMPLE, "--data", tmp_path / "empty")
+    assert line.startswith(f"real_data_haadf.py: error: {tmp_path / 'empty'} has no HAADF.mrc or HAADF.rawtlt: ")
+    assert "pip download etspy==1.3.0 --no-deps" in line and "leave --data out to download" in line
+
+
+def test_fetch_once_names_the_missing_files(example, tmp_path):
+    import argparse
+    (tmp_path / "HAADF.mrc").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match=r"has no HAADF.rawtlt: pass --data a folder"):
+        example.fetch_once(argparse.Namespace(data=tmp_path, cache=tmp_path / "cache"))
+
+
+DOCS = EXAMPLE.parents[1] / "docs"
+
+
+def test_the_pages_figure_shows_the_numbers_of_its_table():
+    """docs/real_data.md's figure is the default run's ``figure.png``; its sidecar ``real_data_haadf.json``, written
+    with it, holds its SHA-256 and the test-tilt residuals its titles print. They must be the page's: the raw-stack
+    test column of the table of the walk-through's defaults and the paragraph under the figure (a figure
+    regenerated without its sidecar, or a table rerun without the figure, fails here)."""
+    import hashlib
+    import re
+    side = json.loads((DOCS / "real_data_haadf.json").read_text())
+    assert hashlib.sha256((DOCS / "real_data_haadf.png").read_bytes()).hexdigest() == side["sha256"]
+    shown = side["test_residual"]
+    assert sorted(shown) == ["FBP", "SIRT", "TV", "registered", "template"]
+    page = (DOCS / "real_data.md").read_text()
+    after = page[page.index("**With the walk-through's defaults as they are now**"):]
+    block = after[after.index("| volume |"):].split("\n\n", 1)[0].splitlines()[2:]
+    table = {row.split("|")[1].strip().split(" (")[0]: row.split("|")[2].strip() for row in block}
+    assert {name: table[name] for name in shown} == shown
+    words = re.search(r"no\s+method\s+used:\s+template\s+([0-9.]+),\s+registered\s+([0-9.]+),\s+FBP\s+([0-9.]+),"
+                      r"\s+SIRT\s+([0-9.]+),\s+TV\s+([0-9.]+);", page)
+    assert words and list(words.groups()) == [shown[k] for k in ("template", "registered", "FBP", "SIRT", "TV")]

@@ -153,3 +153,11 @@ def test_real_walnut_file(example):
     domain = example.square_domain(64, 40.0)
     assert not example.orientation(binned, angles, domain, iters=30)["reverse"]
     assert example.centre_of_rotation(binned, angles, domain, iters=30)["shift_mm"] == pytest.approx(0.272, abs=0.01)
+
+
+def test_missing_data_is_one_line_with_the_fetch_before_any_import(tmp_path, error_without_torch):
+    """``--data`` a folder without the sinogram: one line naming it and how to get it, before torch is imported (a
+    ``torch`` that cannot be imported first on the path shows it)."""
+    line = error_without_torch(EXAMPLE, "--data", tmp_path / "empty")
+    assert line.startswith(f"real_data_walnut.py: error: {tmp_path / 'empty'} has no walnut_sinogram.png: ")
+    assert "pip download gratopy==0.1.0 --no-deps --no-binary gratopy" in line

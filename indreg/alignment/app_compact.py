@@ -19,12 +19,15 @@ log = logging.getLogger("indreg.align")
 def _stack_rest(stack: np.ndarray, radians: np.ndarray, rest: float) -> tuple:
     """``--axis-from-stack``: the tilt axis' angle in the quarter-turned ``stack`` (less its background) from its
     moment conditions where they determine it, else ``rest`` with a warning; and a record of the estimate."""
-    from .moments import SCAN_DEG, estimate_axis_angle
+    from .moments import MAX_PIXELS, SCAN_DEG, estimate_axis_angle
 
     if abs(rest) >= SCAN_DEG - 1:
         log.warning("--axis-from-stack: the given angle is %.2f deg from a quarter turn, beyond the estimate's scan "
                     "(+-%g): kept", rest, SCAN_DEG - 1)
         return rest, {"estimated": False, "reason": "beyond the scan"}
+    log.info("--axis-from-stack: estimating the angle from the stack's moment conditions (%d tilts of %d x %d px, "
+             "binned to at most %d px a side; measured 14 s at 64^2, 78 s at 128^2 on two cores)", *stack.shape,
+             MAX_PIXELS)
     try:
         e = estimate_axis_angle(stack, radians)
     except ValueError as err:

@@ -48,7 +48,7 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor, started: bool = False):
         for a stack that cannot tell the angle (too few tilts whose specimen stays on the detector, too few
         rows); None where it does not apply.
     """
-    from .moments import AxisEstimate, estimate_axis_angle
+    from .moments import MAX_PIXELS, AxisEstimate, estimate_axis_angle
 
     _, K, R, D, _, det_cell, row_cell = projection_frame(op.operator)
     if started or op.matrices is not None or float(op.angle) != 0:
@@ -59,6 +59,8 @@ def stack_angle(op: AlignedOperator, data: torch.Tensor, started: bool = False):
     if abs(det_cell / row_cell - 1) > 1e-6:
         log.info("tilt-axis angle from the stack: skipped (pixels %.4g x %.4g are not square)", det_cell, row_cell)
         return None
+    log.info("tilt-axis angle from the stack's moment conditions: estimating (%d tilts of %d x %d px, binned to at "
+             "most %d px a side; measured 14 s at 64^2, 78 s at 128^2 on two cores)", K, R, D, MAX_PIXELS)
     try:
         return estimate_axis_angle(data.detach().double().cpu().reshape(K, R, D).numpy(),
                                    op.operator.geometry.angles.double().cpu().numpy(), scan_deg=MAX_ANGLE_DEG)

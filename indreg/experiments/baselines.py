@@ -1,8 +1,8 @@
-"""The baselines of a run: FBP and TV (and SIRT for volumes) from the run's noisy data, cached in the run dir.
+"""The baselines of a run: FBP, SIRT and TV from the run's noisy data, cached in the run dir.
 
 Convention: reconstructions are returned on the CPU as tensors of the domain's shape ``(nx, ny[, nz])`` (images
 float64, volumes the run's dtype),
-keyed ``fbp``, ``tv`` (and ``sirt``); TV's weight is absolute, ``baseline.tv_mu`` times the TV weight unit
+keyed ``fbp``, ``sirt`` and ``tv``; TV's weight is absolute, ``baseline.tv_mu`` times the TV weight unit
 (``indreg.forward.tv_weight_unit``: the data's intensity unit times the box's largest side squared).
 A tilt series whose registration is split (``indreg.problems.slabs``) splits its baselines along the tilt axis too
 (``indreg.forward.split``): over the ranks of ``torchrun`` every rank reconstructs its rows (TV with a one-slice
@@ -13,6 +13,7 @@ whole-volume reconstruction to float rounding.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -36,7 +37,7 @@ def tv_mu(cfg: DictConfig, exp) -> float:
 
 
 def baselines(cfg: DictConfig, exp, out: Path) -> dict:
-    """FBP and TV reconstructions from the noisy data (images: float64, volumes: the run's dtype, on the run's
+    """FBP, SIRT and TV reconstructions from the noisy data (images: float64, volumes: the run's dtype, on the run's
     device, returned on the CPU in that dtype: no float64 copy of a volume); cached in ``baselines.npz`` so that a
     resumed run does not recompute them. FBP and SIRT are linear in the data; TV's weight scales with them
     (:func:`tv_mu`). Volumes take the run's dtype: at 256^3 a float64 SIRT / TV iteration costs about twice a
@@ -48,10 +49,10 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
     volume = exp.domain.ndim == 3
     mu = tv_mu(cfg, exp)
     key = np.array([b.fbp_filter.value, b.fbp_frequency_scaling, b.fbp_padding, repr(mu), b.tv_iterations,
-                    b.sirt_iterations if volume else 0], dtype=str)
+                    b.sirt_iterations], dtype=str)
     group, rank = _group()
     cache = out / "baselines.npz"
-    names = ("fbp", "sirt", "tv") if volume else ("fbp", "tv")
+    names = ("fbp", "sirt", "tv")
     rec = _cached(cache, key, names, tuple(exp.domain.shape)) if rank == 0 else None
     if _broadcast(rec is not None, group):
         return rec or {}
@@ -71,7 +72,7 @@ def baselines(cfg: DictConfig, exp, out: Path) -> dict:
 
 
 def _reconstruct(cfg: DictConfig, T, g: torch.Tensor, mu: float, fbp_and_sirt=None) -> dict:
-    """FBP, SIRT (volumes) and TV of ``T`` and ``g``; ``fbp_and_sirt(method, T, g)`` runs the two slab-wise ones
+    """FBP, SIRT (nonnegative) and TV of ``T`` and ``g``; ``fbp_and_sirt(method, T, g)`` runs the two slab-wise ones
     (default: ``method(T, g)``)."""
     from ..forward import fbp, sirt
     from ..forward.tv import tv_reconstruction
@@ -80,10 +81,20 @@ def _reconstruct(cfg: DictConfig, T, g: torch.Tensor, mu: float, fbp_and_sirt=No
     run = fbp_and_sirt or (lambda method, op, data: method(op, data))
     rec = {"fbp": run(lambda op, data: fbp(op, data, filter=b.fbp_filter.value,
                                            frequency_scaling=b.fbp_frequency_scaling, padding=b.fbp_padding), T, g)}
-    if T.domain.ndim == 3:  # electron tomography's iterative baseline
-        rec["sirt"] = run(lambda op, data: sirt(op, data, num_iter=b.sirt_iterations, nonneg=True)[0], T, g)
-    rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations)[0]
+    with _bar(cfg, "SIRT", None if fbp_and_sirt else b.sirt_iterations) as bar:   # by slabs: iterations per slab
+        rec["sirt"] = run(lambda op, data: sirt(op, data, num_iter=b.sirt_iterations, nonneg=True,
+                                                callback=lambda i, x: bar.update(1))[0], T, g)
+    with _bar(cfg, "TV", b.tv_iterations) as bar:
+        rec["tv"] = tv_reconstruction(T, g, mu=mu, num_iter=b.tv_iterations, callback=lambda i, x: bar.update(1))[0]
     return rec
+
+
+def _bar(cfg: DictConfig, name: str, total):
+    """A progress bar (tqdm) of a baseline's iterations, on a terminal with ``logging.progress`` only."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=f"baseline {name}", dynamic_ncols=True, leave=False,
+                disable=not (cfg.logging.progress and sys.stderr.isatty()))
 
 
 def _split(cfg: DictConfig, exp, T, g: torch.Tensor, mu: float, group, rank: int) -> tuple:

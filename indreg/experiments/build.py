@@ -84,6 +84,13 @@ class Experiment:
         return box.crop(image)
 
 
+def _rank0() -> bool:
+    """Whether this process is rank 0 of ``torchrun`` (or runs alone): the one that shows progress."""
+    import os
+
+    return int(os.environ.get("RANK", "0")) == 0
+
+
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (all devices)."""
     random.seed(seed)
@@ -103,7 +110,8 @@ def build(cfg: DictConfig) -> Experiment:
     g = data.data_64.to(dtype=dtype, device=device)
     try:
         s = run.setup(template if data.template_known else None, g, data.operator, label=lambda o: o.config_key,
-                      strict=False, dtype=dtype, device=device, **registration_values(cfg))
+                      strict=False, dtype=dtype, device=device, progress=bool(cfg.logging.progress) and _rank0(),
+                      **registration_values(cfg))
     except OptionError as e:
         raise ConfigError(f"invalid config value {e.label}={e.value!r}: expected {e.expected}") from None
     template_64, data_64 = s.units.apply(data.template_64, data.data_64)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import importlib.util
 import os
+import re
 import string
 import sys
 from pathlib import Path
@@ -119,8 +120,10 @@ def check_keys(overrides, base, prog: str) -> None:
             if not hasattr(node, "keys") or part not in node:
                 where = f"'{'.'.join(path)}'" if path else prog
                 known = ", ".join(node.keys()) if hasattr(node, "keys") else "none (it is a value)"
-                raise UsageError(f"{o}: {prog} has no key '{key}'; the keys of {where} are {known} "
-                                 f"(see {prog} --help)")
+                from .errors import did_you_mean, dotted_keys
+                hint = did_you_mean(key, dotted_keys(base))
+                raise UsageError(f"{o}: {prog} has no key '{key}'{f' ({hint})' if hint else ''}; the keys of {where} "
+                                 f"are {known} (see {prog} --help)")
             node, path = node[part], path + [part]
 
 
@@ -218,7 +221,33 @@ def _compose_or_fail(config_dir, config_name, overrides):
     try:
         return compose(config_dir, config_name, overrides)
     except (HydraException, OmegaConfBaseException, YAMLError, ValueError) as e:
-        raise UsageError(error_chain(e)) from None
+        raise UsageError(misspelt_key(e, config_dir, config_name, overrides) or error_chain(e)) from None
+
+
+#: Hydra's message for an override of a key the config does not have (its hint, ``+key=value``, would add the
+#: misspelt key, which the app then refuses).
+_NO_KEY = re.compile(r"Could not override '([^']+)'\.\s*To append to your config use")
+
+
+def misspelt_key(error: BaseException, config_dir, config_name: str, overrides) -> str | None:
+    """For Hydra's "Could not override 'data.templat'" (a key the config lacks): one line naming the valid key
+    nearest to it (``indreg.experiments.errors.nearest_key``, among the keys of the config composed without that
+    override), in place of Hydra's hint to append the misspelt key with ``+``; None for any other error."""
+    from .errors import dotted_keys, nearest_key
+
+    match = _NO_KEY.search(error_chain(error))
+    if match is None:
+        return None
+    key = match.group(1)
+    given = next((o for o in overrides if _key(o) == key), key)
+    try:
+        cfg = compose(config_dir, config_name, [o for o in overrides if _key(o) != key])
+    except Exception:   # noqa: BLE001 (another bad override: Hydra's own message then)
+        return None
+    near = nearest_key(key, [k for k in dotted_keys(cfg) if not k.startswith("hydra")])
+    value = given.split("=", 1)[1] if "=" in given else ""
+    hint = f"; did you mean {near}={value}?" if near else "; --help lists the keys"
+    return f"{given}: the config has no key {key}{hint}"
 
 
 def _resolved(cfg, key: str) -> str:

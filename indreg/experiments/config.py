@@ -38,6 +38,7 @@ from .._checks import is_finite_number
 from ..conf import CONFIG_DIR  # noqa: F401  (re-exported: indreg.experiments.config.CONFIG_DIR)
 from . import sources
 from .errors import ConfigError   # re-exported: ``from indreg.experiments.config import ConfigError``
+from .errors import did_you_mean, dotted_keys
 from .schema import build_schema
 
 #: The schema of the built-in models and sources (``schema.build_schema``; :func:`register_schema` rebuilds it).
@@ -142,10 +143,12 @@ def validate(cfg: DictConfig, registration: bool = True) -> None:
     False leaves the registration options to ``indreg.registration.run.setup`` (the run resolves them there once, with the same
     messages)."""
     c = cfg
-    unknown = _unknown_keys(cfg, OmegaConf.structured(RegisterConfig))
+    schema = OmegaConf.structured(RegisterConfig)
+    unknown = _unknown_keys(cfg, schema)
     if unknown:
+        hints = "; ".join(f"{k}: {hint}" for k in unknown if (hint := did_you_mean(k, dotted_keys(schema))))
         raise ConfigError(f"unknown config key(s) {', '.join(unknown)}: not in the schema "
-                          "indreg.experiments.config.RegisterConfig")
+                          "indreg.experiments.config.RegisterConfig" + (f" ({hints})" if hints else ""))
     _import_modules(c.plugins)
     _require(bool(_NAME.fullmatch(c.name)), "name", "letters, digits, '.', '_' and '-', not starting with '.'",
              c.name)

@@ -142,19 +142,19 @@ def residual_panel(ax, residual: np.ndarray, angles_deg, det_range, unit=None, t
 
 def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_data0, fbp=None, tv=None,
                  extent=None, title: str = "", angle_deg: float = 0.0, scores=None, residual=None, angles_deg=None,
-                 unit=None, data_unit: str = ""):
+                 unit=None, data_unit: str = "", sirt=None):
     """The 3 x 3 layout of the paper's figures 1-2 and 4, and a fourth row of errors.
 
     Row 1: template, t = 0.25, t = 0.5; row 2: t = 0.75, t = 1.0 (the result), target; row 3: data at the first
-    angle ``angle_deg`` (noise-free blue, noisy red, against the detector coordinate), FBP, TV; row 4 (when a
-    target or a ``residual`` is given): the error ``result - target`` and that of the best baseline on one
-    diverging scale, and the data residual ``T f - g`` per angle (``residual`` ``(num_angles, det_count)``,
-    ``angles_deg``). ``trajectory`` is ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of
-    the target (its colour bar on every panel); the FBP and TV titles give their own value range (the shared
-    scale clips what lies outside). ``scores``: ``{"result" | "fbp" | "tv" | "template": {"ssim", "psnr"} or
-    {"residual"}}``, in the panels' titles (:func:`score_text`). ``unit``: the domain's length unit (axes, scale
-    bar). Measured data: ``target=None`` leaves its panel empty (grey scale of the template),
-    ``clean_data0=None`` plots the data only.
+    angle ``angle_deg`` (noise-free blue, noisy red, against the detector coordinate; y axis ``data_unit``, default
+    "line integral"), FBP, TV; row 4 (when a target or a ``residual`` is given): the error ``result - target`` and
+    that of the best baseline (by SSIM: FBP, ``sirt`` if given, TV) on one diverging scale, and the data residual
+    ``T f - g`` per angle (``residual`` ``(num_angles, det_count)``, ``angles_deg``). ``trajectory`` is
+    ``(N + 1, nx, ny)`` = W(nu, I)(t_i). All images share the grey scale of the target (its colour bar on every
+    panel); the FBP and TV titles give their own value range (the shared scale clips what lies outside).
+    ``scores``: ``{"result" | "fbp" | "sirt" | "tv" | "template": {"ssim", "psnr"} or {"residual"}}``, in the
+    panels' titles (:func:`score_text`). ``unit``: the domain's length unit (axes, scale bar). Measured data:
+    ``target=None`` leaves its panel empty (grey scale of the template), ``clean_data0=None`` plots the data only.
     """
     scores = scores or {}
     trajectory = np.asarray(trajectory)
@@ -180,8 +180,7 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
             label="noisy" if clean_data0 is not None else "data")
     ax.set_title(rf"Data at ${angle_deg:.4g}^{{\circ}}$", fontsize="medium")
     ax.set_xlabel(axis_label("detector coordinate", unit))
-    if data_unit:
-        ax.set_ylabel(data_unit)
+    ax.set_ylabel(data_unit or "line integral")
     ax.legend(loc="upper right", fontsize="small")
     ax.set_box_aspect(1)
     for ax, img, key, label in ((axes[2, 1], fbp, "fbp", "FBP"), (axes[2, 2], tv, "tv", "TV")):
@@ -192,24 +191,25 @@ def paper_figure(template, trajectory, target, det_points, clean_data0, noisy_da
             show_image(ax, img, f"{_titled(label, scores.get(key))}\n({value_range(img)})", vmin, vmax, extent,
                        unit=unit)
     if errors:
-        _error_row(axes[3], trajectory[n], target, {"FBP": fbp, "TV": tv}, scores, residual, angles_deg,
-                   det_points, extent, unit)
+        _error_row(axes[3], trajectory[n], target, {"FBP": fbp, "SIRT": sirt, "TV": tv}, scores, residual,
+                   angles_deg, det_points, extent, unit)
     if title:
         fig.suptitle(title)
     return fig
 
 
 def _error_row(row, result, target, baselines: dict, scores: dict, residual, angles_deg, det_points, extent, unit):
-    """The fourth row of :func:`paper_figure`: result - target, the best baseline's error on the same scale, and
-    the residual sinogram ``T f - g``."""
+    """The fourth row of :func:`paper_figure`: result - target, the best baseline's error on the same scale (the
+    larger of the two errors), and the residual sinogram ``T f - g``."""
     shown = [b for b in baselines.items() if b[1] is not None]
     if target is not None:
         err = np.asarray(result) - np.asarray(target)
         others = {k: np.asarray(v) - np.asarray(target) for k, v in shown}
-        bound = max([float(np.max(np.abs(e))) for e in (err, *others.values())] + [1e-12])
+        best = max(others, key=lambda k: scores.get(k.lower(), {}).get("ssim", -1.0)) if others else None
+        shared = (err,) if best is None else (err, others[best])   # the two panels' scale
+        bound = max([float(np.max(np.abs(e))) for e in shared] + [1e-12])
         show_image(row[0], err, "error: result $-$ target", -bound, bound, extent, unit=unit, cmap=DIVERGING)
-        if others:
-            best = max(others, key=lambda k: scores.get(k.lower(), {}).get("ssim", -1.0))
+        if best is not None:
             show_image(row[1], others[best], f"error: {best} $-$ target (same scale)", -bound, bound, extent,
                        unit=unit, cmap=DIVERGING)
         else:

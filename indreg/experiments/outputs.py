@@ -1,9 +1,13 @@
 """The final outputs of a run in its directory: arrays, ``metrics.json``, ``history.json``, the figures, and the
 log's headline (``finish``); a failed run's record (``failed``).
 
-Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.registration.run.build_result`` (images ``(nx, ny)``,
-volumes ``(nx, ny, nz)``, a model's stacks with a leading axis, e.g. frames ``(K, nx, ny)``); SSIM / PSNR use the
-target's data range; a stack's figures of merit are the means over its first axis.
+Convention: arrays are saved as float64 ``.npy`` in the layout of ``indreg.registration.run.build_result``
+(images ``(nx, ny)``, volumes ``(nx, ny, nz)``, a model's stacks with a leading axis, e.g. frames ``(K, nx, ny)``),
+except that files read in another tool's convention (``data.convention``, 2D) get their images back in that layout
+and the data as that tool holds them (:func:`as_given`: the user compares ``final.npy`` with a ground truth as
+held); the vector fields (``velocity``, ``momentum``, ``deformation``: component 0 = x) stay in indreg's, which
+``outputs.json`` says per file. SSIM / PSNR use the target's data range; a stack's figures of merit are the means
+over its first axis.
 
 Memory: a volume's outputs are written without a float64 copy of a whole array (:func:`save_array` converts in
 chunks), its trajectory frame by frame (``problem.image_frames``: slab-wise, one fine volume at a time; only the
@@ -31,12 +35,15 @@ from .config import to_plain
 from .run_figures import to_numpy, write_figures
 
 __all__ = ["figures_of_merit", "output_fom", "finish", "failed", "hyperparameters", "quality", "save_array",
-           "save_frames", "save_rows", "write_outputs_record"]
+           "save_frames", "save_rows", "write_outputs_record", "as_given", "VECTOR_FIELDS"]
 
 log = logging.getLogger("indreg.experiments.register")
 
 #: Values converted to float64 at a time when an array is written (32 MiB).
 SAVE_CHUNK = 2 ** 22
+#: Outputs that are vector fields (component 0 = x): no tool's convention here defines their layout (scikit-image's
+#: coordinate maps are (row, column) pixel indices, ASTRA, TomoPy and IMOD have none); written in indreg's.
+VECTOR_FIELDS = ("velocity", "momentum", "deformation")
 
 
 def figures_of_merit(image, target_64, paper: bool = True, units=None) -> dict:
@@ -151,6 +158,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration
+    log.info("writing the outputs (arrays, metrics, figures, TensorBoard) in %s", out)
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
                      trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver, box=exp.box)
@@ -180,10 +188,15 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": r.warnings, "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        "warnings": r.warnings, "objective_rises": r.objective_rises, "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
+    result["sigma"] = float(exp.options["sigma"])
+    if exp.setup.sigma_scores:   # sigma="auto": each width's held-out residual
+        result["sigma_auto"] = {f"{w:.6g}": v for w, v in exp.setup.sigma_scores.items()}
+    if _convention(exp).name != "indreg":   # the files' layout, in which the arrays are written (as_given)
+        result["layout"] = _convention(exp).name
     for name, summary in r.corrections.items():   # the in-the-fit corrections' estimates, and their plots
         result[name] = summary
         plot = getattr(CORRECTIONS.get(name), "plot", None)
@@ -202,7 +215,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
     for name, a in arrays.items():
-        save_array(out / f"{name}.npy", a)
+        save_array(out / f"{name}.npy", as_given(name, a, exp))
     frames = None
     if volume:   # the registered volume for IMOD / ChimeraX too (voxel size in the header)
         from ..io import write_volume
@@ -221,11 +234,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     write_outputs_record(out, exp, arrays)
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     done += " (poor fit: see the warning)" if r.poor_fit else ""
+    if "sigma_auto" in result:
+        done += f" with sigma {result['sigma']:.4g} (sigma=auto)"
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
-        sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""
-        log.info("%s, %s%s; FBP %s; TV %s%s; %d warnings", done, quality(result, exp, r.outputs), paper,
-                 _pair(result, "fbp"), _pair(result, "tv"), sirt, result["warnings"])
+        log.info("%s, %s%s; FBP %s; SIRT %s; TV %s; %d warnings", done, quality(result, exp, r.outputs), paper,
+                 _pair(result, "fbp"), _pair(result, "sirt"), _pair(result, "tv"), result["warnings"])
     else:
         log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
                  result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
@@ -236,10 +250,49 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     return result
 
 
+def _convention(exp):
+    """The convention the run's arrays are written in: the files' (2D) or indreg's."""
+    from ..io import conventions
+
+    name = getattr(exp.data, "convention", "indreg") if exp.domain.ndim == 2 else "indreg"
+    return conventions.get_convention(name)
+
+
+def as_given(name: str, a, exp):
+    """An output in the layout of the user's files (``data.convention``, 2D; ``indreg.io.conventions``).
+
+    Parameters
+    ----------
+    name : str
+        The output's name (its file's stem): ``data`` / ``data_clean`` are written as that tool holds a sinogram
+        (``sinogram_from_indreg``: its axis order, pixel sums), every image or stack of images ``(..., nx, ny)``
+        turned or transposed (``images_from_indreg``), the :data:`VECTOR_FIELDS` as they are.
+    a : torch.Tensor
+        The output in indreg's layout.
+    exp : Experiment
+        The run (its data's convention and domain).
+
+    Returns
+    -------
+    torch.Tensor
+        ``a`` in that layout (a view where it can be).
+    """
+    from ..io import conventions
+
+    c = _convention(exp)
+    if c.name == "indreg" or name in VECTOR_FIELDS:
+        return a
+    if name in ("data", "data_clean"):
+        g = a / exp.domain.cell_sides[0] if c.pixel_units else a
+        return g.transpose(-2, -1) if c.sinogram == "bin_angle" else g
+    return conventions.images_from_indreg(a, c) if tuple(a.shape[-2:]) == tuple(exp.domain.shape) else a
+
+
 def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
     """``outputs.json``: every file of the run directory with its format, the tool that wrote it and its version
     (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the voxel size
     and origin (the centre of voxel 0) in the domain's length unit, data layout (module Convention)."""
+    from ..io.conventions import describe_layout
     from ..io.provenance import write_record
 
     d = exp.domain
@@ -254,8 +307,19 @@ def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
                "deformation": f"(d components, *{grid_axes}): phi_(1,0), points in the domain's length unit"}
     images = {"final", "template", "target", "fbp", "tv", "sirt"}
     layouts.update({name: image["axis_order"] for name in images})
+    c = _convention(exp)
+    if c.name != "indreg":   # the files' convention (as_given)
+        image["axis_order"] = f"{c.name}'s: {describe_layout(c)}"
+        layouts.update({name: f"(N + 1 time steps, ...) of images {c.name}'s: {describe_layout(c)}" if
+                        name == "trajectory" else image["axis_order"] for name in ("trajectory", *images)})
+        data = {"axis_order": "(detector bins, angles)" if c.sinogram == "bin_angle" else "(angles, detector bins)",
+                "values": "pixel sums (line integrals in pixels)" if c.pixel_units else data["values"],
+                "convention": c.name}
+        image["convention"] = c.name
     conventions = {f"{name}.npy": data if name.startswith("data") else {**image, "axis_order": layouts.get(
         name, f"(..., *{grid_axes}): a model's output, its leading axes its own")} for name in (*arrays, "trajectory")}
+    for name in VECTOR_FIELDS:   # indreg's layout whatever the files' convention
+        conventions[f"{name}.npy"] = {**grid, "axis_order": layouts[name]}
     conventions["final.mrc"] = {"voxel_size_unit": "the domain's length unit (MRC readers: Angstrom)"}
     if exp.box is not None:   # the whole wide box: its own grid
         w = exp.box.domain

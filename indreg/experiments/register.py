@@ -113,7 +113,7 @@ def _task(cfg: DictConfig):
     except (ConfigError, DataFileError, CheckpointError) as e:  # user errors: one line, no traceback
         _log_to_file(str(e))
         _exit_error(str(e))
-    _say_where(result["status"], Path(hc.runtime.output_dir))
+    _say_where(result["status"], Path(hc.runtime.output_dir), result.get("layout"))
     if result["status"] == "interrupted":
         sys.exit(128 + int(result["signal"]))
     if result["status"] == "failed":
@@ -143,18 +143,23 @@ def plan_line(cfg: DictConfig, out: Path) -> str:
 FIGURES = ("figure.png", "parts.png", "frames.png", "frames.gif", "alignment.png")
 
 
-def where_line(status: str, out: Path) -> str:
-    """The run's last line: where its outputs are (the figures by name), or where its checkpoint is."""
+def where_line(status: str, out: Path, layout: str | None = None) -> str:
+    """The run's last line: where its outputs are (the figures by name; ``layout``: the files' convention the
+    arrays are written in, ``indreg.experiments.outputs.as_given``), or where its checkpoint is."""
     if status in ("interrupted", "stopped"):
         return (f"checkpoint in {out / 'checkpoint.pt'}: continue with hydra.run.dir={out} resume=true")
     if status == "failed":
         return f"record of the failed run in {out} (metrics.json, history.json)"
     shown = [name for name in FIGURES if (out / name).is_file()]
-    return f"outputs in {out}" + (f" (figures: {', '.join(shown)})" if shown else "")
+    where = f"outputs in {out}" + (f" (figures: {', '.join(shown)})" if shown else "")
+    if layout:
+        where += (f"; images and data in convention {layout}'s layout, as the files given (velocity, momentum "
+                  "and deformation in indreg's: outputs.json)")
+    return where
 
 
-def _say_where(status: str, out: Path) -> None:
-    log.info("%s", where_line(status, out.resolve()))
+def _say_where(status: str, out: Path, layout: str | None = None) -> None:
+    log.info("%s", where_line(status, out.resolve(), layout))
 
 
 def _log_to_file(message: str) -> None:

@@ -3,7 +3,7 @@ images, from its result (:func:`indreg.registration.run.build_result`), built wi
 
 Convention: as :mod:`indreg.experiments.figures` (images ``(nx, ny)``, axis 0 = x; volumes ``(nx, ny, nz)``); panels
 of images are drawn on the domain's extent in its units (``ImageDomain.min_pt`` / ``max_pt``), named by
-``logging.length_unit`` (e.g. nm). Every method's panel carries its score (:func:`scores`: SSIM / PSNR against the
+``logging.length_unit`` (e.g. nm; unset: ``a.u.``, arbitrary units). Every method's panel carries its score (:func:`scores`: SSIM / PSNR against the
 target, else the relative data residual); the data residual ``T f - g`` per angle (:func:`residual_sinogram`: a
 tilt series' central detector row) is drawn beside the error ``result - target`` and sent to TensorBoard.
 """
@@ -91,9 +91,14 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
         writer.figure("images/parts", _parts_figure(exp, r.deformed, parts, unit=unit, model=model), it)
 
 
+#: The figures' length unit when ``logging.length_unit`` is unset: arbitrary units (the paper's box [-16, 16] has
+#: none), so that every axis and scale bar says what it measures.
+ARBITRARY_UNIT = "a.u."
+
+
 def _unit(cfg):
-    """``logging.length_unit`` (e.g. ``"nm"``), None when unset."""
-    return getattr(cfg.logging, "length_unit", None) or None
+    """``logging.length_unit`` (e.g. ``"nm"``), :data:`ARBITRARY_UNIT` when unset."""
+    return getattr(cfg.logging, "length_unit", None) or ARBITRARY_UNIT
 
 
 def scores(result: dict, exp, rec: dict) -> dict:
@@ -208,6 +213,7 @@ def _paper_figure(exp, traj, rec: dict, title: str, score: dict, residual, unit)
                                 np.arange(noisy.shape[-1]) if det is None else det.numpy(), clean, noisy[0].numpy(),
                                 to_numpy(rec["fbp"]) if "fbp" in rec else None,
                                 to_numpy(rec["tv"]) if "tv" in rec else None, extent=domain_extent(exp.domain),
+                                sirt=to_numpy(rec["sirt"]) if "sirt" in rec else None,
                                 title=title, angle_deg=0.0 if angles is None else float(angles[0]),
                                 scores=score, residual=residual,
                                 angles_deg=None if angles is None or residual is None

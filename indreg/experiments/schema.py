@@ -148,7 +148,7 @@ class BaselineConfig:
 class LoggingConfig:
     """Every ``every`` iterations: SSIM/PSNR and image to TensorBoard; checkpoint every ``checkpoint_every``.
     ``length_unit``: the name of the domain's length unit (e.g. ``nm``) on the figures' axes and scale bars
-    (null: the box's own units, unnamed)."""
+    (null: "a.u.", arbitrary units)."""
     every: int = 10
     checkpoint_every: int = 10
     tensorboard: bool = True

@@ -64,7 +64,9 @@ class Data:
     ``paper``: the paper's simulated phantoms, scored also in the paper's conventions (``ssim_paper``,
     ``psnr_paper``). ``template_known`` False: the run gets no template (a model that reconstructs it, e.g.
     ``spatiotemporal``; ``template_64`` is then only shown). ``targets``: ground truths of the model's outputs by
-    name (``frames`` ``(K, *shape)``, ``template``), scored as ``<name>_ssim`` (mean over a leading frame axis)."""
+    name (``frames`` ``(K, *shape)``, ``template``), scored as ``<name>_ssim`` (mean over a leading frame axis).
+    ``convention``: the layout of the user's files (``indreg.io.conventions``; the arrays here are in indreg's), in
+    which the run writes its images and data back."""
     domain: ImageDomain
     geometry: object
     operator: object
@@ -78,12 +80,13 @@ class Data:
     paper: bool = False
     template_known: bool = True
     targets: dict = field(default_factory=dict)
+    convention: str = "indreg"
 
     @classmethod
     def from_inputs(cls, d: RegistrationInputs) -> "Data":
         """The record of measured data loaded by ``indreg.load``."""
         return cls(domain=d.domain, geometry=d.geometry, operator=d.operator, template_64=d.template,
-                   data_64=d.data, label=d.label, target_64=d.target, report=d.report())
+                   data_64=d.data, label=d.label, target_64=d.target, report=d.report(), convention=d.convention)
 
 
 @dataclass(frozen=True)

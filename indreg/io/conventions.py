@@ -26,6 +26,8 @@ Notes
   shifted by half a pixel for even ``n``, scikit-image's centre).
 - Arrays handed to ``indreg.load`` follow the same ``image`` and ``sinogram`` layouts as array files. Angles
   are radians here (``angle_unit`` is converted before).
+- What a run gives back goes the other way: the app writes its images and data in the files' convention
+  (:func:`images_from_indreg`, :func:`sinogram_from_indreg`); from Python, ``RegistrationInputs.as_given``.
 - Which convention the files follow is probed at load by ``indreg.io.orientation`` (``orientation_scores``,
   ``orientation_hint``, ``flip_hint``), the one home of orientation probing.
 """
@@ -39,8 +41,9 @@ import numpy as np
 from ..domain import ImageDomain
 
 __all__ = ["Convention", "CONVENTIONS", "INTEGER_SCALES", "get_convention", "image_to_indreg", "image_from_indreg",
-           "sinogram_layout", "sinogram_units", "sinogram_to_indreg", "sinogram_from_indreg", "angles_to_indreg",
-           "angles_from_indreg", "domain_for", "detector_for", "describe_image", "describe_sinogram"]
+           "images_from_indreg", "describe_layout", "sinogram_layout", "sinogram_units", "sinogram_to_indreg",
+           "sinogram_from_indreg", "angles_to_indreg", "angles_from_indreg", "domain_for", "detector_for",
+           "describe_image", "describe_sinogram"]
 
 #: How 8- and 16-bit pictures are read: ``fraction`` of the full scale (value / 255, / 65535) or ``raw`` values.
 INTEGER_SCALES = ("fraction", "raw")
@@ -153,6 +156,50 @@ def image_from_indreg(f: np.ndarray, convention) -> np.ndarray:
     if layout == "displayed":
         return np.ascontiguousarray(np.rot90(f))
     return np.ascontiguousarray(f.T) if layout == "yx" else f
+
+
+def images_from_indreg(images, convention):
+    """Images in indreg's layout as the tool holds them: :func:`image_from_indreg` on the last two axes.
+
+    Parameters
+    ----------
+    images : numpy.ndarray or torch.Tensor
+        ``(..., nx, ny)``, any leading axes (a stack, a trajectory).
+    convention : str or Convention
+        The tool.
+
+    Returns
+    -------
+    numpy.ndarray or torch.Tensor
+        The same kind as ``images``, its last two axes turned (``"displayed"``) or swapped (``"yx"``).
+    """
+    layout = get_convention(convention).image
+    if layout == "xy":
+        return images
+    if hasattr(images, "detach"):   # torch: the same rotation (from the first axis towards the second) / transpose
+        return images.rot90(1, (-2, -1)) if layout == "displayed" else images.transpose(-2, -1)
+    a = np.asarray(images)
+    return np.ascontiguousarray(np.rot90(a, axes=(-2, -1)) if layout == "displayed" else np.swapaxes(a, -2, -1))
+
+
+def describe_layout(convention) -> str:
+    """How a convention's arrays hold an image, for messages and records.
+
+    Parameters
+    ----------
+    convention : str or Convention
+        The tool.
+
+    Returns
+    -------
+    str
+        E.g. ``"as displayed: rows = y from the top down, columns = x (...)"``.
+    """
+    layout = get_convention(convention).image
+    return {"xy": "(nx, ny), axis 0 = x",
+            "displayed": "as displayed: rows = y from the top down, columns = x (np.rot90 of indreg's (nx, ny))",
+            "yx": "as MRC sections: rows = y from the bottom up, columns = x (the transpose of indreg's (nx, ny))"}[
+        layout]
 
 
 def sinogram_layout(g: np.ndarray, convention) -> np.ndarray:

@@ -539,7 +539,9 @@ RUN = (
     Option("callback", "run", "callback", None, _callback,
            "fn(state, info) after every iteration (True stops the run), an indreg.callbacks.Callback (the app's loop "
            "hooks: begin, before, after, describe, end; a & b) or a list of them"),
-    Option("progress", "run", "progress", False, boolean, "a progress bar / log lines"),
+    Option("progress", "run", "progress", None, optional(boolean),
+           "progress of the run and of sigma='auto''s trial runs: None (a bar on a terminal, silent otherwise), "
+           "True (a bar on a terminal, log lines on stderr otherwise) or False"),
     Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
     Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),
 )

@@ -16,7 +16,11 @@ Notes
   increases the objective or folds the deformation is halved until it does not (the paper's fixed absolute
   step: ``gamma=1e-6, step_size=0.02, step_halving=False``).
 - Warnings (folding, objective increase, rejected steps) and progress go through ``logging`` (logger
-  ``"indreg"``); ``result.warnings`` counts the iterations that reported one.
+  ``"indreg"``); ``result.warnings`` counts the iterations that reported one (a fixed step's objective rises
+  apart: ``result.objective_rises``, said once). ``progress`` (default None): a bar on a terminal, for the run
+  and for each of ``sigma="auto"``'s trial runs (with a line per width and its held-out residual, and the
+  width chosen: ``result.sigma``); nothing in scripts, pipes and tests; ``progress=True`` off a terminal: log
+  lines on stderr.
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ import sys
 from ..options import OptionError
 from ..options.docs import fill
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
-                  relative_residual, resolve_device, setup)
+                  relative_residual, resolve_device, setup, shows_progress)
 
 log = logging.getLogger("indreg")
 
@@ -92,23 +96,26 @@ def register(template, data, operator, **options) -> RegistrationResult:
     >>> result.status, result.iterations
     ('completed', 3)
     """
+    handler = _console_handler(options.get("progress") is True)   # before setup: sigma="auto" runs there
     try:
-        s = setup(template, data, operator, **options)
-    except OptionError as e:
-        raise e.kind(str(e)) from None
-    o, problem = s.options, s.problem
-    state = initial_state(problem)
-    handler = _console_handler(o["progress"])
-    try:
+        try:
+            s = setup(template, data, operator, **options)
+        except OptionError as e:
+            raise e.kind(str(e)) from None
+        o, problem = s.options, s.problem
+        state = initial_state(problem)
         log.info("%s | %s", problem, s.solver)
         loop = RegistrationLoop(problem, s.solver, state, o["max_iter"], every=o["log_every"],
-                                progress=o["progress"], callback=o["callback"], validation=s.validation)
+                                progress=shows_progress(o["progress"]), callback=o["callback"],
+                                validation=s.validation)
         status = loop.run()
     finally:
         if handler is not None:
             log.removeHandler(handler)
-    return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                        orientation=s.orientation, solver=s.solver, box=s.box)
+    result = build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
+                          orientation=s.orientation, solver=s.solver, box=s.box)
+    result.sigma, result.sigma_scores = float(o["sigma"]), s.sigma_scores
+    return result
 
 
 register.__doc__ = fill(register.__doc__)   # the options' entries, from the table (indreg.options.docs)

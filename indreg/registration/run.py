@@ -83,8 +83,9 @@ class Setup:
     """The problem and the solver built by :func:`setup`, with the run's (resolved) options, what :func:`prepare`
     did to the inputs, ``validation``: the held-out angles (``indreg.evaluation.validation.Validation``) when ``holdout``
     is set, else None, ``orientation``: the orientation probe's warning (``indreg.io.orientation.check``), ``""``
-    for none, and ``box``: the wide box (``indreg.forward.wide_box.WideBox``) the problem lives on, None for the
-    operator's own."""
+    for none, ``box``: the wide box (``indreg.forward.wide_box.WideBox``) the problem lives on, None for the
+    operator's own, and ``sigma_scores``: ``sigma="auto"``'s held-out residual of each width it tried (else
+    empty)."""
     problem: object
     solver: object
     options: dict
@@ -92,6 +93,7 @@ class Setup:
     validation: object = None
     orientation: str = ""
     box: object = None
+    sigma_scores: dict = field(default_factory=dict)
 
 
 def setup(template, data, operator, label=lambda o: o.name, strict: bool = True, **options) -> Setup:
@@ -111,8 +113,11 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     from ..evaluation.validation import split
 
     o = opts.resolve(options, label, strict)
+    sigma_scores = {}
     if o["sigma"] == "auto":   # chosen from held-out angles first, then the run (indreg.kernel_width)
-        options = dict(options, sigma=auto_sigma(template, data, operator, label, strict, options))
+        sigma, sigma_scores = auto_sigma(template, data, operator, label, strict, options,
+                                         shows_progress(o["progress"]))
+        options = dict(options, sigma=sigma)
         o = opts.resolve(options, label, strict)
     operator, data = as_time_series(operator, data)   # sequences: one operator / data set per time point
     check_operator(operator, "operator")
@@ -170,26 +175,58 @@ def setup(template, data, operator, label=lambda o: o.name, strict: bool = True,
     problem, solver_options = model.make(operator, template, data, kernel, o)
     fit.problem = problem
     solver = corrections.chain(make_solver(problem, o, solver_options), fit)   # the in-the-fit corrections
-    return Setup(problem, solver, o, units, validation, probe, box)
+    return Setup(problem, solver, o, units, validation, probe, box, sigma_scores)
 
 
-def auto_sigma(template, data, operator, label, strict: bool, options: dict) -> float:
-    """``sigma="auto"``: the width of ``indreg.kernel_width.candidates`` whose registration (the run's options,
-    its ``holdout`` or every ``AUTO_HOLDOUT``-th angle held out, no early stop) predicts the held-out angles
-    best."""
+def shows_progress(progress) -> bool:
+    """The ``progress`` option resolved: None (the default) is a bar on a terminal only (stderr a tty), so that
+    scripts, pipes and tests stay quiet.
+
+    Parameters
+    ----------
+    progress : bool or None
+        The option's value.
+
+    Returns
+    -------
+    bool
+        Whether to show progress.
+    """
+    return sys.stderr.isatty() if progress is None else bool(progress)
+
+
+def auto_sigma(template, data, operator, label, strict: bool, options: dict, progress: bool = False) -> tuple:
+    """``sigma="auto"``: ``(sigma, {width: held-out residual})``, the width of ``indreg.kernel_width.candidates``
+    whose registration (the run's options, its ``holdout`` or every ``AUTO_HOLDOUT``-th angle held out, no early
+    stop) predicts the held-out angles best. With ``progress`` each trial run shows a bar on a terminal and each
+    width's score is said as it comes (``indreg.kernel_width.choose_sigma``)."""
     from ..kernel_width import AUTO_HOLDOUT, candidates, choose_sigma
 
     trial = dict(options, holdout=options.get("holdout") or AUTO_HOLDOUT, patience=None, callback=None,
                  progress=False, target=None)
+    widths = candidates(getattr(operator, "domain", None) or operator[0].domain)
 
     def held_out(sigma: float) -> float:
         s = setup(template, data, operator, label, strict, **dict(trial, sigma=sigma))
         o = s.options
-        RegistrationLoop(s.problem, s.solver, initial_state(s.problem), o["max_iter"], every=o["log_every"],
-                         validation=s.validation).run()
+        k, state = widths.index(sigma) + 1, initial_state(s.problem)
+        RegistrationLoop(s.problem, s.solver, state, o["max_iter"], every=o["log_every"],
+                         validation=s.validation, progress=progress,
+                         desc=f"sigma='auto' {k}/{len(widths)}: sigma {sigma:.4g}").run()
+        if not s.validation.curve:   # fewer iterations than log_every: the held-out residual of the last one
+            s.validation.record(state.iteration, s.problem.reconstruction(state.iterate))
         return s.validation.best[1]
 
-    return choose_sigma(held_out, candidates(getattr(operator, "domain", None) or operator[0].domain))[0]
+    return choose_sigma(held_out, widths, say=_say if progress else None)
+
+
+def _say(message: str) -> None:
+    """A line of progress: logged (INFO), and written above the bars on a terminal where no logging is set up
+    (where INFO lines would not show)."""
+    log.info("%s", message)
+    if sys.stderr.isatty() and not log.hasHandlers():
+        from tqdm import tqdm
+        tqdm.write(f"[indreg] {message}", file=sys.stderr)
 
 
 def initial_state(problem):
@@ -203,6 +240,27 @@ def initial_state(problem):
 def count_warnings(history) -> int:
     """Iterations whose report carries a warning (the count shown on screen and stored in metrics)."""
     return sum(1 for h in history if h.get("warning"))
+
+
+def count_rises(history) -> int:
+    """Iterations of a fixed step whose objective rose (``objective_rose``: the paper's step takes every step,
+    :class:`RegistrationLoop`), counted apart from the warnings.
+
+    Parameters
+    ----------
+    history : list of dict
+        The run's reports.
+
+    Returns
+    -------
+    int
+        How many rose.
+    """
+    return sum(1 for h in history if h.get("objective_rose"))
+
+
+#: How the step control words an objective that rose (``indreg.solvers.state.problems``).
+_RISE = "objective increased from"
 
 
 def count_rejected(history) -> int:
@@ -276,18 +334,21 @@ class RegistrationLoop:
         self.callbacks = Callbacks(*chain)
 
     def _warn(self, it: int, info: dict) -> None:
-        """Count a warning; log the first one and then one every ``every`` iterations. A fixed step (no step
-        halving, as the paper's presets) says once what it does and is then only counted (the run's last
-        warning line gives the count): its objective may rise, which is what the paper's step does."""
+        """Count a warning; log the first one and then one every ``every`` iterations."""
         self.warnings += 1
-        if self._fixed_step():
-            if self.warnings == 1:
-                log.warning("iteration %d: %s: a fixed step (step_halving off, as the paper's presets) takes every "
-                            "step, so the objective may rise; further warnings are counted, not printed", it,
-                            info["warning"])
-            return
         if self.warnings == 1 or it % self.every == 0:
             log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+
+    def _rose(self, it: int, info: dict) -> None:
+        """A fixed step (no step halving, as the paper's presets) takes every step, so its objective may rise:
+        what the paper's step does, not a warning. The report's ``warning`` moves to ``objective_rose``; the
+        first rise is said once, the others only counted (metrics.json's ``objective_rises``)."""
+        info["objective_rose"], info["warning"] = info["warning"], ""
+        if count_rises(self.history) == 0:
+            log.warning("iteration %d: %s: the fixed step (step_halving off, as the paper's presets) takes every step, "
+                        "so the objective may rise; further rises are counted (objective_rises), not printed "
+                        "(step_halving=true, indreg.register's default, rejects such steps)", it,
+                        info["objective_rose"])
 
     def _fixed_step(self) -> bool:
         """Algorithm 1's step control with step halving off: every step is taken."""
@@ -333,6 +394,8 @@ class RegistrationLoop:
                 dt = time.perf_counter() - t0
                 self.seconds += dt
                 it = state.iteration
+                if self._fixed_step() and info.get("warning", "").startswith(_RISE) and ";" not in info["warning"]:
+                    self._rose(it, info)
                 self.history.append(dict(info, iteration=it, seconds=dt))
                 if info.get("warning"):
                     self._warn(it, info)
@@ -372,10 +435,8 @@ class RegistrationLoop:
             self._end(error)
         rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
-            fixed = "" if not self._fixed_step() else "; the fixed step: step_halving=true (the default of " \
-                "indreg.register) rejects a step that raises the objective"
-            log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings%s)",
-                        self.warnings, len(self.history), rejected, halvings, fixed)
+            log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)",
+                        self.warnings, len(self.history), rejected, halvings)
         return status
 
 
@@ -415,6 +476,13 @@ class RegistrationResult:
         ``stopped`` (the callback returned True).
     warnings : int
         The iterations that reported a warning.
+    objective_rises : int
+        The iterations of a fixed step (``step_halving=False``) whose objective rose, which that step allows (not
+        warnings: said once).
+    sigma : float
+        The kernel's width used.
+    sigma_scores : dict
+        ``{width: held-out residual}`` when ``sigma="auto"`` chose it; empty otherwise.
     seconds : float
         Wall time of the loop.
     problem : RegistrationProblem
@@ -469,6 +537,9 @@ class RegistrationResult:
     poor_fit: str = ""
     corrections: dict = field(default_factory=dict)
     box: object = None
+    objective_rises: int = 0
+    sigma: Optional[float] = None
+    sigma_scores: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -585,7 +656,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
         trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
-        residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
+        residual=residual, status=final_status(status, residual), warnings=count_warnings(history),
+        objective_rises=count_rises(history), seconds=seconds,
         problem=problem, outputs=problem.outputs(x), units=units, corrections=fitted,
         alignment=fitted.get("alignment", {}), box=box)
     if target is not None:

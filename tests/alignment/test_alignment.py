@@ -248,11 +248,12 @@ def test_register_fits_template_scale_through_the_alignment():
     plain = indreg.units.compare_units(0.5 * target, data, T)[1]
     r = indreg.register(0.5 * target, data, T, align="shifts", template_scale="auto", **options)
     assert r.units.template_scale == pytest.approx(2.0, rel=1e-3) and r.units.scale_fit == r.units.template_scale
-    assert r.units.scale_fit_unaligned == plain < 1.9
+    assert r.units.scale_fit_unaligned == pytest.approx(plain, rel=1e-12) and plain < 1.9
     off = indreg.register(0.5 * target, data, T, template_scale="auto", **options)
-    assert off.units.scale_fit == off.units.template_scale == plain and math.isnan(off.units.scale_fit_unaligned)
+    assert off.units.scale_fit == off.units.template_scale == pytest.approx(plain, rel=1e-12)
+    assert math.isnan(off.units.scale_fit_unaligned)
     given = indreg.register(0.5 * target, data, T, align="shifts", template_scale=2.0, **options)
-    assert given.units.scale_fit == plain and math.isnan(given.units.scale_fit_unaligned)
+    assert given.units.scale_fit == pytest.approx(plain, rel=1e-12) and math.isnan(given.units.scale_fit_unaligned)
 
 
 def test_errors(series):

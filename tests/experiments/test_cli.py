@@ -105,6 +105,31 @@ def test_read_only_run_dir_is_one_line(tmp_path, monkeypatch, capsys):
         (tmp_path / "ro").chmod(0o755)
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["data=files", "data.templat=t.png"], "data.templat=t.png: the config has no key data.templat; did you mean "
+                                           "data.template=t.png?"),
+    (["+data.templat=t.png"], "unknown config key(s) data.templat: not in the schema "
+                              "indreg.experiments.config.RegisterConfig (data.templat: did you mean data.template?)"),
+    (["sover.gamma=1e-6"], "did you mean solver.gamma=1e-6?"),
+    (["xyz.abc=1"], "xyz.abc=1: the config has no key xyz.abc; --help lists the keys"),
+])
+def test_a_misspelt_key_is_answered_with_the_nearest_valid_one(tmp_path, monkeypatch, capsys, argv, message):
+    """Not Hydra's hint to append the misspelt key with ``+`` (which the schema then refuses)."""
+    monkeypatch.chdir(tmp_path)
+    line = _register_error(capsys, argv)
+    assert message in line and "To append" not in line
+    assert not any(tmp_path.iterdir())
+
+
+def test_nearest_key_looks_under_the_given_parent_first():
+    from indreg.experiments.errors import nearest_key
+
+    known = ["data", "data.template", "data.sinogram", "solver", "solver.gamma", "train", "train.steps", "model",
+             "model.name"]
+    assert [nearest_key(k, known) for k in ("data.templat", "sover.gamma", "templat", "model.steps", "qq")] == \
+        ["data.template", "solver.gamma", "data.template", None, None]
+
+
 @pytest.mark.parametrize("launcher, extra", [("joblib", "joblib"), ("slurm", "submitit"),
                                              ("submitit_local", "submitit"), ("ray", "ray")])
 def test_launcher_without_its_plugin_names_the_extra(monkeypatch, capsys, launcher, extra):
@@ -126,7 +151,7 @@ def test_every_extra_named_for_a_launcher_exists():
     ("solver=lbfgs", "solver=lbfgs: indreg-train-momentum has no key 'solver'; the keys of indreg-train-momentum "
                      "are seed, dtype, device, domain,"),
     ("+foo=1", "has no key 'foo'"),
-    ("train.stepz=3", "has no key 'train.stepz'; the keys of 'train' are steps, batch_size,"),
+    ("train.stepz=3", "has no key 'train.stepz' (did you mean train.steps?); the keys of 'train' are steps,"),
     ("~train.resume", "needs every key of its config"),
 ])
 def test_train_momentum_refuses_keys_it_does_not_have(capsys, override, message):

@@ -57,13 +57,32 @@ def test_paper_figure_scores_every_method_and_maps_errors_and_residuals_signed()
     assert error.get_title() == "error: result $-$ target"
     image = error.get_images()[0]
     np.testing.assert_allclose(np.rot90(trajectory[-1] - target), image.get_array())
-    bound = max(np.abs(trajectory[k] - target).max() for k in (1, 2, 4))   # FBP, TV and the result: one scale
+    bound = max(np.abs(trajectory[k] - target).max() for k in (2, 4))   # the best baseline (TV), the result
     assert image.get_cmap().name == figures.DIVERGING and image.get_clim() == (-bound, bound)
     assert best.get_title() == "error: TV $-$ target (same scale)"   # the best baseline by SSIM
     assert best.get_images()[0].get_clim() == (-bound, bound)
     assert sino.get_images()[0].get_clim() == (-1.0, 1.0) and "data residual 0.2450" in sino.get_title()
     assert [t.get_text() for t in sino.get_yticklabels()] == ["0", "60", "120"]
     assert sino.get_xlabel() == "detector coordinate (nm)"
+
+
+def test_sirt_joins_the_best_baseline_and_the_data_panel_names_its_axis():
+    """SIRT (given) is a candidate of the error row's best baseline; the data panel's y axis says what it plots;
+    the app names the length unit "a.u." when ``logging.length_unit`` is unset (the paper's box has none)."""
+    from indreg.experiments import run_figures
+
+    trajectory = _images(k=5)
+    score = {"result": {"ssim": 0.9, "psnr": 24.0}, "fbp": {"ssim": 0.3, "psnr": 17.0},
+             "sirt": {"ssim": 0.8, "psnr": 22.0}, "tv": {"ssim": 0.6, "psnr": 19.0}}
+    fig = figures.paper_figure(trajectory[0], trajectory, trajectory[-1] + 0.5, np.linspace(-1, 1, 8), None,
+                               np.ones(8), fbp=trajectory[1], tv=trajectory[2], sirt=trajectory[3],
+                               extent=(-16, 16, -16, 16), scores=score, unit="a.u.")
+    panels = _panels(fig)
+    assert panels[-2].get_title() == "error: SIRT $-$ target (same scale)"
+    data = next(ax for ax in panels if ax.get_title().startswith("Data at"))
+    assert data.get_ylabel() == "line integral" and data.get_xlabel() == "detector coordinate (a.u.)"
+    assert [b.txt_label.get_text() for b in panels[0].artists if hasattr(b, "txt_label")] == ["5 a.u."]
+    assert run_figures._unit(type("C", (), {"logging": type("L", (), {"length_unit": None})})()) == "a.u."
 
 
 def test_score_text_falls_back_to_the_residuals_without_truth():

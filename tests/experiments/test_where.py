@@ -41,6 +41,9 @@ def test_last_line_names_the_folder_and_the_figures_written(tmp_path):
     (tmp_path / "frames.gif").write_bytes(b"")
     assert where_line("completed", tmp_path) == f"outputs in {tmp_path} (figures: figure.png, frames.gif)"
     assert where_line("converged", Path(tmp_path / "none")) == f"outputs in {tmp_path / 'none'}"
+    assert where_line("completed", tmp_path, "skimage") == (
+        f"outputs in {tmp_path} (figures: figure.png, frames.gif); images and data in convention skimage's layout, "
+        "as the files given (velocity, momentum and deformation in indreg's: outputs.json)")
 
 
 def test_a_stopped_run_names_its_checkpoint_and_how_to_resume(tmp_path):
