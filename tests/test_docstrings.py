@@ -292,7 +292,8 @@ def test_register_docstring_lists_every_option():
     from indreg import options
 
     entries = _sections(inspect.cleandoc(indreg.register.__doc__))["Parameters"]
-    assert {"template", "data", "operator", "options"} | {o.name for o in options.all_options()} <= _documented(entries)
+    missing = {"template", "data", "operator", "options"} | {o.name for o in options.all_options()}
+    assert not missing - _documented(entries), missing - _documented(entries)
     for o in options.all_options():
         line = next(e for e in entries if e.startswith(f"{o.name} : "))
         assert line.endswith(f", default {o.default!r}"), line

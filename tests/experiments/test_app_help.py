@@ -1,5 +1,6 @@
 """``--help`` composed once (indreg.experiments.cli.print_help) prints Hydra's own ``--help`` text, for both apps, with
 and without overrides; anything else goes to Hydra."""
+import logging
 import sys
 
 import hydra
@@ -12,8 +13,13 @@ from indreg.learn import entry
 def _hydra_help(capsys, monkeypatch, config_dir, config_name, overrides) -> str:
     """What Hydra's own ``--help`` prints for the app (its decorated main, run in this process)."""
     monkeypatch.setattr(sys, "argv", ["prog", "--help", *overrides])
-    with pytest.raises(SystemExit) as exc:
-        hydra.main(version_base="1.3", config_path=str(config_dir), config_name=config_name)(lambda cfg: None)()
+    root = logging.getLogger()
+    handlers = list(root.handlers)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            hydra.main(version_base="1.3", config_path=str(config_dir), config_name=config_name)(lambda cfg: None)()
+    finally:   # Hydra's logging set-up (a handler on capsys' stream) would outlive the test
+        root.handlers[:] = handlers
     assert exc.value.code == 0
     return capsys.readouterr().out
 

@@ -42,9 +42,14 @@ PLUGIN = textwrap.dedent('''
 
 @pytest.fixture
 def plugin(tmp_path, monkeypatch):
+    """The plug-in's folder on the path; its model unregistered afterwards (other tests see the core table)."""
     (tmp_path / "my_plugin.py").write_text(PLUGIN)
     monkeypatch.syspath_prepend(str(tmp_path))
-    return tmp_path
+    before = set(indreg.options.MODELS)
+    yield tmp_path
+    for name in set(indreg.options.MODELS) - before:
+        indreg.options.MODELS.pop(name)
+    sys.modules.pop("my_plugin", None)
 
 
 def _tiny_suite1():
