@@ -449,14 +449,15 @@ def base_config(overrides=()):
 def main() -> None:
     """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
     ``indreg/learn/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
-    ``--experimental-rerun`` and its prefixes, which unpickle a file, exit 2)."""
+    ``--experimental-rerun`` and its prefixes, which unpickle a file, and Hydra settings that run code or write
+    outside the run directory exit 2: :func:`indreg.experiments.cli.guard`)."""
     import sys
 
     import hydra
 
     from ..experiments import cli
 
-    cli.refuse_loading_flags(sys.argv[1:], PROG)
+    cli.guard(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 
