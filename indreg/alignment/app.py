@@ -430,7 +430,8 @@ def run(args) -> dict:
                "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
                "rounds": [r for h_ in history for r in h_["rounds"]],
                "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack}
-    summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel),
+    own = _conventions(record["files"], pixel, rb * pixel)
+    summary.update(write_record(out / "align.json", out, own, own,
                                 **summary))
     return summary
 

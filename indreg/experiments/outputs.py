@@ -211,7 +211,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
-    write_outputs_record(out, exp, arrays)
+    write_outputs_record(out, exp, arrays, corrections=tuple(r.corrections))
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     done += " (poor fit: see the warning)" if r.poor_fit else ""
     if target is not None:
@@ -229,10 +229,45 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     return result
 
 
-def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
-    """``outputs.json``: every file of the run directory with its format, the tool that wrote it and its version
-    (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the voxel size
-    and origin (the centre of voxel 0) in the domain's length unit, data layout (module Convention)."""
+#: The registration app's outputs besides its arrays (``<name>.npy``) and figures; what ``outputs.json`` lists.
+OWN_FILES = ("metrics.json", "history.json", "final.mrc", "trajectory.npy", "checkpoint.pt", "baselines.npz",
+             "tensorboard", ".hydra", "outputs.json")
+
+
+def own_names(out: Path, arrays=(), corrections=()) -> list:
+    """The names of the run's own outputs in ``out`` (:data:`OWN_FILES`, the arrays, the figures, the corrections'
+    plots, the log files of this process's logging in ``out`` and Hydra's config directory): the record lists
+    these only."""
+    from .register import FIGURES
+
+    names = [*OWN_FILES, *FIGURES, *(f"{a}.npy" for a in arrays), *(f"{c}.png" for c in corrections)]
+    for handler in logging.getLogger().handlers:
+        path = Path(getattr(handler, "baseFilename", "") or "/")
+        if isinstance(handler, logging.FileHandler) and path.parent == Path(out).resolve():
+            names.append(path.name)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized() and HydraConfig.get().output_subdir:
+            names.append(str(HydraConfig.get().output_subdir))
+    except (ImportError, ValueError):
+        pass
+    return names
+
+
+def write_outputs_record(out: Path, exp, arrays: dict, corrections=()) -> dict | None:
+    """``outputs.json``: the run's own outputs (:func:`own_names`) with their format, the tool that wrote each and
+    its version (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the
+    voxel size and origin (the centre of voxel 0) in the domain's length unit, data layout (module Convention).
+    A record that cannot be written is a warning (``None``), never the end of a finished run."""
+    try:
+        return _write_outputs_record(out, exp, arrays, corrections)
+    except (OSError, ValueError) as e:
+        log.warning("outputs.json not written: %s", " ".join(str(e).split()))
+        return None
+
+
+def _write_outputs_record(out: Path, exp, arrays: dict, corrections) -> dict:
     from ..io.provenance import write_record
 
     d = exp.domain
@@ -250,7 +285,8 @@ def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
     conventions = {f"{name}.npy": data if name.startswith("data") else {**image, "axis_order": layouts.get(
         name, f"(..., *{grid_axes}): a model's output, its leading axes its own")} for name in (*arrays, "trajectory")}
     conventions["final.mrc"] = {"voxel_size_unit": "the domain's length unit (MRC readers: Angstrom)"}
-    return write_record(out / "outputs.json", out, conventions, run="indreg-register")
+    return write_record(out / "outputs.json", out, own_names(out, (*arrays, "trajectory"), corrections), conventions,
+                        run="indreg-register")
 
 
 def quality(result: dict, exp, outputs: dict) -> str:
