@@ -10,13 +10,14 @@ replaced, never followed, and a reader sees the old file or the new one, never a
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["replacing", "open_replacing", "links_in", "check_no_links", "LinkError"]
+__all__ = ["replacing", "open_replacing", "remove_scratch", "links_in", "check_no_links", "LinkError"]
 
 _FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
 
@@ -65,6 +66,26 @@ def _fsync(path, flags: int) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+#: The private directories :func:`replacing` makes (``tempfile.mkdtemp``: ``.<name>.<8 random characters>.tmp``).
+_SCRATCH = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_scratch(directory) -> list:
+    """Remove what a writer killed mid-write (``kill -9``) left in ``directory``: the private directories of
+    :func:`replacing` (by name, not links: a link is left for :func:`check_no_links` to refuse). Returns their
+    names. The finished outputs are never among them (they were renamed out before the scratch was removed)."""
+    removed = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    for entry in entries:
+        if _SCRATCH.fullmatch(entry.name) and entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed.append(entry.name)
+    return sorted(removed)
 
 
 def links_in(directory) -> list:
