@@ -39,11 +39,25 @@ def replacing(path, fsync: bool = False) -> Iterator[Path]:
         yield new
         if fsync:
             _fsync(new, os.O_RDONLY)
-        os.replace(new, path)
+        _install(new, path, scratch)
         if fsync:
             _fsync(path.parent, os.O_RDONLY)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _install(new: Path, path: Path, scratch: Path) -> None:
+    """Rename ``new`` over ``path``. A directory written as a whole (OME-Zarr), or one replacing a file or a link,
+    cannot be renamed over it: what is at ``path`` (a link itself, never its target) is first moved into the
+    scratch directory, which is then removed with it (``shutil.rmtree`` unlinks links, never follows them)."""
+    try:
+        os.replace(new, path)
+    except OSError:
+        if not (new.is_dir() or (os.path.lexists(path) and path.is_dir() and not path.is_symlink())):
+            raise
+        if os.path.lexists(path):
+            os.rename(path, scratch / ".replaced")
+        os.rename(new, path)
 
 
 @contextmanager

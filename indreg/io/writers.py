@@ -5,6 +5,8 @@ Convention:
     - ``write_volume``: ``(nx, ny, nz)``; MRC stores sections ``(z, y, x)`` with the domain's cell sides as voxel size.
     - ``write_tilt_series``: ``(num_tilts, det_rows, det_cols)`` as an MRC stack plus ``stem.tlt`` in degrees.
     - Every problem raises :class:`DataFileError`, one line naming the file.
+    - Every file is written through :mod:`indreg._outfiles` (a fresh file renamed over the target): a link at the
+      target is replaced, never written through.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_positive
+from .._outfiles import open_replacing, replacing
 from ._files import _as_path, _fail, _Problem
 from ..domain import ImageDomain
 
@@ -45,13 +48,14 @@ def write_image(path, array) -> Path:
         raise _fail("output", path, "array has non-finite values (NaN or Inf)")
     try:
         if suffix == ".npy":
-            np.save(path, np.asarray(data, dtype=np.float64))
+            with replacing(path) as new:
+                np.save(new, np.asarray(data, dtype=np.float64))
         else:
             if data.ndim not in (2, 3):
                 raise _Problem(f"MRC needs a 2D or 3D array, got shape {data.shape}")
             import mrcfile
 
-            with mrcfile.new(path, overwrite=True) as mrc:
+            with replacing(path) as new, mrcfile.new(new, overwrite=True) as mrc:
                 mrc.set_data(np.asarray(data, dtype=np.float32))
     except _Problem as problem:
         raise _fail("output", path, problem) from None
@@ -76,7 +80,7 @@ def _write_mrc(path: Path, sections: np.ndarray, voxel_size, origin=None) -> Non
     import mrcfile
 
     try:
-        with mrcfile.new(path, overwrite=True) as mrc:
+        with replacing(path) as new, mrcfile.new(new, overwrite=True) as mrc:
             mrc.set_data(np.ascontiguousarray(sections, dtype=np.float32))
             if voxel_size is not None:
                 mrc.voxel_size = tuple(float(h) for h in voxel_size)
@@ -113,7 +117,8 @@ def write_volume(path, volume, domain=None) -> Path:
         raise _fail("output", path, f"volume has shape {data.shape} but the domain has {tuple(domain.shape)}")
     if suffix == ".npy":
         try:
-            np.save(path, np.asarray(data, dtype=np.float64))
+            with replacing(path) as new:
+                np.save(new, np.asarray(data, dtype=np.float64))
         except OSError as err:
             raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
     else:
@@ -138,7 +143,8 @@ def write_tilt_series(path, data, angles, pixel_size: float | None = None) -> Pa
     _write_mrc(path, stack, None if pixel_size is None else (pixel_size, pixel_size, 1.0))
     tlt = path.with_suffix(".tlt")
     try:
-        np.savetxt(tlt, np.rad2deg(radians), fmt="%.6f")
+        with open_replacing(tlt, "w") as f:
+            np.savetxt(f, np.rad2deg(radians), fmt="%.6f")
     except OSError as err:
         raise _fail("output", tlt, f"cannot be written ({type(err).__name__}: {err})") from None
     return path
