@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from . import conventions
-from ._files import DataFileError, _as_path, _fail, _one_line, _Problem, split_path
+from ._files import (DataFileError, _as_path, _fail, _one_line, _Problem, check_mrc_header, mrc_header_problem,
+                     split_path)
 from .angle_files import (ANGLE_UNITS, RADIAN_SPAN, mdoc_for, read_angles, read_tilt_axis_angle,  # noqa: F401
                           tilt_angles_for)
 from .writers import WRITE_FORMATS, write_image, write_tilt_series, write_volume  # noqa: F401
@@ -117,6 +118,9 @@ def _h5_elsewhere(obj, f) -> str:
 def _read_mrc(path: Path, key) -> np.ndarray:
     import mrcfile
 
+    problem = mrc_header_problem(*_head(path))
+    if problem:
+        raise _Problem(problem)
     try:
         with mrcfile.open(path, mode="r", permissive=False) as mrc:
             return np.array(mrc.data)
@@ -133,6 +137,11 @@ def _read_mrc(path: Path, key) -> np.ndarray:
         warnings.warn(_one_line(f"{path}: invalid MRC header ({strict_error}); data read in permissive mode"),
                       stacklevel=4)
         return data
+
+
+def _head(path: Path) -> tuple:
+    with open(path, "rb") as f:
+        return f.read(1024), os.fstat(f.fileno()).st_size
 
 
 def _grey(pixels: np.ndarray, rgb: bool) -> np.ndarray:
@@ -331,6 +340,7 @@ def read_voxel_size(path, *, name: str = "volume") -> tuple:
         raise _fail(name, path, f"only MRC files ({', '.join(MRC)}) carry a voxel size")
     if not path.is_file():
         raise _fail(name, path, "no such file")
+    check_mrc_header(path, name)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

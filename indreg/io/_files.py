@@ -9,9 +9,10 @@ from __future__ import annotations
 import os
 import re
 import stat
+import struct
 from pathlib import Path
 
-__all__ = ["DataFileError", "split_path", "read_text", "MAX_TEXT_BYTES"]
+__all__ = ["DataFileError", "split_path", "read_text", "MAX_TEXT_BYTES", "mrc_header_problem", "check_mrc_header"]
 
 #: The largest text file indreg reads (angles, alignments, ``.mdoc`` metadata): 16 MiB, some 250,000 lines of an
 #: ``.xf`` (a tilt series has hundreds); larger is refused before it is read, not parsed for minutes.
@@ -83,3 +84,41 @@ def read_text(path, name: str, max_bytes: int = MAX_TEXT_BYTES, errors: str = "s
         line = data.count(b"\n", 0, err.start) + 1
         raise _fail(name, path, f"is not UTF-8 text: byte 0x{data[err.start]:02x} at offset {err.start} (line "
                                 f"{line})") from None
+
+
+#: MRC modes and their bytes per value (mode 101: 4-bit, two values a byte).
+_MRC_MODES = {0: 1, 1: 2, 2: 4, 3: 4, 4: 8, 6: 2, 12: 2, 101: 0.5}
+
+
+def mrc_header_problem(head: bytes, size: int) -> str | None:
+    """Why an MRC header (the file's first 1024 bytes ``head``) cannot belong to a file of ``size`` bytes: an
+    extended header (``nsymbt``, word 24) that runs past the file's end, which ``mrcfile`` would try to read whole
+    (a 2^31-byte claim: gigabytes allocated before the error). ``None`` if it fits (or the header is not one
+    indreg can place: then ``mrcfile`` decides)."""
+    if len(head) < 1024:
+        return f"is {size} bytes, shorter than an MRC header (1024 bytes)"
+    for order in "<>":
+        nx, ny, nz, mode = struct.unpack(order + "4i", head[:16])
+        if mode in _MRC_MODES and min(nx, ny, nz) >= 0:
+            break
+    else:
+        return None
+    nsymbt = struct.unpack(order + "i", head[92:96])[0]
+    if nsymbt < 0 or 1024 + nsymbt > size:
+        return (f"its header announces an extended header of {nsymbt} bytes, but the file has {size} bytes in all "
+                "(a damaged or crafted MRC file)")
+    return None
+
+
+def check_mrc_header(path, name: str) -> None:
+    """Raise :class:`DataFileError` (one line) if the MRC file ``path`` has a header that does not fit the file
+    (:func:`mrc_header_problem`), before ``mrcfile`` reads it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head, size = f.read(1024), os.fstat(f.fileno()).st_size
+    except OSError as err:
+        raise _fail(name, path, f"cannot be read ({type(err).__name__}: {err})") from None
+    problem = mrc_header_problem(head, size)
+    if problem:
+        raise _fail(name, path, problem)

@@ -105,7 +105,13 @@ def _npy(path: Path) -> dict:
 def _mrc(path: Path) -> dict:
     from mrcfile.mrcinterpreter import MrcInterpreter
 
+    from ._files import mrc_header_problem
+
     with _open_regular(path) as f:
+        problem = mrc_header_problem(f.read(1024), os.fstat(f.fileno()).st_size)
+        if problem:
+            raise ValueError(problem)
+        f.seek(0)
         mrc = MrcInterpreter(iostream=f, permissive=True, header_only=True)
         h = mrc.header
         v = mrc.voxel_size

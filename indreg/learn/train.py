@@ -255,9 +255,10 @@ def gather(dataset, idx, device) -> dict:
 
 
 # ------------------------------------------------------------------ checkpoints
-#: Keys that may change between a run and its resume (where it runs, how often it logs, the comparison at the end);
-#: every other key defines the training and must be the same (``train.steps``: for ``model=oneshot`` only).
-RESUMABLE = ("device", "eval", "train.resume", "train.log_every", "train.eval_every", "train.checkpoint_every")
+#: Keys that may change between a run and its resume (where it runs, how often it logs, how long it trains: a resume
+#: may train longer, the comparison at the end); every other key defines the training and must be the same.
+RESUMABLE = ("device", "eval", "train.resume", "train.log_every", "train.eval_every", "train.checkpoint_every",
+             "train.steps", "model.steps")
 
 
 def training_config(cfg) -> dict:
@@ -267,8 +268,7 @@ def training_config(cfg) -> dict:
 
     plain = OmegaConf.to_container(cfg, resolve=True) if not isinstance(cfg, dict) else dict(cfg)
     plain = {k: (dict(v) if isinstance(v, dict) else v) for k, v in plain.items() if k != "hydra"}
-    free = RESUMABLE + (("train.steps",) if str(plain.get("model", {}).get("name")) == "oneshot" else ())
-    for key in free:
+    for key in RESUMABLE:
         head, _, leaf = key.partition(".")
         if leaf:
             plain.get(head, {}).pop(leaf, None)

@@ -77,8 +77,8 @@ def _config(overrides=()):
 
 def test_resume_with_another_training_config_is_refused(tmp_path):
     """As the registration app: a checkpoint records the config that defines its training; a resume with other
-    values (``data.snr_db=-5 domain.n=24``) is refused in one line naming them; logging and the final comparison
-    may change (and ``train.steps`` of the one-shot network, whose learning rate is constant)."""
+    values (``data.snr_db=-5 domain.n=24``, ``model.lr``) is refused in one line naming them; logging, the length of
+    the training and the final comparison may change."""
     from indreg.learn.train import read_checkpoint
 
     path = tmp_path / "checkpoint.pt"
@@ -91,8 +91,9 @@ def test_resume_with_another_training_config_is_refused(tmp_path):
     read_checkpoint(path, _config(["train.log_every=3", "train.steps=2000", "eval.algorithm1.max_iter=5",
                                    "device=cpu"]))
     save_checkpoint(path, model, optimizer, 2, _config(["model=unrolled"]))
-    with pytest.raises(CheckpointError, match="train.steps: checkpoint 1500, config 2000"):
-        read_checkpoint(path, _config(["model=unrolled", "train.steps=2000"]))
+    read_checkpoint(path, _config(["model=unrolled", "train.steps=2000", "model.steps=9"]))
+    with pytest.raises(CheckpointError, match="model.lr: checkpoint 0.001, config 0.002"):
+        read_checkpoint(path, _config(["model=unrolled", "model.lr=2e-3"]))
     save_checkpoint(path, model, optimizer, 2)     # an older checkpoint, without its config: not resumed blindly
     with pytest.raises(CheckpointError, match="does not record its training's config"):
         read_checkpoint(path, _config())
