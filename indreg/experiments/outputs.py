@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from .._outfiles import open_replacing, replacing
 from ..options import CORRECTIONS
 from ..registration.run import build_result, count_halvings, count_rejected
+from ..registration.tally import summary
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
@@ -174,7 +175,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": r.warnings, "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        "warnings": r.warnings, "warnings_by_kind": r.warnings_by_kind, "poor_fit": bool(r.poor_fit),
+        "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
@@ -217,11 +219,12 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
         sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""
-        log.info("%s, %s%s; FBP %s; TV %s%s; %d warnings", done, quality(result, exp, r.outputs), paper,
-                 _pair(result, "fbp"), _pair(result, "tv"), sirt, result["warnings"])
+        log.info("%s, %s%s; FBP %s; TV %s%s; %s", done, quality(result, exp, r.outputs), paper,
+                 _pair(result, "fbp"), _pair(result, "tv"), sirt, summary(r.warnings, r.warnings_by_kind))
     else:
-        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
-                 result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %s", done,
+                 result["objective"], result["residual"], result["min_jacobian"],
+                 summary(r.warnings, r.warnings_by_kind))
     if r.holdout:
         log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)",
                  r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],

@@ -15,7 +15,8 @@ Convention:
       increases the objective or folds the deformation is halved until it does not (the paper's fixed absolute
       step: ``gamma=1e-6, step_size=0.02, step_halving=False``).
     - Warnings (folding, objective increase, rejected steps) and progress go through ``logging`` (logger
-      ``"indreg"``); ``result.warnings`` counts the iterations that reported one.
+      ``"indreg"``); ``result.warnings`` counts them, the set-up's and the end's included, and
+      ``result.warnings_by_kind`` by kind (``indreg.registration.tally``).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import sys
 import textwrap
 
 from ..options import OptionError, all_options
+from .tally import has_output_handlers, tally_warnings
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup)
 
@@ -32,7 +34,7 @@ log = logging.getLogger("indreg")
 
 def _console_handler(progress: bool):
     """A stderr handler on the "indreg" logger for ``progress=True`` off a terminal when logging is unset."""
-    if progress and not sys.stderr.isatty() and not log.hasHandlers():
+    if progress and not sys.stderr.isatty() and not has_output_handlers(log):
         h = logging.StreamHandler(sys.stderr)
         h.setFormatter(logging.Formatter("[indreg] %(message)s"))
         log.addHandler(h)
@@ -74,6 +76,11 @@ def register(template, data, operator, **options) -> RegistrationResult:  # noqa
         >>> result.status, result.iterations
         ('completed', 3)
     """
+    with tally_warnings():   # the set-up's, the iterations' and the end's warnings, by kind (result.warnings)
+        return _register(template, data, operator, options)
+
+
+def _register(template, data, operator, options: dict) -> RegistrationResult:
     try:
         s = setup(template, data, operator, **options)
     except OptionError as e:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .. import metrics, options as opts
-from . import corrections, models
+from . import corrections, models, tally
 from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration.run.as_tensor)
 from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
 from ..kernel_width import default_sigma
@@ -271,10 +271,11 @@ class RegistrationLoop:
             if self.warnings == 1:
                 log.warning("iteration %d: %s: a fixed step (step_halving off, as the paper's presets) takes every "
                             "step, so the objective may rise; further warnings are counted, not printed", it,
-                            info["warning"])
+                            info["warning"], extra=tally.COUNTED)
             return
         if self.warnings == 1 or it % self.every == 0:
-            log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+            log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings,
+                        extra=tally.COUNTED)
 
     def _fixed_step(self) -> bool:
         """Algorithm 1's step control with step halving off: every step is taken."""
@@ -362,7 +363,7 @@ class RegistrationLoop:
             fixed = "" if not self._fixed_step() else "; the fixed step: step_halving=true (the default of " \
                 "indreg.register) rejects a step that raises the objective"
             log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings%s)",
-                        self.warnings, len(self.history), rejected, halvings, fixed)
+                        self.warnings, len(self.history), rejected, halvings, fixed, extra=tally.COUNTED)
         return status
 
 
@@ -418,6 +419,7 @@ class RegistrationResult:
     alignment: dict = field(default_factory=dict)
     poor_fit: str = ""
     corrections: dict = field(default_factory=dict)
+    warnings_by_kind: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -518,4 +520,5 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
                                result.holdout.get("holdout_residual"), orientation)
     if result.poor_fit:
         log.warning("%s", result.poor_fit)
+    result.warnings, result.warnings_by_kind = tally.warning_kinds(history, tally.current())
     return result
