@@ -177,6 +177,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             "axis, columns)")
     if ndim == 2 and geometry == "parallel":
         _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
+        if truth is not None and (hint := orientation.target_hint(truth, torch.from_numpy(g), T)):   # its layout
+            log.warning("%s: %s; check %s", _where(key["target"], target), hint, key["convention"])
     operator = T
     if alignment is not None:
         from .alignment.files import to_operator

@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from .._outfiles import open_replacing, replacing
 from ..options import CORRECTIONS
 from ..registration.run import build_result, count_halvings, count_rejected
-from ..registration.tally import summary
+from ..registration.tally import summary as warning_summary
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
@@ -220,11 +220,11 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
         sirt = f"; SIRT {_pair(result, 'sirt')}" if "sirt" in rec else ""
         log.info("%s, %s%s; FBP %s; TV %s%s; %s", done, quality(result, exp, r.outputs), paper,
-                 _pair(result, "fbp"), _pair(result, "tv"), sirt, summary(r.warnings, r.warnings_by_kind))
+                 _pair(result, "fbp"), _pair(result, "tv"), sirt, warning_summary(r.warnings, r.warnings_by_kind))
     else:
         log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %s", done,
                  result["objective"], result["residual"], result["min_jacobian"],
-                 summary(r.warnings, r.warnings_by_kind))
+                 warning_summary(r.warnings, r.warnings_by_kind))
     if r.holdout:
         log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)",
                  r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],

@@ -41,7 +41,7 @@ from .conventions import (CONVENTIONS, angles_to_indreg, detector_for, domain_fo
 
 __all__ = ["WARN", "REFUSE", "MIN_FIT", "TIE", "BLUR", "SLICES", "MODES", "MARGIN", "CONVENTION_TIE", "CHECK_PIXELS",
            "CHECK_ANGLES", "Reading", "readings", "scores", "verdict", "check", "correlation", "orientation_scores",
-           "orientation_hint", "flip_hint"]
+           "orientation_hint", "flip_hint", "target_hint"]
 
 log = logging.getLogger("indreg")
 
@@ -224,6 +224,32 @@ def verdict(table: dict) -> tuple:
     message = (f"the template's projection fits the data as given at {own:.2f} and read as {names} at {best:.2f} "
                f"(gradient correlations: {listed}): the data were probably read wrongly; {fixes}")
     return ("refuse" if best - own > REFUSE else "warn"), message
+
+
+#: The readings of a 2D target (the ground truth) tried by :func:`target_hint`: turned, transposed, mirrored.
+_TARGET_READINGS = {"turned by -90 degrees": lambda t: t.rot90(-1, (0, 1)),
+                    "turned by +90 degrees": lambda t: t.rot90(1, (0, 1)),
+                    "transposed": lambda t: t.T, "mirrored along y": lambda t: t.flip(1),
+                    "mirrored along x": lambda t: t.flip(0)}
+
+
+def target_hint(target, data, operator) -> str:
+    """Whether a 2D square ``target`` (the ground truth given with the data) projects onto ``data`` clearly better
+    (by :data:`WARN`, gradient correlations) turned, transposed or mirrored: a target file in another layout than
+    the data (e.g. the example's arrays read in ASTRA's layout while its picture is read as displayed), which would
+    score a right reconstruction as a wrong one. One line naming the reading, or ``""``."""
+    t = torch.as_tensor(target, dtype=data.dtype, device=data.device)
+    if t.dim() != 2 or t.shape[0] != t.shape[1] or tuple(t.shape) != tuple(operator.domain.shape):
+        return ""
+    with torch.no_grad():
+        table = {name: _correlation(operator(read(t).contiguous()), data) for name, read in
+                 {"as read": _same, **_TARGET_READINGS}.items()}
+    best = max(table, key=table.get)
+    if table[best] - table["as read"] <= WARN or table[best] < MIN_FIT:
+        return ""
+    return (f"the target's projection fits the data at {table['as read']:.2f} as read and at {table[best]:.2f} "
+            f"{best}: the target is probably in another layout than the data (a picture is read as displayed in "
+            "every convention, an array in the convention's layout), so the SSIM / PSNR against it would be wrong")
 
 
 def check(template, data, operator, mode: str = "check", key: str = "orientation") -> str:
