@@ -196,6 +196,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         arrays["target"] = target
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
+    arrays = {name: a for name, a in arrays.items() if a is not None}   # deformation: None beyond max_memory
     for name, a in arrays.items():
         save_array(out / f"{name}.npy", a)
     frames = None

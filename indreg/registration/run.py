@@ -25,6 +25,7 @@ import torch
 
 from .. import metrics, options as opts
 from . import corrections, models, tally
+from .budget import result_pieces
 from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration.run.as_tensor)
 from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
 from ..kernel_width import default_sigma
@@ -375,8 +376,9 @@ class RegistrationResult:
     Convention: ``deformed`` ``(nx, ny)`` = the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1));
     ``trajectory`` ``(N+1, nx, ny)`` = the image path at ``t_i``; ``momentum`` and ``velocity`` ``(N+1, d, *shape)``
     (``nu = K m``, component 0 = x); ``deformation`` ``(d, *shape)`` = phi_{1,0} (points, physical units);
-    tensors in the run's dtype / device. ``residual`` = ``||T f - g|| / ||g||`` in the data norm (on the fitted
-    data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
+    tensors in the run's dtype / device. A slab-wise run keeps ``deformation`` and ``trajectory`` only where they fit
+    in ``max_memory`` (else None, and a log line says so: ``indreg.registration.budget``). ``residual`` = ``||T f -
+    g|| / ||g||`` in the data norm (on the fitted data, ``g`` after the background); ``history``: one dict per iteration (the solver's report plus ``seconds``);
     ``status``: ``completed`` (``max_iter``), ``converged`` (``grad_tol``), ``stalled`` (step halving collapsed the
     step, ``indreg.registration.run.STALL_WINDOW``), ``early_stopped`` (``patience`` held-out evaluations without a new minimum),
     ``diverged`` (it ended with ``residual >= 1``: the result fits the data worse than a zero image), ``failed`` (a
@@ -399,7 +401,7 @@ class RegistrationResult:
     deformed: torch.Tensor
     momentum: torch.Tensor
     velocity: torch.Tensor
-    deformation: torch.Tensor
+    deformation: Optional[torch.Tensor]
     trajectory: Optional[torch.Tensor]
     history: list
     iterations: int
@@ -499,13 +501,15 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     if finish is not None and status != "failed":
         state.iterate = finish(state.iterate, validation)
     x = state.iterate
+    keep_deformation, trajectory = result_pieces(problem, trajectory)   # within max_memory (slab-wise)
     image = problem.reconstruction(x)
     with torch.no_grad():
         velocity = problem.velocity(x[0])
     terms = problem.evaluate_iterate(x)
     residual = problem.relative_residual(x)
     result = RegistrationResult(
-        deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
+        deformed=image, momentum=x[0], velocity=velocity,
+        deformation=problem.deformation_field(velocity) if keep_deformation else None,
         trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history), seconds=seconds,
