@@ -263,13 +263,11 @@ def apply_units(template: torch.Tensor, data: torch.Tensor, units: Units, templa
         ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data), or the
         factor makes the template non-finite.
     """
-    import torch
+    from ._checks import all_finite
 
     if template is not None:
         units.template_scale = _template_factor(template_scale, units, label("template_scale"))
     template, data = units.apply(template, data)
-    from ._checks import all_finite
-
     if template is not None and not all_finite(template):
         raise ValueError(f"{label('template_scale')}={template_scale!r} makes the template non-finite in "
                          f"{str(template.dtype).replace('torch.', '')} (scale factor {units.template_scale:.4g})")

@@ -76,11 +76,12 @@ def _wrap(sampler: Sampler, owner, attr: str, name: str) -> None:
 def _instrument(sampler: Sampler) -> None:
     import indreg.registration.api as api
     import indreg.registration.run as run
-    from indreg import orientation, units
+    from indreg.io import orientation
     from indreg.problems import lddmm, slabs
 
     _wrap(sampler, api, "setup", "set-up")
-    _wrap(sampler, run, "prepare", "set-up: units (template_scale, background, projection ratio)")
+    _wrap(sampler, run, "measure", "set-up: units (background, projection ratio)")
+    _wrap(sampler, run, "apply_units", "set-up: units applied (template_scale)")
     _wrap(sampler, orientation, "check", "set-up: orientation probe")
     _wrap(sampler, run, "as_tensor", "set-up: inputs as tensors")
     _wrap(sampler, run, "noise_residual", "set-up: noise estimate")
@@ -97,7 +98,6 @@ def _instrument(sampler: Sampler) -> None:
                      "evaluate_iterate", "outputs", "velocity"):
             if attr in vars(cls):
                 _wrap(sampler, cls, attr, f"the result: {attr}")
-    del units
 
 
 def main() -> None:

@@ -160,9 +160,9 @@ def _compose(overrides):
 
 def _probe_cfg(overrides) -> tuple:
     """``(verdict, load's warnings, table)`` of the app's data for ``overrides`` (``sources.load``, then the probe on
-    the prepared inputs, as ``indreg.run.setup`` runs it)."""
+    the prepared inputs, as ``indreg.registration.run.setup`` runs it)."""
     from indreg.experiments import sources
-    from indreg.units import prepare
+    from indreg.units import prepare   # = measure + apply_units, as indreg.registration.run.setup
 
     handler = Messages()
     log = logging.getLogger("indreg")

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .app_checks import parse_bytes
+
 __all__ = ["main", "working_set", "choose_binning", "parse_bytes", "levels", "slab_rows", "COARSE_SIZE"]
 
 log = logging.getLogger("indreg.align")
@@ -50,17 +52,6 @@ BYTES_PER_NONZERO = 32
 BASE_BYTES = 300 * 2**20
 #: The smallest image side (pixels) of the coarsest level by default.
 COARSE_SIZE = 128
-
-
-def parse_bytes(text: str) -> int:
-    """``"8GiB"``, ``"512MiB"``, ``"8G"``, ``"1e9"`` -> bytes; a one-line ValueError otherwise."""
-    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([KMGT]?)(i?B?)\s*", str(text))
-    if not m:
-        raise ValueError(f"--max-memory must be a size such as 8GiB or 512MiB, got {text!r}")
-    value = float(m.group(1)) * 1024 ** "_KMGT".index(m.group(2) or "_")
-    if not value > 0:
-        raise ValueError(f"--max-memory must be positive, got {text!r}")
-    return int(value)
 
 
 def working_set(nx: int, ny: int, nz: int, tilts: int, interpolation: str = "linear") -> int:
@@ -141,6 +132,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tv-weight", type=float, default=0.1, help="TV weight relative to the data (default 0.1)")
     p.add_argument("--zarr", action="store_true", help="also write the reconstruction as OME-Zarr (indreg[zarr])")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    p.add_argument("--invert", action="store_true", help="the object is darker than the background (bright-field "
+                                                         "contrast): estimate and reconstruct from the inverted stack")
     return p
 
 
@@ -150,7 +143,10 @@ def _read(args) -> tuple:
 
     angles = args.angles
     if angles is not None and not Path(angles).is_file():
-        angles = [float(v) for v in angles.split(",")]
+        try:
+            angles = [float(v) for v in angles.split(",")]
+        except ValueError:
+            raise ValueError(f"--angles {angles}: no such file, and not a comma list of angles (degrees)") from None
     stack, radians = io.read_tilt_series(args.stack, angles)
     pixel = args.pixel_size
     if pixel is None and Path(args.stack).suffix.lower() in io.MRC:
@@ -310,25 +306,6 @@ def _residual(op, x, data) -> float:
     return float(op.inner_data(r, r).sqrt() / op.inner_data(data, data).sqrt())
 
 
-def _conventions(alignment_files: dict, pixel: float, voxel: float) -> dict:
-    """The conventions of each output file for the run's record (``indreg.io.provenance``)."""
-    from .files import CONVENTIONS
-
-    volume = {"axis_order": "indreg's (nx, ny, nz) stored as (z, y, x): x along the aligned images' columns, "
-                            "y along the tilt axis, z the beam at tilt 0", "voxel_size_A": [voxel] * 3,
-              "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
-    out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
-           for name in alignment_files.values()}
-    out[alignment_files["tlt"]] = {"units": "degree", "contents": "the tilt angles, one a line (indreg's sign)"}
-    out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
-    out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
-                          "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "
-                                                            "(scipy.ndimage.affine_transform, bilinear)"}
-    out["aligned.tlt"] = {"units": "degree", "contents": "the aligned stack's tilt angles, one a line"}
-    out["reconstruction.mrc"] = out["reconstruction.zarr"] = volume
-    return out
-
-
 def _peak_rss() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
@@ -338,21 +315,19 @@ def run(args) -> dict:
     import torch
 
     from .. import io
-    from .fit import projection_matching
-    from .files import write_alignment
+    from ..registration.tally import current, warning_kinds
+    from .app_checks import at_bound, check_options, check_sizes, check_stack, output_dir
+    from .fit import bounds, projection_matching
+    from .files import app_conventions, write_alignment
     from .tilt_axis import check_tilt_axis
     from ..io.provenance import write_record
     from ..io.volume_files import write_mrc, write_ome_zarr
 
     start = time.perf_counter()
-    budget = parse_bytes(args.max_memory)
-    if args.recon_bin is not None and (args.recon_bin < 1 or args.recon != "sirt"):
-        raise ValueError(f"--recon-bin must be a positive integer with --recon sirt (TV runs at the estimation's "
-                         f"binning), got {args.recon_bin} with --recon {args.recon}")
+    budget = check_options(args)          # every check before anything is written
+    out = output_dir(args)
     if args.threads:
         torch.set_num_threads(args.threads)
-    out = Path(args.out or Path(args.stack).with_suffix("").as_posix() + "_align")
-    out.mkdir(parents=True, exist_ok=True)
     raw, radians, pixel, axis = _read(args)
     quarter = round(axis / 90.0)
     rest = axis - 90.0 * quarter
@@ -365,9 +340,15 @@ def run(args) -> dict:
         raise ValueError(f"{args.stack}: {check.describe()}; give --tilt-axis-angle (e.g. {axis + 90:g} or "
                          f"{axis - 90:g})")
     K, ny, nx = rotated.shape
+    check_sizes(args, nx, ny)
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
     level = _background(rotated, args.background)
+    check_stack(rotated, level, args.stack, args.invert)
+    out.mkdir(parents=True, exist_ok=True)
+    sign = -1.0 if args.invert else 1.0
+    if args.invert:   # in place (rotated may share raw's memory): back before the aligned stack is made
+        np.subtract(np.float32(2 * level), rotated, out=rotated)
     from_stack = None
     if args.axis_from_stack:   # binned first (the estimate's bound), so no full-size copy less the background
         from .moments import binned_within
@@ -401,13 +382,17 @@ def run(args) -> dict:
         M, d = _in_stack_pixels(op, bl, delta)
         history.append({"bin": bl, "shape": list(binned.shape), "rounds": records})
     after = _residual(op, x, data)
+    bound_hit = at_bound(op.shifts.numpy(), bounds(op).numpy(), bl)
     alignment = _raw_alignment(M, d, quarter, raw.shape, radians)
-    record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack)})
+    record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack),
+                                                                      "at_bound": bound_hit})
+    if args.invert:
+        np.subtract(np.float32(2 * level), rotated, out=rotated)
     rot_full = _aligned_stack(rotated, M, d)
     io.write_tilt_series(out / "aligned.mrc", rot_full, radians, pixel_size=pixel)
     rb = args.recon_bin or b
     if args.recon_bin:
-        stack_r = _bin(rot_full, rb)[0] - level
+        stack_r = sign * (_bin(rot_full, rb)[0] - level)
         nz = max(thickness // rb, 4)
         rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)
         log.info("reconstruction binned by %d: %d x %d x %d in slabs of %d rows", rb, stack_r.shape[2],
@@ -429,26 +414,34 @@ def run(args) -> dict:
                "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
                "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
                "rounds": [r for h_ in history for r in h_["rounds"]],
-               "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack}
-    own = _conventions(record["files"], pixel, rb * pixel)
-    summary.update(write_record(out / "align.json", out, own, own,
-                                **summary))
+               "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack,
+               "at_bound": bound_hit, "inverted": bool(args.invert)}
+    if not after < 0.99:
+        log.warning("the reconstruction explains almost none of the data (relative residual %.4f): check the stack's "
+                    "contrast (--invert), its angles and its tilt axis", after)
+    tally = current()
+    summary["warnings"], summary["warnings_by_kind"] = warning_kinds([], tally)
+    own = app_conventions(record["files"], pixel, rb * pixel)
+    summary.update(write_record(out / "align.json", out, own, own, **summary))
     return summary
 
 
 def main(argv=None) -> int:
     """Console entry point: one-line errors, progress on stderr, one summary line on stdout."""
+    from ..registration.tally import summary, tally_warnings
+
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
-        s = run(args)
-    except (ValueError, TypeError, OSError) as e:
-        print(f"indreg-align: error: {e}", file=sys.stderr)
+        with tally_warnings():
+            s = run(args)
+    except (ValueError, TypeError, OSError, OverflowError) as e:
+        print(f"indreg-align: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     print(f"indreg-align: residual {s['residual_before']:.4f} -> {s['residual_after']:.4f}, tilt axis "
           f"{s['axis_angle_deg']:.2f} deg, shifts {s['shift_range_px'][0]:.2f}..{s['shift_range_px'][1]:.2f} px, "
           f"bin {'>'.join(str(lv['bin']) for lv in s['levels'])}, peak {s['peak_rss_bytes'] / 2**30:.2f} GiB, "
-          f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU)")
+          f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU); {summary(s['warnings'], s['warnings_by_kind'])}")
     return 0
 
 

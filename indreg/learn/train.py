@@ -188,16 +188,15 @@ def _check_numbers(cfg) -> None:
 
 
 def _check_problem(cfg) -> None:
-    """The domain, kernel, shooting, geometry, network and comparison numbers: ``domain.n`` at least the SSIM's
-    7-pixel window and divisible by the U-Nets' ``2^(levels - 1)``, counts >= 1, ``kernel.sigma`` > 0."""
+    """The domain, shooting, geometry, network and comparison numbers (``kernel.sigma`` and ``shooting.num_steps``:
+    the option table's): ``domain.n`` at least the SSIM's 7-pixel window and divisible by the U-Nets'
+    ``2^(levels - 1)``, counts >= 1."""
     m, a = cfg.model, cfg.eval.algorithm1
     for key in ("width", "levels") + (("update_width", "update_levels") if str(m.name) == "unrolled" else ()):
         check_int(m[key], f"model.{key}", 1)
     check_int(cfg.geometry.num_angles, "geometry.num_angles", 1)
     check_int(cfg.geometry.det_count, "geometry.det_count", 1)
-    check_int(cfg.shooting.num_steps, "shooting.num_steps", 1)
     check_int(cfg.shooting.corrector_steps, "shooting.corrector_steps", 0)
-    check_positive(cfg.kernel.sigma, "kernel.sigma")
     check_nonnegative(cfg.train.gamma, "train.gamma")
     check_int(a.num_samples, "eval.algorithm1.num_samples", 0)
     check_int(a.max_iter, "eval.algorithm1.max_iter", 0)

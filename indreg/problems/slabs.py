@@ -206,7 +206,7 @@ class SlabwiseRegistration(IndirectRegistration):
         self.rank, self.world = rank_world(self.group)
         n = self.image_domain.shape[self.axis]
         #: the bytes this run may take beyond its inputs (``max_memory``, else half the free memory): the result's
-        #: pieces are kept within it (``indreg.run.build_result``)
+        #: pieces are kept within it (``indreg.registration.run.build_result``)
         self.max_memory = available_memory(template.device) // 2 if max_memory is None else int(max_memory)
         if slab_size is None:   # automatic: at least SLABS_PER_RANK slabs a rank
             slab_size = min(choose_slab_size(self.image_domain.shape, self.axis, template.element_size(),

@@ -104,7 +104,7 @@ def test_other_overrides_pass(arg):
 
 def test_hydra_would_take_the_callback():
     """The oracle: the override is real (Hydra composes it into its callbacks, which it instantiates at a run)."""
-    from indreg.conf import CONFIG_DIR
+    from indreg.learn.conf import CONFIG_DIR
 
     cfg = cli.compose(CONFIG_DIR, "train_momentum", ["+hydra.callbacks.p._target_=os.makedirs"])
     assert cfg.hydra.callbacks.p._target_ == "os.makedirs"

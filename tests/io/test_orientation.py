@@ -155,7 +155,7 @@ def test_a_target_in_another_layout_than_the_data_is_named():
     from pathlib import Path
 
     import indreg
-    from indreg.orientation import target_hint
+    from indreg.io.orientation import target_hint
 
     d = Path(indreg.__file__).parent / "data"
     kw = dict(angles=str(d / "own_data_angles.tlt"), target=str(d / "own_data_target.npy"), half_width=16.0,

@@ -68,7 +68,7 @@ def test_damaged_or_crafted_checkpoint_is_refused(tmp_path):
 
 
 def _config(overrides=()):
-    from indreg.conf import CONFIG_DIR
+    from indreg.learn.conf import CONFIG_DIR
     from indreg.experiments import cli
     from indreg.learn.train import CONFIG_NAME, training_config
 

@@ -51,7 +51,7 @@ def test_the_defaults_pass(tmp_path):
     ("geometry.det_count=0", "geometry.det_count must be an integer >= 1, got 0"),
     ("shooting.num_steps=0", "shooting.num_steps must be an integer >= 1, got 0"),
     ("shooting.corrector_steps=-1", "shooting.corrector_steps must be an integer >= 0, got -1"),
-    ("kernel.sigma=0", "kernel.sigma must be a finite number > 0, got 0"),
+    ("kernel.sigma=0", "kernel.sigma must be None, 'auto' or a finite number > 0, got 0"),
     ("train.gamma=-1", "train.gamma must be a finite number >= 0, got -1"),
     ("eval.algorithm1.step_size=0", "eval.algorithm1.step_size must be a finite number > 0, got 0"),
 ])

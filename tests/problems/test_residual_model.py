@@ -144,7 +144,7 @@ def test_fast_solver_is_refused_in_one_line():
 
 
 class _Scored:
-    """A stand-in of ``indreg.validation.Validation``: the held-out residual of ``f`` is ``score(f)``."""
+    """A stand-in of ``indreg.evaluation.validation.Validation``: the held-out residual of ``f`` is ``score(f)``."""
 
     def __init__(self, score):
         self.residual = score
