@@ -275,8 +275,9 @@ def target_hint(target, data, operator) -> str:
     if table[best] - table["as read"] <= WARN or table[best] < MIN_FIT:
         return ""
     return (f"the target's projection fits the data at {table['as read']:.2f} as read and at {table[best]:.2f} "
-            f"{best}: the target is probably in another layout than the data (a picture is read as displayed in "
-            "every convention, an array in the convention's layout), so the SSIM / PSNR against it would be wrong")
+            f"{best}: the target or the data were probably read in another layout (a picture is read as displayed in "
+            "every convention, an array in the convention's layout), so the SSIM / PSNR against the target would be "
+            "wrong")
 
 
 def check(template, data, operator, mode: str = "check", key: str = "orientation") -> str:
