@@ -432,8 +432,10 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
         unit = finish["unit"]   # the model's mu per residual_tv
         tried = {f"{mu / unit:.0e}": round(v, 4) for mu, v in finish["holdout_by_weight"].items()}
         say(f"  the residual's finish ({finish['iterations']} Chambolle-Pock iterations, TV anchored at the deformed "
-            f"template): residual_tv {finish['residual_tv'] / unit:.0e} chosen by the held-out tilts of {tried}")
-        finish = {"residual_tv": finish["residual_tv"] / unit, "holdout_by_weight": tried}
+            f"template): residual_tv {finish['residual_tv'] / unit:.0e} chosen by the held-out tilts of {tried}; "
+            f"kept: the {finish['chosen']}'s result (the loop's held-out {finish['holdout_loop']:.4f})")
+        finish = {"residual_tv": finish["residual_tv"] / unit, "holdout_by_weight": tried, "chosen": finish["chosen"],
+                  "holdout_loop": finish["holdout_loop"]}
     metrics["registration"] = {"status": result.status, "finish": finish, "iterations": result.iterations, "seconds": reg_seconds,
                                "model": model, "interpolation": interpolation,
                                "sigma_nm": sigma, "num_steps": num_steps, "template_scale": result.units.template_scale,

@@ -81,7 +81,7 @@ def check_tensor(x, name: str, trailing_shape: tuple | None = None, min_dim: int
                 f"{name} must have shape (..., {', '.join(map(str, trailing_shape))}), got {tuple(x.shape)}")
     if min_dim is not None and x.dim() < min_dim:
         raise ValueError(f"{name} must have at least {min_dim} dims, got shape {tuple(x.shape)}")
-    if finite and not bool(torch.isfinite(x).all()):
+    if finite and not all_finite(x):
         raise ValueError(f"{name} contains non-finite values (nan or inf)")
     return x
 
@@ -228,6 +228,25 @@ def as_tensor(x, name: str, shape: tuple, dtype: torch.dtype, device: torch.devi
     if tuple(t.shape) != tuple(shape):
         raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {tuple(shape)}")
     t = t.to(device=device, dtype=dtype)
-    if not bool(torch.isfinite(t).all()):
+    if not all_finite(t):
         raise ValueError(f"{name} contains non-finite values (nan or inf)")
     return t
+
+
+#: :func:`all_finite` checks this many values at a time (its mask: 4 MiB, not one byte per value of a volume).
+FINITE_CHUNK = 2 ** 22
+
+
+def all_finite(t) -> bool:
+    """Whether every value of the tensor ``t`` is finite, checked in chunks of :data:`FINITE_CHUNK` values."""
+    import torch
+
+    if t.dim() == 0 or t.numel() <= FINITE_CHUNK:
+        return bool(torch.isfinite(t).all())
+    if t.is_contiguous():
+        flat = t.view(-1)
+        return all(bool(torch.isfinite(flat[i:i + FINITE_CHUNK]).all()) for i in range(0, flat.numel(), FINITE_CHUNK))
+    rows = FINITE_CHUNK // max(1, t[0].numel())
+    if rows < 2:   # one sub-array at a time, itself in chunks
+        return all(all_finite(part) for part in t)
+    return all(bool(torch.isfinite(t[i:i + rows]).all()) for i in range(0, t.shape[0], rows))

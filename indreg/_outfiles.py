@@ -10,13 +10,14 @@ replaced, never followed, and a reader sees the old file or the new one, never a
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["replacing", "open_replacing", "links_in", "check_no_links", "LinkError"]
+__all__ = ["replacing", "open_replacing", "remove_scratch", "links_in", "check_no_links", "LinkError"]
 
 _FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
 
@@ -38,11 +39,25 @@ def replacing(path, fsync: bool = False) -> Iterator[Path]:
         yield new
         if fsync:
             _fsync(new, os.O_RDONLY)
-        os.replace(new, path)
+        _install(new, path, scratch)
         if fsync:
             _fsync(path.parent, os.O_RDONLY)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _install(new: Path, path: Path, scratch: Path) -> None:
+    """Rename ``new`` over ``path``. A directory written as a whole (OME-Zarr), or one replacing a file or a link,
+    cannot be renamed over it: what is at ``path`` (a link itself, never its target) is first moved into the
+    scratch directory, which is then removed with it (``shutil.rmtree`` unlinks links, never follows them)."""
+    try:
+        os.replace(new, path)
+    except OSError:
+        if not (new.is_dir() or (os.path.lexists(path) and path.is_dir() and not path.is_symlink())):
+            raise
+        if os.path.lexists(path):
+            os.rename(path, scratch / ".replaced")
+        os.rename(new, path)
 
 
 @contextmanager
@@ -65,6 +80,26 @@ def _fsync(path, flags: int) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+#: The private directories :func:`replacing` makes (``tempfile.mkdtemp``: ``.<name>.<8 random characters>.tmp``).
+_SCRATCH = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_scratch(directory) -> list:
+    """Remove what a writer killed mid-write (``kill -9``) left in ``directory``: the private directories of
+    :func:`replacing` (by name, not links: a link is left for :func:`check_no_links` to refuse). Returns their
+    names. The finished outputs are never among them (they were renamed out before the scratch was removed)."""
+    removed = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    for entry in entries:
+        if _SCRATCH.fullmatch(entry.name) and entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+            removed.append(entry.name)
+    return sorted(removed)
 
 
 def links_in(directory) -> list:

@@ -270,6 +270,8 @@ def load(template, data, geometry: str = "parallel", *, angles=None, angle_unit:
                             "axis, columns)")
     if ndim == 2 and geometry == "parallel":
         _check_orientation(f, g, radians, conv, template, half_width, *given_detector, key)
+        if truth is not None and (hint := orientation.target_hint(truth, torch.from_numpy(g), T)):   # its layout
+            log.warning("%s: %s; check %s", _where(key["target"], target), hint, key["convention"])
     operator = T
     if alignment is not None:
         from .alignment.files import to_operator
@@ -391,7 +393,7 @@ def _align(g: np.ndarray, data, angle, key: dict) -> tuple:
 
 def _aligned_stack(g: np.ndarray, alignment, angles, unit: str, ndim: int, tilt_axis_angle, key: dict) -> tuple:
     """The raw stack's frames that ``alignment`` (a file) covers, their angles (radians) and the alignment."""
-    from .alignment.files import read_alignment
+    from .alignment.files import check_shifts, read_alignment
 
     if ndim != 3:
         raise ValueError(f"alignment applies to a tilt series ({key['geometry']}=tilt_series)")
@@ -407,6 +409,7 @@ def _aligned_stack(g: np.ndarray, alignment, angles, unit: str, ndim: int, tilt_
     if a.frames.max() >= g.shape[0] or (a.raw_size is None and len(a.frames) != g.shape[0]):
         raise DataFileError(f"alignment file {alignment}: {len(a.frames)} tilts (sections up to {a.frames.max()}) "
                             f"but the stack has {g.shape[0]} sections")
+    check_shifts(a, g.shape[2], g.shape[1], alignment)
     log.info("alignment %s (%s): %d tilts, in-plane rotation %.2f degrees, shifts up to %.2f px, applied in the "
              "operator", alignment, a.source, len(a.frames), a.axis_angle_deg, float(np.abs(a.shifts).max()))
     return np.ascontiguousarray(g[a.frames]), np.radians(a.tilt_angles_deg), a

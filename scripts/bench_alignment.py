@@ -66,6 +66,9 @@ def arguments():
     p.add_argument("--phantom", choices=("shepp-logan", "beads"), default="shepp-logan",
                    help="the specimen (scipy, astra): the Shepp-Logan alone, or with gold beads the template lacks")
     p.add_argument("--beads", type=int, default=20, help="gold beads in the specimen (--phantom beads)")
+    p.add_argument("--undetermined", choices=("hold", "prior", "fit"), default=None,
+                   help="the policy where the stack does not determine the angle (indreg.alignment.solver.UNDETERMINED)")
+    p.add_argument("--holdout", type=int, default=None, help="hold out every k-th tilt (its residual in the table)")
     return p.parse_args()
 
 
@@ -175,16 +178,23 @@ def external(a) -> tuple:
 
 def main():
     a = arguments()
+    if a.undetermined:
+        from indreg.alignment import solver
+
+        solver.UNDETERMINED = a.undetermined
     T, template, target, runs, true = (simulated if a.projector == "indreg" else external)(a)
     options = dict(sigma=3.0, num_steps=10, gamma=1e-6, step_size=0.1, max_iter=a.iterations,
-                   velocity_factor=a.velocity_factor, interpolation="compose", target=target)
+                   velocity_factor=a.velocity_factor, interpolation="compose", target=target, holdout=a.holdout)
     specimen_name = "" if a.projector == "indreg" else f"{a.phantom}{f' ({a.beads})' if a.phantom == 'beads' else ''}, "
     print(f"{a.size}^3, {specimen_name}{T.range_shape[0]} tilts, shifts up to {a.max_shift} px, projector {a.projector}, "
           f"template turned {a.template_turn} deg, {a.iterations} iterations, velocity_factor {a.velocity_factor}, "
           f"{torch.get_num_threads()} thread(s)")
+    print(f"policy where the stack does not determine the angle: {a.undetermined or 'default'}; held out: every "
+          f"{a.holdout}-th tilt" if a.holdout else "")
     print("| projector | template turned (deg) | series | align | shifts RMS error across / along (px) | "
-          "axis angle error (deg) | angle s.e. (deg) | angle from (stack s.e., deg) | SSIM | residual | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "axis angle error (deg) | angle s.e. (deg) | angle from (stack s.e., deg) | SSIM | residual | held-out "
+          "residual | warnings | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, data, align, angle in runs:
         t0 = time.perf_counter()
         r = indreg.register(template, data, T, align=align, **options)
@@ -197,8 +207,10 @@ def main():
                       + (f"{r.alignment['axis_angle_deg'] - angle:+.3f} | " if align == "shifts+axis" else "- | ")
                       + (f"{se:.3f}" if se is not None else ("-" if align != "shifts+axis" else "inf"))
                       + f" | {source(r.alignment)}")
+        held = r.holdout.get("holdout_residual")
         print(f"| {a.projector} | {a.template_turn:g} | {name} | {align} | {errors} | {r.ssim:.4f} | "
-              f"{r.residual:.4f} | {seconds:.0f} |", flush=True)
+              f"{r.residual:.4f} | {'-' if held is None else f'{held:.4f}'} | {r.warnings} | {seconds:.0f} |",
+              flush=True)
 
 
 def source(alignment: dict) -> str:

@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .app_checks import parse_bytes
+
 __all__ = ["main", "working_set", "choose_binning", "parse_bytes", "levels", "slab_rows", "COARSE_SIZE"]
 
 log = logging.getLogger("indreg.align")
@@ -54,17 +56,6 @@ COARSE_SIZE = 128
 #: A slab's finest binning by default (``--bin`` overrides): the wide box's leave-one-out volumes at full size
 #: take minutes and gigabytes for a 1k stack; the shifts come back in full-size pixels.
 SLAB_FINEST = 2
-
-
-def parse_bytes(text: str) -> int:
-    """``"8GiB"``, ``"512MiB"``, ``"8G"``, ``"1e9"`` -> bytes; a one-line ValueError otherwise."""
-    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([KMGT]?)(i?B?)\s*", str(text))
-    if not m:
-        raise ValueError(f"--max-memory must be a size such as 8GiB or 512MiB, got {text!r}")
-    value = float(m.group(1)) * 1024 ** "_KMGT".index(m.group(2) or "_")
-    if not value > 0:
-        raise ValueError(f"--max-memory must be positive, got {text!r}")
-    return int(value)
 
 
 def working_set(nx: int, ny: int, nz: int, tilts: int, interpolation: str = "linear") -> int:
@@ -157,6 +148,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tv-weight", type=float, default=0.1, help="TV weight relative to the data (default 0.1)")
     p.add_argument("--zarr", action="store_true", help="also write the reconstruction as OME-Zarr (indreg[zarr])")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    p.add_argument("--invert", action="store_true", help="the object is darker than the background (bright-field "
+                                                         "contrast): estimate and reconstruct from the inverted stack")
     return p
 
 
@@ -166,7 +159,10 @@ def _read(args) -> tuple:
 
     angles = args.angles
     if angles is not None and not Path(angles).is_file():
-        angles = [float(v) for v in angles.split(",")]
+        try:
+            angles = [float(v) for v in angles.split(",")]
+        except ValueError:
+            raise ValueError(f"--angles {angles}: no such file, and not a comma list of angles (degrees)") from None
     stack, radians = io.read_tilt_series(args.stack, angles)
     pixel = args.pixel_size
     if pixel is None and Path(args.stack).suffix.lower() in io.formats.suffixes("read_voxel_size"):
@@ -302,26 +298,6 @@ def _residual(op, x, data) -> float:
     return float(op.inner_data(r, r).sqrt() / op.inner_data(data, data).sqrt())
 
 
-def _conventions(alignment_files: dict, pixel: float, voxel: float, convention: str = "indreg") -> dict:
-    """The conventions of each output file for the run's record (``indreg.io.provenance``)."""
-    from .files import CONVENTIONS
-
-    volume = {"axis_order": "indreg's (nx, ny, nz) stored as (z, y, x): x along the aligned images' columns, "
-                            "y along the tilt axis, z the beam at tilt 0", "voxel_size_A": [voxel] * 3,
-              "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
-    out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
-           for name in alignment_files.values()}
-    sense = "IMOD's sign (--convention imod)" if convention == "imod" else "indreg's sign (--convention indreg)"
-    out[alignment_files["tlt"]] = {"units": "degree", "contents": f"the tilt angles, one a line ({sense})"}
-    out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
-    out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
-                          "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "
-                                                            "(scipy.ndimage.affine_transform, bilinear)"}
-    out["aligned.tlt"] = {"units": "degree", "contents": f"the aligned stack's tilt angles, one a line ({sense})"}
-    out["reconstruction.mrc"] = out["reconstruction.zarr"] = volume
-    return out
-
-
 def _peak_rss() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
@@ -331,26 +307,21 @@ def run(args) -> dict:
     import torch
 
     from .. import io
-    from .files import write_alignment
+    from ..registration.tally import current, warning_kinds
+    from .app_checks import check_options, check_sizes, check_stack, output_dir
     from .app_compact import compact_alignment
-    from .slab_app import (line_integrals, slab_alignment, slab_background, specimen_kind,
-                           wide_reconstruction)
+    from .files import app_conventions, write_alignment
+    from .slab_app import line_integrals, slab_alignment, slab_background, specimen_kind, wide_reconstruction
     from .tilt_axis import check_tilt_axis
     from ..io.provenance import write_record
     from ..io.volume_files import write_mrc, write_ome_zarr
 
     start = time.perf_counter()
-    budget = parse_bytes(args.max_memory)
-    if args.recon_bin is not None and (args.recon_bin < 1 or args.recon != "sirt"):
-        raise ValueError(f"--recon-bin must be a positive integer with --recon sirt (TV runs at the estimation's "
-                         f"binning), got {args.recon_bin} with --recon {args.recon}")
+    budget = check_options(args)          # every check before anything is written
+    out = output_dir(args)
     if args.threads:
         torch.set_num_threads(args.threads)
-    out = Path(args.out or Path(args.stack).with_suffix("").as_posix() + "_align")
-    out.mkdir(parents=True, exist_ok=True)
     raw, radians, pixel, axis = _read(args)
-    if not 0 < args.max_shift <= 0.5:
-        raise ValueError(f"--max-shift must be a fraction of the detector in (0, 0.5], got {args.max_shift}")
     sign = -1.0 if args.convention == "imod" else 1.0   # IMOD's .tlt: indreg's angle is minus IMOD's
     radians = sign * radians
     quarter = round(axis / 90.0)
@@ -369,13 +340,20 @@ def run(args) -> dict:
     kind, why = specimen_kind(rotated, radians, args.specimen)
     log.info("specimen: %s (%s)", kind, why)
     K, ny, nx = rotated.shape
+    check_sizes(args, nx, ny)
     thickness = args.thickness or nx // 2
     b = args.bin or choose_binning(nx, ny, thickness, K, budget, 3 * raw.nbytes, args.interpolation)
     if kind == "slab" and args.bin is None:
         b = max(b, SLAB_FINEST)                 # the leave-one-out volumes of the wide box at bin 1 cost too much
     steps = levels(nx, ny, b, args.coarse_bin)
+    level = (slab_background(rotated, radians, args.background, _background) if kind == "slab"
+             else _background(rotated, args.background))
+    check_stack(rotated, level, args.stack, args.invert)
+    out.mkdir(parents=True, exist_ok=True)
+    contrast = -1.0 if args.invert else 1.0
+    if args.invert:   # in place (rotated may share raw's memory): back before the aligned stack is made
+        np.subtract(np.float32(2 * level), rotated, out=rotated)
     if kind == "slab":
-        level = slab_background(rotated, radians, args.background, _background)
         est = slab_alignment(rotated - level, radians, rest, steps, args.rounds, args.fine_rounds, args.thickness,
                              (args.max_shift * nx, args.max_shift * ny), args.axis_from_stack)
         M, d, res = est["M"], est["d"], est["result"]
@@ -383,7 +361,6 @@ def run(args) -> dict:
         at_bound = [int(k) for k in np.flatnonzero(res.at_bound.any(1))]
         from_stack = None if est["search"] is None else {"method": "common lines", **est["search"].__dict__}
     else:
-        level = _background(rotated, args.background)
         M, d, history, from_stack, op, x, data, at_bound = compact_alignment(
             args, rotated, radians, rest, steps, level, thickness, raw.nbytes, budget, start)
     if at_bound:
@@ -391,17 +368,19 @@ def run(args) -> dict:
                     "misaligned beyond it; raise --max-shift, or check the tilt axis and the stack", len(at_bound),
                     args.max_shift, at_bound)
     alignment = _raw_alignment(M, d, quarter, raw.shape, sign * radians)
-    record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack)})
+    record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack),
+                                                                      "at_bound": at_bound})
+    if args.invert:
+        np.subtract(np.float32(2 * level), rotated, out=rotated)
     rot_full = _aligned_stack(rotated, M, d)
     io.write_tilt_series(out / "aligned.mrc", rot_full, sign * radians, pixel_size=pixel)
     rb = args.recon_bin or (steps[0] if kind == "slab" else b)
+    before = None if kind == "slab" else history[0]["rounds"][0][0]
     if kind == "slab":
-        volume, after = wide_reconstruction(_bin(rot_full, rb)[0] - level, radians, res.thickness / rb,
+        volume, after = wide_reconstruction(contrast * (_bin(rot_full, rb)[0] - level), radians, res.thickness / rb,
                                             res.centre / rb, args.iters)
-        before = None
     elif args.recon_bin:
-        after = None
-        stack_r = _bin(rot_full, rb)[0] - level
+        stack_r = contrast * (_bin(rot_full, rb)[0] - level)
         nz = max(thickness // rb, 4)
         rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)
         log.info("reconstruction binned by %d: %d x %d x %d in slabs of %d rows", rb, stack_r.shape[2],
@@ -411,8 +390,6 @@ def run(args) -> dict:
     else:
         after = _residual(op, x, data)
         volume = _reconstruct(op, data, x, args.recon, args.iters, args.tv_weight)
-    if kind != "slab":
-        before = history[0]["rounds"][0][0]
     h = rb * pixel
     origin = [-(n - 1) / 2 * h for n in volume.shape]
     write_mrc(out / "reconstruction.mrc", volume.float().numpy(), (h, h, h), origin)
@@ -426,29 +403,37 @@ def run(args) -> dict:
                "volume_shape": list(volume.shape), "seconds": time.perf_counter() - start,
                "cpu_seconds": time.process_time(), "peak_rss_bytes": _peak_rss(), "max_memory_bytes": budget,
                "rounds": [r for h_ in history for r in h_.get("rounds", [h_.get("record")])],
-               "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack}
+               "alignment": record["files"], "reconstruction": args.recon, "axis_from_stack": from_stack,
+               "inverted": bool(args.invert)}
     if kind == "slab":
         summary["slab"] = {"thickness_px": res.thickness, "centre_px": res.centre,
                            "peaks": res.peaks.tolist(), "shifts_axis_frame_px": res.shifts.tolist()}
-    summary.update(write_record(out / "align.json", out, _conventions(record["files"], pixel, rb * pixel,
-                                                                      args.convention), **summary))
+    if not after < 0.99:
+        log.warning("the reconstruction explains almost none of the data (relative residual %.4f): check the stack's "
+                    "contrast (--invert), its angles and its tilt axis", after)
+    summary["warnings"], summary["warnings_by_kind"] = warning_kinds([], current())
+    own = app_conventions(record["files"], pixel, rb * pixel, args.convention)
+    summary.update(write_record(out / "align.json", out, own, own, **summary))
     return summary
 
 
 def main(argv=None) -> int:
     """Console entry point: one-line errors, progress on stderr, one summary line on stdout."""
+    from ..registration.tally import summary, tally_warnings
+
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
-        s = run(args)
-    except (ValueError, TypeError, OSError) as e:
-        print(f"indreg-align: error: {e}", file=sys.stderr)
+        with tally_warnings():
+            s = run(args)
+    except (ValueError, TypeError, OSError, OverflowError) as e:
+        print(f"indreg-align: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     before = "slab" if s["residual_before"] is None else f"{s['residual_before']:.4f}"
     print(f"indreg-align: residual {before} -> {s['residual_after']:.4f}, tilt axis "
           f"{s['axis_angle_deg']:.2f} deg, shifts {s['shift_range_px'][0]:.2f}..{s['shift_range_px'][1]:.2f} px, "
           f"bin {'>'.join(str(lv['bin']) for lv in s['levels'])}, peak {s['peak_rss_bytes'] / 2**30:.2f} GiB, "
-          f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU)")
+          f"{s['seconds']:.1f} s ({s['cpu_seconds']:.1f} s CPU); {summary(s['warnings'], s['warnings_by_kind'])}")
     return 0
 
 

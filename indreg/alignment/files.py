@@ -36,11 +36,11 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..io._files import _as_path, _fail
+from ..io._files import _as_path, _fail, read_text
 from .operator import AlignedOperator
 
 __all__ = ["Alignment", "ALIGNMENT_FORMATS", "read_alignment", "read_xf", "read_aln", "write_xf", "write_aln",
-           "write_alignment", "to_operator", "from_operator", "xf_of", "rotation_of"]
+           "write_alignment", "to_operator", "from_operator", "xf_of", "rotation_of", "check_shifts", "app_conventions"]
 
 log = logging.getLogger("indreg")
 
@@ -97,11 +97,10 @@ def _rotation(deg: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------------- IMOD .xf
 def _numbers(path: Path, name: str, width: Optional[int] = None) -> list:
-    """Rows of numbers of a text file (blank lines skipped), each ``width`` long when given."""
-    if not path.is_file():
-        raise _fail(name, path, "no such file")
+    """Rows of numbers of a text file (blank lines skipped), each ``width`` long when given; the file read as small
+    UTF-8 text (``indreg.io._files.read_text``: a FIFO, a file of millions of lines or other bytes refused first)."""
     rows = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(read_text(path, name).splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -170,8 +169,12 @@ def write_xf(path, alignment: Alignment) -> Path:
 
 
 def _write_text(path: Path, text: str) -> None:
+    """``text`` into ``path`` through ``indreg._outfiles`` (a fresh file renamed over it: no link followed)."""
+    from .._outfiles import open_replacing
+
     try:
-        path.write_text(text)
+        with open_replacing(path, "w") as f:
+            f.write(text)
     except OSError as err:
         raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
 
@@ -183,10 +186,8 @@ ALN_COLUMNS = ("SEC", "ROT", "GMAG", "TX", "TY", "SMEAN", "SFIT", "SCALE", "BASE
 def read_aln(path, *, name: str = "alignment") -> Alignment:
     """AreTomo's ``.aln`` (module Notes): the global alignment rows, ``RawSize`` and the dark frames."""
     path = _as_path(path, name)
-    if not path.is_file():
-        raise _fail(name, path, "no such file")
     raw_size, darks, rows, local = None, [], [], False
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(read_text(path, name).splitlines(), 1):
         text = line.strip()
         if not text:
             continue
@@ -194,18 +195,15 @@ def read_aln(path, *, name: str = "alignment") -> Alignment:
             key, _, value = text.lstrip("#").partition("=")
             key = key.strip()
             if key == "RawSize":
-                raw_size = tuple(int(v) for v in value.split())
+                raw_size = _raw_size(value, i, path, name)
             elif key == "DarkFrame":
-                darks.append([float(v) for v in value.split()])
+                darks.append(_finite_row(value, i, path, name, "DarkFrame"))
             elif "Local" in key:
                 local = True
             continue
         if local:
             continue
-        try:
-            row = [float(v) for v in text.split()]
-        except ValueError:
-            raise _fail(name, path, f"line {i} is not numbers: {text[:60]!r}") from None
+        row = _finite_row(text, i, path, name, "the row")
         if len(row) != len(ALN_COLUMNS):
             raise _fail(name, path, f"line {i} has {len(row)} numbers, an alignment row has {len(ALN_COLUMNS)} "
                                     f"({' '.join(ALN_COLUMNS)})")
@@ -223,6 +221,37 @@ def read_aln(path, *, name: str = "alignment") -> Alignment:
         log.warning("%s: %s", path, notes[-1])
     return Alignment(_rotation(a[:, 1]), a[:, 3:5].copy(), a[:, 9].copy(), frames, raw_size, f"AreTomo {path.name}",
                      notes)
+
+
+def _finite_row(text: str, line: int, path: Path, name: str, what: str) -> list:
+    """The numbers of ``text`` (line ``line``), all finite; else a one-line error naming the line."""
+    try:
+        row = [float(v) for v in text.split()]
+    except ValueError:
+        raise _fail(name, path, f"line {line}: {what} is not numbers: {text.strip()[:60]!r}") from None
+    if not all(math.isfinite(v) for v in row):
+        raise _fail(name, path, f"line {line}: {what} has a non-finite number: {text.strip()[:60]!r}")
+    return row
+
+
+def _raw_size(value: str, line: int, path: Path, name: str) -> tuple:
+    """``# RawSize = nx ny sections``: three integers >= 1."""
+    parts = value.split()
+    if len(parts) != 3 or not all(p.isdigit() and int(p) >= 1 for p in parts):
+        raise _fail(name, path, f"line {line}: RawSize must be three integers >= 1 (nx ny sections), got "
+                                f"{value.strip()[:60]!r}")
+    return tuple(int(p) for p in parts)
+
+
+def check_shifts(alignment: Alignment, nx: int, ny: int, path, name: str = "alignment") -> None:
+    """Every shift within the raw images ``nx x ny`` (pixels): a larger one moves the whole image out of view (a
+    damaged file, or another stack's), and ``1e300`` would overflow the operator's indices. One-line error."""
+    limit = np.array([nx, ny], dtype=np.float64)
+    over = np.abs(alignment.shifts) > limit
+    if over.any():
+        k = int(np.argmax(over.any(axis=1)))
+        raise _fail(name, path, f"tilt {k}'s shift ({alignment.shifts[k, 0]:.4g}, {alignment.shifts[k, 1]:.4g}) px "
+                                f"is beyond the stack's {nx} x {ny} px images")
 
 
 def _sections(sec: np.ndarray, darks: list, raw_size, path: Path, name: str) -> np.ndarray:
@@ -385,6 +414,26 @@ CONVENTIONS = {
                    "default; indreg's angle is minus IMOD's: docs/file_formats.md, IMOD's projection convention)",
     "axis_angle": "the maps' mean rotation, degrees from Y counter-clockwise (IMOD's rotation angle)",
 }
+
+
+def app_conventions(alignment_files: dict, pixel: float, voxel: float, convention: str = "indreg") -> dict:
+    """The conventions of each of ``indreg-align``'s output files for its record (``indreg.io.provenance``): the
+    alignment files (``alignment_files``), the aligned stack (``pixel`` Angstrom) and the reconstruction (``voxel``)."""
+
+    volume = {"axis_order": "indreg's (nx, ny, nz) stored as (z, y, x): x along the aligned images' columns, "
+                            "y along the tilt axis, z the beam at tilt 0", "voxel_size_A": [voxel] * 3,
+              "origin": "the centre of voxel (0, 0, 0), Angstrom, the volume centred on the tilt axis"}
+    out = {name: {"units": {"shifts": "pixel of the raw stack", "angles": "degree"}, "conventions": CONVENTIONS}
+           for name in alignment_files.values()}
+    sense = "IMOD's sign (--convention imod)" if convention == "imod" else "indreg's sign (--convention indreg)"
+    out[alignment_files["tlt"]] = {"units": "degree", "contents": f"the tilt angles, one a line ({sense})"}
+    out["alignment.json"] = {"contents": "the alignment's numbers, units and conventions"}
+    out["aligned.mrc"] = {"axis_order": "sections = tilts, (Y, X) images with the tilt axis along Y (rows)",
+                          "pixel_size_A": pixel, "made_by": "the raw stack resampled through the alignment "
+                                                            "(scipy.ndimage.affine_transform, bilinear)"}
+    out["aligned.tlt"] = {"units": "degree", "contents": f"the aligned stack's tilt angles, one a line ({sense})"}
+    out["reconstruction.mrc"] = out["reconstruction.zarr"] = volume
+    return out
 
 
 def write_alignment(directory, alignment, stem: str = "alignment", pixel_size: Optional[float] = None,

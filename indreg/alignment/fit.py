@@ -251,7 +251,7 @@ def _cost(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shi
 
 def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, shifts: torch.Tensor,
              angle: torch.Tensor, axis: bool = False, iterations: int = GN_ITERATIONS,
-             kind: str = ALIGN_GAUGES[0]) -> tuple:
+             kind: str = ALIGN_GAUGES[0], prior: tuple | None = None) -> tuple:
     """Gauss-Newton (Levenberg-damped) on ``(1/2) ||S_{s, alpha} P - g||^2`` from ``(shifts, angle)`` with the
     projection ``P`` fixed; shifts kept in the gauge ``kind`` (:func:`gauge`) and within the bounds (:func:`bounds`).
 
@@ -271,6 +271,9 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
         At most this many Gauss-Newton iterations (stops earlier when nothing moves more than ``GN_TOL``).
     kind : str
         The gauge (:func:`gauge`).
+    prior : tuple, optional
+        ``(alpha_0, sd)`` (radians; with ``axis``) adds ``(w / 2) (alpha - alpha_0)^2``, ``w = sigma^2 / sd^2`` with
+        ``sigma^2`` the residual's variance per datum at the start: a Gaussian prior in the data's scale.
 
     Returns
     -------
@@ -287,15 +290,22 @@ def estimate(op: AlignedOperator, projection: torch.Tensor, data: torch.Tensor, 
     s = torch.maximum(torch.minimum(gauge(op, shifts.double().cpu(), kind).to(P.device), bound), -bound)
     a = angle.double().to(P.device).clamp(-amax, amax)
     cost, damping = _cost(op, P, g, s, a), 1e-6
+    weight = 0.0
+    if axis and prior is not None:
+        weight = 2 * cost / max(g.numel() - K * c - 1, 1) / prior[1] ** 2
+        cost += 0.5 * weight * (float(a) - prior[0]) ** 2
     for _ in range(iterations):
         warped, columns = op.warp_derivatives(P, s, a, axis)
         H, b = _normal_equations(columns, warped - g, K, c, axis)
+        if weight:
+            H[-1, -1] += weight
+            b[-1] += weight * (float(a) - prior[0])
         while damping < 1e8:
             step = -torch.linalg.solve(H + damping * torch.diag(H.diagonal().clamp_min(1e-12)), b)
             step = step * min(1.0, GN_MAX_STEP / max(float(step[:K * c].abs().max()), 1e-30))
             s_new = torch.maximum(torch.minimum(gauge(op, s + step[:K * c].reshape(K, c), kind), bound), -bound)
             a_new = (a + step[-1]).clamp(-amax, amax) if axis else a
-            new = _cost(op, P, g, s_new, a_new)
+            new = _cost(op, P, g, s_new, a_new) + (0.5 * weight * (float(a_new) - prior[0]) ** 2 if weight else 0.0)
             if new < cost:
                 moved = max(float((s_new - s).abs().max()), math.degrees(abs(float(a_new - a))))
                 s, a, cost, damping = s_new, a_new, new, max(damping / 10, 1e-9)
@@ -368,7 +378,7 @@ def fit_scale(op: AlignedOperator, state: AlignmentState, template: torch.Tensor
         s, a = first_start(op, state, P, g), op.angle.double()
         c, done = _scale(op, P, g, s, a), 0
         while done < rounds and math.isfinite(c) and c > 0:
-            s, a, _ = estimate(op, c * P, g, s, a, state.axis, kind=state.gauge)
+            s, a, _ = estimate(op, c * P, g, s, a, state.axis, kind=state.gauge, prior=state.prior)
             c, previous, done = _scale(op, P, g, s, a), c, done + 1
             if abs(c - previous) <= tol * abs(previous):
                 break

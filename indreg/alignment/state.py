@@ -38,6 +38,9 @@ class AlignmentState:
         The stack's angle is held in the fit (it determines the angle).
     angle_se : float
         The standard error (degrees) of the tilt-axis angle (``inf``: not estimated, or not determined).
+    prior : tuple or None
+        ``(angle, sd)`` (radians): a Gaussian prior of the fit's angle (the stack's estimate where it does not
+        determine the angle, ``indreg.alignment.solver.UNDETERMINED = "prior"``), else None.
     """
     mode: str
     gauge: str = ALIGN_GAUGES[0]
@@ -48,6 +51,7 @@ class AlignmentState:
     stack_estimate: object = None
     held: bool = False
     angle_se: float = math.inf
+    prior: tuple | None = None
 
     @property
     def axis(self) -> bool:
@@ -57,10 +61,13 @@ class AlignmentState:
     def state_dict(self) -> dict:
         """The checkpoint entries of the fit (with the operator's shifts and angle, ``AlignmentSolver``)."""
         return {"alignment_records": list(self.records), "alignment_angle_se": float(self.angle_se),
-                "alignment_angle_held": bool(self.held)}
+                "alignment_angle_held": bool(self.held),
+                "alignment_angle_prior": None if self.prior is None else [float(v) for v in self.prior]}
 
     def load_state_dict(self, d: dict) -> None:
         """Pop :meth:`state_dict`'s entries from ``d`` (a checkpoint's dict, changed in place)."""
         self.records = list(d.pop("alignment_records"))
         self.angle_se = float(d.pop("alignment_angle_se", math.inf))
         self.held = bool(d.pop("alignment_angle_held", False))
+        prior = d.pop("alignment_angle_prior", None)
+        self.prior = None if prior is None else tuple(float(v) for v in prior)

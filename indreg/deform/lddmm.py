@@ -404,7 +404,11 @@ class LDDMMDeformation(torch.nn.Module):
         """``phi_{1,0}`` as physical points ``(..., d, *shape)`` (composed displacements; deformed-grid plots)."""
 
         moving = self._check_velocity(velocity)
-        return self.domain.points(velocity.dtype, velocity.device) + self._displacement_10(velocity, moving)
+        out = self._displacement_10(velocity, moving)
+        d = self.domain.ndim
+        for k, axis in enumerate(self.domain.axes(velocity.dtype, velocity.device)):   # + Id, no grid of points held
+            out.select(-d - 1, k).add_(axis.view([-1 if j == k else 1 for j in range(d)]))
+        return out
 
     def _displacement_10(self, velocity: torch.Tensor, moving: list) -> torch.Tensor:
         """``phi_{1,0} - Id`` (physical units) on the image's grid, ``(..., d, *shape)``."""

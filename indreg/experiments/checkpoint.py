@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._outfiles import LinkError, check_no_links, open_replacing
+from .._outfiles import LinkError, check_no_links, open_replacing, remove_scratch
 
 VERSION = 2
 HINT = "delete it or run without resume=true"
@@ -190,13 +190,15 @@ def restoring(path, hint: str = HINT):
 def check_location(path, resume: bool, hint: str = HINT) -> None:
     """Before any computing: the directory of ``path`` can be created and written and holds no symbolic link
     (outputs are never written through one), ``path`` is not a directory, and with ``resume`` an existing
-    ``path`` is readable and writable (it will be replaced)."""
+    ``path`` is readable and writable (it will be replaced). What a writer killed mid-write left there (an empty
+    ``.checkpoint.pt.<random>.tmp``) is removed."""
     path = Path(path)
     out = path.parent
     try:
         check_no_links(out)
     except LinkError as e:
         raise CheckpointError(str(e)) from None
+    remove_scratch(out)   # a writer's private directory left by kill -9 (indreg._outfiles.replacing)
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):

@@ -37,6 +37,7 @@ DOCS_URL = "docs/index.md in indreg's source"
 #: Flags of Hydra's that preflight checks the same as a plain run; any other flag (``--help``, ``--cfg``,
 #: ``--info``, ``-cd``, ...) is Hydra's business alone.
 _MULTIRUN_FLAGS = ("-m", "--multirun")
+_RUN_FLAGS = ("-r", "--run")
 
 
 class UsageError(Exception):
@@ -70,6 +71,102 @@ def refuse_loading_flags(argv, prog: str) -> None:
           "runs code), and indreg never writes one; rerun with the same overrides, or resume=true with the same "
           "run directory", file=sys.stderr, flush=True)
     sys.exit(2)
+
+
+#: Keys of Hydra's own section whose values name a callable that Hydra imports and calls (``hydra.callbacks``,
+#: factories of the logging config, plug-in targets): no command line sets them.
+_CALLABLE_KEYS = ("_target_", "class", "()", "_partial_", "_args_")
+#: A single path component (a file or directory name): letters, digits, '.', '_' and '-', not starting with '.'.
+_NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-")
+
+
+def _one_name(value, dot_ok: bool = False) -> bool:
+    """``value`` is one path component (no separator, not ``.`` or ``..``, no interpolation)."""
+    v = str(value)
+    return (bool(v) and set(v) <= _NAME_CHARS and v not in (".", "..")
+            and (dot_ok or not v.startswith(".")))
+
+
+def _leaves(key: str, value):
+    """``(key, value)`` for every leaf of an override's value (``hydra={job: {name: x}}`` -> ``hydra.job.name``)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _leaves(f"{key}.{k}", v)
+    else:
+        yield key, value
+
+
+def hydra_override_problem(key: str, value) -> str | None:
+    """Why the override ``key=value`` of Hydra's own section is refused (it would run code or write outside the run
+    directory), else ``None``."""
+    parts = key.replace("/", ".").split(".")
+    if len(parts) > 1 and parts[1] == "callbacks":
+        return "Hydra's callbacks import and call what they name (code run by the command line); indreg has none"
+    if parts[-1] in _CALLABLE_KEYS:
+        return "it names a callable that Hydra would import and call (code run by the command line)"
+    if parts[1:] in (["job_logging"], ["hydra_logging"]) and "/" not in key:   # hydra/job_logging=<shipped option>
+        return None
+    if len(parts) > 2 and parts[1] in ("job_logging", "hydra_logging") and parts[-1] in ("filename", "stream"):
+        return "the log is written in the run directory (<run dir>/<hydra.job.name>.log)"
+    if key == "hydra.job.name" and not _one_name(value):
+        return ("the job's name names its log file in the run directory: letters, digits, '.', '_' and '-', "
+                "not starting with '.'")
+    if key == "hydra.output_subdir" and value is not None and not _one_name(value, dot_ok=True):
+        return "Hydra's config copy goes into a subdirectory of the run directory: one name (default .hydra) or null"
+    parts_of_value = str(value).replace("\\", "/").split("/")
+    if key == "hydra.sweep.subdir" and (parts_of_value[0] == "" or ".." in parts_of_value):
+        return "a job's directory lies inside hydra.sweep.dir: a relative name without '..'"
+    return None
+
+
+def hydra_override(argv) -> tuple | None:
+    """The first override of ``argv`` (as Hydra's parsers read the command line, sweeps' values each) that sets
+    Hydra's own section so that it would run code or write outside the run directory:
+    ``(argument, key, value, why)``, else ``None``. (A command line Hydra cannot parse is left to Hydra.)"""
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        args, _ = get_args_parser().parse_known_args([str(a) for a in argv])
+    except SystemExit:   # Hydra's parser refuses it (an ambiguous flag): Hydra ends it alike
+        return None
+    parser = OverridesParser.create()
+    for arg in args.overrides:
+        try:
+            o = parser.parse_override(arg)
+        except HydraException:
+            continue
+        key, package = o.key_or_group, (o.package or "").replace("_global_.", "").replace("_global_", "")
+        if package.startswith("hydra"):
+            return arg, f"{key}@{package}", None, "it places a config into Hydra's own section"
+        if not (key == "hydra" or key.startswith(("hydra.", "hydra/"))):
+            continue
+        values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]
+        for value in values:
+            for k, v in _leaves(key, value):
+                why = hydra_override_problem(k, v)
+                if why:
+                    return arg, k, v, why
+    return None
+
+
+def refuse_hydra_overrides(argv, prog: str) -> None:
+    """Exit with one line (status 2) if an override of ``argv`` sets Hydra's own section so that it would run code
+    or write outside the run directory (:func:`hydra_override`)."""
+    found = hydra_override(argv)
+    if found is not None:
+        arg, key, value, why = found
+        print(f"{prog}: error: {arg}: {key} is not accepted: {why}", file=sys.stderr, flush=True)
+        sys.exit(2)
+
+
+def guard(argv, prog: str) -> None:
+    """What every entry point checks first, whatever the flags (``--help`` included): no flag that loads a file as
+    code (:func:`refuse_loading_flags`) and no override of Hydra's section that runs code or writes outside the
+    run directory (:func:`refuse_hydra_overrides`); a problem exits with one line, status 2."""
+    refuse_loading_flags(argv, prog)
+    refuse_hydra_overrides(argv, prog)
 
 
 def error_chain(exc: BaseException) -> str:
@@ -193,15 +290,16 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
     creatable and writable and hold no symbolic link. Hydra's other flags (``--help``, ``--cfg``, ...) skip the checks.
     """
     flags = [a for a in argv if a.startswith("-")]
-    if any(f not in _MULTIRUN_FLAGS for f in flags):
+    if any(f not in _MULTIRUN_FLAGS + _RUN_FLAGS for f in flags):
         return
-    multirun = bool(flags)
+    multirun = any(f in _MULTIRUN_FLAGS for f in flags)
     overrides = [a for a in argv if not a.startswith("-")]
     try:
         check_launcher(overrides)
         if base is not None:
             check_keys(overrides, base, prog)
         cfg = _compose_or_fail(config_dir, config_name, _split_sweeps(overrides) if multirun else overrides)
+        check_hydra_section(cfg)
         if validate is not None and not multirun:
             validate(job_config(cfg))
         key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
@@ -211,6 +309,20 @@ def preflight(argv, prog: str, config_dir, config_name: str, validate=None, base
         exit_error(prog, str(e))
     except ValueError as e:  # the app's ConfigError (a ValueError naming the key)
         exit_error(prog, error_chain(e))
+
+
+def check_hydra_section(cfg) -> None:
+    """The composed config's Hydra section (configs on ``hydra.searchpath`` included) has no callbacks and keeps
+    Hydra's files in the run directory (:func:`hydra_override_problem`)."""
+    from omegaconf import OmegaConf
+
+    section = OmegaConf.to_container(cfg.hydra, resolve=False)
+    for key in ("callbacks", "output_subdir"):
+        value = section.get(key)
+        for k, v in _leaves(f"hydra.{key}", value) if value else ():
+            why = hydra_override_problem(k, v)
+            if why:
+                raise UsageError(f"{k}={v} (from the composed config) is not accepted: {why}")
 
 
 def _compose_or_fail(config_dir, config_name, overrides):

@@ -165,7 +165,10 @@ def main(argv=None) -> int:
                   file=sys.stderr)
             return 1
         return 0
-    README.write_text(text)
+    from .._outfiles import open_replacing
+
+    with open_replacing(README, "w") as f:   # as every file indreg writes: no link followed
+        f.write(text)
     return 0
 
 

@@ -30,6 +30,7 @@ from omegaconf import DictConfig
 from .._outfiles import open_replacing, replacing
 from ..options import CORRECTIONS
 from ..registration.run import build_result, count_halvings, count_rejected
+from ..registration.tally import summary as warning_summary
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
@@ -188,7 +189,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         "seconds_per_iteration": seconds / max(len(history), 1), "seconds": seconds, "min_jacobian": r.min_jacobian,
         "grad_norm": history[-1]["grad_norm"] if history else float("nan"),
         "evaluations": history[-1]["evaluations"] if history else 0,
-        "warnings": r.warnings, "objective_rises": r.objective_rises, "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
+        "warnings": r.warnings, "warnings_by_kind": r.warnings_by_kind, "objective_rises": r.objective_rises,
+        "poor_fit": bool(r.poor_fit), "rejected_steps": count_rejected(history), "halvings": count_halvings(history),
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
@@ -214,6 +216,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         arrays["target"] = target
     if exp.clean_data_64 is not None:
         arrays["data_clean"] = exp.clean_data_64
+    arrays = {name: a for name, a in arrays.items() if a is not None}   # deformation: None beyond max_memory
     for name, a in arrays.items():
         save_array(out / f"{name}.npy", as_given(name, a, exp))
     frames = None
@@ -231,18 +234,20 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     writer.metrics(result, it)
     writer.hparams(result["hparams"], {k: result[k] for k in (*METRICS, "residual", "holdout_residual")
                                                         if k in result})
-    write_outputs_record(out, exp, arrays)
+    write_outputs_record(out, exp, arrays, corrections=tuple(r.corrections))
     done = f"{r.status}: {it} iterations" if r.status != "completed" else f"done: {it} iterations"
     done += " (poor fit: see the warning)" if r.poor_fit else ""
     if "sigma_auto" in result:
         done += f" with sigma {result['sigma']:.4g} (sigma=auto)"
     if target is not None:
         paper = f" (paper convention {result['ssim_paper']:.4f} / {result['psnr_paper']:.2f})" if exp.paper else ""
-        log.info("%s, %s%s; FBP %s; SIRT %s; TV %s; %d warnings", done, quality(result, exp, r.outputs), paper,
-                 _pair(result, "fbp"), _pair(result, "sirt"), _pair(result, "tv"), result["warnings"])
+        log.info("%s, %s%s; FBP %s; SIRT %s; TV %s; %s", done, quality(result, exp, r.outputs), paper,
+                 _pair(result, "fbp"), _pair(result, "sirt"), _pair(result, "tv"),
+                 warning_summary(r.warnings, r.warnings_by_kind))
     else:
-        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %d warnings", done,
-                 result["objective"], result["residual"], result["min_jacobian"], result["warnings"])
+        log.info("%s, objective %.6g, relative data residual %.4f, min Jacobian %.4g; %s", done,
+                 result["objective"], result["residual"], result["min_jacobian"],
+                 warning_summary(r.warnings, r.warnings_by_kind))
     if r.holdout:
         log.info("held-out angles %s: relative residual %.4f (least %.4f at iteration %s)",
                  r.holdout["holdout_indices"], r.holdout["holdout_residual"], r.holdout["holdout_best_residual"],
@@ -288,10 +293,45 @@ def as_given(name: str, a, exp):
     return conventions.images_from_indreg(a, c) if tuple(a.shape[-2:]) == tuple(exp.domain.shape) else a
 
 
-def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
-    """``outputs.json``: every file of the run directory with its format, the tool that wrote it and its version
-    (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the voxel size
-    and origin (the centre of voxel 0) in the domain's length unit, data layout (module Convention)."""
+#: The registration app's outputs besides its arrays (``<name>.npy``) and figures; what ``outputs.json`` lists.
+OWN_FILES = ("metrics.json", "history.json", "final.mrc", "trajectory.npy", "checkpoint.pt", "baselines.npz",
+             "tensorboard", ".hydra", "outputs.json")
+
+
+def own_names(out: Path, arrays=(), corrections=()) -> list:
+    """The names of the run's own outputs in ``out`` (:data:`OWN_FILES`, the arrays, the figures, the corrections'
+    plots, the log files of this process's logging in ``out`` and Hydra's config directory): the record lists
+    these only."""
+    from .register import FIGURES
+
+    names = [*OWN_FILES, *FIGURES, *(f"{a}.npy" for a in arrays), *(f"{c}.png" for c in corrections)]
+    for handler in logging.getLogger().handlers:
+        path = Path(getattr(handler, "baseFilename", "") or "/")
+        if isinstance(handler, logging.FileHandler) and path.parent == Path(out).resolve():
+            names.append(path.name)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized() and HydraConfig.get().output_subdir:
+            names.append(str(HydraConfig.get().output_subdir))
+    except (ImportError, ValueError):
+        pass
+    return names
+
+
+def write_outputs_record(out: Path, exp, arrays: dict, corrections=()) -> dict | None:
+    """``outputs.json``: the run's own outputs (:func:`own_names`) with their format, the tool that wrote each and
+    its version (``indreg.io.provenance``), and for the arrays and ``final.mrc`` the conventions: axis order, the
+    voxel size and origin (the centre of voxel 0) in the domain's length unit, data layout (module Notes).
+    A record that cannot be written is a warning (``None``), never the end of a finished run."""
+    try:
+        return _write_outputs_record(out, exp, arrays, corrections)
+    except (OSError, ValueError) as e:
+        log.warning("outputs.json not written: %s", " ".join(str(e).split()))
+        return None
+
+
+def _write_outputs_record(out: Path, exp, arrays: dict, corrections) -> dict:
     from ..io.conventions import describe_layout
     from ..io.provenance import write_record
 
@@ -326,7 +366,8 @@ def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
         conventions["final_wide.npy"] = {**image, "voxel_size": list(w.cell_sides), "origin": [
             a + c / 2 for a, c in zip(w.min_pt, w.cell_sides)], "note": "the wide box (data.wide_box); the other "
             "images are its field of view"}
-    return write_record(out / "outputs.json", out, conventions, run="indreg-register")
+    return write_record(out / "outputs.json", out, own_names(out, (*arrays, "trajectory"), corrections), conventions,
+                        run="indreg-register")
 
 
 def quality(result: dict, exp, outputs: dict) -> str:

@@ -189,7 +189,7 @@ def preflight(argv) -> None:
     """Check the command line before Hydra creates the run directory (:func:`indreg.experiments.cli.preflight`:
     launcher plugin, composition, the config's values, the data files, the run directory), so that a problem
     ends in one line (``indreg-register: error: ...``, exit 1) with nothing written."""
-    cli.refuse_loading_flags(argv, PROG)
+    cli.guard(argv, PROG)
     try:
         _register_schema(argv)   # plug-in models named on the command line: their options become keys
     except ValueError as e:      # e.g. a plug-in source's key declared with another type by another source
@@ -205,7 +205,7 @@ def main() -> None:
     from .._malloc import use_heap_allocator
 
     argv = sys.argv[1:]
-    cli.refuse_loading_flags(argv, PROG)   # --experimental-rerun and its prefixes: exit 2
+    cli.guard(argv, PROG)   # --experimental-rerun and its prefixes, Hydra's callbacks, ...: exit 2
     if any(a in _PRINT_ONLY for a in argv):
         _stand_in_schema()
         if cli.answers(argv) and cli.print_help(_CONFIG, _CONFIG_FILE, argv):

@@ -66,8 +66,9 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
             writer.figure("images/residual", _residual_figure(residual, unit), it)
     writer.image("images/deformed_template", r.deformed, it)
     phi = r.deformation   # a volume's: the xy plane through the centre, (x, y) of phi on the central z slice
-    grid = to_numpy(phi[:2, :, :, phi.shape[-1] // 2] if volume else phi)
-    writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
+    if phi is not None:   # None: not kept within max_memory (indreg.registration.budget)
+        grid = to_numpy(phi[:2, :, :, phi.shape[-1] // 2] if volume else phi)
+        writer.figure("images/deformed_grid", figures.deformed_grid_figure(grid), it)
     if frames_name is not None:   # several time points: the frames in a row, one image each, and a movie
         frames = to_numpy(r.outputs[frames_name])
         truth = exp.targets.get(frames_name)

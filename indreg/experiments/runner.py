@@ -158,8 +158,11 @@ class Checkpoints(Callback):
 def run(cfg: DictConfig, output_dir) -> dict:
     """:func:`_run`, then the process group (under ``torchrun``) closed on every rank, so that no communication
     thread outlives the run (gloo's would abort the process at exit)."""
+    from ..registration.tally import tally_warnings
+
     try:
-        return _run(cfg, output_dir)
+        with tally_warnings():   # the set-up's warnings too, by kind, in metrics.json and the last line
+            return _run(cfg, output_dir)
     finally:
         import torch.distributed as dist
         if dist.is_available() and dist.is_initialized():

@@ -236,6 +236,15 @@ class _SystemMatrix:
         vsz = torch.empty(0, dtype=dtype).element_size()
         return 2 * self.nnz * (isz + vsz) + (sum(self.shape) + 2) * isz
 
+    def working_bytes(self, dtype: torch.dtype, device) -> int:
+        """What a run in ``dtype`` on ``device`` holds of the matrix: the float64 master (scipy's int32 or int64
+        indices), its ``(A, A^T)`` in ``dtype`` (unless float64 on the CPU, which shares the master) and, on a CPU, the
+        column blocks of ``A`` (``column_blocks``, slab-wise projections)."""
+        master = sum(t.numel() * t.element_size() for m in self.master for t in m)
+        cpu = torch.device(device).type == "cpu"
+        pair = 0 if (cpu and dtype == torch.float64) else self.nbytes(dtype)
+        return master + pair + (self.nbytes(dtype) // 2 if cpu else 0)
+
 
 #: On the CPU a sparse-dense product reads a row of the dense operand (``B`` values) per nonzero; when the operand
 #: outgrows the cache (``4 x CPU_BLOCK_BYTES``) the batch is taken in blocks of about ``CPU_BLOCK_BYTES``: the same

@@ -166,6 +166,20 @@ class TiltSeriesGeometry:
                 f"det_min={self.det_min}, det_max={self.det_max}, tilt_axis={self.tilt_axis!r})")
 
 
+#: A volume whose slices are not rows of its memory (tilt axis y or z) is projected in chunks of slices of at most
+#: this many bytes, each copied to rows: not a copy of the whole volume (1 GiB at 1024 x 1024 x 256 in float32).
+COPY_CHUNK_BYTES = 64 * 2 ** 20
+
+
+def _viewable(slices: torch.Tensor, width: int) -> bool:
+    """Whether ``slices (n_t, n_u, n_v)`` reads as rows ``(n_t, width)`` without a copy."""
+    try:
+        slices.view(-1, width)
+    except RuntimeError:
+        return False
+    return True
+
+
 class TiltSeriesTransform(WeightedDataMixin, nn.Module):
     """Single-axis tilt-series ray transform ``T: L2(domain) -> L2(tilts x rows x columns)`` (a ``LinearOperator``).
 
@@ -218,6 +232,19 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
         self.slice_transform = RayTransform(geometry.slice_domain(domain), geometry.slice_geometry)
         self.geometry = geometry.resolve(domain)
 
+    def on_rows(self, domain: ImageDomain) -> "TiltSeriesTransform":
+        """The same transform on ``domain``, a volume of the same slices (the same cells across the tilt axis) and any
+        number of them along it: its slice transform, and so its system matrix, shared (not built again)."""
+        u, v = self.geometry.slice_axes
+        if not isinstance(domain, ImageDomain) or domain.ndim != 3 or \
+                self.geometry.slice_domain(domain) != self.geometry.slice_domain(self.domain):
+            raise ValueError(f"on_rows needs a 3D domain with the slices of {self.domain} (axes "
+                             f"{AXES[u]}, {AXES[v]}), got {domain!r}")
+        new = type(self).__new__(type(self))
+        nn.Module.__init__(new)
+        new.domain, new.slice_transform, new.geometry = domain, self.slice_transform, self.geometry.resolve(domain)
+        return new
+
     def on_domain(self, domain: ImageDomain) -> "TiltSeriesTransform":
         """The same tilts and detector columns (extent included) on another grid of the volume, e.g. a coarser one
         for coarse-to-fine solvers; the detector rows follow the grid along the tilt axis (one row per slice)."""
@@ -252,7 +279,14 @@ class TiltSeriesTransform(WeightedDataMixin, nn.Module):
         self._check_dtype(f, "volume")
         slices = f.movedim(f.dim() - 3 + self.geometry.axis, -3)           # (..., n_t, n_u, n_v)
         batch = slices.shape[:-2]
-        out = _Project.apply(slices.reshape(-1, slices.shape[-2] * slices.shape[-1]), self.system)
+        width = slices.shape[-2] * slices.shape[-1]
+        chunk = max(1, COPY_CHUNK_BYTES // (width * f.element_size()))
+        if f.dim() == 3 and slices.shape[0] > chunk and not _viewable(slices, width):
+            # the slices are not rows of f's memory (a tilt axis other than x): copied a chunk at a time, not whole
+            out = torch.cat([_Project.apply(slices[i:i + chunk].reshape(-1, width), self.system)
+                             for i in range(0, slices.shape[0], chunk)])
+        else:
+            out = _Project.apply(slices.reshape(-1, width), self.system)
         return out.reshape(*batch, self.geometry.num_tilts, self.geometry.det_count).movedim(-3, -2)
 
     def A(self, f: torch.Tensor) -> torch.Tensor:

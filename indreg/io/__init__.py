@@ -41,7 +41,7 @@ import numpy as np
 
 from .._lazy import REMOVED_IN
 from . import conventions
-from ._files import DataFileError, _as_path, _fail, _Problem
+from ._files import DataFileError, _as_path, _fail, _Problem, check_mrc_header
 from .angle_files import (ANGLE_UNITS, RADIAN_SPAN, mdoc_for, read_angles, read_tilt_axis_angle,  # noqa: F401
                           tilt_angles_for)
 from .formats import FILE_FORMATS, FileFormat, check_file, get_format, register_format, split_path, suffixes
@@ -303,6 +303,7 @@ def read_voxel_size(path, *, name: str = "volume") -> tuple:
         raise _fail(name, path, f"only {names} files ({', '.join(suffixes('read_voxel_size'))}) carry a voxel size")
     if not path.is_file():
         raise _fail(name, path, "no such file")
+    check_mrc_header(path, name)
     try:
         size = fmt.read_voxel_size(path)
     except Exception as err:   # the header reader's complaint, as one line

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import _fail, _one_line
+from ._files import MAX_TEXT_BYTES, _fail, _one_line, read_text
 from .formats import split_path
 
 __all__ = ["ANGLE_UNITS", "RADIAN_SPAN", "read_angles", "tilt_angles_for", "mdoc_for", "read_tilt_axis_angle"]
@@ -31,14 +31,7 @@ log = logging.getLogger("indreg")
 
 def _angle_file(path: Path, name: str) -> list:
     """Angles of a text file, one per line (IMOD ``.tlt``/``.rawtlt``); blank lines and ``#`` comments skipped."""
-    if not path.exists():
-        raise _fail(name, path, "no such file")
-    if not path.is_file():
-        raise _fail(name, path, "is not a file")
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (UnicodeDecodeError, OSError) as err:
-        raise _fail(name, path, f"not a readable text file ({type(err).__name__}: {err})") from None
+    lines = read_text(path, name).splitlines()
     angles = []
     for number, line in enumerate(lines, start=1):
         text = line.split("#", 1)[0].strip()
@@ -145,7 +138,9 @@ def tilt_angles_for(sinogram_path) -> Path | None:
     return None
 
 
-_TILT_AXIS = re.compile(r"tilt\s*axis\s*angle\s*=\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)", re.IGNORECASE)
+_TILT_AXIS_KEY = re.compile(r"tilt\s*axis\s*angle\s*=[^\n,\]]*", re.IGNORECASE)
+_TILT_AXIS = re.compile(r"tilt\s*axis\s*angle\s*=\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?![\w.])",
+                        re.IGNORECASE)
 
 
 def mdoc_for(stack_path) -> Path | None:
@@ -192,14 +187,14 @@ def read_tilt_axis_angle(mdoc, *, name: str = "mdoc") -> float | None:
         The file cannot be read.
     """
     path = Path(mdoc)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as err:
-        raise _fail(name, path, f"not a readable text file ({type(err).__name__}: {err})") from None
-    match = _TILT_AXIS.search(text)
-    if match is None:
+    text = read_text(path, name, max_bytes=4 * MAX_TEXT_BYTES, errors="replace")
+    key = _TILT_AXIS_KEY.search(text)
+    if key is None:
         return None
-    value = float(match.group(1))
+    match = _TILT_AXIS.match(text, key.start())
+    value = float(match.group(1)) if match else math.nan
     if not math.isfinite(value):
-        raise _fail(name, path, f"tilt axis angle is not finite: {match.group(0)!r}")
+        line = text.count("\n", 0, key.start()) + 1
+        raise _fail(name, path, f"line {line}: the tilt axis angle is not a finite number of degrees: "
+                                f"{key.group(0).strip()[:60]!r}")
     return value

@@ -17,6 +17,7 @@ take its suffix, and the messages that list the known suffixes list it.
 """
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ._files import _as_path, _fail, _one_line, _Problem
+from ._files import _as_path, _fail, _one_line, _Problem, mrc_header_problem
 
 __all__ = ["FileFormat", "FILE_FORMATS", "register_format", "get_format", "suffixes", "split_path", "check_file"]
 
@@ -307,6 +308,9 @@ def _h5_elsewhere(obj, f) -> str:
 def _read_mrc(path: Path) -> np.ndarray:
     import mrcfile
 
+    problem = mrc_header_problem(*_head(path))
+    if problem:
+        raise _Problem(problem)
     try:
         with mrcfile.open(path, mode="r", permissive=False) as mrc:
             return np.array(mrc.data)
@@ -323,6 +327,11 @@ def _read_mrc(path: Path) -> np.ndarray:
         warnings.warn(_one_line(f"{path}: invalid MRC header ({strict_error}); data read in permissive mode"),
                       stacklevel=4)
         return data
+
+
+def _head(path: Path) -> tuple:
+    with open(path, "rb") as f:
+        return f.read(1024), os.fstat(f.fileno()).st_size
 
 
 def _write_mrc(path: Path, array: np.ndarray, voxel_size=None, origin=None) -> None:

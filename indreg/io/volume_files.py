@@ -9,6 +9,8 @@ Notes
   the centre of voxel ``(0, 0, 0)``; MRC's header ``origin`` holds it (``nxstart = nystart = nzstart = 0``),
   OME-Zarr's ``translation`` too (its ``scale`` the voxel size), both as ChimeraX and napari place a grid.
 - Each writer returns what wrote the file (``{"path", "format", "writer", "version"}``) for a run's record.
+- Both write through :mod:`indreg._outfiles` (a fresh file or directory renamed over the target): a link at the
+  target is replaced, never written through.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._outfiles import replacing
 from ._files import _as_path, _fail
 
 __all__ = ["write_mrc", "write_ome_zarr", "ome_zarr_available", "read_ome_zarr_scale"]
@@ -48,7 +51,7 @@ def write_mrc(path, volume, voxel_size, origin=(0.0, 0.0, 0.0)) -> dict:
     path = _as_path(path, "output")
     data, h, o = _checked(volume, voxel_size, origin, path)
     try:
-        with mrcfile.new(path, overwrite=True) as mrc:
+        with replacing(path) as new, mrcfile.new(new, overwrite=True) as mrc:
             mrc.set_data(np.ascontiguousarray(data.transpose(2, 1, 0), dtype=np.float32))
             mrc.voxel_size = h
             mrc.header.origin = o
@@ -80,10 +83,12 @@ def write_ome_zarr(path, volume, voxel_size, origin=(0.0, 0.0, 0.0)) -> dict:
     from ome_zarr.writer import write_image
 
     try:
-        root = zarr.group(store=parse_url(str(path), mode="w").store, overwrite=True)
-        write_image(np.ascontiguousarray(data.transpose(2, 1, 0), dtype=np.float32), root, axes=list("zyx"),
-                    scale=dict(zip("zyx", h[::-1])), axes_units=dict.fromkeys("zyx", "angstrom"), scale_factors=[])
-        _set_translation(root, list(o[::-1]))
+        with replacing(path) as new:   # written in a private directory, renamed over path (a link there replaced)
+            root = zarr.group(store=parse_url(str(new), mode="w").store, overwrite=True)
+            write_image(np.ascontiguousarray(data.transpose(2, 1, 0), dtype=np.float32), root, axes=list("zyx"),
+                        scale=dict(zip("zyx", h[::-1])), axes_units=dict.fromkeys("zyx", "angstrom"),
+                        scale_factors=[])
+            _set_translation(root, list(o[::-1]))
     except OSError as err:
         raise _fail("output", path, f"cannot be written ({type(err).__name__}: {err})") from None
     return {"path": path.name, "format": "OME-Zarr", "writer": "ome-zarr", "version": _version("ome-zarr"),

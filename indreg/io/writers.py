@@ -9,6 +9,8 @@ Notes
 - ``write_tilt_series``: ``(num_tilts, det_rows, det_cols)`` as an MRC stack (a format of ``sections``) plus
   ``stem.tlt`` in degrees.
 - Every problem raises :class:`DataFileError`, one line naming the file.
+- Every file is written through :mod:`indreg._outfiles` (a fresh file renamed over the target): a link at the
+  target is replaced, never written through.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_positive
+from .._outfiles import open_replacing, replacing
 from ._files import _as_path, _fail, _Problem
 from ..domain import ImageDomain
 from .formats import FILE_FORMATS, FileFormat, get_format, suffixes
@@ -34,13 +37,14 @@ def _writer(path: Path) -> FileFormat:
 
 
 def _write(fmt: FileFormat, path: Path, array: np.ndarray, **header) -> None:
-    """``fmt.write(path, array)``, with ``header`` (voxel size, origin) for a format that has one; every failure
-    as one line naming the file."""
+    """``fmt.write`` of ``array`` to ``path`` (through ``indreg._outfiles.replacing``), with ``header`` (voxel size,
+    origin) for a format that has one; every failure as one line naming the file."""
     try:
-        if fmt.read_voxel_size is not None:
-            fmt.write(path, array, **header)
-        else:
-            fmt.write(path, array)
+        with replacing(path) as new:   # a link at path replaced, never followed
+            if fmt.read_voxel_size is not None:
+                fmt.write(new, array, **header)
+            else:
+                fmt.write(new, array)
     except _Problem as problem:
         raise _fail("output", path, problem) from None
     except Exception as err:   # the writer's or its library's complaint, as one line
@@ -190,7 +194,8 @@ def write_tilt_series(path, data, angles, pixel_size: float | None = None) -> Pa
     _write(fmt, path, stack, voxel_size=None if pixel_size is None else (pixel_size, pixel_size, 1.0), origin=None)
     tlt = path.with_suffix(".tlt")
     try:
-        np.savetxt(tlt, np.rad2deg(radians), fmt="%.6f")
+        with open_replacing(tlt, "w") as f:
+            np.savetxt(f, np.rad2deg(radians), fmt="%.6f")
     except OSError as err:
         raise _fail("output", tlt, f"cannot be written ({type(err).__name__}: {err})") from None
     return path

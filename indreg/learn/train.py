@@ -69,6 +69,7 @@ RESUME_HINT = "delete it or run without train.resume=true"
 INITS = ("oneshot", "zero")
 SPACES = ("velocity", "initial")     # model=unrolled: UnrolledDescent | UnrolledMomentum
 MODEL_DIR = CONFIG_DIR / "model"      # the options of model=<name>
+SNR_DB_MAX = 300.0          # = indreg.noise's bound on snr_db
 
 
 # ------------------------------------------------------------------ set-up
@@ -147,7 +148,9 @@ def check_config(cfg) -> None:
         for value in ood.num_angles:
             check_int(value, "eval.ood.num_angles", 1)
         for value in ood.snr_db:
-            check_finite(value, "eval.ood.snr_db")
+            if abs(check_finite(value, "eval.ood.snr_db")) > SNR_DB_MAX:
+                raise ValueError(f"eval.ood.snr_db must hold values in [-{SNR_DB_MAX:g}, {SNR_DB_MAX:g}] dB, got "
+                                 f"{value!r}")
         for name in ood.phantoms:
             if get_phantom_ndim(str(name)) != 2:
                 raise ValueError(f"{name!r} is a 3D phantom and the training is 2D")
@@ -167,6 +170,9 @@ def _check_numbers(cfg) -> None:
     for key in ("num_train", "num_val"):
         check_int(d[key], f"data.{key}", 1)
     check_finite(d.snr_db, "data.snr_db")
+    if abs(float(d.snr_db)) > SNR_DB_MAX:
+        raise ValueError(f"data.snr_db must be in [-{SNR_DB_MAX:g}, {SNR_DB_MAX:g}] dB, got {d.snr_db!r}")
+    _check_problem(cfg)
     check_positive(d.displacement, "data.displacement")
     check_positive(d.smoothness, "data.smoothness")
     check_int(t.batch_size, "train.batch_size", 1)
@@ -179,6 +185,28 @@ def _check_numbers(cfg) -> None:
         for key in ("lr", "step_lr", "step_size"):
             check_positive(m[key], f"model.{key}")
         check_nonnegative(m.supervised, "model.supervised")
+
+
+def _check_problem(cfg) -> None:
+    """The domain, shooting, geometry, network and comparison numbers (``kernel.sigma`` and ``shooting.num_steps``:
+    the option table's): ``domain.n`` at least the SSIM's 7-pixel window and divisible by the U-Nets'
+    ``2^(levels - 1)``, counts >= 1."""
+    m, a = cfg.model, cfg.eval.algorithm1
+    for key in ("width", "levels") + (("update_width", "update_levels") if str(m.name) == "unrolled" else ()):
+        check_int(m[key], f"model.{key}", 1)
+    check_int(cfg.geometry.num_angles, "geometry.num_angles", 1)
+    check_int(cfg.geometry.det_count, "geometry.det_count", 1)
+    check_int(cfg.shooting.corrector_steps, "shooting.corrector_steps", 0)
+    check_nonnegative(cfg.train.gamma, "train.gamma")
+    check_int(a.num_samples, "eval.algorithm1.num_samples", 0)
+    check_int(a.max_iter, "eval.algorithm1.max_iter", 0)
+    check_positive(a.step_size, "eval.algorithm1.step_size")
+    check_nonnegative(a.gamma, "eval.algorithm1.gamma")
+    levels = max(int(m.levels), int(m.update_levels) if str(m.name) == "unrolled" else 1)
+    n, factor = check_int(cfg.domain.n, "domain.n", 7), 2 ** (levels - 1)
+    if n % factor:
+        raise ValueError(f"domain.n must be divisible by {factor} (the U-Net's {levels} levels halve it "
+                         f"{levels - 1} times), got {n}: e.g. domain.n={factor * -(-n // factor)}")
 
 
 def schedule(cfg) -> tuple:
@@ -226,21 +254,66 @@ def gather(dataset, idx, device) -> dict:
 
 
 # ------------------------------------------------------------------ checkpoints
-def save_checkpoint(path: Path, model, optimizer, step: int) -> None:
-    """Atomic, checksummed write of model / optimizer state_dicts, step and RNG (``indreg.experiments.checkpoint``)."""
+#: Keys that may change between a run and its resume (where it runs, how often it logs, how long it trains: a resume
+#: may train longer, the comparison at the end); every other key defines the training and must be the same.
+RESUMABLE = ("device", "eval", "train.resume", "train.log_every", "train.eval_every", "train.checkpoint_every",
+             "train.steps", "model.steps")
+
+
+def training_config(cfg) -> dict:
+    """The keys of ``cfg`` that define the training (all but :data:`RESUMABLE`), as plain data: what a checkpoint
+    stores and a resume must match."""
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(cfg, resolve=True) if not isinstance(cfg, dict) else dict(cfg)
+    plain = {k: (dict(v) if isinstance(v, dict) else v) for k, v in plain.items() if k != "hydra"}
+    for key in RESUMABLE:
+        head, _, leaf = key.partition(".")
+        if leaf:
+            plain.get(head, {}).pop(leaf, None)
+        else:
+            plain.pop(head, None)
+    return plain
+
+
+def save_checkpoint(path: Path, model, optimizer, step: int, config: dict | None = None) -> None:
+    """Atomic, checksummed write of model / optimizer state_dicts, step, RNG and the training's ``config``
+    (:func:`training_config`; ``indreg.experiments.checkpoint``)."""
     ckpt.save(path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                     "rng": torch.get_rng_state()})
+                     "rng": torch.get_rng_state(), "config": config})
 
 
-def load_checkpoint(path: Path, model, optimizer) -> int:
-    """Restore what :func:`save_checkpoint` wrote; returns the step. A damaged, foreign or mismatched file raises
-    ``CheckpointError`` (one line naming ``path``); nothing but tensors and plain data is unpickled."""
+def read_checkpoint(path: Path, config: dict | None = None) -> dict:
+    """The verified payload of ``path``; with ``config`` (:func:`training_config` of this run) a checkpoint of
+    another training is refused, one line naming the keys that differ (``CheckpointError``)."""
     payload = ckpt.load(path, keys=("model", "optimizer", "step", "rng"), hint=RESUME_HINT)
+    if config is not None:
+        saved = payload.get("config")
+        if not isinstance(saved, dict):
+            raise ckpt.CheckpointError(f"checkpoint {path} does not record its training's config (written by an "
+                                       f"older indreg), so a resume cannot be checked; {RESUME_HINT}")
+        mismatch = ckpt.problem_mismatch(saved, config)
+        if mismatch:
+            raise ckpt.CheckpointError(f"train.resume=true but the config differs from the checkpoint's "
+                                       f"({path}): {'; '.join(mismatch)}; run with the checkpoint's values, or "
+                                       f"{RESUME_HINT}")
+    return payload
+
+
+def apply_checkpoint(path: Path, payload: dict, model, optimizer) -> int:
+    """Restore a payload of :func:`read_checkpoint` into ``model``, ``optimizer`` and the RNG; returns the step."""
     with ckpt.restoring(path, hint=RESUME_HINT):
         model.load_state_dict(payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
         torch.set_rng_state(payload["rng"])
         return int(payload["step"])
+
+
+def load_checkpoint(path: Path, model, optimizer, config: dict | None = None) -> int:
+    """Restore what :func:`save_checkpoint` wrote; returns the step. A damaged, foreign or mismatched file (or, with
+    ``config``, one of another training) raises ``CheckpointError`` (one line naming ``path``); nothing but tensors
+    and plain data is unpickled."""
+    return apply_checkpoint(path, read_checkpoint(path, config), model, optimizer)
 
 
 # ------------------------------------------------------------------ evaluation
@@ -344,11 +417,13 @@ def train(cfg, run_dir) -> dict:
     run_dir = Path(run_dir)
     checkpoint = run_dir / "checkpoint.pt"
     ckpt.check_location(checkpoint, bool(cfg.train.resume), hint=RESUME_HINT)   # writable, no planted links
+    config = training_config(cfg)
+    saved = read_checkpoint(checkpoint, config) if bool(cfg.train.resume) and checkpoint.exists() else None
     parts = build(cfg, device, dtype)
     model = parts["model"]
     train_set, val_set = datasets(cfg, parts, dtype)
     optimizer = torch.optim.Adam(parameter_groups(cfg, model), lr=float(cfg.train.lr))
-    start = load_checkpoint(checkpoint, model, optimizer) if bool(cfg.train.resume) and checkpoint.exists() else 0
+    start = apply_checkpoint(checkpoint, saved, model, optimizer) if saved is not None else 0
     net = model
     if world > 1:     # the one-shot phase leaves the updates unused, the unrolled phase the one-shot network
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None,
@@ -392,7 +467,7 @@ def train(cfg, run_dir) -> dict:
                                     unrolled and isinstance(model, bench.UNROLLED))
             print(f"step {done}/{steps} val loss {scores['loss']:.4g} ssim {scores['ssim']:.4f}", flush=True)
         if rank == 0 and (done % int(cfg.train.checkpoint_every) == 0 or done == steps):
-            save_checkpoint(checkpoint, model, optimizer, done)
+            save_checkpoint(checkpoint, model, optimizer, done, config)
     metrics = {"model": str(cfg.model.name), "steps": steps, "resumed_from": start, "world_size": world,
                "train_seconds": time.perf_counter() - t0,
                "replica_max_abs_diff": replica_difference(model, world)}
@@ -449,14 +524,15 @@ def base_config(overrides=()):
 def main() -> None:
     """Console entry point ``indreg-train-momentum`` (Hydra parses ``sys.argv``; config
     ``indreg/learn/conf/train_momentum.yaml``). The command line is checked first (``indreg.experiments.cli``; Hydra's
-    ``--experimental-rerun`` and its prefixes, which unpickle a file, exit 2)."""
+    ``--experimental-rerun`` and its prefixes, which unpickle a file, and Hydra settings that run code or write
+    outside the run directory exit 2: :func:`indreg.experiments.cli.guard`)."""
     import sys
 
     import hydra
 
     from ..experiments import cli
 
-    cli.refuse_loading_flags(sys.argv[1:], PROG)
+    cli.guard(sys.argv[1:], PROG)
     cli.preflight(sys.argv[1:], PROG, CONFIG_DIR, CONFIG_NAME, validate=check_config, base=base_config(sys.argv[1:]))
     hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=CONFIG_NAME)(_task)()
 

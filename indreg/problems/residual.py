@@ -20,11 +20,13 @@ and the smoothed TV's curvature bounds, ``h`` the smallest cell side).
 The finish (:meth:`ResidualRegistration.finish`, run by ``indreg.registration.run.build_result`` after the loop): with the
 deformation fixed, ``f = W(nu, I) + r`` is solved to its minimum by Chambolle-Pock (``tv_reconstruction`` with the
 anchor ``W``, ``f >= 0``, the exact TV), since gradient steps on a smoothed TV converge slowly; its weight is chosen
-among ``mu_candidates`` by the held-out angles when the run has them, as the TV baseline's weight is.
+among ``mu_candidates`` by the held-out angles when the run has them, as the TV baseline's weight is, and the loop's
+own result is kept where it is better on them than every weight.
 """
 from __future__ import annotations
 
 import functools
+import logging
 
 import torch
 
@@ -33,7 +35,29 @@ from ..forward.operator import operator_norm
 from ..forward.tv import total_variation, tv_reconstruction
 from .lddmm import IndirectRegistration
 
-__all__ = ["ResidualRegistration"]
+__all__ = ["ResidualRegistration", "MAX_WIDEN"]
+
+log = logging.getLogger("indreg")
+
+#: The finish's weight grid is widened by a decade at most this many times while the best weight sits at its edge.
+MAX_WIDEN = 3
+
+
+def _say(info: dict, choosing: bool) -> None:
+    """One log line: which result the finish kept, and the held-out residuals it compared."""
+    u = info["unit"]
+    tried = ", ".join(f"{m / u:.0e}: {v:.4g}" for m, v in info["holdout_by_weight"].items())
+    wider = f", the grid widened to {', '.join(f'{m / u:.0e}' for m in info['widened'])}" if info["widened"] else ""
+    if not choosing:
+        log.info("the residual's finish at residual_tv %.0e (no held-out angles to compare it with the loop's "
+                 "result)", info["residual_tv"] / u)
+    elif info["chosen"] == "loop":
+        log.info("the residual's finish kept the loop's result (held-out residual %.4g): every weight was worse "
+                 "(%s%s)", info["holdout_loop"], tried, wider)
+    else:
+        log.info("the residual's finish at residual_tv %.0e won (held-out residual %.4g against the loop's %.4g; "
+                 "%s%s)", info["residual_tv"] / u, info["holdout_by_weight"][info["residual_tv"]],
+                 info["holdout_loop"], tried, wider)
 
 
 class ResidualRegistration(IndirectRegistration):
@@ -146,27 +170,44 @@ class ResidualRegistration(IndirectRegistration):
 
     def finish(self, x: tuple, validation=None) -> tuple:
         """``(m, r')``: ``r' = f - W``, ``f = argmin_{f >= 0} (1/2)||T f - g||^2 + mu TV(f - W)`` with ``W = W(nu,
-        I)`` fixed (``finish_iter`` Chambolle-Pock iterations from ``W + r``), ``mu`` the one of ``mu_candidates``
-        whose ``f`` has the least residual on ``validation``'s angles (without validation or candidates:
-        ``residual_tv``). ``x`` unchanged when ``finish_iter`` is 0 or that ``mu`` is 0. Records the choice in
-        ``finish_info`` (the weights also in ``mu_unit``, the unit they were given in)."""
-        chosen = self.mu_candidates if validation is not None and self.mu_candidates else (self.residual_tv,)
-        if self.finish_iter == 0 or max(chosen) <= 0:
+        I)`` fixed (``finish_iter`` Chambolle-Pock iterations from ``W + r``). With ``validation`` and
+        ``mu_candidates`` the held-out angles choose among the loop's own result and the finish at each weight (the
+        grid widened by a decade, at most :data:`MAX_WIDEN` times, while the best weight sits at its edge): the
+        finish may keep ``x``. Without them the finish at ``residual_tv`` is taken. ``x`` unchanged when
+        ``finish_iter`` is 0 or the weight is 0. Records the choice in ``finish_info`` (``chosen``: ``"loop"`` or
+        ``"finish"``; the weights also in ``mu_unit``, the unit they were given in) and logs which won."""
+        choosing = validation is not None and bool(self.mu_candidates)
+        grid = sorted(self.mu_candidates) if choosing else [self.residual_tv]
+        if self.finish_iter == 0 or max(grid) <= 0:
             return x
         with torch.no_grad():
             W = self.deformed(x[0])
-            tried, best, norms = {}, None, None
-            for mu in chosen:   # the steps' norms from the first solve (the same operator)
-                f, history = tv_reconstruction(self.ray_transform, self.data, 2 * mu, self.finish_iter, x0=W + x[1],
-                                               nonneg=True, anchor=W, norms=norms)   # ||.||^2 + mu' TV: mu' = 2 mu
-                norms = history["norms"]
-                score = validation.residual(f) if validation is not None else float("nan")
-                tried[mu] = score
-                if best is None or score < best[1]:
-                    best = (f, score, mu)
-        self.finish_info = {"residual_tv": best[2], "holdout_by_weight": tried, "iterations": self.finish_iter,
-                            "unit": self.mu_unit}
-        return x[0], best[0] - W
+            solves, self._norms = {}, None
+            for mu in grid:
+                solves[mu] = self._solve(W, x[1], mu, validation)
+            widened = []
+            while choosing and len(widened) < MAX_WIDEN:
+                best = min(solves, key=lambda m: solves[m][1])
+                step = best * 10 if best == max(solves) else best / 10 if best == min(solves) and best > 0 else None
+                if step is None or step in solves:
+                    break
+                solves[step] = self._solve(W, x[1], step, validation)
+                widened.append(step)
+            mu = min(solves, key=lambda m: solves[m][1]) if choosing else grid[0]
+            loop = validation.residual(W + x[1]) if choosing else float("nan")
+        keep = choosing and loop <= solves[mu][1]
+        self.finish_info = {"residual_tv": mu, "holdout_by_weight": {m: v[1] for m, v in sorted(solves.items())},
+                            "iterations": self.finish_iter, "unit": self.mu_unit, "holdout_loop": loop,
+                            "chosen": "loop" if keep else "finish", "widened": widened}
+        _say(self.finish_info, choosing)
+        return x if keep else (x[0], solves[mu][0] - W)
+
+    def _solve(self, W, r, mu, validation) -> tuple:
+        """``(f, held-out residual)`` of the finish at weight ``mu`` (the steps' norms from the first solve)."""
+        f, history = tv_reconstruction(self.ray_transform, self.data, 2 * mu, self.finish_iter, x0=W + r,
+                                       nonneg=True, anchor=W, norms=self._norms)   # ||.||^2 + mu' TV: mu' = 2 mu
+        self._norms = history["norms"]
+        return f, validation.residual(f) if validation is not None else float("nan")
 
     def hparams(self) -> dict:
         return {"residual_tv": self.residual_tv, "residual_smoothing": self.smoothing}

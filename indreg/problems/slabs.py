@@ -27,6 +27,7 @@ bytes. 3D only (a tilt series); float32 / float64, any device.
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -41,9 +42,11 @@ from ..forward.tilt_series import TiltSeriesTransform
 from .lddmm import IndirectRegistration
 from ..ranks import default_group, gather_rows, process_group, rank_rows, rank_world  # noqa: F401  (re-exported)
 
+log = logging.getLogger("indreg")
+
 __all__ = ["SlabwiseRegistration", "slab_refusal", "slab_ranges", "choose_slab_size", "available_memory",
            "process_group", "default_group", "upsample_rows", "upsample_rows_adjoint", "SLAB_BYTES_PER_VOXEL",
-           "WHOLE_BYTES_PER_VOXEL", "SLABS_PER_RANK",
+           "WHOLE_BYTES_PER_VOXEL", "SLABS_PER_RANK", "projector_bytes",
            "COLUMN_BLOCK_BYTES"]
 
 #: Working set of a slab per fine voxel, in scalars of the run's dtype (displacement, grid, warped image, its
@@ -98,20 +101,35 @@ def available_memory(device) -> int:
 
 
 def choose_slab_size(shape: tuple, axis: int, itemsize: int, max_memory: int | None = None, device="cpu",
-                     velocity_numel: int = 0) -> int:
+                     velocity_numel: int = 0, projector_bytes: int = 0, warn: bool = False) -> int:
     """Fine slices per slab: all of them (the whole-volume path) when a whole gradient
     (``WHOLE_BYTES_PER_VOXEL``) fits in ``max_memory``, else as many as a slab's working set
     (``SLAB_BYTES_PER_VOXEL``) allows in what the template (twice: the plane-wise sampler's padded copy), the run's
-    volume and 8 velocity-sized coarse arrays (``velocity_numel`` values each: momentum, velocity, record, gradient,
-    the solver's trial and the kernel's buffers) leave (at least 1). ``max_memory`` None: half of
-    ``available_memory(device)``."""
+    volume, 8 velocity-sized coarse arrays (``velocity_numel`` values each: momentum, velocity, record, gradient,
+    the solver's trial and the kernel's buffers) and the projector (``projector_bytes``:
+    ``_SystemMatrix.working_bytes``) leave (at least 1: then, with ``warn``, a warning, one line, says how much the
+    run needs).
+    ``max_memory`` None: half of ``available_memory(device)``."""
     budget = available_memory(device) // 2 if max_memory is None else int(max_memory)
     voxels = math.prod(shape)
-    fixed = (3 * voxels + 8 * velocity_numel) * itemsize
+    fixed = (3 * voxels + 8 * velocity_numel) * itemsize + projector_bytes
     if WHOLE_BYTES_PER_VOXEL * itemsize * voxels + fixed <= budget:
         return shape[axis]
     per_slice = SLAB_BYTES_PER_VOXEL * itemsize * voxels // shape[axis]
+    if warn and fixed + per_slice > budget:
+        log.warning("max_memory=%.4g GiB cannot hold the slab-wise registration: it needs %.4g GiB besides its slabs "
+                    "(the template and its padded copy, the deformed volume, the coarse arrays, the projector) and "
+                    "%.4g GiB a slice: it runs with slabs of one slice, about %.4g GiB", budget / 2 ** 30,
+                    fixed / 2 ** 30, per_slice / 2 ** 30, (fixed + per_slice) / 2 ** 30)
     return max(1, min(shape[axis], (budget - fixed) // per_slice))
+
+
+def projector_bytes(ray_transform, template: torch.Tensor) -> int:
+    """What the tilt series' projector holds in a run of ``template``'s dtype and device (its slice's system matrix:
+    ``_SystemMatrix.working_bytes``); 0 for an operator without one."""
+    system = getattr(ray_transform, "system", None)
+    working = getattr(system, "working_bytes", None)
+    return int(working(template.dtype, template.device)) if working is not None else 0
 
 
 # ------------------------------------------------------------------------------------------ P restricted to a slab
@@ -201,9 +219,13 @@ class SlabwiseRegistration(IndirectRegistration):
         self.group = default_group() if group is None else (None if group is False else group)
         self.rank, self.world = rank_world(self.group)
         n = self.image_domain.shape[self.axis]
+        #: the bytes this run may take beyond its inputs (``max_memory``, else half the free memory): the result's
+        #: pieces are kept within it (``indreg.registration.run.build_result``)
+        self.max_memory = available_memory(template.device) // 2 if max_memory is None else int(max_memory)
         if slab_size is None:   # automatic: at least SLABS_PER_RANK slabs a rank
             slab_size = min(choose_slab_size(self.image_domain.shape, self.axis, template.element_size(),
-                                             max_memory, template.device, math.prod(self.momentum_shape)),
+                                             max_memory, template.device, math.prod(self.momentum_shape),
+                                             projector_bytes(ray_transform, template), warn=True),
                             -(-n // (SLABS_PER_RANK * self.world)))
         if isinstance(slab_size, bool) or not isinstance(slab_size, int) or slab_size < 1:
             raise ValueError(f"slab_size must be an integer >= 1 (fine slices per slab), got {slab_size!r}")
@@ -376,6 +398,35 @@ class SlabwiseRegistration(IndirectRegistration):
         counts = [sum(b - a for a, b in (self.slab_ranges[s] for s in _share(len(self.slab_ranges), r, self.world)))
                   for r in range(self.world)]
         return gather_rows(mine, self.axis, counts, self.group)
+
+    def deformation_field(self, nu: torch.Tensor) -> torch.Tensor:
+        """``phi_{1,0}`` ``(d, *shape)`` in physical points (``CoarseVelocityDeformation.deformation``), filled slab by
+        slab from the coarse ``phi_{1,0} - Id``: the output and one slab's interpolation held, not a second field."""
+        from ..deform.functional import displacement_10
+
+        with torch.no_grad():
+            u = displacement_10(nu, self.domain, self.deformation._check_velocity(nu))   # coarse, physical units
+            fine, d = self.image_domain.shape, self.image_domain.ndim
+            out = nu.new_empty(d, *fine)
+            axes = self.image_domain.axes(nu.dtype, nu.device)
+            for start, stop in self.slab_ranges:
+                part = out.narrow(self.axis + 1, start, stop - start)
+                part.copy_(upsample_rows(u, fine, self.axis, start, stop))
+                for k, x in enumerate(axes):
+                    x = x[start:stop] if k == self.axis else x
+                    part[k].add_(x.view([-1 if j == k else 1 for j in range(d)]))
+            return out
+
+    def relative_residual(self, x: tuple) -> float:
+        """``||T f - g|| / ||g||`` from the slabs' data fit (``2 D / ||g||^2``): no whole deformed volume projected."""
+        with torch.no_grad():
+            fit = self._fit(self.velocity(x[0]))
+            gg = float(self.ray_transform.inner_data(self.data, self.data).sum())
+        return math.sqrt(2.0 * fit / gg) if gg > 0 else float("nan")
+
+    def volume_bytes(self) -> int:
+        """Bytes of one fine volume of the run's dtype."""
+        return math.prod(self.image_domain.shape) * self.template.element_size()
 
     def l2_gradient(self, m: torch.Tensor) -> tuple:
         """``IndirectRegistration.l2_gradient`` slab-wise: this rank's slabs, one ``all_reduce`` of the coarse

@@ -16,8 +16,9 @@ Notes
   increases the objective or folds the deformation is halved until it does not (the paper's fixed absolute
   step: ``gamma=1e-6, step_size=0.02, step_halving=False``).
 - Warnings (folding, objective increase, rejected steps) and progress go through ``logging`` (logger
-  ``"indreg"``); ``result.warnings`` counts the iterations that reported one (a fixed step's objective rises
-  apart: ``result.objective_rises``, said once). ``progress`` (default None): a bar on a terminal, for the run
+  ``"indreg"``); ``result.warnings`` counts them, the set-up's and the end's included, and
+  ``result.warnings_by_kind`` by kind (``indreg.registration.tally``; a fixed step's objective rises apart:
+  ``result.objective_rises``, said once). ``progress`` (default None): a bar on a terminal, for the run
   and for each of ``sigma="auto"``'s trial runs (with a line per width and its held-out residual, and the
   width chosen: ``result.sigma``); nothing in scripts, pipes and tests; ``progress=True`` off a terminal: log
   lines on stderr.
@@ -29,6 +30,7 @@ import sys
 
 from ..options import OptionError
 from ..options.docs import fill
+from .tally import has_output_handlers, tally_warnings
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup, shows_progress)
 
@@ -37,7 +39,7 @@ log = logging.getLogger("indreg")
 
 def _console_handler(progress: bool):
     """A stderr handler on the "indreg" logger for ``progress=True`` off a terminal when logging is unset."""
-    if progress and not sys.stderr.isatty() and not log.hasHandlers():
+    if progress and not sys.stderr.isatty() and not has_output_handlers(log):
         h = logging.StreamHandler(sys.stderr)
         h.setFormatter(logging.Formatter("[indreg] %(message)s"))
         log.addHandler(h)
@@ -96,6 +98,11 @@ def register(template, data, operator, **options) -> RegistrationResult:
     >>> result.status, result.iterations
     ('completed', 3)
     """
+    with tally_warnings():   # the set-up's, the iterations' and the end's warnings, by kind (result.warnings)
+        return _register(template, data, operator, options)
+
+
+def _register(template, data, operator, options: dict) -> RegistrationResult:
     handler = _console_handler(options.get("progress") is True)   # before setup: sigma="auto" runs there
     try:
         try:

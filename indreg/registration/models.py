@@ -75,7 +75,7 @@ def _slabwise(problem, o: dict):
     ``slab_size`` / ``max_memory`` (automatic: half the free memory) leave a whole-volume gradient no room; else
     ``problem`` itself. A split that cannot be made is an ``OptionError`` naming why (whole-volume where the
     memory bound alone asked for it)."""
-    from ..problems.slabs import SlabwiseRegistration, choose_slab_size, slab_refusal
+    from ..problems.slabs import SlabwiseRegistration, choose_slab_size, projector_bytes, slab_refusal
     from ..ranks import process_group
 
     T, W, template = problem.ray_transform, problem.deformation, problem.template
@@ -92,7 +92,8 @@ def _slabwise(problem, o: dict):
         return problem
     axis = T.geometry.axis
     slab_size = o["slab_size"] or choose_slab_size(problem.image_domain.shape, axis, template.element_size(),
-                                                   o["max_memory"], template.device, math.prod(problem.momentum_shape))
+                                                   o["max_memory"], template.device, math.prod(problem.momentum_shape),
+                                                   projector_bytes(T, template))
     if group is None and slab_size >= problem.image_domain.shape[axis]:
         return problem
     return SlabwiseRegistration(T, W, problem.kernel, template, problem.data, problem.gamma, problem.tv_weight,

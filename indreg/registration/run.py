@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from .. import metrics, options as opts
-from . import corrections, models
+from . import corrections, models, tally
+from .budget import result_pieces
 from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration.run.as_tensor)
 from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
 from ..kernel_width import default_sigma
@@ -337,7 +338,8 @@ class RegistrationLoop:
         """Count a warning; log the first one and then one every ``every`` iterations."""
         self.warnings += 1
         if self.warnings == 1 or it % self.every == 0:
-            log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings)
+            log.warning("iteration %d: %s (%d warnings so far)", it, info["warning"], self.warnings,
+                        extra=tally.COUNTED)
 
     def _rose(self, it: int, info: dict) -> None:
         """A fixed step (no step halving, as the paper's presets) takes every step, so its objective may rise:
@@ -348,7 +350,7 @@ class RegistrationLoop:
             log.warning("iteration %d: %s: the fixed step (step_halving off, as the paper's presets) takes every step, "
                         "so the objective may rise; further rises are counted (objective_rises), not printed "
                         "(step_halving=true, indreg.register's default, rejects such steps)", it,
-                        info["objective_rose"])
+                        info["objective_rose"], extra=tally.COUNTED)
 
     def _fixed_step(self) -> bool:
         """Algorithm 1's step control with step halving off: every step is taken."""
@@ -436,7 +438,7 @@ class RegistrationLoop:
         rejected, halvings = count_rejected(self.history), count_halvings(self.history)
         if self.warnings:
             log.warning("%d of %d iterations reported a warning (%d rejected steps, %d step halvings)",
-                        self.warnings, len(self.history), rejected, halvings)
+                        self.warnings, len(self.history), rejected, halvings, extra=tally.COUNTED)
         return status
 
 
@@ -452,8 +454,10 @@ class RegistrationResult:
         ``(nx, ny)`` (3D: ``(nx, ny, nz)``): the reconstruction (LDDMM: W(nu, I); metamorphosis: f(1)).
     momentum, velocity : torch.Tensor
         ``(N+1, d, *shape)``, ``nu = K m``, component 0 = x.
-    deformation : torch.Tensor
-        ``(d, *shape)``: phi_{1,0} (points, physical units).
+    deformation : torch.Tensor or None
+        ``(d, *shape)``: phi_{1,0} (points, physical units). A slab-wise run keeps ``deformation`` and
+        ``trajectory`` only where they fit in ``max_memory`` (else None, and a log line says so:
+        ``indreg.registration.budget``).
     trajectory : torch.Tensor or None
         ``(N+1, *shape)``: the image path at ``t_i``.
     history : list of dict
@@ -475,7 +479,10 @@ class RegistrationResult:
         than a zero image), ``failed`` (a non-finite objective or gradient: see ``history[-1]["warning"]``) or
         ``stopped`` (the callback returned True).
     warnings : int
-        The iterations that reported a warning.
+        The warnings of the run: the iterations that reported one, the set-up's and the end's
+        (``indreg.registration.tally``).
+    warnings_by_kind : dict
+        The same by kind.
     objective_rises : int
         The iterations of a fixed step (``step_halving=False``) whose objective rose, which that step allows (not
         warnings: said once).
@@ -516,7 +523,7 @@ class RegistrationResult:
     deformed: torch.Tensor
     momentum: torch.Tensor
     velocity: torch.Tensor
-    deformation: torch.Tensor
+    deformation: Optional[torch.Tensor]
     trajectory: Optional[torch.Tensor]
     history: list
     iterations: int
@@ -540,6 +547,7 @@ class RegistrationResult:
     objective_rises: int = 0
     sigma: Optional[float] = None
     sigma_scores: dict = field(default_factory=dict)
+    warnings_by_kind: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -647,13 +655,15 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     if finish is not None and status != "failed":
         state.iterate = finish(state.iterate, validation)
     x = state.iterate
+    keep_deformation, trajectory = result_pieces(problem, trajectory)   # within max_memory (slab-wise)
     image = problem.reconstruction(x)
     with torch.no_grad():
         velocity = problem.velocity(x[0])
     terms = problem.evaluate_iterate(x)
     residual = problem.relative_residual(x)
     result = RegistrationResult(
-        deformed=image, momentum=x[0], velocity=velocity, deformation=problem.deformation_field(velocity),
+        deformed=image, momentum=x[0], velocity=velocity,
+        deformation=problem.deformation_field(velocity) if keep_deformation else None,
         trajectory=problem.image_trajectory(x) if trajectory else None, history=history, iterations=state.iteration,
         objective=terms["objective"], terms=terms, min_jacobian=problem.min_jacobian(velocity),
         residual=residual, status=final_status(status, residual), warnings=count_warnings(history),
@@ -671,4 +681,5 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
                                result.holdout.get("holdout_residual"), orientation, wider_hint(units, box))
     if result.poor_fit:
         log.warning("%s", result.poor_fit)
+    result.warnings, result.warnings_by_kind = tally.warning_kinds(history, tally.current())
     return result

@@ -199,10 +199,18 @@ def test_register_holds_the_angle_from_the_stack(caplog, options):
 
 @pytest.mark.slow
 def test_register_warns_when_the_stack_does_not_determine_the_angle(caplog):
-    """A ball on the axis: the stack cannot tell the angle, the run says so in the words of the issue, estimates
-    it in the fit and reports it as not determined."""
+    """A ball on the axis: the stack cannot tell the angle, the run says so in the words of the issue, holds the
+    stack's estimate with its standard error (the fit would wander along the valley) and reports it as not
+    determined."""
     r = register_turned((np.zeros((1, 3)), np.array([4.0]), np.array([1.0])), 2.0, caplog)
-    assert r.alignment["axis_angle_source"] == "fit" and r.alignment["axis_angle_determined"] is False
+    a = r.alignment
+    assert a["axis_angle_determined"] is False
+    if a["axis_angle_stack_se_deg"] is None:        # a flat criterion: the given angle, s.e. inf
+        assert a["axis_angle_source"] == "given" and a["axis_angle_deg"] == 0.0 and a["axis_angle_se_deg"] is None
+    else:
+        assert a["axis_angle_source"] == "stack (not determined)"
+        assert a["axis_angle_deg"] == pytest.approx(a["axis_angle_stack_deg"], abs=1e-12)
+        assert a["axis_angle_se_deg"] == a["axis_angle_stack_se_deg"] > 0.2
     assert any("tilt-axis angle not determined by the data (s.e." in m for m in caplog.messages)
 
 
@@ -226,7 +234,8 @@ def test_register_warns_when_too_few_tilts_tell_the_angle(caplog):
     g = torch.from_numpy(turned_by_scipy(T(f).numpy(), -2.0, random_shifts(2)[:T.range_shape[0]], 0.01, 4))
     with caplog.at_level("INFO", logger="indreg"):
         r = indreg.register(f, g, T, align="shifts+axis", num_steps=2, max_iter=1, sigma=3.0)
-    assert r.alignment["axis_angle_source"] == "fit" and r.alignment["axis_angle_determined"] is False
+    assert r.alignment["axis_angle_source"] == "given" and r.alignment["axis_angle_determined"] is False
+    assert r.alignment["axis_angle_deg"] == 0.0 and r.alignment["axis_angle_se_deg"] is None   # held, s.e. inf
     assert r.alignment["axis_angle_stack_deg"] is None
     assert any(f"tilt-axis angle not determined by the data (the tilt-axis angle needs at least {MIN_TILTS} tilts"
                in m for m in caplog.messages)

@@ -29,3 +29,23 @@ def test_outputs_json_lists_every_file_with_its_writer(tmp_path):
     np.testing.assert_allclose(mrc["voxel_size_A"], h, rtol=1e-6)   # read back from the header
     np.testing.assert_allclose(mrc["origin_A"], final["origin"], rtol=1e-6)   # the centre of voxel 0, both
     assert entries["checkpoint.pt"]["writer"] == "torch" and entries["metrics.json"]["writer"] == "indreg"
+
+
+def test_a_fifo_and_a_corrupt_npy_in_the_run_dir_neither_hang_nor_end_the_run(tmp_path):
+    """A FIFO named ``*.npy`` (a reader waits for a writer forever) and a foreign ``notes.npy`` of one byte in the
+    run directory: the run completes, ``outputs.json`` lists the run's own files only."""
+    import os
+
+    import pytest
+    from experiment_helpers import FAST
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("needs FIFOs (POSIX)")
+    out = tmp_path / "run"
+    out.mkdir()
+    os.mkfifo(out / "pipe.npy")
+    (out / "notes.npy").write_bytes(b"x")
+    result = run_app(FAST + ["solver.max_iter=2"], out)
+    assert result["status"] == "completed"
+    paths = {e["path"] for e in json.loads((out / "outputs.json").read_text())["outputs"]}
+    assert "final.npy" in paths and "metrics.json" in paths and not paths & {"pipe.npy", "notes.npy"}

@@ -35,7 +35,8 @@ def test_png_template_with_data_in_other_units(tmp_path, caplog):
     0..255 target scored in its units: the SSIM of the 0..1 run against the 0..1 target)."""
     files = unit_files(tmp_path)
     run_app(OWN + files + ["solver.max_iter=0"], tmp_path / "plain")
-    warned = [r.getMessage() for r in caplog.records if "different units" in r.getMessage()]
+    warned = [r.getMessage() for r in caplog.records if "different units" in r.getMessage()
+              and r.levelname == "WARNING"]   # the last line's count names the kind too
     assert len(warned) == 1 and "data.template_scale='auto'" in warned[0] and "0.00388" in warned[0]
     np.save(tmp_path / "template01.npy", read_image(DATA_DIR / "own_data_template.png"))   # 8-bit: / 255
     np.save(tmp_path / "target01.npy", np.load(DATA_DIR / "own_data_target.npy") / 255)   # the x1 run's target too

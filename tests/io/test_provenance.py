@@ -17,8 +17,10 @@ def test_files_are_read_back_and_credited_to_their_writer(tmp_path):
     np.save(tmp_path / "final.npy", gen.random((5, 4, 3)))
     write_mrc(tmp_path / "final.mrc", gen.random((5, 4, 3)), (2.0, 2.5, 3.0), (-4.0, -3.75, -3.0))
     (tmp_path / "notes.xyz").write_text("?")
-    entries = {e["path"]: e for e in record(tmp_path, {"final.npy": {"axis_order": "(nx, ny, nz)"}})}
-    assert set(entries) == {"final.npy", "final.mrc", "notes.xyz"}
+    (tmp_path / "foreign.npy").write_text("?")
+    entries = {e["path"]: e for e in record(tmp_path, ["final.npy", "final.mrc", "notes.xyz", "missing.npy"],
+                                            {"final.npy": {"axis_order": "(nx, ny, nz)"}})}
+    assert set(entries) == {"final.npy", "final.mrc", "notes.xyz"}     # the names given that exist, no other
     npy = entries["final.npy"]
     assert (npy["writer"], npy["version"], npy["dtype"], npy["shape"]) == ("numpy", np.__version__, "float64",
                                                                            [5, 4, 3])
@@ -37,7 +39,7 @@ def test_versions_and_the_written_record(tmp_path):
     sub = tmp_path / "sub"
     sub.mkdir()
     np.save(sub / "b.npy", np.zeros((2, 2)))
-    out = write_record(tmp_path / "run.json", tmp_path, run="test")
+    out = write_record(tmp_path / "run.json", tmp_path, ["a.npy", "sub/b.npy", "run.json"], run="test")
     on_disk = json.loads((tmp_path / "run.json").read_text())
     assert on_disk == out and out["run"] == "test" and out["writer"] == "indreg"
     assert [e["path"] for e in out["outputs"]] == ["a.npy", "sub/b.npy", "run.json"]

@@ -154,6 +154,10 @@ def test_two_steps_in_process_write_every_output(tmp_path):
     _, steps = scalars(tmp_path, "train/loss")
     assert steps == [1, 2] and parameters(tmp_path)["step"] == 2
     assert (tmp_path / "figure.png").stat().st_size > 10_000
+    changed = OmegaConf.merge(cfg, OmegaConf.from_dotlist(["data.snr_db=-5", "train.steps=3"]))   # as the app
+    with pytest.raises(checkpoint.CheckpointError, match="data.snr_db: checkpoint 10.0, config -5"):
+        train.train(changed, tmp_path)       # refused before anything is built or trained
+    assert parameters(tmp_path)["step"] == 2
 
 
 def test_schedule_and_learning_rate_of_the_two_phases():

@@ -65,3 +65,50 @@ def test_damaged_or_crafted_checkpoint_is_refused(tmp_path):
     with pytest.raises(CheckpointError, match="does not fit this run") as err:
         load_checkpoint(path, model, optimizer)
     assert "\n" not in str(err.value)
+
+
+def _config(overrides=()):
+    from indreg.learn.conf import CONFIG_DIR
+    from indreg.experiments import cli
+    from indreg.learn.train import CONFIG_NAME, training_config
+
+    return training_config(cli.job_config(cli.compose(CONFIG_DIR, CONFIG_NAME, list(overrides))))
+
+
+def test_resume_with_another_training_config_is_refused(tmp_path):
+    """As the registration app: a checkpoint records the config that defines its training; a resume with other
+    values (``data.snr_db=-5 domain.n=24``, ``model.lr``) is refused in one line naming them; logging, the length of
+    the training and the final comparison may change."""
+    from indreg.learn.train import read_checkpoint
+
+    path = tmp_path / "checkpoint.pt"
+    model, optimizer = _trained()
+    save_checkpoint(path, model, optimizer, 2, _config())
+    with pytest.raises(CheckpointError) as err:
+        read_checkpoint(path, _config(["data.snr_db=-5", "domain.n=24"]))
+    line = str(err.value)
+    assert "\n" not in line and "data.snr_db: checkpoint 10.0, config -5" in line and "domain.n: checkpoint 64" in line
+    read_checkpoint(path, _config(["train.log_every=3", "train.steps=2000", "eval.algorithm1.max_iter=5",
+                                   "device=cpu"]))
+    save_checkpoint(path, model, optimizer, 2, _config(["model=unrolled"]))
+    read_checkpoint(path, _config(["model=unrolled", "train.steps=2000", "model.steps=9"]))
+    with pytest.raises(CheckpointError, match="model.lr: checkpoint 0.001, config 0.002"):
+        read_checkpoint(path, _config(["model=unrolled", "model.lr=2e-3"]))
+    save_checkpoint(path, model, optimizer, 2)     # an older checkpoint, without its config: not resumed blindly
+    with pytest.raises(CheckpointError, match="does not record its training's config"):
+        read_checkpoint(path, _config())
+
+
+def test_scratch_left_by_kill_9_is_removed_on_resume(tmp_path):
+    """kill -9 while a checkpoint is written leaves the writer's private directory (``.checkpoint.pt.<8>.tmp``,
+    empty or with a partial file); the next start (resume or not) removes it, and nothing else."""
+    from indreg.experiments.checkpoint import check_location
+
+    empty, partial = tmp_path / ".checkpoint.pt.a1b2c3d4.tmp", tmp_path / ".metrics.json.zz_9yy8x.tmp"
+    empty.mkdir()
+    partial.mkdir()
+    (partial / "metrics.json").write_text("{")
+    (tmp_path / ".notes.tmp").mkdir()                # not a writer's name: kept
+    (tmp_path / "checkpoint.pt").write_bytes(b"x")
+    check_location(tmp_path / "checkpoint.pt", resume=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".notes.tmp", "checkpoint.pt"]

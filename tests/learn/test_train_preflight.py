@@ -37,3 +37,25 @@ def test_the_defaults_pass(tmp_path):
     for argv in (["model=unrolled"], ["model=oneshot"]):
         cli.preflight(argv + [f"hydra.run.dir={tmp_path / 'run'}"], train.PROG, train.CONFIG_DIR,
                       train.CONFIG_NAME, train.check_config, train.base_config(argv))
+
+
+@pytest.mark.parametrize("override, message", [
+    ("model.width=0", "model.width must be an integer >= 1, got 0"),
+    ("model.levels=0", "model.levels must be an integer >= 1, got 0"),
+    ("domain.n=4", "domain.n must be an integer >= 7, got 4"),
+    ("domain.n=10", "domain.n must be divisible by 4 (the U-Net's 3 levels halve it 2 times), got 10: e.g. "
+                    "domain.n=12"),
+    ("data.snr_db=-400", "data.snr_db must be in [-300, 300] dB, got -400"),
+    ("eval.ood.snr_db=[1e9]", "eval.ood.snr_db must hold values in [-300, 300] dB, got 1000000000.0"),
+    ("geometry.num_angles=0", "geometry.num_angles must be an integer >= 1, got 0"),
+    ("geometry.det_count=0", "geometry.det_count must be an integer >= 1, got 0"),
+    ("shooting.num_steps=0", "shooting.num_steps must be an integer >= 1, got 0"),
+    ("shooting.corrector_steps=-1", "shooting.corrector_steps must be an integer >= 0, got -1"),
+    ("kernel.sigma=0", "kernel.sigma must be None, 'auto' or a finite number > 0, got 0"),
+    ("train.gamma=-1", "train.gamma must be a finite number >= 0, got -1"),
+    ("eval.algorithm1.step_size=0", "eval.algorithm1.step_size must be a finite number > 0, got 0"),
+])
+def test_problem_values_that_end_in_tracebacks_are_refused(tmp_path, capsys, monkeypatch, override, message):
+    monkeypatch.setattr(train, "build", lambda *a: pytest.fail("the problem was built"))
+    line = _error(capsys, [override, f"hydra.run.dir={tmp_path / 'run'}"])
+    assert line == f"indreg-train-momentum: error: {message}" and not (tmp_path / "run").exists()

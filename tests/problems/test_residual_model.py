@@ -107,11 +107,13 @@ def test_auto_weight_is_chosen_by_the_held_out_angles():
     from indreg.registration.models import RESIDUAL_TV_FALLBACK, RESIDUAL_TV_GRID
 
     run = lacking(holdout=4, residual_finish_iter=60)
-    tried = run.problem.finish_info["holdout_by_weight"]
-    assert len(tried) == len(RESIDUAL_TV_GRID) and len(set(tried.values())) == len(tried)
+    info = run.problem.finish_info
+    tried = info["holdout_by_weight"]
+    assert len(tried) == len(RESIDUAL_TV_GRID) + len(info["widened"]) and len(set(tried.values())) == len(tried)
     best = min(tried, key=tried.get)
-    assert run.problem.finish_info["residual_tv"] == best
-    assert run.holdout["holdout_residual"] == pytest.approx(tried[best], rel=1e-12)
+    assert info["residual_tv"] == best and info["chosen"] == ("loop" if info["holdout_loop"] <= tried[best]
+                                                              else "finish")
+    assert run.holdout["holdout_residual"] == pytest.approx(min(tried[best], info["holdout_loop"]), rel=1e-12)
     plain = lacking(residual_finish_iter=1)
     unit = plain.problem.mu_unit
     assert plain.problem.residual_tv == pytest.approx(RESIDUAL_TV_FALLBACK * unit)
@@ -139,3 +141,52 @@ def test_fast_solver_is_refused_in_one_line():
     _, T, template, data = small(16)
     with pytest.raises(ValueError, match="solver"):
         indreg.register(template, data, T, model="residual", solver="fast")
+
+
+class _Scored:
+    """A stand-in of ``indreg.evaluation.validation.Validation``: the held-out residual of ``f`` is ``score(f)``."""
+
+    def __init__(self, score):
+        self.residual = score
+
+
+def _finished(score, candidates=(1e-3, 1e-2)):
+    p = problem()
+    p.finish_iter, p.mu_candidates = 20, tuple(candidates)
+    m, r = random_iterate(p)
+    return p, (m, r), p.finish((m, r), _Scored(score))
+
+
+def test_the_finish_keeps_the_loops_result_where_it_is_better_held_out():
+    """Every finish weight worse than the loop's own result on the held-out angles (as on a measured slice, 0.0843
+    -> 0.0951 through the finish): the loop's result is kept, and the record says so."""
+    loop = {}
+
+    def score(f):   # the loop's reconstruction scores 0, anything else more
+        return float((f - loop["f"]).norm())
+
+    p = problem()
+    m, r = random_iterate(p)
+    loop["f"] = p.reconstruction((m, r))
+    p.finish_iter, p.mu_candidates = 20, (1e-3, 1e-2)
+    out = p.finish((m, r), _Scored(score))
+    assert out[0] is m and out[1] is r
+    assert p.finish_info["chosen"] == "loop" and p.finish_info["holdout_loop"] == 0.0
+    assert min(p.finish_info["holdout_by_weight"].values()) > 0
+
+
+def test_the_weight_grid_widens_while_the_best_sits_at_its_edge():
+    """A held-out residual that falls with the weight (the distance to the anchor W; the loop's result scored worse
+    than any): the best is the grid's top, so the grid grows by decades, at most MAX_WIDEN of them; the finish
+    wins."""
+    from indreg.problems.residual import MAX_WIDEN
+
+    p = problem()
+    m, r = random_iterate(p)
+    W, loop = p.deformed(m), p.reconstruction((m, r))
+    p.finish_iter, p.mu_candidates = 20, (1e-4, 1e-3)
+    out = p.finish((m, r), _Scored(lambda f: float((f - W).norm()) + 100.0 * bool(torch.equal(f, loop))))
+    info = p.finish_info
+    assert info["widened"] == pytest.approx([1e-2, 1e-1, 1.0][:MAX_WIDEN])
+    assert info["residual_tv"] == pytest.approx(max(info["widened"])) and info["chosen"] == "finish"
+    assert torch.allclose(out[1] + W, p.reconstruction(out)) and not torch.equal(out[1], r)
