@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import indreg
+import indreg.registration.run  # noqa: F401 (the module, for indreg.registration.run.setup)
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import indreg
+import indreg.registration.run  # noqa: F401 (the module, for indreg.registration.run.setup)
 from indreg import phantoms
 from indreg.callbacks import Callback, Callbacks
 from indreg.io import DataFileError

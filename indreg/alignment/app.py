@@ -337,6 +337,12 @@ def run(args) -> dict:
     if args.intensities:
         rotated, how = line_integrals(rotated, radians)
         log.info("--intensities: aligned as -ln(I / I0), I0 %s", how)
+    # the contrast is checked before the specimen's kind (a darker object's border reads as specimen); --invert
+    # turns the stack about the border's level in place, and back before the aligned stack is made
+    pivot = _background(rotated, args.background)
+    check_stack(rotated, pivot, args.stack, args.invert)
+    if args.invert:
+        np.subtract(np.float32(2 * pivot), rotated, out=rotated)
     kind, why = specimen_kind(rotated, radians, args.specimen)
     log.info("specimen: %s (%s)", kind, why)
     K, ny, nx = rotated.shape
@@ -346,13 +352,8 @@ def run(args) -> dict:
     if kind == "slab" and args.bin is None:
         b = max(b, SLAB_FINEST)                 # the leave-one-out volumes of the wide box at bin 1 cost too much
     steps = levels(nx, ny, b, args.coarse_bin)
-    level = (slab_background(rotated, radians, args.background, _background) if kind == "slab"
-             else _background(rotated, args.background))
-    check_stack(rotated, level, args.stack, args.invert)
+    level = slab_background(rotated, radians, args.background, _background) if kind == "slab" else pivot
     out.mkdir(parents=True, exist_ok=True)
-    contrast = -1.0 if args.invert else 1.0
-    if args.invert:   # in place (rotated may share raw's memory): back before the aligned stack is made
-        np.subtract(np.float32(2 * level), rotated, out=rotated)
     if kind == "slab":
         est = slab_alignment(rotated - level, radians, rest, steps, args.rounds, args.fine_rounds, args.thickness,
                              (args.max_shift * nx, args.max_shift * ny), args.axis_from_stack)
@@ -370,17 +371,18 @@ def run(args) -> dict:
     alignment = _raw_alignment(M, d, quarter, raw.shape, sign * radians)
     record = write_alignment(out, alignment, pixel_size=pixel, extra={"stack": str(args.stack),
                                                                       "at_bound": at_bound})
-    if args.invert:
-        np.subtract(np.float32(2 * level), rotated, out=rotated)
+    if args.invert:   # the aligned stack in the stack's own contrast; the reconstruction from the inverted one
+        np.subtract(np.float32(2 * pivot), rotated, out=rotated)
+    contrast, level_given = (-1.0, 2 * pivot - level) if args.invert else (1.0, level)
     rot_full = _aligned_stack(rotated, M, d)
     io.write_tilt_series(out / "aligned.mrc", rot_full, sign * radians, pixel_size=pixel)
     rb = args.recon_bin or (steps[0] if kind == "slab" else b)
     before = None if kind == "slab" else history[0]["rounds"][0][0]
     if kind == "slab":
-        volume, after = wide_reconstruction(contrast * (_bin(rot_full, rb)[0] - level), radians, res.thickness / rb,
-                                            res.centre / rb, args.iters)
+        volume, after = wide_reconstruction(contrast * (_bin(rot_full, rb)[0] - level_given), radians,
+                                            res.thickness / rb, res.centre / rb, args.iters)
     elif args.recon_bin:
-        stack_r = contrast * (_bin(rot_full, rb)[0] - level)
+        stack_r = contrast * (_bin(rot_full, rb)[0] - level_given)
         nz = max(thickness // rb, 4)
         rows = slab_rows(stack_r.shape[2], stack_r.shape[1], nz, K, budget - 3 * raw.nbytes)
         log.info("reconstruction binned by %d: %d x %d x %d in slabs of %d rows", rb, stack_r.shape[2],

@@ -2,12 +2,13 @@
 alignment's angle the data do not determine, ...), of its iterations (``info["warning"]`` in the history) and of its
 end (a poor fit).
 
-Convention:
-    - While :func:`tally_warnings` is active, every record of level WARNING or above of the ``indreg`` loggers is
-      counted by its kind (:func:`kind_of`), except the loop's own lines about an iteration's warning (marked
-      ``extra={"indreg_counted": True}``): those are counted from the history, one per iteration and clause.
-    - ``warnings`` (``result.warnings``, ``metrics.json``) = iterations that reported a warning + the other
-      warnings; ``warnings_by_kind`` = each kind's count (an iteration's clauses counted each).
+Notes
+-----
+- While :func:`tally_warnings` is active, every record of level WARNING or above of the ``indreg`` loggers is
+  counted by its kind (:func:`kind_of`), except the loop's own lines about an iteration's warning (marked
+  ``extra={"indreg_counted": True}``): those are counted from the history, one per iteration and clause.
+- ``warnings`` (``result.warnings``, ``metrics.json``) = iterations that reported a warning + the other
+  warnings; ``warnings_by_kind`` = each kind's count (an iteration's clauses counted each).
 """
 from __future__ import annotations
 

@@ -363,7 +363,7 @@ def apply_units(template: torch.Tensor, data: torch.Tensor, units: Units, templa
         ``"auto"`` finds no positive ``c`` (a template whose projection does not resemble the data), or the
         factor makes the template non-finite.
     """
-    from ._checks import all_finite
+    from .._checks import all_finite
 
     if template is not None:
         units.template_scale = _template_factor(template_scale, units, label("template_scale"))
