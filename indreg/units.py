@@ -34,7 +34,7 @@ if TYPE_CHECKING:   # imported where used: the app's preflight loads this module
 
 __all__ = ["GAMMA_REL", "STEP_REL", "UNIT_RANGE", "OFFSET_FRACTION", "UNIT_FACTORS", "UNIT_SNAP", "Units",
            "apply_units", "border_level", "check_offset", "compare_units", "data_term_scale", "measure", "noise_residual",
-           "prepare", "unit_factor"]
+           "noise_sigma", "prepare", "unit_factor"]
 
 log = logging.getLogger("indreg")
 
@@ -301,9 +301,15 @@ def noise_residual(data: torch.Tensor) -> float:
     shows the noise), the smaller of the two. An upper estimate: the signal's own curvature adds to it (0.24 for
     0.24 on the paper's suite 1, 0.027 for 0.024 at 15 dB, 0.002 for noise-free data)."""
     g = data.detach().double()
+    sigma, norm = noise_sigma(g), float(g.norm())
+    return sigma * math.sqrt(g.numel()) / norm if norm > 0 and math.isfinite(sigma) else math.nan
+
+
+def noise_sigma(data: torch.Tensor) -> float:
+    """The standard deviation of white noise in ``data`` (per datum), as :func:`noise_residual` estimates it:
+    ``median|d^2 g| / (0.6745 sqrt 6)`` along the smoother of the last two axes; nan when no axis has 3 values."""
+    g = data.detach().double()
     axes = [a for a in (-1, -2) if g.dim() >= -a and g.shape[a] >= 3]
     if not axes:
         return math.nan
-    sigma = min(float(g.diff(n=2, dim=a).abs().median()) for a in axes) / (0.6745 * math.sqrt(6.0))
-    norm = float(g.norm())
-    return sigma * math.sqrt(g.numel()) / norm if norm > 0 else math.nan
+    return min(float(g.diff(n=2, dim=a).abs().median()) for a in axes) / (0.6745 * math.sqrt(6.0))

@@ -153,11 +153,11 @@ class ResidualRegistration(IndirectRegistration):
             return x
         with torch.no_grad():
             W = self.deformed(x[0])
-            tried, best, norms = {}, None, None
-            for mu in chosen:   # the steps' norms from the first solve (the same operator)
+            tried, best, norms = {}, None, getattr(self, "finish_norms", None)
+            for mu in chosen:   # the steps' norms from the first solve (the same operator; kept for re-solves)
                 f, history = tv_reconstruction(self.ray_transform, self.data, 2 * mu, self.finish_iter, x0=W + x[1],
                                                nonneg=True, anchor=W, norms=norms)   # ||.||^2 + mu' TV: mu' = 2 mu
-                norms = history["norms"]
+                norms = self.finish_norms = history["norms"]
                 score = validation.residual(f) if validation is not None else float("nan")
                 tried[mu] = score
                 if best is None or score < best[1]:
