@@ -151,8 +151,11 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
 
     problem, it = exp.problem, state.iteration
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
+    from ..registration.api import evaluation_options
+
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver)
+                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver,
+                     evaluation=evaluation_options(exp.options))
     target = exp.target_64
     result = {}
     if target is not None:
@@ -178,6 +181,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         **exp.units.as_dict(), **({"tv_mu_absolute": tv_mu(cfg, exp)} if "tv" in rec else {}),
         "device": str(exp.template.device), "hparams": hyperparameters(cfg, exp), "config": to_plain(cfg)})
     result.update(r.holdout)
+    result.update(r.evaluation)
     for name, summary in r.corrections.items():   # the in-the-fit corrections' estimates, and their plots
         result[name] = summary
         plot = getattr(CORRECTIONS.get(name), "plot", None)
@@ -190,6 +194,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     arrays = {"final": r.deformed, "velocity": r.velocity, "momentum": r.momentum, "deformation": r.deformation,
               "template": exp.template_64, "data": exp.noisy_data_64, **rec, **r.outputs}
     arrays.update({} if volume else {"trajectory": r.trajectory})
+    arrays.update({k: v for k, v in (("data_part", r.data_part), ("prior_part", r.prior_part),
+                                     ("uncertainty", r.uncertainty)) if v is not None})
     if target is not None:
         arrays["target"] = target
     if exp.clean_data_64 is not None:
@@ -245,7 +251,7 @@ def write_outputs_record(out: Path, exp, arrays: dict) -> dict:
     layouts = {"trajectory": f"(N + 1 time steps, *{grid_axes})", "velocity": f"(N + 1, d components, *{grid_axes})",
                "momentum": f"(N + 1, d components, *{grid_axes})",
                "deformation": f"(d components, *{grid_axes}): phi_(1,0), points in the domain's length unit"}
-    images = {"final", "template", "target", "fbp", "tv", "sirt"}
+    images = {"final", "template", "target", "fbp", "tv", "sirt", "data_part", "prior_part", "uncertainty"}
     layouts.update({name: image["axis_order"] for name in images})
     conventions = {f"{name}.npy": data if name.startswith("data") else {**image, "axis_order": layouts.get(
         name, f"(..., *{grid_axes}): a model's output, its leading axes its own")} for name in (*arrays, "trajectory")}

@@ -74,6 +74,10 @@ def register(template, data, operator, **options) -> RegistrationResult:  # noqa
         >>> result.status, result.iterations
         ('completed', 3)
     """
+    if options.get("extrapolation"):   # the edge validation, then the chosen run (indreg.evaluation.extrapolation)
+        from ..evaluation.extrapolation import register_extrapolating
+
+        return register_extrapolating(template, data, operator, **options)
     try:
         s = setup(template, data, operator, **options)
     except OptionError as e:
@@ -90,7 +94,12 @@ def register(template, data, operator, **options) -> RegistrationResult:  # noqa
         if handler is not None:
             log.removeHandler(handler)
     return build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                        orientation=s.orientation, solver=s.solver)
+                        orientation=s.orientation, solver=s.solver, evaluation=evaluation_options(o))
+
+
+def evaluation_options(o: dict) -> dict:
+    """The options of the result's evaluation (``indreg.evaluation.result.evaluate``) from the resolved ones."""
+    return {k: o[k] for k in ("split", "uncertainty", "uncertainty_samples")}
 
 
 def option_docs(indent: int = 12) -> str:

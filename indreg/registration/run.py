@@ -394,6 +394,11 @@ class RegistrationResult:
     layout mistake, an offset, a wrong scale, or too few iterations), ``""`` for none; the status stays.
     ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
     docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
+    ``data_part`` / ``prior_part`` (option ``split``): ``deformed`` split into the part the fitted data determine
+    and the part the prior fills (``indreg.evaluation.split``); ``uncertainty`` (option ``uncertainty``): its
+    per-voxel standard deviation (``indreg.evaluation.uncertainty``); None when off. ``evaluation``: their numbers
+    (``split_*``, ``uncertainty_*``; docs/evaluation.md). ``extrapolation`` (option ``extrapolation``): the edge
+    validation's choice (``indreg.evaluation.extrapolation``), empty without.
     """
     deformed: torch.Tensor
     momentum: torch.Tensor
@@ -418,6 +423,11 @@ class RegistrationResult:
     alignment: dict = field(default_factory=dict)
     poor_fit: str = ""
     corrections: dict = field(default_factory=dict)
+    data_part: Optional[torch.Tensor] = field(default=None, repr=False)
+    prior_part: Optional[torch.Tensor] = field(default=None, repr=False)
+    uncertainty: Optional[torch.Tensor] = field(default=None, repr=False)
+    evaluation: dict = field(default_factory=dict)
+    extrapolation: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -482,7 +492,7 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
                  units: Optional[Units] = None, validation=None, trajectory: bool = True,
-                 orientation: str = "", solver=None) -> RegistrationResult:
+                 orientation: str = "", solver=None, evaluation: Optional[dict] = None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
@@ -490,7 +500,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     (``indreg.registration.corrections``); ``status`` becomes ``diverged`` if the residual is ``>= 1`` (:func:`final_status`);
     ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning.
     A problem with a ``finish(x, validation)`` method (``indreg.problems.residual``) replaces the final iterate by
-    its result first."""
+    its result first. ``evaluation``: the options ``split``, ``uncertainty``, ``uncertainty_samples``
+    (``indreg.evaluation.result.evaluate``; None: none of it)."""
     units = units or Units()
     fitted = corrections.summaries(solver, problem)
     finish = getattr(problem, "finish", None)   # a model's last step after the loop (model="residual")
@@ -514,6 +525,12 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)
     if validation is not None:
         result.holdout = validation.summary(image)
+    if evaluation is not None and status != "failed":
+        from ..evaluation.result import evaluate
+
+        e = evaluate(problem, x, image, solver, evaluation, validation)
+        result.data_part, result.prior_part, result.uncertainty = e["data_part"], e["prior_part"], e["uncertainty"]
+        result.evaluation = e["summary"]
     result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,
                                result.holdout.get("holdout_residual"), orientation)
     if result.poor_fit:
