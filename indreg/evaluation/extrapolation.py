@@ -9,7 +9,7 @@ inner fit's missing range just as the missing range lies beyond the whole fit:
 
 - the template alone (in the data's units, ``template_scale``);
 - each model (``lddmm``, ``residual``), and between each and the template, where the data cannot see:
-  ``f_alpha = f - alpha (N f - N I)``, ``N`` the prior-filled part of the inner fit (:func:`.split.data_split`):
+  ``f_alpha = f - alpha (N f - N I)``, ``N`` the prior-filled part of the inner fit (:func:`.parts.data_split`):
   the data-determined part of the registration and, for ``alpha = 1``, the template's prior-filled part; ``alpha``
   is how far the deformation may move the template there (its regularisation in the missing range), chosen among
   ``alphas``; every ``f_alpha`` fits the fitted angles as ``f`` does (``T N = 0``).
@@ -41,7 +41,7 @@ MODELS = ("lddmm", "residual")
 def row_angles(operator) -> np.ndarray:
     """The degrees of the operator's rows (parallel beam, tilt series, fan beam; alignment and restriction seen
     through); a one-line TypeError for an operator without angles."""
-    from .split import parallel_angles
+    from .parts import parallel_angles
 
     try:
         return np.degrees(parallel_angles(operator)[0].numpy())
@@ -95,7 +95,7 @@ class Extrapolation:
 
 
 def _kept_rows(options: dict, count: int) -> list:
-    from ..validation import holdout_rows
+    from .validation import holdout_rows
 
     return list(range(count)) if options.get("holdout") is None else holdout_rows(options["holdout"], count)[0]
 
@@ -111,7 +111,7 @@ def _for_model(options: dict, model: str) -> dict:
 def _trial(template, data, operator, model: str, options: dict, edge: list, alphas) -> tuple:
     """One model fitted to the inner rows: ``(edge residual of the template, {alpha: edge residual})``."""
     from ..registration.run import RegistrationLoop, build_result, initial_state, setup
-    from .split import data_split
+    from .parts import data_split
 
     o = dict(_for_model(options, model), model=model, holdout=edge, patience=None, progress=False, callback=None,
              split=False, uncertainty=False)
@@ -188,7 +188,7 @@ def register_extrapolating(template, data, operator, models=MODELS, alphas=ALPHA
     the registration before it, ``result.extrapolation`` the report (:meth:`Extrapolation.summary`); the other
     fields (``holdout``, ``residual``, ``uncertainty``) are the registration's."""
     from ..registration.api import register
-    from .split import data_split
+    from .parts import data_split
 
     choice = choose_extrapolation(template, data, operator, models, alphas, edge_fraction, angles, **options)
     options = {k: v for k, v in options.items() if k != "extrapolation"}
@@ -211,7 +211,7 @@ def register_extrapolating(template, data, operator, models=MODELS, alphas=ALPHA
 def blend(result, alpha: float) -> torch.Tensor:
     """``f - alpha (N f - N I)`` of a run's result (module docstring): ``N`` the prior-filled part of its fitted
     operator, ``I`` its template in the data's units."""
-    from .split import data_split
+    from .parts import data_split
 
     f = result.deformed.detach()
     if alpha == 0:

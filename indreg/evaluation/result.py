@@ -63,13 +63,13 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     options : dict, optional
         ``split``, ``uncertainty``, ``uncertainty_samples`` (the option table's; default: theirs).
     validation : optional
-        The held-out angles (``indreg.validation.Validation``): ``uncertainty="auto"`` runs only with them.
+        The held-out angles (``indreg.evaluation.validation.Validation``): ``uncertainty="auto"`` runs only with them.
 
     Returns
     -------
     dict
     """
-    from .split import data_split
+    from .parts import data_split
     from .uncertainty import registration_uncertainty
 
     o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": 8, **(options or {})}

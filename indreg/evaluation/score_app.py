@@ -11,8 +11,8 @@ Convention:
       columns, ``indreg.units.border_level``; ``none``; or a number in the stack's counts).
     - The alignment (``--alignment``): IMOD ``.xf`` (with the stack's angles), AreTomo ``.aln`` or indreg's record
       (the ``.json`` of ``indreg-align`` or of a walk-through), in pixels of the stack as stored
-      (``indreg.io.alignment_files``); applied in the operator, not by resampling. Without it the stack is taken
-      as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's; ``indreg.tilt_axis``).
+      (``indreg.alignment.files``); applied in the operator, not by resampling. Without it the stack is taken
+      as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's; ``indreg.alignment.tilt_axis``).
     - A volume ``(nx, ny, nz)`` in indreg's layout (x across the tilt axis, y along it, z the beam at tilt 0; an MRC
       file's sections are z): ``.mrc``, ``.npy`` / ``.npz`` / ``.h5``, or OME-Zarr (``.zarr``, optional package
       ``ome-zarr``); ``--swap-yz`` for a volume stored with y and z exchanged (IMOD's ``tilt`` output before

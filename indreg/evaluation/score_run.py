@@ -26,7 +26,7 @@ LENGTH_UNITS = {"A": 1.0, "nm": 10.0}
 def read_any_alignment(path: str, degrees: np.ndarray):
     """An ``Alignment`` from an ``.xf`` (the stack's angles), ``.aln`` or indreg's ``.json`` record, and the
     record's interpolation (None for the others)."""
-    from ..io.alignment_files import Alignment, read_alignment
+    from ..alignment.files import Alignment, read_alignment
 
     p = Path(path)
     if p.suffix.lower() != ".json":
@@ -60,7 +60,7 @@ def read_any_volume(path: str, voxel_size) -> tuple:
 def _stack(args) -> tuple:
     """``(binned stack less its background, radians, pixel (A) or None, level)``."""
     from .. import io
-    from ..tilt_axis import align_tilt_axis
+    from ..alignment.tilt_axis import align_tilt_axis
     from ..units import border_level
 
     angles = args.angles
@@ -101,7 +101,7 @@ def _operator(shape: tuple, sides: tuple, radians: np.ndarray, cols: int, det_ce
                                                        det_max=half, angle_unit="rad"))
     if alignment is None:
         return T
-    from ..io.alignment_files import to_operator
+    from ..alignment.files import to_operator
 
     return to_operator(T, alignment, interpolation=interpolation)
 

@@ -217,7 +217,7 @@ def data_correction(operator, image: torch.Tensor, data: torch.Tensor, noise_sd:
     """The least-norm ``d`` with ``||T (f + d) - g|| <= ||n||``: CGLS for ``T d = g - T f`` from 0, stopped when the
     residual falls to the noise's norm ``noise_sd sqrt(#data)`` (in the data inner product; the discrepancy
     principle); 0 where the residual is already within the noise."""
-    from .split import cgls
+    from .parts import cgls
 
     with torch.no_grad():
         b = data - operator(image)

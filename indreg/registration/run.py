@@ -395,7 +395,7 @@ class RegistrationResult:
     ``outputs``: the model's own results by name (``problem.outputs``, their kinds in ``problem.output_kinds``;
     docs/metamorphosis.md, docs/spatiotemporal.md), also readable as attributes (``result.<name>``).
     ``data_part`` / ``prior_part`` (option ``split``): ``deformed`` split into the part the fitted data determine
-    and the part the prior fills (``indreg.evaluation.split``); ``uncertainty`` (option ``uncertainty``): its
+    and the part the prior fills (``indreg.evaluation.parts``); ``uncertainty`` (option ``uncertainty``): its
     per-voxel standard deviation (``indreg.evaluation.uncertainty``); None when off. ``evaluation``: their numbers
     (``split_*``, ``uncertainty_*``; docs/evaluation.md). ``extrapolation`` (option ``extrapolation``): the edge
     validation's choice (``indreg.evaluation.extrapolation``), empty without.

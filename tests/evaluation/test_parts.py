@@ -6,7 +6,7 @@ import torch
 
 import indreg
 from indreg.evaluation.parts import data_split, wedge_mask, wedge_split
-from indreg.forward.shift import AlignedOperator
+from indreg.alignment.operator import AlignedOperator
 
 
 def _packet(domain, direction_deg: float, cycles: float = 6.0, width: float = 3.0) -> torch.Tensor:

@@ -12,8 +12,8 @@ import indreg
 from indreg import io
 from indreg.evaluation import score_app
 from indreg.evaluation.score import NOISE_ROW, fitted_scale, relative_residual, score_table, score_volumes
-from indreg.forward.shift import AlignedOperator
-from indreg.io.alignment_files import write_alignment
+from indreg.alignment.operator import AlignedOperator
+from indreg.alignment.files import write_alignment
 
 ANGLES = np.linspace(-60.0, 60.0, 13)
 VOXEL = 2.0   # Angstrom
