@@ -100,6 +100,31 @@ def _kept_rows(options: dict, count: int) -> list:
     return list(range(count)) if options.get("holdout") is None else holdout_rows(options["holdout"], count)[0]
 
 
+def subset(operator, rows: list):
+    """The operator of ``rows`` (angles) of ``operator``: a ray transform or tilt series of those angles (what
+    ``align`` can wrap), else ``indreg.forward.restrict``."""
+    from ..forward.geometry import FanBeamGeometry, ParallelBeamGeometry
+    from ..forward.ray_transform import RayTransform
+    from ..forward.stacking import restrict
+    from ..forward.tilt_series import TiltSeriesGeometry, TiltSeriesTransform
+
+    g = getattr(operator, "geometry", None)
+    if isinstance(operator, TiltSeriesTransform):
+        geometry = TiltSeriesGeometry(g.angles[rows], g.det_count, g.det_min, g.det_max, g.tilt_axis,
+                                      angle_unit="rad")
+        return TiltSeriesTransform(operator.domain, geometry)
+    if isinstance(operator, RayTransform) and isinstance(g, ParallelBeamGeometry):
+        return RayTransform(operator.domain, ParallelBeamGeometry(det_count=g.det_count, det_min=g.det_min,
+                                                                  det_max=g.det_max, angles=g.angles[rows],
+                                                                  angle_unit="rad"))
+    if isinstance(operator, RayTransform) and isinstance(g, FanBeamGeometry):
+        return RayTransform(operator.domain, FanBeamGeometry(det_count=g.det_count, src_radius=g.src_radius,
+                                                             det_radius=g.det_radius, det_min=g.det_min,
+                                                             det_max=g.det_max, angles=g.angles[rows],
+                                                             angle_unit="rad"))
+    return restrict(operator, rows)
+
+
 def _for_model(options: dict, model: str) -> dict:
     """``options`` without those of other models (``residual_tv`` does not go to an LDDMM trial)."""
     from ..options import all_options
@@ -160,9 +185,7 @@ def choose_extrapolation(template, data, operator, models=MODELS, alphas=ALPHAS,
     kept = _kept_rows(options, count)
     inner, edge = edge_split(degrees, kept, edge_fraction)
     rows = sorted(inner + edge)
-    from ..forward.stacking import restrict
-
-    sub_op = restrict(operator, rows)
+    sub_op = subset(operator, rows)
     sub_data = torch.as_tensor(data)[rows]
     positions = [rows.index(e) for e in edge]
     residuals, best = {}, ("template", 0.0, math.inf)

@@ -28,12 +28,13 @@ def evaluation_figure(volume, data_part, prior_part, sd=None, box=None, unit=Non
     panels = [("volume", f), ("data-determined part", d), ("prior-filled part", p)]
     panels = [(name, a) for name, a in panels if a is not None]
     label = f"one scale, +-{bound:.3g}"
-    if f.ndim == 3:
-        rows = [(f"{name} ({label})", a, (-bound, bound), figures.DIVERGING) for name, a in panels]
+    if f.ndim == 3:   # short row labels (they head a slice's title); the scale in the figure's title
+        rows = [(name.split()[0], a, (-bound, bound), figures.DIVERGING) for name, a in panels]
         if s is not None:
-            rows.append((f"standard deviation (max {float(s.max()):.3g})", s, (0.0, max(float(s.max()), 1e-12)),
-                         SD_CMAP))
-        return figures.ortho_figure(rows, title=title, box=box, unit=unit, tilt=tilt)
+            rows.append(("s.d.", s, (0.0, max(float(s.max()), 1e-12)), SD_CMAP))
+        head = f"{title}\n" if title else ""
+        return figures.ortho_figure(rows, title=f"{head}volume and its parts on {label}; the standard deviation on "
+                                    "its own", box=box, unit=unit, tilt=tilt)
     from matplotlib.figure import Figure
 
     n = len(panels) + (s is not None)

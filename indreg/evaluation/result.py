@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import torch
 
@@ -75,9 +76,10 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": 8, **(options or {})}
     out = {"data_part": None, "prior_part": None, "uncertainty": None, "summary": {}}
     if _wanted(o["split"], problem, image, False, validation):
+        t0 = time.perf_counter()
         s = data_split(image.detach(), problem.ray_transform, max_iter=100)
         out.update(data_part=s.data, prior_part=s.prior)
-        out["summary"].update(s.summary())
+        out["summary"].update(s.summary(), split_seconds=time.perf_counter() - t0)
     if _wanted(o["uncertainty"], problem, image, True, validation):
         steps = getattr(solver, "step_sizes", None)
         steps = list(steps) if steps is not None and len(steps) == len(iterate) else None

@@ -12,7 +12,8 @@ Convention:
     - The alignment (``--alignment``): IMOD ``.xf`` (with the stack's angles), AreTomo ``.aln`` or indreg's record
       (the ``.json`` of ``indreg-align`` or of a walk-through), in pixels of the stack as stored
       (``indreg.alignment.files``); applied in the operator, not by resampling. Without it the stack is taken
-      as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's; ``indreg.alignment.tilt_axis``).
+      as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's;
+      ``indreg.alignment.tilt_axis``).
     - A volume ``(nx, ny, nz)`` in indreg's layout (x across the tilt axis, y along it, z the beam at tilt 0; an MRC
       file's sections are z): ``.mrc``, ``.npy`` / ``.npz`` / ``.h5``, or OME-Zarr (``.zarr``, optional package
       ``ome-zarr``); ``--swap-yz`` for a volume stored with y and z exchanged (IMOD's ``tilt`` output before
@@ -125,7 +126,7 @@ def _check_paths(args) -> None:
 
 def main(argv=None) -> int:
     """Console entry point: the table on stdout, one-line errors (exit code 2)."""
-    args = _parser().parse_args(argv)
+    args = _parser().parse_intermixed_args(argv)   # volumes may follow the options
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
         _check_paths(args)

@@ -14,13 +14,14 @@ times, with warm starts: the data re-drawn with white noise of the level the dat
 result's own root-mean-square velocity (an empirical-Bayes scale: the deformation the data asked for measures how far
 the template was from them), then ``iterations`` steps of Algorithm 1 (and the residual model's finish). Directions
 the data pin down relax back within those steps; those they do not (a missing wedge, a flat region) keep the random
-move. To the samples' variance it adds the square of the data's own correction (:func:`data_correction`: the
-least-norm change that the residual's part beyond the noise asks for, by CGLS stopped at the noise level, the
-discrepancy principle): where the data disagree with the result by more than their noise, the disagreement is an
-error the re-optimisations, started from the result, need not show. Nothing is scaled afterwards: held-out angles
-cannot calibrate it where the noise dominates their residual (measured: the held-out residual of the paper's suite 1
-at 10 dB lies below the noise's estimate). Its calibration against the truth is measured in docs/evaluation.md (the
-fraction of voxels whose error lies within one and two standard deviations).
+move. The samples' root-mean-square deviation from the result is reported (their spread, and their common drift
+where the run had not settled), and to its square is added the square of the data's own correction
+(:func:`data_correction`: the least-norm change that the residual's part beyond the noise asks for, by CGLS stopped at
+the noise level, the discrepancy principle): where the data disagree with the result by more than their noise, the
+disagreement is an error the re-optimisations, started from the result, need not show. Nothing is scaled
+afterwards: held-out angles cannot calibrate it where the noise dominates their residual (measured: the held-out
+residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the truth is
+measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard deviations).
 
 Convention: images ``problem.image_domain.shape``; the noise standard deviation per datum in the data's units.
 """
@@ -206,8 +207,10 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
         return replica.reconstruction(x)
 
     mean, sd = perturbed_solutions(solve, data, sigma, samples, seed, draw)
+    result = problem.reconstruction(iterate).detach().double()
+    sd = (sd.pow(2) + (mean - result).pow(2)).sqrt()   # about the result: a drift of every sample counts
     if correction:
-        d = data_correction(problem.ray_transform, problem.reconstruction(iterate), data, sigma)
+        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma)
         sd = (sd.pow(2) + d.double().pow(2)).sqrt()
     return Uncertainty(sd.to(data.dtype), mean.to(data.dtype), int(samples), int(iterations), sigma, float(prior),
                        time.perf_counter() - t0)

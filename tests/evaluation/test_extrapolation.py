@@ -62,3 +62,20 @@ def test_register_takes_the_option():
                         residual_finish_iter=10, uncertainty=False)
     assert r.extrapolation["extrapolation_choice"] in ("template", "lddmm", "residual")
     assert 3 not in r.extrapolation["extrapolation_edge_rows"] and r.holdout["holdout_indices"] == [3, 9, 15]
+
+
+def test_a_subset_of_angles_is_an_operator_alignment_can_wrap():
+    from indreg.evaluation.extrapolation import subset
+
+    d = indreg.ImageDomain((8, 6, 8))
+    T = indreg.TiltSeriesTransform(d, indreg.TiltSeriesGeometry.uniform(-60, 60, 10, det_count=10))
+    f = torch.rand(d.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert type(subset(T, [1, 3, 5])) is type(T) and torch.allclose(subset(T, [1, 3, 5])(f), T(f)[[1, 3, 5]])
+    d2 = indreg.ImageDomain.paper(16)
+    g = torch.rand(d2.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    for geometry in (indreg.ParallelBeamGeometry.paper(10, 20),
+                     indreg.FanBeamGeometry(det_count=30, src_radius=40.0, det_radius=20.0, det_min=-30.0,
+                                            det_max=30.0, angles=torch.linspace(0, 6, 12, dtype=torch.float64),
+                                            angle_unit="rad")):
+        R = indreg.RayTransform(d2, geometry)
+        assert torch.allclose(subset(R, [0, 4, 7])(g), R(g)[[0, 4, 7]])
