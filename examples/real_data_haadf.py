@@ -79,8 +79,11 @@ from indreg.registration.run import count_halvings
 from indreg.forward.tv import intensity_scale
 from indreg.units import border_level, check_offset, prepare
 from indreg.alignment.tilt_axis import align_tilt_axis, check_tilt_axis
+from indreg.evaluation.extrapolation import blend, choose_extrapolation
+from indreg.evaluation.score import relative_residual
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
+from evaluation_steps import evaluation_png, extrapolation_table, flagged_voxels, split_check, write_scored  # noqa
 from haadf_files import (ALIGNED_KEY, PIXEL_NM, SHIFTS_KEY, TILT_AXIS_ANGLE, WHEEL, alignment_figure,  # noqa
                          axis_offset, bilinear, bin_stack, compare_shifts, etspy_frame, fetch, figure, read_aligned,
                          read_etspy_shifts, read_raw, save, say, scale_bar_nm)
@@ -148,10 +151,9 @@ def handedness(data: np.ndarray, angles: np.ndarray, domain: ImageDomain, iters:
 
 
 def residual(T, x: torch.Tensor, y: torch.Tensor) -> float:
-    """``||T x - y|| / ||y||`` in the data inner product."""
-    with torch.no_grad():
-        r = T(x) - y
-        return float(T.inner_data(r, r).sum().sqrt() / T.inner_data(y, y).sum().sqrt())
+    """``||T x - y|| / ||y||`` in the data inner product: ``indreg.evaluation.score.relative_residual``, the score
+    ``indreg-score`` prints (float64)."""
+    return relative_residual(T, x, y)
 
 
 # ------------------------------------------------------------------------------------------------ split
@@ -318,7 +320,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
         rescale: float = 1.0,
         gamma_rel: float | None = None, classes: int = 5, smooth: float = 0.5, baselines_too: bool = True,
         quick: bool = False, model: str = "residual", interpolation: str = "reinterpolate",
-        dtype: str = "float32") -> dict:
+        dtype: str = "float32", extrapolation: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``stack``: ``"raw"`` (``HAADF.mrc``: the template's tilts aligned by :func:`align_template_scan`, the data by the
     registration's ``align``) or ``"aligned"`` (etspy's). ``rescale``: every count multiplied by it (unit
@@ -326,7 +328,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
     (``"residual"``, the default: LDDMM plus an intensity residual regularised by TV, its weight chosen on the
     validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
     (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's, the template
-    scan's SIRT and projection matching's, the baselines' (the scores are in float64)."""
+    scan's SIRT and projection matching's, the baselines' (the scores are in float64); ``extrapolation``: the edge
+    validation (``indreg.evaluation.extrapolation``) and its table on the test tilts (:func:`extrapolate`)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
     if dtype not in ("float32", "float64"):
@@ -413,11 +416,10 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
         + (f", align_gauge={align_gauge!r}" if align != "none" else ""))
     sigma = sigma_cells * cell
     extra = {} if gamma_rel is None else {"gamma_rel": gamma_rel}
-    result = indreg.register(d.template, d.data, d.operator, sigma=sigma, num_steps=num_steps, max_iter=iters,
-                             model=model, interpolation=interpolation, dtype=dtype,
-                             template_scale="auto", background="auto", holdout=holdout, align=align,
-                             align_gauge=align_gauge, align_interpolation=align_interpolation, log_every=10,
-                             progress=True, **extra)
+    options = dict(sigma=sigma, num_steps=num_steps, max_iter=iters, interpolation=interpolation, dtype=dtype,
+                   template_scale="auto", background="auto", holdout=holdout, align=align, align_gauge=align_gauge,
+                   align_interpolation=align_interpolation, log_every=10, **extra)
+    result = indreg.register(d.template, d.data, d.operator, model=model, progress=True, **options)
     reg_seconds = result.seconds
     parts.done("registration (the alignment and the model's finish included)")
     halvings = count_halvings(result.history)
@@ -475,9 +477,17 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
                **{k: v[0].double().numpy() for k, v in base.items()}}
     metrics["scores"] = score(volumes, T, Y, {k: v[1] for k, v in base.items()})
 
+    evaluate(metrics, result, base, T, Y, domain, out)
+    if extrapolation:
+        say("11. which volume to trust on the missing range: the edge validation (docs/evaluation.md)")
+        metrics["extrapolation"] = extrapolate(d, options, model, result, volumes["template"], T, Y)
+        parts.done("extrapolation (the edge validation, the other model)")
     volumes["SIRT (even tilts)"] = sirt_even / cell   # per voxel length -> per nm, for the figure
     figure(volumes, out / "figure.png", cell, metrics["scores"])
     save(volumes, domain, out)
+    odd = np.sort(np.concatenate([tilts[k] for k in ("fit", "validation", "test")]))
+    metrics["score_command"] = scored_files(out, turned, angles, tilts, odd, T, result, cell)
+    say(f"  the table again from the files (in {out}): {metrics['score_command']}")
     parts.done("scores, figure, files")
     metrics["cpu_seconds"], metrics["cpu_seconds_by_part"] = time.process_time() - t0, parts.seconds
     metrics["wall_seconds"], metrics["wall_seconds_by_part"] = time.perf_counter() - wall0, parts.wall
@@ -487,6 +497,71 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
     say(f"wrote {out}/metrics.json, figure.png and the volumes; {metrics['wall_seconds']:.0f} s wall, "
         f"{metrics['cpu_seconds']:.0f} s CPU in all")
     return metrics
+
+
+def evaluate(metrics: dict, result, base: dict, T: dict, Y: dict, domain: ImageDomain, out: Path) -> None:
+    """Section 10: the registered volume's split (and its check on the fitted tilts), its uncertainty (cost, and
+    whether the voxels it flags hold the worst errors on the test tilts: those replaced by TV's against random
+    ones), the figure ``evaluation.png``."""
+    say("10. what the data determine and what the template brings; the uncertainty (docs/evaluation.md)")
+    ev = metrics["evaluation"] = {**result.evaluation, "split_check": split_check(result)}
+    for how, c in ev["split_check"].items():
+        say(f"  split by the {how}: prior-filled part {c['split_prior_fraction']:.4f} of the volume, its projection "
+            f"on the fitted tilts {c['split_projection_difference']:.2e} of the volume's")
+    if result.uncertainty is not None:
+        say(f"  uncertainty: {ev['uncertainty_samples']} re-optimisations in {ev['uncertainty_seconds']:.1f} s "
+            f"(the registration's loop {result.seconds:.1f} s), mean standard deviation "
+            f"{ev['uncertainty_mean_sd']:.4g}")
+        if "TV" in base:
+            ev["flagged"] = flagged_voxels(result.deformed.double().numpy(), result.uncertainty.double().numpy(),
+                                           base["TV"][0].double().numpy(), T["test"], Y["test"])
+            f = ev["flagged"]
+            say(f"  the {f['voxels']} voxels of largest standard deviation replaced by TV's: test residual "
+                f"{f['as_is']:.4f} -> {f['flagged_replaced']:.4f}; as many random voxels: "
+                f"{f['random_replaced_mean']:.4f} ({f['random_replaced_min']:.4f}..{f['random_replaced_max']:.4f})")
+    box = (domain.min_pt, domain.max_pt)
+    angles = np.degrees(T["fit"].operator.geometry.angles.numpy() if hasattr(T["fit"], "operator")
+                        else T["fit"].geometry.angles.numpy())
+    evaluation_png(result, out / "evaluation.png", box, "nm", "HAADF: the registered volume, what the data "
+                   "determine, what the template fills; its standard deviation",
+                   {"axis": "y", "range_deg": (float(angles.min()), float(angles.max()))})
+
+
+def extrapolate(d, options: dict, model: str, result, template: np.ndarray, T: dict, Y: dict) -> dict:
+    """Section 11: the edge validation's choice (``indreg.evaluation.extrapolation.choose_extrapolation``, the
+    run's options) and the test tilts' residual of the template alone, LDDMM, the residual model and the chosen
+    volume (the chosen model's run blended towards the template by its ``alpha``)."""
+    choice = choose_extrapolation(d.template, d.data, d.operator, **options)
+    other = "lddmm" if model == "residual" else "residual"
+    runs = {model: result, other: indreg.register(d.template, d.data, d.operator, model=other, uncertainty=False,
+                                                  **options)}
+    chosen = template if choice.choice == "template" else blend(runs[choice.choice], choice.alpha).double().numpy()
+    volumes = {"template": template, "lddmm": runs["lddmm"].deformed.double().numpy(),
+               "residual": runs["residual"].deformed.double().numpy(),
+               f"chosen ({choice.choice}, alpha {choice.alpha:g})": chosen}
+    table = extrapolation_table(volumes, T, Y, choice)
+    for name, r in table["rows"].items():
+        say(f"  {name:30s} test {r['test_residual']:.4f}   validation {r['validation_residual']:.4f}")
+    return table
+
+
+def scored_files(out: Path, turned: np.ndarray, angles: np.ndarray, tilts: dict, odd: np.ndarray, T: dict, result,
+                 cell: float) -> str:
+    """The files ``indreg-score`` reads to print this run's scores again (``evaluation_steps.write_scored``): the
+    odd tilts as scored, their alignment (the registration's shifts, the test tilts' fitted ones) and the sets."""
+    sets = {k: np.flatnonzero(np.isin(odd, tilts[k])) for k in ("test", "validation", "fit")}
+    aligned = None
+    if isinstance(T["fit"], AlignedOperator):
+        shifts = torch.zeros(len(odd), 2, dtype=torch.float64)
+        for k, idx in sets.items():
+            shifts[torch.as_tensor(idx)] = T[k].shifts
+        aligned = AlignedOperator(operator(T["fit"].operator.domain, angles[odd]), shifts, float(T["fit"].angle),
+                                  T["fit"].interpolation)
+    names = ["template.mrc", "registered.mrc"] + [f"{k.lower()}.mrc" for k in ("FBP", "SIRT", "TV")
+                                                   if (out / f"{k.lower()}.mrc").exists()]
+    return write_scored(out / "scored", turned[odd], np.degrees(angles[odd]), sets, aligned,
+                        aligned.interpolation if aligned is not None else "linear", 10 * cell, names,
+                        result.units.background)
 
 
 def label(name: str, m: dict) -> str:
@@ -570,6 +645,8 @@ def main(argv=None) -> None:
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="the registration's, the "
                    "template scan's and the baselines' (float32: the table's numbers as float64's, at half the time)")
     p.add_argument("--threads", type=int, help="torch's CPU threads (default: torch's, OMP_NUM_THREADS or the cores)")
+    p.add_argument("--extrapolation", action="store_true", help="the edge validation and its table on the test "
+                   "tilts (docs/evaluation.md; about 3 more registrations)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
     if a.threads is not None:
@@ -597,7 +674,8 @@ def walk(folder: Path, a: argparse.Namespace, out: Path, stack: str) -> dict:
     return run(folder, out, size=a.size, depth=a.depth, iters=a.iters, sigma_cells=a.sigma, misalign=a.misalign,
                max_angle=a.max_angle, fit_every=a.fit_every, stack=stack, align=a.align, align_gauge=a.align_gauge,
                align_interpolation=a.align_interpolation, rescale=a.rescale, gamma_rel=a.gamma_rel,
-               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation, dtype=a.dtype)
+               baselines_too=not a.no_baselines, model=a.model, interpolation=a.interpolation, dtype=a.dtype,
+               extrapolation=a.extrapolation)
 
 
 if __name__ == "__main__":

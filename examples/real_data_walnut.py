@@ -71,6 +71,7 @@ from indreg.units import prepare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # the HAADF walk-through, whose scoring this reuses
 from real_data_haadf import residual, say, score, tuned_sirt_tv  # noqa: E402
+from evaluation_steps import evaluation_png, extrapolation_table, flagged_voxels, split_check  # noqa: E402
 
 __all__ = ["SDIST", "MEMBER", "SRC_MM", "DET_MM", "DETECTOR_MM", "STEP_DEG", "SIRT_ITERS", "TV_MUS", "TV_ITERS",
            "fetch", "read_sinogram", "bin_detector", "square_domain", "operator", "background_report", "orientation",
@@ -263,10 +264,11 @@ def figure(images: dict, path: Path, side_mm: float, scores: dict) -> None:
 def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_factor: int = 4, misalign: float = 5.0,
         max_angle: float = 45.0, fit_every: int = 2, model: str = "lddmm", sigma: float | None = None,
         iters: int | None = None, num_steps: int | None = None, classes: int = 4, baselines_too: bool = True,
-        quick: bool = False) -> dict:
+        quick: bool = False, extrapolation: bool = False) -> dict:
     """The whole walk-through (module docstring); returns the metrics written to ``out/metrics.json``.
     ``sigma`` (mm), ``iters`` and ``num_steps``: ``None`` leaves ``register()``'s defaults. ``quick``: fewer SIRT /
-    TV iterations and candidates (the tests)."""
+    TV iterations and candidates (the tests). ``extrapolation``: the edge validation and its table on the test
+    angles (docs/evaluation.md)."""
     t0 = time.process_time()
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"data": str(folder), "model": model}
@@ -315,9 +317,9 @@ def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_fact
 
     say(f"6. registration (model={model!r}): {len(tilts['fit'])} angles fitted, {len(holdout)} held out")
     options = {k: v for k, v in (("sigma", sigma), ("max_iter", iters), ("num_steps", num_steps)) if v is not None}
-    result = indreg.register(torch.from_numpy(template), torch.from_numpy(data), T_data, model=model,
-                             template_scale="auto", background="auto", holdout=holdout, log_every=20, progress=True,
-                             **options)
+    common = dict(template_scale="auto", background="auto", holdout=holdout, log_every=20, **options)
+    result = indreg.register(torch.from_numpy(template), torch.from_numpy(data), T_data, model=model, progress=True,
+                             **common)
     halvings = count_halvings(result.history)
     say(f"  {result.status} after {result.iterations} iterations ({result.seconds:.1f} s): template_scale "
         f"{result.units.template_scale:.4g}, background {result.units.background:.4g}, residual "
@@ -345,6 +347,25 @@ def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_fact
     images = {"template": template * result.units.template_scale, "registered": result.deformed.double().numpy(),
               **{k: v[0].numpy() for k, v in base.items()}}
     metrics["scores"] = score(images, T, Y, {k: v[1] for k, v in base.items()})
+    say("9. what the data determine and what the template brings; the uncertainty (docs/evaluation.md)")
+    ev = metrics["evaluation"] = {**result.evaluation, "split_check": split_check(result)}
+    c = ev["split_check"]["range"]
+    say(f"  split: prior-filled part {c['split_prior_fraction']:.4f} of the image, its projection on the fitted "
+        f"angles {c['split_projection_difference']:.2e} of the image's")
+    if result.uncertainty is not None and "TV" in base:
+        ev["flagged"] = flagged_voxels(images["registered"], result.uncertainty.double().numpy(),
+                                       base["TV"][0].numpy(), T["test"], Y["test"])
+        f = ev["flagged"]
+        say(f"  uncertainty in {ev['uncertainty_seconds']:.1f} s; the {f['voxels']} cells of largest standard "
+            f"deviation replaced by TV's: test residual {f['as_is']:.4f} -> {f['flagged_replaced']:.4f}, as many "
+            f"random cells {f['random_replaced_mean']:.4f}")
+    h = side_mm / 2
+    evaluation_png(result, out / "evaluation.png", ((-h, -h), (h, h)), "mm", "walnut: the registered image, what the "
+                   "data determine, what the template fills; its standard deviation")
+    if extrapolation:
+        say("10. which image to trust on the missing range: the edge validation (docs/evaluation.md)")
+        metrics["extrapolation"] = extrapolate(torch.from_numpy(template), torch.from_numpy(data), T_data, common,
+                                               model, result, images["template"], T, Y)
     images["SIRT (even angles)"] = sirt_even
     figure(images, out / "figure.png", side_mm, metrics["scores"])
     for name, v in images.items():
@@ -353,6 +374,23 @@ def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_fact
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
     say(f"wrote {out}/metrics.json, figure.png and the images; {metrics['cpu_seconds']:.0f} s CPU in all")
     return metrics
+
+
+def extrapolate(template, data, T_data, options: dict, model: str, result, scaled_template, T: dict, Y: dict) -> dict:
+    """The edge validation's choice and the test angles' residual of the template alone, LDDMM, the residual model
+    and the chosen image (as the HAADF walk-through's ``extrapolate``)."""
+    from indreg.evaluation.extrapolation import blend, choose_extrapolation
+
+    choice = choose_extrapolation(template, data, T_data, **options)
+    other = "lddmm" if model == "residual" else "residual"
+    runs = {model: result, other: indreg.register(template, data, T_data, model=other, uncertainty=False, **options)}
+    chosen = scaled_template if choice.choice == "template" else blend(runs[choice.choice], choice.alpha).numpy()
+    table = extrapolation_table({"template": scaled_template, "lddmm": runs["lddmm"].deformed.double().numpy(),
+                                 "residual": runs["residual"].deformed.double().numpy(),
+                                 f"chosen ({choice.choice}, alpha {choice.alpha:g})": chosen}, T, Y, choice)
+    for name, r in table["rows"].items():
+        say(f"  {name:30s} test {r['test_residual']:.4f}   validation {r['validation_residual']:.4f}")
+    return table
 
 
 def main(argv=None) -> None:
@@ -371,12 +409,15 @@ def main(argv=None) -> None:
     p.add_argument("--sigma", type=float, help="kernel width in mm (default: register()'s)")
     p.add_argument("--iters", type=int, help="iterations (default: register()'s)")
     p.add_argument("--no-baselines", action="store_true", help="skip SIRT / TV")
+    p.add_argument("--extrapolation", action="store_true", help="the edge validation and its table on the test "
+                   "angles (docs/evaluation.md; about 3 more registrations)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[indreg] %(message)s")
     torch.set_num_threads(1)
     folder = a.data if a.data is not None else fetch(a.cache)
     run(folder, a.out, size=a.size, side_mm=a.side, bin_factor=a.bin, misalign=a.misalign, max_angle=a.max_angle,
-        fit_every=a.fit_every, model=a.model, sigma=a.sigma, iters=a.iters, baselines_too=not a.no_baselines)
+        fit_every=a.fit_every, model=a.model, sigma=a.sigma, iters=a.iters, baselines_too=not a.no_baselines,
+        extrapolation=a.extrapolation)
 
 
 if __name__ == "__main__":

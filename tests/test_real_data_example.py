@@ -109,7 +109,23 @@ def test_compare_shifts_ignores_offset_and_object_translation(example):
 
 
 @pytest.mark.slow
-def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
+def rescored(out: Path, m: dict, monkeypatch, capsys) -> None:
+    """``indreg-score`` on the files the walk-through wrote (``m["score_command"]``) prints its scores again, to the
+    4 digits of its table: one implementation (indreg.evaluation.score)."""
+    import shlex
+
+    from indreg.evaluation import score_app
+
+    monkeypatch.chdir(out)
+    capsys.readouterr()
+    assert score_app.main(shlex.split(m["score_command"])[1:]) == 0
+    rows = {line.split("|")[1].strip(): line.split("|")[2:-2] for line in capsys.readouterr().out.splitlines()[2:]}
+    for name, s in m["scores"].items():
+        cells = rows[f"{name.lower()}.mrc"]
+        assert [c.strip() for c in cells] == [f"{s[f'{k}_residual']:.4f}" for k in ("test", "validation", "fit")]
+
+
+def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path, monkeypatch, capsys):
     """--stack raw: the template's tilts aligned by projection matching, the data by the registration; both
     recover the recorded drift (2 raw pixels per binned one) in the gauge."""
     m = example.run(stand_in, tmp_path / "raw", size=16, depth=16, iters=10, sigma_cells=2.0, num_steps=4,
@@ -122,12 +138,18 @@ def test_raw_stack_aligned_in_the_fit(example, stand_in, tmp_path):
     assert set(m["scores"]) == {"template", "registered"}
     assert m["scores"]["registered"]["fit_residual"] < m["scores"]["template"]["fit_residual"]
     assert m["alignment"]["gauge"] == "none" and (tmp_path / "raw" / "alignment.png").stat().st_size > 0
+    rescored(tmp_path / "raw", m, monkeypatch, capsys)   # through the alignment's record
 
 
-def test_pipeline_on_the_stand_in(example, stand_in, tmp_path):
+def test_pipeline_on_the_stand_in(example, stand_in, tmp_path, monkeypatch, capsys):
     out = tmp_path / "out"
     m = example.run(stand_in, out, size=16, depth=16, iters=4, sigma_cells=2.0, num_steps=4, misalign=3.0,
                     max_angle=30.0, stack="aligned", quick=True)
+    rescored(out, m, monkeypatch, capsys)
+    ev = m["evaluation"]   # the split, the uncertainty and its flagged voxels (docs/evaluation.md)
+    assert ev["split_check"]["range"]["split_projection_difference"] <= 1.01e-3 and ev["uncertainty_seconds"] > 0
+    assert set(ev["flagged"]) >= {"as_is", "flagged_replaced", "random_replaced_mean"}
+    assert (out / "evaluation.png").stat().st_size > 0
     assert json.loads((out / "metrics.json").read_text())["num_tilts"] == 31
     assert (out / "figure.png").stat().st_size > 0
     for name in ("registered", "template", "fbp", "sirt", "tv"):

@@ -161,12 +161,16 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     log.info("writing the outputs (arrays, metrics, figures, TensorBoard) in %s", out)
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
+    from ..registration.api import evaluation_options
+
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
-                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver, box=exp.box)
+                     trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver, box=exp.box,
+                     evaluation=evaluation_options(exp.options))
     wide = r.deformed
     if exp.box is not None:   # a wide box: files, figures and scores of the field of view; final_wide.npy whole
         r = replace(r, **{k: exp.field(getattr(r, k)) for k in ("deformed", "velocity", "momentum", "deformation",
-                                                                 "trajectory")},
+                                                                 "trajectory", "data_part", "prior_part",
+                                                                 "uncertainty")},
                     outputs={k: exp.field(v) for k, v in r.outputs.items()})
     target = exp.target_64
     result = {}
@@ -199,6 +203,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
         result["sigma_auto"] = {f"{w:.6g}": v for w, v in exp.setup.sigma_scores.items()}
     if _convention(exp).name != "indreg":   # the files' layout, in which the arrays are written (as_given)
         result["layout"] = _convention(exp).name
+    result.update(r.evaluation)
     for name, summary in r.corrections.items():   # the in-the-fit corrections' estimates, and their plots
         result[name] = summary
         plot = getattr(CORRECTIONS.get(name), "plot", None)
@@ -212,6 +217,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
               "template": exp.template_64, "data": exp.noisy_data_64, **rec, **r.outputs}
     arrays.update({} if volume else {"trajectory": r.trajectory})
     arrays.update({} if exp.box is None else {"final_wide": wide})
+    arrays.update({k: v for k, v in (("data_part", r.data_part), ("prior_part", r.prior_part),
+                                     ("uncertainty", r.uncertainty)) if v is not None})
     if target is not None:
         arrays["target"] = target
     if exp.clean_data_64 is not None:
@@ -345,7 +352,7 @@ def _write_outputs_record(out: Path, exp, arrays: dict, corrections) -> dict:
     layouts = {"trajectory": f"(N + 1 time steps, *{grid_axes})", "velocity": f"(N + 1, d components, *{grid_axes})",
                "momentum": f"(N + 1, d components, *{grid_axes})",
                "deformation": f"(d components, *{grid_axes}): phi_(1,0), points in the domain's length unit"}
-    images = {"final", "template", "target", "fbp", "tv", "sirt"}
+    images = {"final", "template", "target", "fbp", "tv", "sirt", "data_part", "prior_part", "uncertainty"}
     layouts.update({name: image["axis_order"] for name in images})
     c = _convention(exp)
     if c.name != "indreg":   # the files' convention (as_given)

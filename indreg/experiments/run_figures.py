@@ -1,5 +1,6 @@
-"""The figures of a run (``figure.png``, ``parts.png``, ``frames.png``, ``frames.gif``) and TensorBoard's final
-images, from its result (:func:`indreg.registration.run.build_result`), built with :mod:`indreg.experiments.figures`.
+"""The figures of a run (``figure.png``, ``parts.png``, ``evaluation.png``, ``frames.png``, ``frames.gif``) and
+TensorBoard's final images, from its result (:func:`indreg.registration.run.build_result`), built with
+:mod:`indreg.experiments.figures`.
 
 Convention: as :mod:`indreg.experiments.figures` (images ``(nx, ny)``, axis 0 = x; volumes ``(nx, ny, nz)``); panels
 of images are drawn on the domain's extent in its units (``ImageDomain.min_pt`` / ``max_pt``), named by
@@ -60,6 +61,13 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
         if parts is not None:
             figures.save(_parts_figure(exp, r.deformed, parts, f"{cfg.name}: {quality}", unit, model),
                          out / "parts.png")
+        if r.data_part is not None or r.uncertainty is not None:   # indreg.evaluation: split and uncertainty
+            from ..evaluation.figure import evaluation_figure
+
+            figures.save(evaluation_figure(r.deformed, r.data_part, r.prior_part, r.uncertainty,
+                                           (exp.domain.min_pt, exp.domain.max_pt), unit,
+                                           f"{cfg.name}: what the data determine, what the prior fills",
+                                           tilt_marks(exp) if volume else None), out / "evaluation.png")
     if writer.enabled:
         writer.strip("images/trajectory", [frame(0)] + [frame(i) for i in figures.time_indices(n)], it)
         if residual is not None:

@@ -478,6 +478,16 @@ CORE = (
     Option("patience", "validation", "patience", None, optional(number(1, integer=True)),
            "with holdout: stop after this many evaluations without a new minimum of the held-out residual "
            "(None: never)", Optional[int]),
+    Option("split", "validation", "split", "auto", choice(("auto", True, False)),
+           "the result split into the part the data determine and the part the prior fills (indreg.evaluation: "
+           "result.data_part, result.prior_part); 'auto': on up to 2^21 voxels, off for several time points",
+           Any),
+    Option("uncertainty", "validation", "uncertainty", "auto", choice(("auto", True, False)),
+           "a per-voxel standard deviation by perturbed re-optimisation (indreg.evaluation.uncertainty: "
+           "result.uncertainty); 'auto': on when the run has held-out angles (holdout), up to 2^21 voxels, one "
+           "process, one time point; docs/evaluation.md", Any),
+    Option("uncertainty_samples", "validation", "uncertainty_samples", 8, number(2, integer=True),
+           "re-optimisations of the uncertainty (each about 5 iterations of the run)", int),
 )
 
 _step_size = next(o for o in CORE if o.name == "step_size")
@@ -544,6 +554,10 @@ RUN = (
            "True (a bar on a terminal, log lines on stderr otherwise) or False"),
     Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
     Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),
+    Option("extrapolation", "run", "extrapolation", False, boolean,
+           "the edge validation first (indreg.evaluation.extrapolation): the angles at the edges of the measured "
+           "range held out, the template alone, lddmm, residual and their blends with the template where the data "
+           "cannot see scored on them, the best run on all angles (result.extrapolation); about 3 runs' time"),
 )
 
 

@@ -76,6 +76,7 @@ class ResidualRegistration(IndirectRegistration):
         self.residual_tv = check_nonnegative(residual_tv, "residual_tv", template.dtype)
         self.finish_iter, self.mu_candidates, self.mu_unit = int(finish_iter), tuple(mu_candidates), float(mu_unit)
         self.finish_info: dict = {}
+        self.finish_norms = None   # the finish's step norms (||T||, ||grad||): computed once, kept for re-solves
         self.smoothing = check_nonnegative(smoothing, "residual smoothing", template.dtype)
         if self.smoothing <= 0:
             raise ValueError(f"residual smoothing must be > 0 (the smoothed TV's eps), got {smoothing}")
@@ -182,7 +183,7 @@ class ResidualRegistration(IndirectRegistration):
             return x
         with torch.no_grad():
             W = self.deformed(x[0])
-            solves, self._norms = {}, None
+            solves = {}
             for mu in grid:
                 solves[mu] = self._solve(W, x[1], mu, validation)
             widened = []
@@ -203,10 +204,11 @@ class ResidualRegistration(IndirectRegistration):
         return x if keep else (x[0], solves[mu][0] - W)
 
     def _solve(self, W, r, mu, validation) -> tuple:
-        """``(f, held-out residual)`` of the finish at weight ``mu`` (the steps' norms from the first solve)."""
+        """``(f, held-out residual)`` of the finish at weight ``mu`` (the steps' norms from the first solve, kept in
+        ``finish_norms`` for re-solves on the same operator)."""
         f, history = tv_reconstruction(self.ray_transform, self.data, 2 * mu, self.finish_iter, x0=W + r,
-                                       nonneg=True, anchor=W, norms=self._norms)   # ||.||^2 + mu' TV: mu' = 2 mu
-        self._norms = history["norms"]
+                                       nonneg=True, anchor=W, norms=self.finish_norms)   # ||.||^2 + mu' TV: mu' = 2 mu
+        self.finish_norms = history["norms"]
         return f, validation.residual(f) if validation is not None else float("nan")
 
     def hparams(self) -> dict:

@@ -98,6 +98,10 @@ def register(template, data, operator, **options) -> RegistrationResult:
     >>> result.status, result.iterations
     ('completed', 3)
     """
+    if options.get("extrapolation"):   # the edge validation, then the chosen run (indreg.evaluation.extrapolation)
+        from ..evaluation.extrapolation import register_extrapolating
+
+        return register_extrapolating(template, data, operator, **options)
     with tally_warnings():   # the set-up's, the iterations' and the end's warnings, by kind (result.warnings)
         return _register(template, data, operator, options)
 
@@ -120,9 +124,26 @@ def _register(template, data, operator, options: dict) -> RegistrationResult:
         if handler is not None:
             log.removeHandler(handler)
     result = build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                          orientation=s.orientation, solver=s.solver, box=s.box)
+                          orientation=s.orientation, solver=s.solver, box=s.box,
+                          evaluation=evaluation_options(o))
     result.sigma, result.sigma_scores = float(o["sigma"]), s.sigma_scores
     return result
+
+
+def evaluation_options(o: dict) -> dict:
+    """The options of the result's evaluation (``indreg.evaluation.result.evaluate``) from the resolved ones.
+
+    Parameters
+    ----------
+    o : dict
+        The run's resolved options.
+
+    Returns
+    -------
+    dict
+        ``split``, ``uncertainty`` and ``uncertainty_samples``.
+    """
+    return {k: o[k] for k in ("split", "uncertainty", "uncertainty_samples")}
 
 
 register.__doc__ = fill(register.__doc__)   # the options' entries, from the table (indreg.options.docs)

@@ -519,6 +519,15 @@ class RegistrationResult:
         The wide box of a specimen wider than the field of view (option ``wide_box``), None without: the images are
         then on ``box.domain``, ``box.crop(result.deformed)`` is the field of view (where SSIM / PSNR score against
         a target given on the operator's box).
+    data_part, prior_part : torch.Tensor or None
+        Option ``split``: ``deformed`` split into the part the fitted data determine and the part the prior fills
+        (``indreg.evaluation.parts``); None when off.
+    uncertainty : torch.Tensor or None
+        Option ``uncertainty``: the per-voxel standard deviation (``indreg.evaluation.uncertainty``); None when off.
+    evaluation : dict
+        Their numbers (``split_*``, ``uncertainty_*``; docs/evaluation.md).
+    extrapolation : dict
+        Option ``extrapolation``: the edge validation's choice (``indreg.evaluation.extrapolation``), empty without.
     """
     deformed: torch.Tensor
     momentum: torch.Tensor
@@ -548,6 +557,11 @@ class RegistrationResult:
     sigma: Optional[float] = None
     sigma_scores: dict = field(default_factory=dict)
     warnings_by_kind: dict = field(default_factory=dict)
+    data_part: Optional[torch.Tensor] = field(default=None, repr=False)
+    prior_part: Optional[torch.Tensor] = field(default=None, repr=False)
+    uncertainty: Optional[torch.Tensor] = field(default=None, repr=False)
+    evaluation: dict = field(default_factory=dict)
+    extrapolation: dict = field(default_factory=dict)
 
     def __getattr__(self, name):
         outputs = self.__dict__.get("outputs", {})
@@ -639,7 +653,8 @@ def poor_fit(status: str, residual: float, noise: float, history: list, held_out
 
 def build_result(problem, state, history: list, seconds: float, status: str, target=None,
                  units: Optional[Units] = None, validation=None, trajectory: bool = True,
-                 orientation: str = "", solver=None, box=None) -> RegistrationResult:
+                 orientation: str = "", solver=None, box=None,
+                 evaluation: Optional[dict] = None) -> RegistrationResult:
     """The result at ``state``: reconstruction, trajectory (None if not ``trajectory``: a caller taking the frames
     one at a time, ``problem.image_frames``), velocity, phi_{1,0}, terms, min Jacobian, residual (on the fitted
     data), the model's outputs, SSIM / PSNR against ``target`` (float64, CPU) if given, the held-out residuals of
@@ -648,7 +663,8 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
     ``orientation``: the orientation probe's warning (``Setup.orientation``), repeated as the poor-fit warning;
     ``box``: the wide box (``Setup.box``): SSIM / PSNR on its field of view.
     A problem with a ``finish(x, validation)`` method (``indreg.problems.residual``) replaces the final iterate by
-    its result first."""
+    its result first. ``evaluation``: the options ``split``, ``uncertainty``, ``uncertainty_samples``
+    (``indreg.evaluation.result.evaluate``; None: none of it)."""
     units = units or Units()
     fitted = corrections.summaries(solver, problem)
     finish = getattr(problem, "finish", None)   # a model's last step after the loop (model="residual")
@@ -677,6 +693,12 @@ def build_result(problem, state, history: list, seconds: float, status: str, tar
         result.ssim, result.psnr = metrics.ssim(scored, target), metrics.psnr(scored, target)
     if validation is not None:
         result.holdout = validation.summary(image)
+    if evaluation is not None and status != "failed":
+        from ..evaluation.result import evaluate
+
+        e = evaluate(problem, x, image, solver, evaluation, validation)
+        result.data_part, result.prior_part, result.uncertainty = e["data_part"], e["prior_part"], e["uncertainty"]
+        result.evaluation = e["summary"]
     result.poor_fit = poor_fit(result.status, residual, units.noise_residual, history,
                                result.holdout.get("holdout_residual"), orientation, wider_hint(units, box))
     if result.poor_fit:

@@ -1,0 +1,99 @@
+"""The evaluation steps of the measured-data walk-throughs (examples/real_data_haadf.py, examples/real_data_walnut.py;
+docs/evaluation.md): the split of the registered volume and its check, the flagged-voxel test of the uncertainty,
+the edge validation's table on the missing range, and the files ``indreg-score`` reads to print their tables again.
+
+Convention: volumes ``(nx, ny[, nz])`` as numpy arrays or tensors; ``T`` / ``Y``: operators and data (background
+removed) by set (``fit``, ``validation``, ``test``); scores from ``indreg.evaluation.score`` (the walk-throughs'
+own).
+"""
+from __future__ import annotations
+
+import json
+import shlex
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from indreg.evaluation.score import relative_residual
+from indreg.evaluation.parts import data_split, wedge_split
+
+__all__ = ["split_check", "flagged_voxels", "extrapolation_table", "write_scored", "evaluation_png"]
+
+
+def split_check(result) -> dict:
+    """The split of ``result.deformed`` against the fitted operator, by the range of ``T^*`` (the result's) and,
+    where the geometry is parallel, by the measured wedge: each part's share and how far the prior-filled part
+    projects on the fitted tilts (relative to the volume's projections)."""
+    T, f = result.problem.ray_transform, result.deformed.detach().double()
+    out = {"range": data_split(f, T).summary()}
+    try:
+        out["wedge"] = wedge_split(f, T).summary()
+    except TypeError:   # a fan beam: no wedge
+        pass
+    return out
+
+
+def flagged_voxels(volume, sd, replacement, T, y, fraction: float = 0.05, draws: int = 20, seed: int = 0) -> dict:
+    """Does the reported uncertainty flag the worst voxels? The ``fraction`` of voxels with the largest ``sd``
+    replaced by ``replacement``'s (e.g. TV's), against as many voxels drawn at random (``draws`` times): the
+    relative residual on the tilts ``T``, ``y`` (the missing wedge's) of each, and of the volume as it is."""
+    f = torch.as_tensor(np.asarray(volume, dtype=np.float64))
+    s = torch.as_tensor(np.asarray(sd, dtype=np.float64)).reshape(-1)
+    other = torch.as_tensor(np.asarray(replacement, dtype=np.float64)).reshape(-1)
+    k = max(1, int(round(fraction * s.numel())))
+
+    def replaced(idx) -> float:
+        g = f.reshape(-1).clone()
+        g[idx] = other[idx]
+        return relative_residual(T, g.reshape(f.shape), y)
+
+    rng = np.random.default_rng(seed)
+    random = [replaced(torch.as_tensor(rng.choice(s.numel(), k, replace=False))) for _ in range(draws)]
+    return {"fraction": fraction, "voxels": k, "as_is": relative_residual(T, f, y),
+            "flagged_replaced": replaced(torch.topk(s, k).indices), "random_replaced_mean": float(np.mean(random)),
+            "random_replaced_min": float(np.min(random)), "random_replaced_max": float(np.max(random))}
+
+
+def extrapolation_table(volumes: dict, T: dict, Y: dict, choice) -> dict:
+    """Every volume's relative residual on the test tilts (the missing range) and the validation ones, the edge
+    validation's ``choice`` (``indreg.evaluation.extrapolation.Extrapolation``) beside them."""
+    rows = {name: {"test_residual": relative_residual(T["test"], v, Y["test"]),
+                   "validation_residual": relative_residual(T["validation"], v, Y["validation"])}
+            for name, v in volumes.items()}
+    return {"rows": rows, **choice.summary()}
+
+
+def write_scored(out: Path, stack: np.ndarray, degrees: np.ndarray, sets: dict, operator=None,
+                 interpolation: str = "linear", pixel_angstrom: float = 1.0, volumes=(), background: float = 0.0,
+                 length_unit: str = "nm") -> str:
+    """``out/stack.npy`` + ``stack.tlt`` (the scored tilts as the walk-through scores them: binned, turned, in
+    counts, background not removed), ``alignment.{xf,aln,json}`` of ``operator`` (an ``AlignedOperator`` over those
+    tilts) when given, and the ``indreg-score`` command that prints the walk-through's table again from them
+    (``sets``: name -> indices into ``stack``; ``volumes``: the MRC files to score, relative to ``out``'s
+    parent). Returns the command."""
+    from indreg.alignment.files import write_alignment
+
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "stack.npy", np.ascontiguousarray(stack, dtype=np.float64))
+    (out / "stack.tlt").write_text("".join(f"{a:.10g}\n" for a in degrees))
+    cmd = ["indreg-score", f"{out.name}/stack.npy", *volumes, "--angles", f"{out.name}/stack.tlt",
+           "--pixel-size", repr(float(pixel_angstrom)), "--length-unit", length_unit, "--background",
+           repr(float(background))]
+    if operator is not None:
+        write_alignment(out, operator, pixel_size=pixel_angstrom, extra={"interpolation": interpolation})
+        cmd += ["--alignment", f"{out.name}/alignment.json"]
+    for name, idx in sets.items():
+        cmd += ["--tilts", f"{name}=" + ",".join(str(int(i)) for i in idx)]
+    (out / "sets.json").write_text(json.dumps({k: [int(i) for i in v] for k, v in sets.items()}))
+    return shlex.join(cmd)
+
+
+def evaluation_png(result, path: Path, box, unit: str, title: str, tilt=None) -> None:
+    """``indreg.evaluation.figure`` of the registered volume: its data-determined and prior-filled parts on one
+    scale, its standard deviation."""
+    from indreg.evaluation.figure import evaluation_figure
+
+    fig = evaluation_figure(result.deformed, result.data_part, result.prior_part, result.uncertainty, box, unit,
+                            title, tilt)
+    fig.savefig(path, dpi=100)

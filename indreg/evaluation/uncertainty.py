@@ -1,0 +1,253 @@
+"""A per-voxel standard deviation of a reconstruction by perturbed re-optimisation (randomise, then optimise).
+
+For a linear-Gaussian problem, ``g = A x + n`` with ``n ~ N(0, s^2 I)`` and the prior ``x ~ N(x0, C)``, the
+minimiser of ``||A x - (g + n_b)||^2 / s^2 + ||x - (x0 + p_b)||^2_{C^-1}`` with fresh draws ``n_b ~ N(0, s^2 I)``,
+``p_b ~ N(0, C)`` is an exact sample of the posterior (randomised maximum likelihood; Oliver, He and Reynolds 1996;
+Bardsley, Solonen, Haario and Laine 2014): :func:`perturbed_solutions` draws them and returns their mean and
+standard deviation, which tend to the posterior's.
+
+A registration is not linear and its regulariser is not a calibrated prior (indreg's relative ``gamma`` makes the
+regulariser about 2e-6 of the objective on the HAADF walk-through: a Laplace approximation would take its spread
+from that weight alone). :func:`registration_uncertainty` therefore re-optimises from the run's result, ``samples``
+times, with warm starts: the data re-drawn with white noise of the level the data show
+(``indreg.units.noise_std``), the momentum moved by a smooth random field whose velocity has ``prior`` times the
+result's own root-mean-square velocity (an empirical-Bayes scale: the deformation the data asked for measures how far
+the template was from them), then ``iterations`` steps of Algorithm 1 (and the residual model's finish). Directions
+the data pin down relax back within those steps; those they do not (a missing wedge, a flat region) keep the random
+move. The samples' root-mean-square deviation from the result is reported (their spread, and their common drift
+where the run had not settled), and to its square is added the square of the data's own correction
+(:func:`data_correction`: the least-norm change that the residual's part beyond the noise asks for, by CGLS stopped at
+the noise level, the discrepancy principle): where the data disagree with the result by more than their noise, the
+disagreement is an error the re-optimisations, started from the result, need not show. Nothing is scaled
+afterwards: held-out angles cannot calibrate it where the noise dominates their residual (measured: the held-out
+residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the truth is
+measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard deviations).
+
+Convention: images ``problem.image_domain.shape``; the noise standard deviation per datum in the data's units.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+
+__all__ = ["Uncertainty", "perturbed_solutions", "registration_uncertainty", "data_correction", "coverage", "SAMPLES",
+           "ITERATIONS", "PRIOR"]
+
+#: Defaults of :func:`registration_uncertainty` (chosen in docs/evaluation.md by their calibration and cost).
+SAMPLES, ITERATIONS, PRIOR = 8, 5, 0.25
+
+
+@dataclass
+class Uncertainty:
+    """``sd`` the per-voxel standard deviation and ``mean`` the mean of the samples (the reconstruction's shape);
+    ``samples``, ``iterations``, ``noise_sd`` (per datum), ``prior`` (the momentum's draw relative to the result's
+    velocity), ``seconds`` (wall time)."""
+    sd: torch.Tensor
+    mean: torch.Tensor
+    samples: int
+    iterations: int
+    noise_sd: float
+    prior: float
+    seconds: float
+
+    def summary(self) -> dict:
+        """The numbers, for ``metrics.json`` (keys ``uncertainty_*``)."""
+        sd = self.sd.detach().double()
+        return {"uncertainty_samples": self.samples, "uncertainty_iterations": self.iterations,
+                "uncertainty_noise_sd": self.noise_sd, "uncertainty_prior": self.prior,
+                "uncertainty_seconds": self.seconds, "uncertainty_mean_sd": float(sd.mean()),
+                "uncertainty_max_sd": float(sd.max())}
+
+
+class _Moments:
+    """Welford's running mean and sum of squared deviations (no stack of samples is kept)."""
+
+    def __init__(self):
+        self.n, self.mean, self.m2 = 0, None, None
+
+    def add(self, x: torch.Tensor) -> None:
+        x = x.detach().double()
+        self.n += 1
+        if self.mean is None:
+            self.mean, self.m2 = x.clone(), torch.zeros_like(x)
+            return
+        delta = x - self.mean
+        self.mean.add_(delta / self.n)
+        self.m2.add_(delta * (x - self.mean))
+
+    def sd(self) -> torch.Tensor:
+        return (self.m2 / max(self.n - 1, 1)).sqrt()
+
+
+def perturbed_solutions(solve: Callable, data: torch.Tensor, noise_sd: float, samples: int, seed: int = 0,
+                        prior_draw: Optional[Callable] = None) -> tuple:
+    """Randomise, then optimise: ``solve(data + noise_sd n_b, p_b)`` for ``b < samples`` (module docstring).
+
+    Parameters
+    ----------
+    solve : callable
+        ``solve(g, p) -> x``: the estimate from data ``g`` with the prior's mean moved by ``p`` (None without a
+        ``prior_draw``).
+    data : torch.Tensor
+        The data ``g``.
+    noise_sd : float
+        The noise's standard deviation per datum (>= 0).
+    samples : int
+        How many (>= 2).
+    seed : int
+        Seeds a private generator (the global one is left alone).
+    prior_draw : callable, optional
+        ``prior_draw(generator) -> p``: a draw of the prior's perturbation.
+
+    Returns
+    -------
+    tuple
+        ``(mean, sd)`` of the solutions, float64 (``sd`` with the ``samples - 1`` divisor).
+
+    Raises
+    ------
+    ValueError
+        ``samples < 2`` or a negative or non-finite ``noise_sd``.
+    """
+    if int(samples) < 2 or not (noise_sd >= 0 and math.isfinite(noise_sd)):
+        raise ValueError(f"samples must be >= 2 and noise_sd finite and >= 0, got {samples}, {noise_sd}")
+    gen = torch.Generator(device=data.device).manual_seed(int(seed))
+    moments = _Moments()
+    for _ in range(int(samples)):
+        noise = torch.randn(data.shape, generator=gen, dtype=data.dtype, device=data.device)
+        p = prior_draw(gen) if prior_draw is not None else None
+        moments.add(solve(data + noise_sd * noise, p))
+    return moments.mean, moments.sd()
+
+
+def _momentum_draw(problem, m: torch.Tensor, prior: float) -> Callable:
+    """``gen -> dm``: white noise in space, constant in time, scaled so that its velocity ``K dm`` has ``prior``
+    times the root-mean-square of the result's velocity ``K m`` (0 when the result did not move)."""
+    with torch.no_grad():
+        target = float(problem.velocity(m).pow(2).mean().sqrt()) * prior
+
+    def draw(gen: torch.Generator) -> torch.Tensor:
+        xi = torch.randn(m.shape[1:], generator=gen, dtype=m.dtype, device=m.device).expand_as(m)
+        if target == 0:
+            return torch.zeros_like(m)
+        with torch.no_grad():
+            rms = float(problem.velocity(xi.contiguous()).pow(2).mean().sqrt())
+        return xi * (target / rms) if rms > 0 else torch.zeros_like(m)
+
+    return draw
+
+
+def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = None, samples: int = SAMPLES,
+                             iterations: int = ITERATIONS, prior: float = PRIOR, noise_sd: Optional[float] = None,
+                             seed: int = 0, correction: bool = True) -> Uncertainty:
+    """The per-voxel standard deviation of a registration's reconstruction (module docstring).
+
+    Parameters
+    ----------
+    problem : RegistrationProblem
+        The run's problem (its operator and data are the fitted ones).
+    iterate : tuple
+        The run's final iterate (after the model's finish).
+    steps : list, optional
+        Algorithm 1's step sizes, one per entry of the iterate (the run's last ones; None: Algorithm 1's defaults).
+    samples, iterations : int
+        Re-optimisations, and Algorithm 1 steps in each (each costs about one iteration of the run).
+    prior : float
+        The momentum's random move relative to the result's velocity (0: the data's noise alone).
+    noise_sd : float, optional
+        The data's noise per datum (default ``indreg.units.noise_std(problem.data)``).
+    seed : int
+        Seeds the draws.
+    correction : bool
+        Add the data's correction beyond their noise (:func:`data_correction`) in quadrature.
+
+    Returns
+    -------
+    Uncertainty
+
+    Raises
+    ------
+    TypeError
+        A problem without the protocol's ``data``, ``reconstruction`` and ``velocity``.
+    """
+    from ..solvers import Algorithm1, SolverState
+    from ..units import noise_std
+
+    for member in ("data", "reconstruction", "velocity", "iterate_names"):
+        if not hasattr(problem, member):
+            raise TypeError(f"registration_uncertainty needs a registration problem with {member}, got "
+                            f"{type(problem).__name__}")
+    t0 = time.perf_counter()
+    data = problem.data
+    sigma = noise_std(data) if noise_sd is None else float(noise_sd)
+    sigma = 0.0 if not math.isfinite(sigma) else sigma
+    names = tuple(problem.iterate_names)
+    draw = _momentum_draw(problem, iterate[0], prior) if prior > 0 else None
+    finish = getattr(problem, "finish", None)
+
+    def solve(g: torch.Tensor, dm) -> torch.Tensor:
+        replica = copy.copy(problem)
+        replica.data = g
+        start = [t.detach().clone() for t in iterate]
+        if dm is not None:
+            start[0] = start[0] + dm
+        state = SolverState(start[0], 0, **dict(zip(names[1:], start[1:])))
+        frozen = {"residual": iterations} if "residual" in names[1:] else None   # the finish re-solves it
+        solver = Algorithm1(replica, step_size=None if steps is None else steps[0], max_iter=iterations,
+                            steps=None if steps is None else dict(zip(names[1:], steps[1:])), frozen=frozen)
+        solver.run(state)
+        x = state.iterate
+        if finish is not None:
+            x = _finished(replica, x)
+        return replica.reconstruction(x)
+
+    mean, sd = perturbed_solutions(solve, data, sigma, samples, seed, draw)
+    result = problem.reconstruction(iterate).detach().double()
+    sd = (sd.pow(2) + (mean - result).pow(2)).sqrt()   # about the result: a drift of every sample counts
+    if correction:
+        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma)
+        sd = (sd.pow(2) + d.double().pow(2)).sqrt()
+    return Uncertainty(sd.to(data.dtype), mean.to(data.dtype), int(samples), int(iterations), sigma, float(prior),
+                       time.perf_counter() - t0)
+
+
+def data_correction(operator, image: torch.Tensor, data: torch.Tensor, noise_sd: float, max_iter: int = 100):
+    """The least-norm ``d`` with ``||T (f + d) - g|| <= ||n||``: CGLS for ``T d = g - T f`` from 0, stopped when the
+    residual falls to the noise's norm ``noise_sd sqrt(#data)`` (in the data inner product; the discrepancy
+    principle); 0 where the residual is already within the noise."""
+    from .parts import cgls
+
+    with torch.no_grad():
+        b = data - operator(image)
+        ones = torch.ones_like(b)
+        bound = noise_sd * math.sqrt(max(float(operator.inner_data(ones, ones).sum()), 0.0))
+        return cgls(operator, b, bound, max_iter)[0]
+
+
+#: The residual model's finish in a sample: this fraction of the run's Chambolle-Pock iterations, warm-started, at
+#: the weight the run chose.
+FINISH_FRACTION = 0.25
+
+
+def _finished(replica, x: tuple) -> tuple:
+    """The model's finish on a sample at the run's chosen weight (``finish_info``), with fewer iterations."""
+    info = getattr(replica, "finish_info", {}) or {}
+    if "residual_tv" in info:
+        replica.residual_tv = info["residual_tv"]
+    replica.mu_candidates = ()
+    replica.finish_iter = max(1, int(round(FINISH_FRACTION * getattr(replica, "finish_iter", 0))))
+    return replica.finish(x, None)
+
+
+def coverage(error: torch.Tensor, sd: torch.Tensor, mask: Optional[torch.Tensor] = None, k=(1.0, 2.0)) -> dict:
+    """The fraction of voxels (of ``mask`` when given) whose ``|error|`` is at most ``k`` reported standard
+    deviations, ``{k: fraction}`` (a Gaussian error: 0.683 at 1, 0.954 at 2)."""
+    e, s = error.detach().double().abs(), sd.detach().double()
+    if mask is not None:
+        e, s = e[mask.bool()], s[mask.bool()]
+    return {kk: float((e <= kk * s).double().mean()) for kk in k}

@@ -1,0 +1,105 @@
+"""The per-voxel uncertainty (indreg.evaluation.uncertainty): exact on a linear-Gaussian problem, and on a registration
+computed without touching the run's result."""
+import math
+
+import pytest
+import torch
+
+import indreg
+from indreg import phantoms
+from indreg.evaluation.uncertainty import coverage, data_correction, perturbed_solutions, registration_uncertainty
+
+
+def _linear_gaussian(n=40, m=25, noise=0.1, seed=0):
+    """``g = A x + n``, ``x ~ N(x0, C)`` with a smooth ``C`` (squared exponential, width 3 cells, plus 1 % nugget):
+    the posterior covariance ``(A^T A / s^2 + C^-1)^-1`` and the solver of the perturbed problem (module
+    docstring), exact."""
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.randn(m, n, generator=gen, dtype=torch.float64) / math.sqrt(n)
+    i = torch.arange(n, dtype=torch.float64)
+    C = torch.exp(-(i[:, None] - i[None, :]) ** 2 / 18.0) + 0.01 * torch.eye(n, dtype=torch.float64)
+    Ci, x0 = torch.linalg.inv(C), torch.ones(n, dtype=torch.float64)
+    post = torch.linalg.inv(A.T @ A / noise ** 2 + Ci)
+    L = torch.linalg.cholesky(C)
+
+    def solve(g, p):
+        return post @ (A.T @ g / noise ** 2 + Ci @ (x0 + (0 if p is None else p)))
+
+    return A, L, x0, post, solve, noise, gen
+
+
+def test_perturbed_solutions_sample_the_exact_posterior():
+    A, L, x0, post, solve, noise, gen = _linear_gaussian()
+    x = x0 + L @ torch.randn(40, generator=gen, dtype=torch.float64)
+    g = A @ x + noise * torch.randn(25, generator=gen, dtype=torch.float64)
+    mean, sd = perturbed_solutions(solve, g, noise, 4000, seed=1,
+                                   prior_draw=lambda r: L @ torch.randn(40, generator=r, dtype=torch.float64))
+    exact = post.diagonal().sqrt()
+    assert float(((sd - exact) / exact).abs().max()) < 0.07          # 4000 samples: about 1.1 % each
+    assert float(((mean - solve(g, None)) / exact).abs().max()) < 0.1
+    without_prior = perturbed_solutions(solve, g, noise, 400, seed=1)[1]   # the data's spread only: too small
+    assert float((without_prior / exact).max()) < 0.9
+
+
+def test_the_coverage_is_exact_on_a_linear_gaussian_problem():
+    """Truths drawn from the prior, data from them: the posterior mean +- the perturbed solutions' standard deviation
+    covers 68.3 % / 95.4 % of the truths' values."""
+    A, L, x0, post, solve, noise, gen = _linear_gaussian(seed=2)
+    draw = lambda r: L @ torch.randn(40, generator=r, dtype=torch.float64)   # noqa: E731
+    _, sd = perturbed_solutions(solve, torch.zeros(25, dtype=torch.float64), noise, 3000, seed=3, prior_draw=draw)
+    errors = []
+    for _ in range(300):
+        x = x0 + draw(gen)
+        g = A @ x + noise * torch.randn(25, generator=gen, dtype=torch.float64)
+        errors.append(solve(g, None) - x)
+    c = coverage(torch.stack(errors), sd.expand(300, 40))
+    assert abs(c[1] - 0.683) < 0.02 and abs(c[2] - 0.954) < 0.01
+
+
+@pytest.fixture(scope="module")
+def small():
+    d = indreg.ImageDomain.paper(32)
+    T = indreg.RayTransform(d, indreg.ParallelBeamGeometry.paper(10, 46))
+    target = phantoms.get("v", d).double()
+    g = T(target) + 0.05 * torch.randn(T.range_shape, generator=torch.Generator().manual_seed(0),
+                                       dtype=torch.float64)
+    return phantoms.get("j", d).double(), g, T
+
+
+def test_register_reports_the_uncertainty_without_changing_its_result(small):
+    I, g, T = small
+    kw = dict(sigma=4.0, max_iter=6, holdout=5)
+    on = indreg.register(I, g, T, uncertainty_samples=2, **kw)
+    off = indreg.register(I, g, T, uncertainty=False, **kw)
+    assert torch.equal(on.deformed, off.deformed) and off.uncertainty is None
+    sd = on.uncertainty
+    assert sd.shape == I.shape and bool(torch.isfinite(sd).all()) and float(sd.min()) >= 0 < float(sd.max())
+    e = on.evaluation
+    assert e["uncertainty_samples"] == 2 and e["uncertainty_seconds"] > 0 and e["split_projection_difference"] < 2e-3
+    assert torch.allclose(on.data_part + on.prior_part, on.deformed, atol=1e-12)
+    plain = indreg.register(I, g, T, sigma=4.0, max_iter=2)   # "auto": no held-out angles, no uncertainty
+    assert plain.uncertainty is None and plain.data_part is not None
+    with pytest.raises(ValueError, match="uncertainty"):
+        indreg.register(I, g, T, uncertainty="yes", max_iter=1)
+
+
+def test_the_samples_are_seeded_and_leave_the_problem_alone(small):
+    I, g, T = small
+    from indreg.registration.run import initial_state, setup
+
+    s = setup(I, g, T, sigma=4.0, model="residual", residual_finish_iter=8)
+    x = s.problem.finish(initial_state(s.problem).iterate, None)   # as build_result: the finish first
+    data = s.problem.data.clone()
+    a = registration_uncertainty(s.problem, x, samples=2, iterations=1, seed=5)
+    b = registration_uncertainty(s.problem, x, samples=2, iterations=1, seed=5)
+    assert torch.equal(a.sd, b.sd) and torch.equal(s.problem.data, data) and s.problem.mu_candidates
+    with pytest.raises(TypeError, match="registration problem"):
+        registration_uncertainty(object(), x)
+
+
+def test_the_data_correction_stops_at_the_noise(small):
+    I, g, T = small
+    d = data_correction(T, I, g, 0.0, max_iter=60)
+    r = T(I + d) - g
+    assert float(T.inner_data(r, r)) < 0.05 * float(T.inner_data(g - T(I), g - T(I)))
+    assert float(data_correction(T, I, g, 1e6).abs().max()) == 0.0   # all within the noise: nothing
