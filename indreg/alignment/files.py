@@ -378,7 +378,8 @@ def from_operator(op: AlignedOperator, frames=None, raw_size=None, source: str =
     frames : array_like, optional
         The raw stack's sections of its tilts (default ``0 .. K-1``).
     raw_size : tuple, optional
-        ``(nx, ny, sections)`` of the raw stack.
+        ``(nx, ny, sections)`` of the raw stack (default: ``op``'s images, columns by rows, and the sections up to
+        the last of ``frames``).
     source : str
         Recorded as ``Alignment.source``.
 
@@ -400,6 +401,9 @@ def from_operator(op: AlignedOperator, frames=None, raw_size=None, source: str =
     shifts = op.shifts.detach().cpu().numpy() - np.einsum("ij,kj->ki", Dinv, c - np.einsum("kij,j->ki", M_phys, c))
     angles = np.degrees(op.operator.geometry.angles.detach().cpu().numpy())
     frames = np.arange(K) if frames is None else np.asarray(frames)
+    if raw_size is None:
+        rows, cols = op.range_shape[-2:]
+        raw_size = (int(cols), int(rows), int(frames.max()) + 1)
     return Alignment(Dinv @ M_phys @ D, shifts, angles, frames, raw_size, source)
 
 

@@ -1,5 +1,5 @@
-"""The evaluation of a run's result (``indreg.run.build_result``): its split into the data-determined and the
-prior-filled part, and its per-voxel uncertainty, as the options ``split`` and ``uncertainty`` ask.
+"""The evaluation of a run's result (``indreg.registration.run.build_result``): its split into the data-determined
+and the prior-filled part, and its per-voxel uncertainty, as the options ``split`` and ``uncertainty`` ask.
 
 Convention: the split is of the reconstruction against the operator of the fitted data (the held-out angles
 excluded, the alignment included); the uncertainty re-optimises the run's problem (:mod:`.uncertainty`).
