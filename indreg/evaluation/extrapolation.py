@@ -56,7 +56,27 @@ def row_angles(operator) -> np.ndarray:
 def edge_split(degrees, rows=None, fraction: float = EDGE_FRACTION) -> tuple:
     """``(inner, edge)`` sorted indices among ``rows`` (default all) of the angles ``degrees``: ``edge`` those whose
     circular distance from the range's centre (the circular mean) is at least ``1 - fraction`` of the largest, on
-    each side at least the outermost one. Raises ValueError for a fraction outside (0, 1) or fewer than 4 rows."""
+    each side at least the outermost one.
+
+    Parameters
+    ----------
+    degrees : array_like
+        The angles of the data's rows, in degrees.
+    rows : iterable of int, optional
+        The indices of ``degrees`` to split (default all).
+    fraction : float
+        The outer part of the range's half-width held out on each side, in (0, 1).
+
+    Returns
+    -------
+    tuple
+        ``(inner, edge)``: two sorted lists of row indices.
+
+    Raises
+    ------
+    ValueError
+        A fraction outside (0, 1), fewer than 4 rows, or fewer than 2 rows left to fit.
+    """
     if not 0 < fraction < 1:
         raise ValueError(f"edge_fraction must be in (0, 1), got {fraction}")
     d = np.asarray(degrees, dtype=np.float64)
@@ -169,6 +189,9 @@ def choose_extrapolation(template, data, operator, models=MODELS, alphas=ALPHAS,
         The outer part of the measured range held out on each side.
     angles : array, optional
         The rows' angles in degrees (default: the operator's).
+    **options
+        ``register()``'s options, passed to each trial (less ``holdout`` and ``extrapolation``); the rows of
+        ``holdout`` are left out of the split.
 
     Returns
     -------
@@ -209,7 +232,34 @@ def register_extrapolating(template, data, operator, models=MODELS, alphas=ALPHA
     the angles (the template alone: no deformation, ``max_iter=0``), its volume moved by the chosen ``alpha``
     towards the template's prior-filled part; ``result.deformed`` is that volume, ``result.outputs["registered"]``
     the registration before it, ``result.extrapolation`` the report (:meth:`Extrapolation.summary`); the other
-    fields (``holdout``, ``residual``, ``uncertainty``) are the registration's."""
+    fields (``holdout``, ``residual``, ``uncertainty``) are the registration's.
+
+    Parameters
+    ----------
+    template, data, operator
+        As ``indreg.register``.
+    models : tuple
+        The models tried (``register()``'s ``model`` names).
+    alphas : tuple
+        The fractions of the template's prior-filled part tried (0: the registration as it is).
+    edge_fraction : float
+        The outer part of the measured range held out on each side.
+    angles : array, optional
+        The rows' angles in degrees (default: the operator's).
+    **options
+        ``register()``'s options, for the trials (:func:`choose_extrapolation`) and the final run (less
+        ``extrapolation``, and those of other models than the chosen one).
+
+    Returns
+    -------
+    RegistrationResult
+        The chosen run's result, with ``deformed``, ``outputs["registered"]`` and ``extrapolation`` as above.
+
+    Raises
+    ------
+    ValueError
+        Too few rows, a bad fraction; ``register()``'s errors.
+    """
     from ..registration.api import register
     from .parts import data_split
 

@@ -34,10 +34,24 @@ DEFAULT_TOL = 1e-3
 
 @dataclass
 class Split:
-    """``volume = data + prior``: ``data`` the data-determined part, ``prior`` the prior-filled part (tensors of the
-    volume's shape). ``method``: ``"range"`` or ``"wedge"``; ``iterations``: CGLS iterations (0 for the wedge);
-    ``projection_difference``: ``||T data - T f|| / ||T f||`` (= ``||T prior|| / ||T f||``), ``prior_fraction``:
-    ``||prior|| / ||f||``."""
+    """``volume = data + prior``: the data-determined and the prior-filled parts of a volume ``f``
+    (:func:`data_split`, :func:`wedge_split`).
+
+    Attributes
+    ----------
+    data : torch.Tensor
+        The data-determined part (the volume's shape).
+    prior : torch.Tensor
+        The prior-filled part (the volume's shape), ``f - data``.
+    method : str
+        ``"range"`` or ``"wedge"``.
+    iterations : int
+        CGLS iterations (0 for the wedge).
+    projection_difference : float
+        ``||T data - T f|| / ||T f||`` (= ``||T prior|| / ||T f||``; 0 when ``T f`` is 0).
+    prior_fraction : float
+        ``||prior|| / ||f||`` (0 for an all-zero ``f``).
+    """
     data: torch.Tensor
     prior: torch.Tensor
     method: str
@@ -158,7 +172,22 @@ def parallel_angles(operator) -> tuple:
 def wedge_mask(shape: tuple, cells: tuple, angles: torch.Tensor) -> torch.Tensor:
     """A boolean ``shape`` (``(n_u, n_v)``) mask of the FFT frequencies (``torch.fft.fftfreq`` order) whose
     direction ``(k_u, k_v)`` lies, up to sign, within the tilt range of ``angles`` (radians) widened by half the
-    median step at each end; the zero frequency is measured. All of them when the widened range covers pi."""
+    median step at each end; the zero frequency is measured. All of them when the widened range covers pi.
+
+    Parameters
+    ----------
+    shape : tuple
+        ``(n_u, n_v)``: the slice's sizes along its two axes.
+    cells : tuple
+        ``(cell_u, cell_v)``: the voxel sides along those axes (the sample spacings of ``torch.fft.fftfreq``).
+    angles : torch.Tensor
+        The tilts or projection angles in radians (any order; taken modulo pi into ``[-pi/2, pi/2)``).
+
+    Returns
+    -------
+    torch.Tensor
+        Boolean, of ``shape``: True where the frequency is measured.
+    """
     a = torch.sort(torch.remainder(torch.as_tensor(angles, dtype=torch.float64) + math.pi / 2, math.pi)
                    - math.pi / 2).values
     step = float(torch.diff(a).median()) if a.numel() > 1 else 0.0

@@ -25,7 +25,24 @@ NOISE_ROW = "noise floor (estimated)"
 
 @torch.no_grad()
 def relative_residual(T, x: torch.Tensor, y: torch.Tensor, scale: float = 1.0) -> float:
-    """``||scale T x - y|| / ||y||`` in ``T``'s data inner product (float64; nan for all-zero ``y``)."""
+    """``||scale T x - y|| / ||y||`` in ``T``'s data inner product (float64; nan for all-zero ``y``).
+
+    Parameters
+    ----------
+    T : LinearOperator
+        The operator of the scored tilts or angles (``T(x)`` and ``T.inner_data``).
+    x : torch.Tensor or array_like
+        The volume, ``T``'s domain shape.
+    y : torch.Tensor or array_like
+        The data, ``T``'s range shape (background removed).
+    scale : float
+        The volume's intensity scale ``c``.
+
+    Returns
+    -------
+    float
+        The relative residual (nan when ``y`` is all zero).
+    """
     x = torch.as_tensor(x).to(torch.float64)
     y = torch.as_tensor(y).to(torch.float64)
     r = scale * T(x) - y
@@ -86,7 +103,30 @@ def score_volumes(volumes: dict, operators: dict, data: dict, scales: dict | Non
 
 def score_table(scores: dict, sets: list, fmt: str = "markdown", counts: dict | None = None) -> str:
     """The scores as a Markdown table (``| volume | <set> (n) | ... | scale |``) or CSV (``volume,<set>,...,scale``),
-    residuals to 4 decimals (``counts``: tilts per set, shown in the Markdown header)."""
+    residuals to 4 decimals (``counts``: tilts per set, shown in the Markdown header).
+
+    Parameters
+    ----------
+    scores : dict
+        ``name -> {"<set>_residual": ..., "scale": c}`` (:func:`score_volumes`; a row without ``scale`` leaves the
+        cell empty), one row each, in order.
+    sets : list
+        The set names, the columns in order (each row must have their ``<set>_residual``).
+    fmt : {"markdown", "csv"}
+        The table's format.
+    counts : dict, optional
+        ``set name -> number of tilts``, shown in the Markdown header (ignored for CSV).
+
+    Returns
+    -------
+    str
+        The table, ending in a newline.
+
+    Raises
+    ------
+    ValueError
+        ``fmt`` neither ``"markdown"`` nor ``"csv"``.
+    """
     if fmt not in ("markdown", "csv"):
         raise ValueError(f"fmt must be 'markdown' or 'csv', got {fmt!r}")
     counts = counts or {}

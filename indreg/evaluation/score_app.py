@@ -4,28 +4,29 @@ indreg's operator, with the score of the walk-throughs (:mod:`indreg.evaluation.
     indreg-score STACK VOLUME [VOLUME ...] [--angles STACK.tlt] [--alignment FILE.xf|.aln|.json] [--bin 4]
         [--tilts test=1,3,5 --tilts validation=">=42"] [--scale 1|fit] [--csv table.csv] [--markdown table.md]
 
-Convention:
-    - The stack as stored (``indreg.io.read_tilt_series``: sections = tilts, ``(Y, X)`` images, the tilt axis along
-      Y after the alignment), its angles from ``--angles`` or the ``.tlt`` / ``.rawtlt`` beside it; ``--bin b``
-      averages ``b x b`` pixels; ``--background`` is subtracted (``auto``: the median of the outermost detector
-      columns, ``indreg.units.border_level``; ``none``; or a number in the stack's counts).
-    - The alignment (``--alignment``): IMOD ``.xf`` (with the stack's angles), AreTomo ``.aln`` or indreg's record
-      (the ``.json`` of ``indreg-align`` or of a walk-through), in pixels of the stack as stored
-      (``indreg.alignment.files``); applied in the operator, not by resampling. Without it the stack is taken
-      as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's;
-      ``indreg.alignment.tilt_axis``).
-    - A volume ``(nx, ny, nz)`` in indreg's layout (x across the tilt axis, y along it, z the beam at tilt 0; an MRC
-      file's sections are z): ``.mrc``, ``.npy`` / ``.npz`` / ``.h5``, or OME-Zarr (``.zarr``, optional package
-      ``ome-zarr``); ``--swap-yz`` for a volume stored with y and z exchanged (IMOD's ``tilt`` output before
-      ``trimvol -rx``), ``--flip-z`` for the other handedness. One slice per detector row: ``ny`` must be the
-      binned stack's rows and the voxel side along y its pixel (``--pixel-size`` times ``--bin``; voxel sizes from
-      the MRC header or ``--voxel-size``, Angstrom).
-    - ``--scale 1``: the volume is in the data's units (intensity per ``--length-unit``); a volume whose
-      least-squares scale on the scored tilts is outside [1/3, 3] is refused in one line. ``--scale fit``: each
-      volume's scale fitted by least squares on ``--scale-tilts`` (default: the aligned tilts in no scored set).
-    - ``--tilts NAME=SPEC`` (repeatable; default ``all=all``): SPEC is a comma list (union) of ``i`` / ``i-j``
-      (0-based section indices), ``odd``, ``even``, ``all``, ``>=D`` / ``<D`` (``|angle|`` in degrees), joined by
-      ``&`` for an intersection: ``odd&>=42``.
+Notes
+-----
+- The stack as stored (``indreg.io.read_tilt_series``: sections = tilts, ``(Y, X)`` images, the tilt axis along
+  Y after the alignment), its angles from ``--angles`` or the ``.tlt`` / ``.rawtlt`` beside it; ``--bin b``
+  averages ``b x b`` pixels; ``--background`` is subtracted (``auto``: the median of the outermost detector
+  columns, ``indreg.units.border_level``; ``none``; or a number in the stack's counts).
+- The alignment (``--alignment``): IMOD ``.xf`` (with the stack's angles), AreTomo ``.aln`` or indreg's record
+  (the ``.json`` of ``indreg-align`` or of a walk-through), in pixels of the stack as stored
+  (``indreg.alignment.files``); applied in the operator, not by resampling. Without it the stack is taken
+  as aligned, its tilt axis turned onto Y by ``--tilt-axis-angle`` (degrees, IMOD's;
+  ``indreg.alignment.tilt_axis``).
+- A volume ``(nx, ny, nz)`` in indreg's layout (x across the tilt axis, y along it, z the beam at tilt 0; an MRC
+  file's sections are z): ``.mrc``, ``.npy`` / ``.npz`` / ``.h5``, or OME-Zarr (``.zarr``, optional package
+  ``ome-zarr``); ``--swap-yz`` for a volume stored with y and z exchanged (IMOD's ``tilt`` output before
+  ``trimvol -rx``), ``--flip-z`` for the other handedness. One slice per detector row: ``ny`` must be the
+  binned stack's rows and the voxel side along y its pixel (``--pixel-size`` times ``--bin``; voxel sizes from
+  the MRC header or ``--voxel-size``, Angstrom).
+- ``--scale 1``: the volume is in the data's units (intensity per ``--length-unit``); a volume whose
+  least-squares scale on the scored tilts is outside [1/3, 3] is refused in one line. ``--scale fit``: each
+  volume's scale fitted by least squares on ``--scale-tilts`` (default: the aligned tilts in no scored set).
+- ``--tilts NAME=SPEC`` (repeatable; default ``all=all``): SPEC is a comma list (union) of ``i`` / ``i-j``
+  (0-based section indices), ``odd``, ``even``, ``all``, ``>=D`` / ``<D`` (``|angle|`` in degrees), joined by
+  ``&`` for an intersection: ``odd&>=42``.
 """
 from __future__ import annotations
 

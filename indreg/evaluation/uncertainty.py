@@ -44,9 +44,25 @@ SAMPLES, ITERATIONS, PRIOR = 8, 5, 0.25
 
 @dataclass
 class Uncertainty:
-    """``sd`` the per-voxel standard deviation and ``mean`` the mean of the samples (the reconstruction's shape);
-    ``samples``, ``iterations``, ``noise_sd`` (per datum), ``prior`` (the momentum's draw relative to the result's
-    velocity), ``seconds`` (wall time)."""
+    """:func:`registration_uncertainty`'s result.
+
+    Attributes
+    ----------
+    sd : torch.Tensor
+        The per-voxel standard deviation (the reconstruction's shape).
+    mean : torch.Tensor
+        The mean of the samples (the reconstruction's shape).
+    samples : int
+        The number of re-optimisations.
+    iterations : int
+        Algorithm 1 steps in each.
+    noise_sd : float
+        The data's noise standard deviation per datum.
+    prior : float
+        The momentum's draw relative to the result's velocity.
+    seconds : float
+        Wall time.
+    """
     sd: torch.Tensor
     mean: torch.Tensor
     samples: int
@@ -246,7 +262,24 @@ def _finished(replica, x: tuple) -> tuple:
 
 def coverage(error: torch.Tensor, sd: torch.Tensor, mask: Optional[torch.Tensor] = None, k=(1.0, 2.0)) -> dict:
     """The fraction of voxels (of ``mask`` when given) whose ``|error|`` is at most ``k`` reported standard
-    deviations, ``{k: fraction}`` (a Gaussian error: 0.683 at 1, 0.954 at 2)."""
+    deviations, ``{k: fraction}`` (a Gaussian error: 0.683 at 1, 0.954 at 2).
+
+    Parameters
+    ----------
+    error : torch.Tensor
+        The reconstruction's error (e.g. reconstruction minus the truth).
+    sd : torch.Tensor
+        The reported per-voxel standard deviation, of ``error``'s shape.
+    mask : torch.Tensor, optional
+        The voxels counted (taken as boolean; default all).
+    k : iterable of float
+        The multiples of ``sd``.
+
+    Returns
+    -------
+    dict
+        ``{k: fraction}``, one entry per multiple (floats in [0, 1]).
+    """
     e, s = error.detach().double().abs(), sd.detach().double()
     if mask is not None:
         e, s = e[mask.bool()], s[mask.bool()]
