@@ -40,6 +40,9 @@ Notes
 - Bad input raises one line before any computation: :class:`indreg.io.DataFileError` for a file (naming it),
   a count or shape that does not fit, or a geometry that cannot be built; ``ValueError`` / ``TypeError`` for
   an argument's value (inline angles, ``angle_unit``, ``half_width``, an array).
+
+Longer than 450 lines: ``load`` and its readers of each kind of input share one set of checks; the module docstring
+is the user's guide to them.
 """
 from __future__ import annotations
 

@@ -25,6 +25,9 @@ electron-tomography suite ET-3D.
 means of ``supersample^3`` points (default 2), rows ``(value, a, b, c, cx, cy, cz, phi, theta, psi)`` with
 ZXZ Euler angles in degrees (``ellipsoid_rotation``); exact line integrals ``ellipsoid_line_integrals``.
 The ET-3D target is the template deformed by the analytic volume-preserving swirl-and-bend ``swirl_bend``.
+
+Longer than 450 lines: the catalogue of the paper's phantoms (its four suites, the 3D extensions), one short
+function each, kept in the one module whose names ``phantoms.get`` looks up; most lines are their numbers.
 """
 from __future__ import annotations
 

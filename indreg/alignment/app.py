@@ -304,6 +304,8 @@ def _peak_rss() -> int:
 
 def run(args) -> dict:
     """The whole run (module docstring); returns the JSON record written as ``align.json``."""
+    # Longer than 80 lines: the aligner's steps in their order (read, check, estimate on the compact or the slab path,
+    # write, reconstruct, record), each one call; split, the record's names would be passed through every piece.
     import torch
 
     from .. import io

@@ -23,6 +23,9 @@ Notes
 - In the operator (:func:`to_operator`): ``AlignedOperator(T, shifts, 0, matrices=B)`` with ``B_k`` the map
   ``M_k`` in the detector's physical units and the shifts in pixels (the tilt-axis angle ``alpha`` starts at
   0 and is refined on top: ``p = R(alpha) B_k q + shift``); :func:`from_operator` goes back.
+
+Longer than 450 lines: the readers and writers of IMOD's and AreTomo's files share the maps' conventions and one-
+line checks.
 """
 from __future__ import annotations
 

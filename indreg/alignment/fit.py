@@ -21,6 +21,9 @@ Notes
   shifts move the data onto it and the deformation is left the change of shape (:data:`ALIGN_GAUGES`).
 - Bound: ``|s| <= MAX_SHIFT_FRACTION`` of the detector's extent along the component, ``|alpha| <=
   MAX_ANGLE_DEG``; a shift or angle clamped to its bound is reported by a warning.
+
+Longer than 450 lines: one algorithm (projection matching's Gauss-Newton step with its gauge, bounds and prior),
+most of it numpydoc.
 """
 from __future__ import annotations
 

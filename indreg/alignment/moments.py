@@ -33,6 +33,8 @@ Notes
   of the specimen explains), ``d_k`` mean zero.
 - Scales (``scales=True``, the default): tilt ``k``'s ``G`` is ``a_k`` times the conditions (an exposure or a
   signal that changes with the path length), ``a_k`` fitted by least squares against them, mean 1.
+
+Longer than 450 lines: one method (the moment conditions) with its scan, binning and standard error.
 """
 from __future__ import annotations
 

@@ -5,6 +5,9 @@ on the way (a broken yaml file on the search path, a launcher whose plugin is no
 that cannot be created) would end in Hydra's traceback, some files already written. :func:`preflight` does the
 same composition first and turns every such problem into one line ``<prog>: error: ...`` and exit status 1,
 with nothing written.
+
+Longer than 450 lines: every check before Hydra starts, for both apps, on one parser of the command line (the rerun
+flag's guard, help, misspelt keys).
 """
 from __future__ import annotations
 

@@ -10,6 +10,8 @@ Every image panel has a colour bar (panels on one grey scale share its values); 
 by ``unit`` (e.g. ``"nm"``; None: the box's own units) and with a scale bar. Signed images (an error
 ``result - target``, a data residual ``T f - g``, metamorphosis' intensity part) use the diverging map
 :data:`DIVERGING`, symmetric about 0 (white).
+
+Longer than 450 lines: the paper's figure layouts, one function per panel kind, sharing the scale bars and units.
 """
 from __future__ import annotations
 

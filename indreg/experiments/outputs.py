@@ -156,6 +156,8 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     Without a target (measured data) SSIM / PSNR, ``target.npy`` and ``data_clean.npy`` are absent; the relative
     data residual ``residual = ||T f - g|| / ||g||`` is always reported. The model's own outputs (e.g. a source and
     the parts of f(1)) are saved by name; those it scores (``problem.scored``) get SSIM / PSNR."""
+    # Longer than 80 lines: the end of a run in its order (result, metrics, files, figures, record, the last line),
+    # each a call sharing the run's arrays.
     from .tblog import METRICS
 
     problem, it = exp.problem, state.iteration

@@ -28,6 +28,9 @@ Notes
   CPU) are refused by a one-line ``ValueError`` naming both; an argument that is no operator by a
   ``TypeError`` naming what it lacks.
 - ``on_domain(domain)`` (coarse-to-fine solvers) where every part has it, else ``on_domain`` is None.
+
+Longer than 450 lines: the operator algebra's classes (composition, sum, multiple) and mixins, each short, with
+their adjoints in docstrings.
 """
 from __future__ import annotations
 

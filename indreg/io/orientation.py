@@ -27,6 +27,9 @@ Notes
 -----
 ``template`` ``operator.domain.shape``, ``data`` ``operator.range_shape`` (the prepared inputs of
 ``indreg.registration.run.setup``); the angles on the first data axis, detector columns on the last.
+
+Longer than 450 lines: the one home of orientation probing: the readings, the probe and the load's check share the
+correlation.
 """
 from __future__ import annotations
 

@@ -31,6 +31,9 @@ Outputs in the run directory: ``tensorboard/`` (scalars ``train/loss``, ``train/
 (model, optimizer, step, RNG), ``metrics.json`` (``network``: the trained model, ``schemes``: every scheme, ``ood``:
 out of distribution), ``figure.png`` (held-out examples: template, FBP, prediction with its SSIM, target; axes in
 the domain's units).
+
+Longer than 450 lines: one training loop with its checkpoint, resume and preflight checks, which share the config's
+keys.
 """
 from __future__ import annotations
 
@@ -408,6 +411,7 @@ def training_terms(cfg, net, model, parts, batch, unrolled: bool) -> dict:
 
 def train(cfg, run_dir) -> dict:
     """Train (resuming from ``<run_dir>/checkpoint.pt`` when ``train.resume``), evaluate, return the metrics."""
+    # Longer than 80 lines: one training loop with its checkpoint, validation and logging steps in their order.
     rank, world, device = init_distributed(str(cfg.device))
     dtype = DTYPES[str(cfg.dtype)]
     if world > 1:                          # every rank writes where rank 0 does (Hydra dirs may differ)

@@ -11,6 +11,9 @@ the app drops such values silently, because its presets set them for their own s
 
 Models add their own options (``indreg.registration.models.Model.options``), so a new model's options reach both entry
 points without editing this file.
+
+Longer than 450 lines: the option table is declared once (the schema, the docs and the checks are generated from
+it); the checks themselves live in ``indreg.options.checks``.
 """
 from __future__ import annotations
 

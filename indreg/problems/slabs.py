@@ -24,6 +24,8 @@ data ``(num_tilts, det_rows, det_cols)`` with row ``j`` the slice ``j`` along ``
 ``[start, stop)`` of fine slice indices; coarse fields ``(C, *velocity_domain.shape)``; displacements in grid units
 (``2 / extent`` times physical lengths, the same on both grids); ``slab_size`` counts fine slices, ``max_memory``
 bytes. 3D only (a tilt series); float32 / float64, any device.
+
+Longer than 450 lines: one algorithm: the slab-wise data term, its memory bound and its all-reduce over ranks.
 """
 from __future__ import annotations
 
