@@ -245,9 +245,10 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     except StepOverflowError as e:   # found only in the run: one line naming the config key
         writer.close()
         raise ConfigError(f"invalid configuration: {e.message(_config_key)}") from None
-    if rank != 0:   # its part of rank 0's outputs: the final evaluation's sum, its slabs of the trajectory's frames
-        if status not in ("failed", "stopped", "interrupted"):
+    if rank != 0:   # its part of rank 0's outputs (build_result's collectives, in its order): the final evaluation's
+        if status not in ("failed", "stopped", "interrupted"):   # sum, the residual's, its slabs of the frames
             problem.evaluate_iterate(state.iterate)
+            problem.relative_residual(state.iterate)
             for _ in problem.image_frames(state.iterate):
                 pass
         return {"status": status, "iteration": state.iteration, "rank": rank}
