@@ -57,7 +57,7 @@ def flagged_voxels(volume, sd, replacement, T, y, fraction: float = 0.05, draws:
 
 def extrapolation_table(volumes: dict, T: dict, Y: dict, choice) -> dict:
     """Every volume's relative residual on the test tilts (the missing range) and the validation ones, the edge
-    validation's ``choice`` (``indreg.evaluation.extrapolation.Extrapolation``) beside them."""
+    validation's ``choice`` (``indreg.registration.extrapolation.Extrapolation``) beside them."""
     rows = {name: {"test_residual": relative_residual(T["test"], v, Y["test"]),
                    "validation_residual": relative_residual(T["validation"], v, Y["validation"])}
             for name, v in volumes.items()}
@@ -90,9 +90,9 @@ def write_scored(out: Path, stack: np.ndarray, degrees: np.ndarray, sets: dict, 
 
 
 def evaluation_png(result, path: Path, box, unit: str, title: str, tilt=None) -> None:
-    """``indreg.evaluation.figure`` of the registered volume: its data-determined and prior-filled parts on one
+    """``indreg.experiments.evaluation_figure`` of the registered volume: its data-determined and prior-filled parts on one
     scale, its standard deviation."""
-    from indreg.evaluation.figure import evaluation_figure
+    from indreg.experiments.evaluation_figure import evaluation_figure
 
     fig = evaluation_figure(result.deformed, result.data_part, result.prior_part, result.uncertainty, box, unit,
                             title, tilt)

@@ -79,7 +79,7 @@ from indreg.registration.run import count_halvings
 from indreg.forward.tv import intensity_scale
 from indreg.units import border_level, check_offset, prepare
 from indreg.alignment.tilt_axis import align_tilt_axis, check_tilt_axis
-from indreg.evaluation.extrapolation import blend, choose_extrapolation
+from indreg.registration.extrapolation import blend, choose_extrapolation
 from indreg.evaluation.score import relative_residual
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # its companion, haadf_files.py
@@ -329,7 +329,7 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
     validation tilts; ``"lddmm"``); ``interpolation``: the deformation's
     (``"reinterpolate"``, the paper's, as this page was measured); ``dtype``: the registration's, the template
     scan's SIRT and projection matching's, the baselines' (the scores are in float64); ``extrapolation``: the edge
-    validation (``indreg.evaluation.extrapolation``) and its table on the test tilts (:func:`extrapolate`)."""
+    validation (``indreg.registration.extrapolation``) and its table on the test tilts (:func:`extrapolate`)."""
     if stack not in ("raw", "aligned"):
         raise ValueError(f"stack must be 'raw' or 'aligned', got {stack!r}")
     if dtype not in ("float32", "float64"):
@@ -528,7 +528,7 @@ def evaluate(metrics: dict, result, base: dict, T: dict, Y: dict, domain: ImageD
 
 
 def extrapolate(d, options: dict, model: str, result, template: np.ndarray, T: dict, Y: dict) -> dict:
-    """Section 11: the edge validation's choice (``indreg.evaluation.extrapolation.choose_extrapolation``, the
+    """Section 11: the edge validation's choice (``indreg.registration.extrapolation.choose_extrapolation``, the
     run's options) and the test tilts' residual of the template alone, LDDMM, the residual model and the chosen
     volume (the chosen model's run blended towards the template by its ``alpha``)."""
     choice = choose_extrapolation(d.template, d.data, d.operator, **options)

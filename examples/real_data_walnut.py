@@ -379,7 +379,7 @@ def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_fact
 def extrapolate(template, data, T_data, options: dict, model: str, result, scaled_template, T: dict, Y: dict) -> dict:
     """The edge validation's choice and the test angles' residual of the template alone, LDDMM, the residual model
     and the chosen image (as the HAADF walk-through's ``extrapolate``)."""
-    from indreg.evaluation.extrapolation import blend, choose_extrapolation
+    from indreg.registration.extrapolation import blend, choose_extrapolation
 
     choice = choose_extrapolation(template, data, T_data, **options)
     other = "lddmm" if model == "residual" else "residual"

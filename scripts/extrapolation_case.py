@@ -7,7 +7,7 @@ degrees (3-degree steps, 92 bins), white noise at ``--snr`` dB; of the angles wi
 is fitted and the others held out for validation; every angle outside the range is the test set (the missing
 range, used by nothing). Printed: the relative residual on the validation and the test angles of the template alone,
 LDDMM, the residual model (``register()``'s defaults, ``sigma=2``) and the volume the edge validation picks
-(``indreg.evaluation.extrapolation``), and the edge validation's own scores.
+(``indreg.registration.extrapolation``), and the edge validation's own scores.
 
     python scripts/extrapolation_case.py [--offset 1] [--range 30] [--snr 10] [--template-snr 15]
 """
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from indreg import noise, phantoms
-from indreg.evaluation.extrapolation import blend, choose_extrapolation
+from indreg.registration.extrapolation import blend, choose_extrapolation
 from indreg.evaluation.score import relative_residual
 from indreg.forward import sirt
 

@@ -7,8 +7,9 @@
 - :mod:`~indreg.evaluation.uncertainty`: a per-voxel standard deviation by perturbed re-optimisation with warm starts
   (``registration_uncertainty``; ``perturbed_solutions``, exact for a linear-Gaussian problem).
 - :mod:`~indreg.evaluation.score`: any reconstruction scored on held-out tilts (``indreg-score``).
-- :mod:`~indreg.evaluation.extrapolation`: which volume to trust beyond the measured range (tilts at the range's
-  edges held out).
+
+Which volume to trust beyond the measured range (tilts at the range's edges held out) is a choice among runs:
+:mod:`indreg.registration.extrapolation` (``register(..., extrapolation=True)``).
 
 The public names are imported on first use: ``import indreg.evaluation`` loads no torch.
 """
@@ -22,7 +23,6 @@ _HOME = {
     **dict.fromkeys(("Split", "data_split", "wedge_split", "wedge_mask"), "parts"),
     **dict.fromkeys(("Uncertainty", "perturbed_solutions", "registration_uncertainty", "coverage"), "uncertainty"),
     **dict.fromkeys(("relative_residual", "score_volumes", "score_table"), "score"),
-    **dict.fromkeys(("edge_split", "choose_extrapolation", "register_extrapolating"), "extrapolation"),
 }
 __all__ = sorted(_HOME)
 

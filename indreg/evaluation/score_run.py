@@ -12,7 +12,7 @@ import torch
 
 from ..io.formats import suffixes
 from .score import NOISE_ROW, fitted_scale, relative_residual, score_table
-from .score_app import parse_sets, tilt_set
+from .tilt_sets import parse_sets, tilt_set
 
 __all__ = ["run", "read_any_alignment", "read_any_volume", "UNIT_RANGE"]
 

@@ -30,7 +30,7 @@ from omegaconf import DictConfig
 from .._outfiles import open_replacing, replacing
 from ..options import CORRECTIONS
 from ..registration.run import build_result, count_halvings, count_rejected
-from ..registration.tally import summary as warning_summary
+from ..tally import summary as warning_summary
 from .baselines import tv_mu
 from .config import to_plain
 from .run_figures import to_numpy, write_figures
@@ -163,7 +163,7 @@ def finish(cfg, exp, state, rec, history, seconds, out: Path, writer, status: st
     problem, it = exp.problem, state.iteration
     log.info("writing the outputs (arrays, metrics, figures, TensorBoard) in %s", out)
     volume = exp.domain.ndim == 3   # the trajectory frame by frame (save_frames), not N + 1 volumes at once
-    from ..registration.api import evaluation_options
+    from ..registration.once import evaluation_options
 
     r = build_result(problem, state, history, seconds, status, units=exp.units, validation=exp.validation,
                      trajectory=not volume, orientation=exp.setup.orientation, solver=exp.solver, box=exp.box,
@@ -302,6 +302,9 @@ def as_given(name: str, a, exp):
     return conventions.images_from_indreg(a, c) if tuple(a.shape[-2:]) == tuple(exp.domain.shape) else a
 
 
+#: The figures a finished run may write, in the order its last line names them.
+FIGURES = ("figure.png", "parts.png", "frames.png", "frames.gif", "alignment.png", "evaluation.png")
+
 #: The registration app's outputs besides its arrays (``<name>.npy``) and figures; what ``outputs.json`` lists.
 OWN_FILES = ("metrics.json", "history.json", "final.mrc", "trajectory.npy", "checkpoint.pt", "baselines.npz",
              "tensorboard", ".hydra", "outputs.json")
@@ -311,8 +314,6 @@ def own_names(out: Path, arrays=(), corrections=()) -> list:
     """The names of the run's own outputs in ``out`` (:data:`OWN_FILES`, the arrays, the figures, the corrections'
     plots, the log files of this process's logging in ``out`` and Hydra's config directory): the record lists
     these only."""
-    from .register import FIGURES
-
     names = [*OWN_FILES, *FIGURES, *(f"{a}.npy" for a in arrays), *(f"{c}.png" for c in corrections)]
     for handler in logging.getLogger().handlers:
         path = Path(getattr(handler, "baseFilename", "") or "/")

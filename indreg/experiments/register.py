@@ -52,7 +52,7 @@ from omegaconf import DictConfig
 from ..conf import CONFIG_DIR as _CONFIG   # = config.CONFIG_DIR, without importing its schema
 from . import cli
 
-__all__ = ["main", "preflight", "run", "plan_line", "where_line", "PROG", "CONFIG_DIR", "FIGURES"]
+__all__ = ["main", "preflight", "run", "plan_line", "where_line", "PROG", "CONFIG_DIR"]
 
 log = logging.getLogger(__name__)
 
@@ -139,10 +139,6 @@ def plan_line(cfg: DictConfig, out: Path) -> str:
             f"{describe(cfg)}, {dtype} on device {cfg.device}; run dir {out.resolve()}{resume}")
 
 
-#: The figures a finished run may write, in the order the last line names them.
-FIGURES = ("figure.png", "parts.png", "frames.png", "frames.gif", "alignment.png")
-
-
 def where_line(status: str, out: Path, layout: str | None = None) -> str:
     """The run's last line: where its outputs are (the figures by name; ``layout``: the files' convention the
     arrays are written in, ``indreg.experiments.outputs.as_given``), or where its checkpoint is."""
@@ -150,6 +146,8 @@ def where_line(status: str, out: Path, layout: str | None = None) -> str:
         return (f"checkpoint in {out / 'checkpoint.pt'}: continue with hydra.run.dir={out} resume=true")
     if status == "failed":
         return f"record of the failed run in {out} (metrics.json, history.json)"
+    from .outputs import FIGURES
+
     shown = [name for name in FIGURES if (out / name).is_file()]
     where = f"outputs in {out}" + (f" (figures: {', '.join(shown)})" if shown else "")
     if layout:

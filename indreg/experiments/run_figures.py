@@ -62,7 +62,7 @@ def write_figures(cfg, exp, r, rec: dict, quality: str, out: Path, writer, it: i
             figures.save(_parts_figure(exp, r.deformed, parts, f"{cfg.name}: {quality}", unit, model),
                          out / "parts.png")
         if r.data_part is not None or r.uncertainty is not None:   # indreg.evaluation: split and uncertainty
-            from ..evaluation.figure import evaluation_figure
+            from .evaluation_figure import evaluation_figure
 
             figures.save(evaluation_figure(r.deformed, r.data_part, r.prior_part, r.uncertainty,
                                            (exp.domain.min_pt, exp.domain.max_pt), unit,

@@ -158,7 +158,7 @@ class Checkpoints(Callback):
 def run(cfg: DictConfig, output_dir) -> dict:
     """:func:`_run`, then the process group (under ``torchrun``) closed on every rank, so that no communication
     thread outlives the run (gloo's would abort the process at exit)."""
-    from ..registration.tally import tally_warnings
+    from ..tally import tally_warnings
 
     try:
         with tally_warnings():   # the set-up's warnings too, by kind, in metrics.json and the last line
@@ -245,10 +245,9 @@ def _run(cfg: DictConfig, output_dir) -> dict:
     except StepOverflowError as e:   # found only in the run: one line naming the config key
         writer.close()
         raise ConfigError(f"invalid configuration: {e.message(_config_key)}") from None
-    if rank != 0:   # its part of rank 0's outputs (build_result's collectives, in its order): the final evaluation's
-        if status not in ("failed", "stopped", "interrupted"):   # sum, the residual's, its slabs of the frames
-            problem.evaluate_iterate(state.iterate)
-            problem.relative_residual(state.iterate)
+    if rank != 0:   # its part of rank 0's build_result (its collectives, in order): the final sums, its frames' slabs
+        if status not in ("failed", "stopped", "interrupted"):
+            problem.evaluate_iterate(state.iterate), problem.relative_residual(state.iterate)
             for _ in problem.image_frames(state.iterate):
                 pass
         return {"status": status, "iteration": state.iteration, "rank": rank}

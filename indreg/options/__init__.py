@@ -558,7 +558,7 @@ RUN = (
     Option("log_every", "run", "log_every", 10, number(1, integer=True), "log period (iterations)"),
     Option("target", "run", "target", None, anything, "ground truth for SSIM / PSNR"),
     Option("extrapolation", "run", "extrapolation", False, boolean,
-           "the edge validation first (indreg.evaluation.extrapolation): the angles at the edges of the measured "
+           "the edge validation first (indreg.registration.extrapolation): the angles at the edges of the measured "
            "range held out, the template alone, lddmm, residual and their blends with the template where the data "
            "cannot see scored on them, the best run on all angles (result.extrapolation); about 3 runs' time"),
 )

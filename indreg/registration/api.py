@@ -17,7 +17,7 @@ Notes
   step: ``gamma=1e-6, step_size=0.02, step_halving=False``).
 - Warnings (folding, objective increase, rejected steps) and progress go through ``logging`` (logger
   ``"indreg"``); ``result.warnings`` counts them, the set-up's and the end's included, and
-  ``result.warnings_by_kind`` by kind (``indreg.registration.tally``; a fixed step's objective rises apart:
+  ``result.warnings_by_kind`` by kind (``indreg.tally``; a fixed step's objective rises apart:
   ``result.objective_rises``, said once). ``progress`` (default None): a bar on a terminal, for the run
   and for each of ``sigma="auto"``'s trial runs (with a line per width and its held-out residual, and the
   width chosen: ``result.sigma``); nothing in scripts, pipes and tests; ``progress=True`` off a terminal: log
@@ -25,28 +25,10 @@ Notes
 """
 from __future__ import annotations
 
-import logging
-import sys
-
-from ..options import OptionError
 from ..options.docs import fill
-from .tally import has_output_handlers, tally_warnings
+from .once import evaluation_options, register_once  # noqa: F401 (evaluation_options: the app's)
 from .run import (Progress, RegistrationLoop, RegistrationResult, Setup, build_result, initial_state,  # noqa: F401
                   relative_residual, resolve_device, setup, shows_progress)
-
-log = logging.getLogger("indreg")
-
-
-def _console_handler(progress: bool):
-    """A stderr handler on the "indreg" logger for ``progress=True`` off a terminal when logging is unset."""
-    if progress and not sys.stderr.isatty() and not has_output_handlers(log):
-        h = logging.StreamHandler(sys.stderr)
-        h.setFormatter(logging.Formatter("[indreg] %(message)s"))
-        log.addHandler(h)
-        if log.level == logging.NOTSET or log.level > logging.INFO:
-            log.setLevel(logging.INFO)
-        return h
-    return None
 
 
 def register(template, data, operator, **options) -> RegistrationResult:
@@ -98,52 +80,11 @@ def register(template, data, operator, **options) -> RegistrationResult:
     >>> result.status, result.iterations
     ('completed', 3)
     """
-    if options.get("extrapolation"):   # the edge validation, then the chosen run (indreg.evaluation.extrapolation)
-        from ..evaluation.extrapolation import register_extrapolating
+    if options.get("extrapolation"):   # the edge validation, then the chosen run (indreg.registration.extrapolation)
+        from .extrapolation import register_extrapolating
 
         return register_extrapolating(template, data, operator, **options)
-    with tally_warnings():   # the set-up's, the iterations' and the end's warnings, by kind (result.warnings)
-        return _register(template, data, operator, options)
-
-
-def _register(template, data, operator, options: dict) -> RegistrationResult:
-    handler = _console_handler(options.get("progress") is True)   # before setup: sigma="auto" runs there
-    try:
-        try:
-            s = setup(template, data, operator, **options)
-        except OptionError as e:
-            raise e.kind(str(e)) from None
-        o, problem = s.options, s.problem
-        state = initial_state(problem)
-        log.info("%s | %s", problem, s.solver)
-        loop = RegistrationLoop(problem, s.solver, state, o["max_iter"], every=o["log_every"],
-                                progress=shows_progress(o["progress"]), callback=o["callback"],
-                                validation=s.validation)
-        status = loop.run()
-    finally:
-        if handler is not None:
-            log.removeHandler(handler)
-    result = build_result(problem, state, loop.history, loop.seconds, status, o["target"], s.units, s.validation,
-                          orientation=s.orientation, solver=s.solver, box=s.box,
-                          evaluation=evaluation_options(o))
-    result.sigma, result.sigma_scores = float(o["sigma"]), s.sigma_scores
-    return result
-
-
-def evaluation_options(o: dict) -> dict:
-    """The options of the result's evaluation (``indreg.evaluation.result.evaluate``) from the resolved ones.
-
-    Parameters
-    ----------
-    o : dict
-        The run's resolved options.
-
-    Returns
-    -------
-    dict
-        ``split``, ``uncertainty`` and ``uncertainty_samples``.
-    """
-    return {k: o[k] for k in ("split", "uncertainty", "uncertainty_samples")}
+    return register_once(template, data, operator, **options)
 
 
 register.__doc__ = fill(register.__doc__)   # the options' entries, from the table (indreg.options.docs)

@@ -29,7 +29,8 @@ import numpy as np
 import torch
 
 from .. import metrics, options as opts
-from . import corrections, models, tally
+from .. import tally
+from . import corrections, models
 from .budget import result_pieces
 from .._checks import as_tensor  # noqa: F401  (re-exported: indreg.registration.run.as_tensor)
 from ..forward.operator import relative_residual  # noqa: F401  (re-exported: indreg.registration.run.relative_residual)
@@ -483,7 +484,7 @@ class RegistrationResult:
         ``stopped`` (the callback returned True).
     warnings : int
         The warnings of the run: the iterations that reported one, the set-up's and the end's
-        (``indreg.registration.tally``).
+        (``indreg.tally``).
     warnings_by_kind : dict
         The same by kind.
     objective_rises : int
@@ -530,7 +531,7 @@ class RegistrationResult:
     evaluation : dict
         Their numbers (``split_*``, ``uncertainty_*``; docs/evaluation.md).
     extrapolation : dict
-        Option ``extrapolation``: the edge validation's choice (``indreg.evaluation.extrapolation``), empty without.
+        Option ``extrapolation``: the edge validation's choice (``indreg.registration.extrapolation``), empty without.
     """
     deformed: torch.Tensor
     momentum: torch.Tensor

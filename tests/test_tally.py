@@ -6,7 +6,7 @@ import pytest
 
 import indreg
 from indreg import phantoms
-from indreg.registration import tally
+from indreg import tally
 
 
 def test_kind_of_drops_numbers_and_detail():

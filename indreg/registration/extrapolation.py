@@ -41,7 +41,7 @@ MODELS = ("lddmm", "residual")
 def row_angles(operator) -> np.ndarray:
     """The degrees of the operator's rows (parallel beam, tilt series, fan beam; alignment and restriction seen
     through); a one-line TypeError for an operator without angles."""
-    from .parts import parallel_angles
+    from ..evaluation.parts import parallel_angles
 
     try:
         return np.degrees(parallel_angles(operator)[0].numpy())
@@ -115,7 +115,7 @@ class Extrapolation:
 
 
 def _kept_rows(options: dict, count: int) -> list:
-    from .validation import holdout_rows
+    from ..evaluation.validation import holdout_rows
 
     return list(range(count)) if options.get("holdout") is None else holdout_rows(options["holdout"], count)[0]
 
@@ -155,8 +155,8 @@ def _for_model(options: dict, model: str) -> dict:
 
 def _trial(template, data, operator, model: str, options: dict, edge: list, alphas) -> tuple:
     """One model fitted to the inner rows: ``(edge residual of the template, {alpha: edge residual})``."""
-    from ..registration.run import RegistrationLoop, build_result, initial_state, setup
-    from .parts import data_split
+    from .run import RegistrationLoop, build_result, initial_state, setup
+    from ..evaluation.parts import data_split
 
     o = dict(_for_model(options, model), model=model, holdout=edge, patience=None, progress=False, callback=None,
              split=False, uncertainty=False)
@@ -260,14 +260,14 @@ def register_extrapolating(template, data, operator, models=MODELS, alphas=ALPHA
     ValueError
         Too few rows, a bad fraction; ``register()``'s errors.
     """
-    from ..registration.api import register
-    from .parts import data_split
+    from ..evaluation.parts import data_split
+    from .once import register_once
 
     choice = choose_extrapolation(template, data, operator, models, alphas, edge_fraction, angles, **options)
     options = {k: v for k, v in options.items() if k != "extrapolation"}
     final = dict(_for_model(options, "lddmm"), model="lddmm", max_iter=0) if choice.choice == "template" else \
         dict(_for_model(options, choice.choice), model=choice.choice)
-    result = register(template, data, operator, **final)
+    result = register_once(template, data, operator, **final)
     f = result.deformed
     if choice.choice != "template" and choice.alpha > 0:
         f = blend(result, choice.alpha)
@@ -284,7 +284,7 @@ def register_extrapolating(template, data, operator, models=MODELS, alphas=ALPHA
 def blend(result, alpha: float) -> torch.Tensor:
     """``f - alpha (N f - N I)`` of a run's result (module docstring): ``N`` the prior-filled part of its fitted
     operator, ``I`` its template in the data's units."""
-    from .parts import data_split
+    from ..evaluation.parts import data_split
 
     f = result.deformed.detach()
     if alpha == 0:

@@ -20,7 +20,7 @@ def evaluation_figure(volume, data_part, prior_part, sd=None, box=None, unit=Non
     """The figure (matplotlib ``Figure``); ``box`` the domain's ``(min_pt, max_pt)`` (axes in ``unit`` and scale
     bars), ``tilt`` a tilt series' marks (``indreg.experiments.figures.mark_tilt``). Parts that are None are
     left out."""
-    from ..experiments import figures
+    from . import figures
 
     f, d, p, s = _np(volume), _np(data_part), _np(prior_part), _np(sd)
     shown = [a for a in (f, d, p) if a is not None]

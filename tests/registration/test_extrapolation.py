@@ -1,11 +1,11 @@
-"""Which volume to trust beyond the measured range (indreg.evaluation.extrapolation): the edge split, the choice."""
+"""Which volume to trust beyond the measured range (indreg.registration.extrapolation): the edge split, the choice."""
 import numpy as np
 import pytest
 import torch
 
 import indreg
 from indreg import phantoms
-from indreg.evaluation.extrapolation import edge_split, register_extrapolating, row_angles
+from indreg.registration.extrapolation import edge_split, register_extrapolating, row_angles
 
 
 def test_the_edges_of_a_tilt_range_and_of_a_range_through_zero():
@@ -65,7 +65,7 @@ def test_register_takes_the_option():
 
 
 def test_a_subset_of_angles_is_an_operator_alignment_can_wrap():
-    from indreg.evaluation.extrapolation import subset
+    from indreg.registration.extrapolation import subset
 
     d = indreg.ImageDomain((8, 6, 8))
     T = indreg.TiltSeriesTransform(d, indreg.TiltSeriesGeometry.uniform(-60, 60, 10, det_count=10))
