@@ -20,8 +20,11 @@ done
 # the help describes the tool (not Hydra's stock text) and points to the docs and the sweep table
 grep -q '^indreg-register: indirect image registration' <<< "$help"
 grep -q 'docs/index.md' <<< "$help" && ! grep -q 'powered by Hydra' <<< "$help"
-# the aligner's console script answers --help from the wheel
+# the aligner's and the scorer's console scripts answer --help from the wheel; a missing stack is one line, exit 2
 "$bin/indreg-align" --help | grep -q 'indreg-align'
+"$bin/indreg-score" --help | grep -q '^usage: indreg-score'
+if "$bin/indreg-score" "$work/missing.mrc" "$work/volume.mrc" 2> "$work/score.err"; then false; fi
+grep -q 'no such file' "$work/score.err" && test "$(wc -l < "$work/score.err")" -eq 1
 # a missing launcher plugin names its extra: one line, exit 1
 if "$bin/indreg-register" -m hydra/launcher=slurm seed=0,1 2> "$work/launcher.err"; then false; fi
 grep -q 'pip install "indreg\[submitit\]"' "$work/launcher.err" && test "$(wc -l < "$work/launcher.err")" -eq 1
