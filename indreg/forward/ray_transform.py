@@ -176,6 +176,30 @@ register_projector(ParallelBeamGeometry, joseph_matrix)
 register_projector(FanBeamGeometry, fan_joseph_matrix)
 
 
+#: Elements of spare memory behind the end of every CSR array handed to torch. MKL's CPU kernels behind ``torch.mv``
+#: and ``torch.mm`` (AVX-512; torch 2.13.0 and 2.15.0) load 64 bytes at a time and read up to 60 bytes past the end
+#: of the column indices: where the array ended 32 bytes before an unmapped page, ``torch.mv`` of a 7240 x 65536
+#: float32 matrix crashed the process (segmentation fault). The extra reads land in this spare memory, never used.
+SPARE = 16
+
+
+def _spare(t: torch.Tensor) -> torch.Tensor:
+    """``t`` (1D, contiguous) itself where its storage holds ``SPARE`` more elements behind its end, else a copy in
+    a buffer that does (the view of its first ``t.numel()`` elements)."""
+    if t.untyped_storage().nbytes() >= (t.storage_offset() + t.numel() + SPARE) * t.element_size():
+        return t
+    buf = t.new_zeros(t.numel() + SPARE)
+    buf[:t.numel()] = t
+    return buf[:t.numel()]
+
+
+def _torch_csr(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
+    """A torch CSR tensor of these arrays, each with spare memory behind its end (``SPARE``)."""
+    with warnings.catch_warnings():   # "Sparse CSR tensor support is in beta state"
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(_spare(crow), _spare(col), _spare(val), shape, check_invariants=False)
+
+
 class _SystemMatrix:
     """``A`` and ``A^T`` as CSR, float64 on the CPU, with converted copies cached per (dtype, device)."""
 
@@ -185,7 +209,7 @@ class _SystemMatrix:
         self.nnz = int(mat.nnz)
         self.index_dtype = torch.int32 if max(self.shape + (self.nnz,)) < 2**31 - 1 else torch.int64
         mat_t = mat.tocsc()   # CSC of A = CSR of A^T (linear-time conversion, sorted indices)
-        self.master = tuple((torch.from_numpy(m.indptr), torch.from_numpy(m.indices), torch.from_numpy(m.data))
+        self.master = tuple(tuple(_spare(torch.from_numpy(a)) for a in (m.indptr, m.indices, m.data))
                             for m in (mat, mat_t))
         self._cache = {}
 
@@ -193,12 +217,10 @@ class _SystemMatrix:
         """``(A, A^T)`` as torch CSR tensors of this dtype on this device (float64 CPU shares the master)."""
         key = (dtype, torch.device(device))
         if key not in self._cache:
-            with warnings.catch_warnings():   # "Sparse CSR tensor support is in beta state"
-                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-                self._cache[key] = tuple(
-                    torch.sparse_csr_tensor(crow.to(device, self.index_dtype), col.to(device, self.index_dtype),
-                                            val.to(device, dtype), shape, check_invariants=False)
-                    for (crow, col, val), shape in zip(self.master, (self.shape, self.shape[::-1])))
+            self._cache[key] = tuple(
+                _torch_csr(crow.to(device, self.index_dtype), col.to(device, self.index_dtype), val.to(device, dtype),
+                           shape)
+                for (crow, col, val), shape in zip(self.master, (self.shape, self.shape[::-1])))
         return self._cache[key]
 
     def column_blocks(self, dtype: torch.dtype, device: torch.device, width: int) -> tuple:
@@ -208,15 +230,14 @@ class _SystemMatrix:
         if key not in self._cache:
             crow, col, val = (t.to(device) for t in self.master[1])   # A^T's rows are A's columns
             blocks = []
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-                for a in range(0, self.shape[1], width):
-                    b = min(a + width, self.shape[1])
-                    lo, hi = int(crow[a]), int(crow[b])
-                    rows = torch.sparse_csr_tensor((crow[a:b + 1] - lo).to(self.index_dtype),
-                                                   col[lo:hi].to(self.index_dtype), val[lo:hi].to(dtype),
-                                                   (b - a, self.shape[0]), check_invariants=False)
-                    blocks.append((a, b, rows.t().to_sparse_csr()))
+            for a in range(0, self.shape[1], width):
+                b = min(a + width, self.shape[1])
+                lo, hi = int(crow[a]), int(crow[b])
+                rows = _torch_csr((crow[a:b + 1] - lo).to(self.index_dtype), col[lo:hi].to(self.index_dtype),
+                                  val[lo:hi].to(dtype), (b - a, self.shape[0]))
+                block = rows.t().to_sparse_csr()
+                blocks.append((a, b, _torch_csr(block.crow_indices(), block.col_indices(), block.values(),
+                                                block.shape)))
             self._cache[key] = tuple(blocks)
         return self._cache[key]
 

@@ -1,5 +1,7 @@
 """RayTransform: shapes, adjointness, exact transpose in autograd, analytic ellipse and skimage agreement."""
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -208,3 +210,62 @@ def test_copy_and_pickle_after_use(paper64):
     for clone in (copy.deepcopy(paper64), pickle.loads(pickle.dumps(paper64))):
         torch.testing.assert_close(clone(f), y)
         torch.testing.assert_close(clone.adjoint(y), paper64.adjoint(y))
+
+
+def _every_csr(op, dtype):
+    """Every CSR tensor the operator hands to torch in ``dtype`` on the CPU: ``A``, ``A^T`` and ``A``'s column
+    blocks."""
+    system = op.system
+    mats = list(system.get(dtype, torch.device("cpu")))
+    mats += [m for _, _, m in system.column_blocks(dtype, torch.device("cpu"), 1000)]
+    return mats
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_csr_arrays_have_spare_memory_behind_their_end(paper64, dtype):
+    # MKL's AVX-512 CSR kernels read up to 60 bytes past the column indices (ray_transform.SPARE): a segfault where
+    # the array ended at an unmapped page (torch 2.15.0)
+    from indreg.forward.ray_transform import SPARE
+
+    for mat in _every_csr(paper64, dtype):
+        for t in (mat.crow_indices(), mat.col_indices(), mat.values()):
+            assert t.untyped_storage().nbytes() >= (t.storage_offset() + t.numel() + SPARE) * t.element_size()
+
+
+_GUARD_PAGE = r"""
+import ctypes, mmap, sys
+import numpy as np, torch
+from indreg.forward.ray_transform import _torch_csr
+
+def before_unmapped_page(values):
+    # values copied to the very end of a readable page, the page after it unreadable
+    page = mmap.PAGESIZE
+    n = -(-values.nbytes // page) * page
+    buf = mmap.mmap(-1, n + page)
+    base = ctypes.addressof(ctypes.c_char.from_buffer(buf))
+    assert ctypes.CDLL(None).mprotect(ctypes.c_void_p(base + n), page, 0) == 0
+    view = np.frombuffer(buf, dtype=values.dtype, count=values.size, offset=n - values.nbytes)
+    view[:] = values
+    return torch.from_numpy(view)
+
+rng = np.random.default_rng(0)
+m, n, per = 2000, 5000, 100
+crow = torch.arange(0, m * per + 1, per, dtype=torch.int32)
+col = np.sort(rng.integers(0, n, (m, per)), axis=1).astype(np.int32).ravel()
+val = rng.random(m * per, dtype=np.float32)
+A = _torch_csr(crow, before_unmapped_page(col), before_unmapped_page(val), (m, n))
+x = torch.rand(n)
+dense = torch.zeros(m, n).index_put_((torch.arange(m).repeat_interleave(per), torch.from_numpy(col).long()),
+                                      torch.from_numpy(val), accumulate=True)
+assert torch.allclose(torch.mv(A, x), dense @ x, rtol=1e-4, atol=1e-3)
+assert torch.allclose(torch.mm(A, x[:, None].repeat(1, 3)), (dense @ x)[:, None].repeat(1, 3), rtol=1e-4, atol=1e-3)
+print("ok")
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mprotect of a guard page: Linux")
+def test_products_of_arrays_ending_before_an_unmapped_page():
+    # the crash itself, in a child process: column indices and values ending exactly where an unreadable page
+    # starts; the CSR tensors made of them (``_torch_csr``) must multiply correctly
+    run = subprocess.run([sys.executable, "-c", _GUARD_PAGE], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
