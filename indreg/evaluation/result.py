@@ -71,9 +71,9 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     dict
     """
     from .parts import data_split
-    from .uncertainty import registration_uncertainty
+    from .uncertainty import SAMPLES, registration_uncertainty
 
-    o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": 8, **(options or {})}
+    o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": SAMPLES, **(options or {})}
     out = {"data_part": None, "prior_part": None, "uncertainty": None, "summary": {}}
     if _wanted(o["split"], problem, image, False, validation):
         t0 = time.perf_counter()

@@ -489,7 +489,7 @@ CORE = (
            "a per-voxel standard deviation by perturbed re-optimisation (indreg.evaluation.uncertainty: "
            "result.uncertainty); 'auto': on when the run has held-out angles (holdout), up to 2^21 voxels, one "
            "process, one time point; docs/evaluation.md", Any),
-    Option("uncertainty_samples", "validation", "uncertainty_samples", 8, number(2, integer=True),
+    Option("uncertainty_samples", "validation", "uncertainty_samples", 6, number(2, integer=True),
            "re-optimisations of the uncertainty (each about 5 iterations of the run)", int),
 )
 

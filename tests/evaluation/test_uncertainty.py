@@ -103,3 +103,11 @@ def test_the_data_correction_stops_at_the_noise(small):
     r = T(I + d) - g
     assert float(T.inner_data(r, r)) < 0.05 * float(T.inner_data(g - T(I), g - T(I)))
     assert float(data_correction(T, I, g, 1e6).abs().max()) == 0.0   # all within the noise: nothing
+
+
+def test_one_default_number_of_samples():
+    # the option table (torch-free, read by the CLI) and the module give the same default (docs/evaluation.md, "Cost")
+    from indreg import options
+    from indreg.evaluation.uncertainty import SAMPLES
+
+    assert next(o for o in options.CORE if o.name == "uncertainty_samples").default == SAMPLES
