@@ -11,7 +11,9 @@ import numpy as np
 def slab_series(width=64, rows=48, tilts=21, max_deg=60.0, thickness=20.0, alpha_deg=4.0, max_shift=8.0,
                 dose=40.0, seed=0, blobs_per_px=0.1, beads_per_px=0.004, mu=0.004):
     """``dict(intensities (K, rows, width), clean (line integrals), deg (IMOD-free: the geometry's angles), shifts
-    (K, 2) px of the raw detector (x across columns, y along rows), alpha, dose)``."""
+    (K, 2) px of the raw detector (x across columns, y along rows), alpha, dose, mu, features)``; ``features``: the
+    centres ``X`` (across), ``Y`` (along), ``Z`` (depth), widths ``S`` and amplitudes ``A`` (the 3D Gaussian's
+    is ``A / 10``)."""
     rng = np.random.default_rng(seed)
     deg = np.linspace(-max_deg, max_deg, tilts)
     theta = np.radians(deg)
@@ -40,7 +42,8 @@ def slab_series(width=64, rows=48, tilts=21, max_deg=60.0, thickness=20.0, alpha
             img += (amp * np.exp(-r2 / (2 * S[chunk, None, None] ** 2))).sum(0)
         clean[k] = img
     counts = rng.poisson(dose * np.exp(-clean)).astype(np.float64)
-    return dict(intensities=counts, clean=clean, deg=deg, shifts=shifts, alpha=alpha_deg, dose=dose)
+    return dict(intensities=counts, clean=clean, deg=deg, shifts=shifts, alpha=alpha_deg, dose=dose, mu=mu,
+                features=dict(X=X, Y=Y, Z=Z, S=S, A=A))
 
 
 def axis_frame_shifts(shifts: np.ndarray, alpha_deg: float) -> np.ndarray:
