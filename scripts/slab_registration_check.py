@@ -45,7 +45,7 @@ def rasterise(features: dict, domain, mu: float, thickness: float, moved: bool) 
         X = X + 2.0 * np.sin(2 * math.pi * Y / 24.0)
         Y = Y + 1.5 * np.sin(2 * math.pi * X / 40.0)
         Z = Z + 1.5 * np.cos(2 * math.pi * X / 60.0)
-    axes = [np.asarray(a, dtype=np.float64) for a in domain.axes(torch.float64)]
+    axes = [a.numpy() for a in domain.axes()]
     vol = np.zeros(domain.shape)
     vol[:, :, np.abs(axes[2]) <= thickness / 2] = mu
     for x, y, z, s, a in zip(X, Y, -Z, S, A / 10.0):
@@ -70,7 +70,7 @@ def in_gauge_of(v: np.ndarray, truth: np.ndarray, deg: np.ndarray) -> np.ndarray
 
 
 def register(template, truth, data, T, field, iters, sigma) -> tuple:
-    """LDDMM from ``template`` to ``data``; ``(SSIM in the field of view, held-out-free residual, seconds)``."""
+    """LDDMM from ``template`` to ``data``; ``(SSIM in the field of view, relative residual, seconds)``."""
     t0 = time.perf_counter()
     r = indreg.register(template.float(), data.float(), T, model="lddmm", sigma=sigma, max_iter=iters,
                         num_steps=10, wide_box=False, background=None, uncertainty=False,
@@ -116,9 +116,8 @@ def main(argv=None) -> None:
     clean = torch.from_numpy(axis_frame(still["clean"], alpha))
     fit = float((T(truth) - clean).norm() / clean.norm())
     print(f"the truth's projections against the series' noise-free ones (the axis frame): {fit:.4f} relative")
-    xs = np.asarray(domain.axes(torch.float64)[0])
-    field = (torch.from_numpy(np.flatnonzero(np.abs(xs) <= a.width / 2)), slice(None), slice(None))
-    field = np.ix_(field[0].numpy(), np.arange(domain.shape[1]), np.arange(domain.shape[2]))
+    xs = domain.axes()[0].numpy()
+    field = np.ix_(np.flatnonzero(np.abs(xs) <= a.width / 2), np.arange(domain.shape[1]), np.arange(domain.shape[2]))
     print(f"template: SSIM {metrics.ssim(template[field], truth[field]):.4f} in the field of view")
     rows = {}
     for name, stack in stacks.items():

@@ -254,7 +254,7 @@ crow = torch.arange(0, m * per + 1, per, dtype=torch.int32)
 col = np.sort(rng.integers(0, n, (m, per)), axis=1).astype(np.int32).ravel()
 val = rng.random(m * per, dtype=np.float32)
 A = _torch_csr(crow, before_unmapped_page(col), before_unmapped_page(val), (m, n))
-x = torch.rand(n)
+x = torch.rand(n, generator=torch.Generator().manual_seed(0))
 dense = torch.zeros(m, n).index_put_((torch.arange(m).repeat_interleave(per), torch.from_numpy(col).long()),
                                       torch.from_numpy(val), accumulate=True)
 assert torch.allclose(torch.mv(A, x), dense @ x, rtol=1e-4, atol=1e-3)
