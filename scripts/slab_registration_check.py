@@ -14,12 +14,16 @@ the registration on the unshifted data, on the shifted data resampled at the tru
 would give: a view shifted by ``v`` px lacks ``|v|`` px at one edge, filled by its nearest pixel) and on the aligned
 data, and the differences.
 
-    python scripts/slab_registration_check.py [--width 128] [--rows 96] [--iters 40] [--seed 3]
+With ``--gold`` the beads are gold fiducials as on the measured cryo-ET series, and the shifts are then fixed by
+them (``indreg.alignment.fiducials``), as ``indreg-align`` does on a slab that holds them.
+
+    python scripts/slab_registration_check.py [--width 128] [--rows 96] [--iters 40] [--seed 3] [--gold]
 """
 from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
 import sys
 import time
 from pathlib import Path
@@ -29,11 +33,12 @@ import torch
 
 import indreg
 from indreg import metrics
+from indreg.alignment.fiducials import fiducial_alignment
 from indreg.alignment.slab import slab_operators, slab_projection_matching
 from indreg.alignment.xcorr import axis_frame
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "alignment"))
-from slab_series import axis_frame_shifts, gauge_rms, slab_series  # noqa: E402  (the test suite's slab, numpy)
+from slab_series import GOLD, axis_frame_shifts, gauge_rms, slab_series  # noqa: E402  (the test suite's slab, numpy)
 
 
 def rasterise(features: dict, domain, mu: float, thickness: float, moved: bool) -> torch.Tensor:
@@ -89,8 +94,11 @@ def main(argv=None) -> None:
     p.add_argument("--iters", type=int, default=40)
     p.add_argument("--sigma", type=float, default=4.0)
     p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--gold", action="store_true", help="gold beads as on the measured cryo-ET series (slab_series' "
+                                                       "docstring), the shifts then fixed by them as indreg-align does")
     a = p.parse_args(argv)
-    kw = dict(width=a.width, rows=a.rows, tilts=a.tilts, thickness=a.thickness, seed=a.seed)
+    kw = dict(width=a.width, rows=a.rows, tilts=a.tilts, thickness=a.thickness, seed=a.seed,
+              **(GOLD if a.gold else {}))
     still, moving = slab_series(max_shift=0.0, **kw), slab_series(max_shift=a.max_shift, **kw)
     deg, alpha = moving["deg"], moving["alpha"]
     theta = -np.radians(deg)   # indreg's sign (tests/alignment/test_slab_alignment.py)
@@ -99,6 +107,10 @@ def main(argv=None) -> None:
 
     t0 = time.perf_counter()
     found = slab_projection_matching(lines["shifted"], theta, alpha, [2, 1], [6, 2])
+    if a.gold:
+        beads = fiducial_alignment(lines["shifted"], theta, alpha, found.shifts)
+        print(f"fiducials: {beads.describe()}")
+        found = replace(found, shifts=beads.shifts)
     seconds = time.perf_counter() - t0
     truth_v = axis_frame_shifts(moving["shifts"], alpha)
     across, along = gauge_rms(found.shifts, truth_v, deg)

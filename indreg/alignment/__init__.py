@@ -9,8 +9,9 @@ torch); the tilt-axis angle from the stack alone (:mod:`~indreg.alignment.moment
 detector (:mod:`~indreg.alignment.tilt_axis`); other tools' alignment files (:mod:`~indreg.alignment.files`:
 IMOD ``.xf``, AreTomo ``.aln``, indreg's ``align.json``); for a slab wider than the detector the stretched
 cross-correlation (:mod:`~indreg.alignment.xcorr`), leave-one-out projection matching through the wide box
-(:mod:`~indreg.alignment.slab`, ``indreg-align``'s path: :mod:`~indreg.alignment.slab_app`) and the tilt axis by
-common lines (:mod:`~indreg.alignment.axis_search`). See docs/alignment.md.
+(:mod:`~indreg.alignment.slab`, ``indreg-align``'s path: :mod:`~indreg.alignment.slab_app`), the tilt axis by
+common lines (:mod:`~indreg.alignment.axis_search`) and the gold beads' fit (:mod:`~indreg.alignment.fiducials`).
+See docs/alignment.md.
 
 The public names are imported on first use: ``import indreg.alignment`` loads no torch.
 """
@@ -33,6 +34,7 @@ _HOME = {
     **dict.fromkeys(("CoarseAlignment", "axis_frame", "coarse_alignment"), "xcorr"),
     **dict.fromkeys(("SlabAlignment", "slab_projection_matching"), "slab"),
     **dict.fromkeys(("AxisSearch", "search_axis_angle"), "axis_search"),
+    **dict.fromkeys(("FiducialAlignment", "fiducial_alignment"), "fiducials"),
 }
 __all__ = sorted(_HOME)
 

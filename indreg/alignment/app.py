@@ -121,6 +121,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--intensities", action="store_true",
                    help="the stack holds bright-field intensities: aligned as -ln(I / I0), I0 from vacuum or the "
                         "slab law (indreg.units.transmission)")
+    p.add_argument("--fiducials", choices=("auto", "off"),
+                   help="a slab: where the stack holds gold beads, they fix the shifts at full size (and the tilt "
+                        "axis with --axis-from-stack; indreg.alignment.fiducials); off: projection matching only "
+                        "(default auto)")
     p.add_argument("--max-shift", type=float, default=0.25,
                    help="largest shift as a fraction of the detector's columns / rows (default 0.25); a shift at "
                         "it is warned and recorded (align.json: at_bound)")
@@ -432,12 +436,16 @@ def run(args) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     if kind == "slab":
         est = slab_alignment(rotated - level, radians, rest, steps, args.rounds, args.fine_rounds, args.thickness,
-                             (args.max_shift * nx, args.max_shift * ny), args.axis_from_stack)
-        M, d, res = est["M"], est["d"], est["result"]
+                             (args.max_shift * nx, args.max_shift * ny), args.axis_from_stack,
+                             args.fiducials or "auto")
+        M, d, res, beads = est["M"], est["d"], est["result"], est["fiducials"]
         history = [{"bin": r["bin"], "round": r["round"], "record": r} for r in res.history]
         at_bound = [int(k) for k in np.flatnonzero(res.at_bound.any(1))]
         from_stack = None if est["search"] is None else {"method": "common lines", **est["search"].__dict__}
     else:
+        if args.fiducials is not None:
+            log.warning("--fiducials %s is not used: the gold beads are fitted on the slab path only (this "
+                        "specimen is compact; --specimen slab takes that path)", args.fiducials)
         M, d, history, from_stack, op, x, data, at_bound = compact_alignment(
             args, rotated, radians, rest, steps, level, thickness, raw.nbytes, budget, start)
     if at_bound:
@@ -485,7 +493,8 @@ def run(args) -> dict:
                "inverted": bool(args.invert)}
     if kind == "slab":
         summary["slab"] = {"thickness_px": res.thickness, "centre_px": res.centre,
-                           "peaks": res.peaks.tolist(), "shifts_axis_frame_px": res.shifts.tolist()}
+                           "peaks": res.peaks.tolist(), "shifts_axis_frame_px": res.shifts.tolist(),
+                           "fiducials": None if beads is None else beads.record()}
     if not after < 0.99:
         log.warning("the reconstruction explains almost none of the data (relative residual %.4f): check the stack's "
                     "contrast (--invert), its angles and its tilt axis", after)

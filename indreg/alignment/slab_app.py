@@ -1,7 +1,8 @@
 """``indreg-align``'s path for a slab specimen (wider than the detector): what the stack is (``--specimen``), the
 line integrals of bright-field intensities (``--intensities``), the alignment (``indreg.alignment.slab``: the
 stretched cross-correlation, then leave-one-out projection matching through the wide box), the tilt axis' angle by
-common lines (``indreg.alignment.axis_search``) and the reconstruction on the wide box.
+common lines (``indreg.alignment.axis_search``), the gold beads' fit where the stack holds them
+(``indreg.alignment.fiducials``, ``--fiducials``) and the reconstruction on the wide box.
 
 Notes
 -----
@@ -59,12 +60,17 @@ def _rotation(deg: float) -> np.ndarray:
 
 
 def slab_alignment(lines: np.ndarray, radians: np.ndarray, rest: float, steps: list, rounds: int,
-                   fine_rounds: int, thickness, bound: tuple, search_axis: bool) -> dict:
+                   fine_rounds: int, thickness, bound: tuple, search_axis: bool, fiducials: str = "auto") -> dict:
     """Align the quarter-turned stack of line integrals ``lines`` (tilt axis ``rest`` degrees from Y) coarse to
     fine over the binnings ``steps``; with ``search_axis`` the angle by common lines after the coarsest level
-    (kept where determined). Returns ``M`` ``(K, 2, 2)``, ``d`` ``(K, 2)`` (module Notes), the
-    ``SlabAlignment``, the axis search (or None), the angle used."""
+    (kept where determined); with ``fiducials="auto"`` the gold beads then fix the shifts (and, with
+    ``search_axis``, the angle) at full size where they can (``indreg.alignment.fiducials``), in place of the finer
+    levels. Returns ``M`` ``(K, 2, 2)``, ``d`` ``(K, 2)`` (module Notes), the ``SlabAlignment``, the axis search
+    (or None), the beads' fit (or None), the angle used."""
+    from dataclasses import replace
+
     from .axis_search import search_axis_angle
+    from .fiducials import fiducial_alignment
     from .slab import binned, slab_projection_matching
 
     def progress(r):
@@ -83,12 +89,20 @@ def slab_alignment(lines: np.ndarray, radians: np.ndarray, rest: float, steps: l
         else:
             log.warning("slab: the tilt-axis angle is not determined by common lines (%s): the given %.2f deg kept",
                         search.reason, rest)
-    if len(steps) > 1 or search is not None and search.determined:
+    beads = None if fiducials == "off" else fiducial_alignment(lines, radians, rest, result.shifts, search_axis)
+    if beads is not None:
+        log.info("fiducials: %s", beads.describe())
+    if beads is not None and beads.determined:
+        rest = beads.angle_deg if beads.angle_deg is not None else rest
+        at = np.abs(beads.shifts) >= np.array(result.bound) - 1e-6
+        result = replace(result, shifts=beads.shifts, at_bound=at)
+    elif len(steps) > 1 or search is not None and search.determined:
         result = slab_projection_matching(lines, radians, rest, steps[1:] or steps[-1:], counts[1:] or [1],
                                           result.thickness, bound, result.shifts, progress, result.centre)
     R = _rotation(rest)
     M = np.tile(R, (len(radians), 1, 1))
-    return {"M": M, "d": result.shifts @ R.T, "result": result, "search": search, "rest": rest}
+    return {"M": M, "d": result.shifts @ R.T, "result": result, "search": search, "fiducials": beads,
+            "rest": rest}
 
 
 def wide_reconstruction(aligned: np.ndarray, radians: np.ndarray, thickness: float, centre: float, iters: int):
