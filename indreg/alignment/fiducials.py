@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .xcorr import _rotation
+
 __all__ = ["BEAD_SNR", "FiducialAlignment", "bead_residual", "bead_scale", "detect_beads", "fiducial_alignment"]
 
 #: Detection threshold: the LoG response over its robust standard deviation.
@@ -56,11 +58,6 @@ START_RADIUS_PX, MIN_RADIUS_PX = 10.0, 3.0
 MIN_BEADS, MAX_RESIDUAL_PX = 4, 2.0
 #: The tilt-axis search: half-span and step (degrees).
 AXIS_SPAN_DEG, AXIS_STEP_DEG = 1.5, 0.25
-
-
-def _rotation(deg: float) -> np.ndarray:
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    return np.array([[c, -s], [s, c]])
 
 
 def _response(image: np.ndarray, s: float) -> tuple:
