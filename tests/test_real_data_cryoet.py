@@ -15,7 +15,7 @@ import pytest
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "real_data_cryoet.py"
 sys.path.insert(0, str(Path(__file__).resolve().parent / "alignment"))
-from slab_series import slab_series  # noqa: E402
+from slab_series import axis_frame_shifts, slab_series  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +66,20 @@ def test_walk_through_on_the_stand_in(stand_in, tmp_path, example, capsys):
     assert m["held_out"]["IMOD"]["SIRT"]["inside"] < m["held_out"]["axis only"]["SIRT"]["inside"]
     out = capsys.readouterr().out
     assert "indreg-align vs IMOD: shifts" in out and "held-out score" in out
+
+
+def test_cross_validation_scores_every_inside_tilt_once(example):
+    """``--folds``: each tilt between the two at each end is held out in one set and scored; the true alignment
+    predicts them better than none."""
+    s = slab_series(tilts=13, dose=400.0, alpha_deg=-4.0, seed=3)
+    lines = -np.log(np.maximum(s["intensities"], 1.0) / s["dose"])
+    true = axis_frame_shifts(s["shifts"], -4.0)
+    chi = example.cross_validation(lines, -s["deg"], {"true": (-4.0, true), "none": (-4.0, np.zeros_like(true))},
+                                   1, 5, (20.0, 0.0), 3)
+    inside = np.arange(2, 11)
+    for c in chi.values():
+        assert np.isfinite(c[inside]).all() and np.isnan(np.delete(c, inside)).all()
+    assert chi["true"][inside].mean() < 0.8 * chi["none"][inside].mean(), chi
 
 
 REAL = os.environ.get("INDREG_CRYOET_DIR")

@@ -62,7 +62,8 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     solver : optional
         The run's solver (its last step sizes start the uncertainty's re-optimisations).
     options : dict, optional
-        ``split``, ``uncertainty``, ``uncertainty_samples`` (the option table's; default: theirs).
+        ``split``, ``uncertainty``, ``uncertainty_samples``, ``uncertainty_noise`` (the option table's; default:
+        theirs).
     validation : optional
         The held-out angles (``indreg.evaluation.validation.Validation``): ``uncertainty="auto"`` runs only with them.
 
@@ -73,7 +74,8 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     from .parts import data_split
     from .uncertainty import SAMPLES, registration_uncertainty
 
-    o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": SAMPLES, **(options or {})}
+    o = {"split": "auto", "uncertainty": "auto", "uncertainty_samples": SAMPLES, "uncertainty_noise": None,
+         **(options or {})}
     out = {"data_part": None, "prior_part": None, "uncertainty": None, "summary": {}}
     if _wanted(o["split"], problem, image, False, validation):
         t0 = time.perf_counter()
@@ -83,7 +85,8 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     if _wanted(o["uncertainty"], problem, image, True, validation):
         steps = getattr(solver, "step_sizes", None)
         steps = list(steps) if steps is not None and len(steps) == len(iterate) else None
-        u = registration_uncertainty(problem, iterate, steps, samples=o["uncertainty_samples"])
+        u = registration_uncertainty(problem, iterate, steps, samples=o["uncertainty_samples"],
+                                     noise_sd=o["uncertainty_noise"])
         out["uncertainty"] = u.sd
         out["summary"].update(u.summary())
         if math.isfinite(u.seconds):

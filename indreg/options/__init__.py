@@ -491,6 +491,10 @@ CORE = (
            "process, one time point; docs/evaluation.md", Any),
     Option("uncertainty_samples", "validation", "uncertainty_samples", 6, number(2, integer=True),
            "re-optimisations of the uncertainty (each about 5 iterations of the run)", int),
+    Option("uncertainty_noise", "validation", "uncertainty_noise", None, optional(number(0, strict=True)),
+           "the data's noise standard deviation per datum where it is known (the fitted data's units: after the "
+           "background and the logarithm); None: estimated from the data (indreg.units.noise_std)",
+           Optional[float]),
 )
 
 _step_size = next(o for o in CORE if o.name == "step_size")

@@ -70,9 +70,9 @@ def evaluation_options(o: dict) -> dict:
     Returns
     -------
     dict
-        ``split``, ``uncertainty`` and ``uncertainty_samples``.
+        ``split``, ``uncertainty``, ``uncertainty_samples`` and ``uncertainty_noise``.
     """
-    return {k: o[k] for k in ("split", "uncertainty", "uncertainty_samples")}
+    return {k: o[k] for k in ("split", "uncertainty", "uncertainty_samples", "uncertainty_noise")}
 
 
 def _console_handler(progress: bool):

@@ -83,6 +83,24 @@ def test_register_reports_the_uncertainty_without_changing_its_result(small):
         indreg.register(I, g, T, uncertainty="yes", max_iter=1)
 
 
+def test_a_known_noise_level_replaces_the_estimate(small):
+    """``uncertainty_noise``: the re-drawn noise and the correction's stopping level are the given one."""
+    I, g, T = small
+    from indreg.units import noise_std
+
+    kw = dict(sigma=4.0, max_iter=4, holdout=5, uncertainty_samples=2)
+    estimated = indreg.register(I, g, T, **kw)
+    given = indreg.register(I, g, T, uncertainty_noise=0.05, **kw)
+    kept = [i for i in range(g.shape[0]) if i not in range(2, g.shape[0], 5)]
+    assert estimated.evaluation["uncertainty_noise_sd"] == pytest.approx(noise_std(g[kept]))
+    assert given.evaluation["uncertainty_noise_sd"] == 0.05
+    assert not torch.equal(given.uncertainty, estimated.uncertainty)
+    assert torch.equal(given.deformed, estimated.deformed)
+    for bad in (-1.0, 0.0, float("nan"), "0.05"):
+        with pytest.raises((ValueError, TypeError), match="uncertainty_noise"):
+            indreg.register(I, g, T, uncertainty_noise=bad, **kw)
+
+
 def test_the_samples_are_seeded_and_leave_the_problem_alone(small):
     I, g, T = small
     from indreg.registration.run import initial_state, setup
