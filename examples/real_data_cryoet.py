@@ -13,11 +13,15 @@ specimen found to be a slab by the detector's border; ``--axis-from-stack``: the
 shifts against IMOD's in the gauge (across the axis ``a cos + b sin`` removed, along it the mean), its angle against
 IMOD's; then WBP, SIRT and TV of the wide box (``indreg.forward.wide_box``) from 31 tilts, binned by ``--bin``,
 through no alignment (the axis turned only), IMOD's and indreg's, each scored on the 10 held-out tilts: 6 inside
-the fitted range and the 4 beyond it (+-57, +-60). The score is noise-aware: the mean squared residual of a
+the fitted range and the 4 beyond it (+-57, +-60). Each alignment lies in the operator
+(``indreg.alignment.slab.aligned_slab_operator``: the projections moved, bilinearly), so every alignment fits and
+is scored against the same binned views, never resampled (WBP alone, which filters along the axis frame's rows,
+takes the views resampled into it by cubic splines). The score is noise-aware: the mean squared residual of a
 held-out view over its noise variance, the latter from the view itself (each pixel less its four neighbours' mean,
 whose variance is 5/4 of white noise's): 1 is a prediction to the noise. ``--folds N``: the same comparison of IMOD's
 and indreg's alignment for SIRT over N interleaved held-out sets of the inside tilts (every N-th of the 37 between
-the two at each end), each fitted on the other 40 tilts: every inside tilt scored once (about 70 s a fold).
+the two at each end), each fitted on the other 40 tilts: every inside tilt scored once (about 6 s a fold and
+alignment at bin 4).
 
     python examples/real_data_cryoet.py [--data DIR] [--cache DIR] [--out DIR] [--bin 4] [--iters 30] [--folds 5]
 
@@ -27,11 +31,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tarfile
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import indreg  # noqa: F401  (first: it sets the OpenMP policy before torch loads)
@@ -43,6 +49,8 @@ MEMBERS = {"testdata/00254.stack.mrc": "00254.stack.mrc", "testdata/xf_import/00
            "testdata/xf_import/00254.tlt": "00254.tlt", "testdata/00254.xml": "00254.xml",
            "LICENSE.txt": "LICENSE.txt"}
 NEEDED = ("00254.stack.mrc", "00254.xf", "00254.tlt")
+#: The alignment's interpolation in the operator (SIRT needs nonnegative weights: not cubic convolution's).
+INTERPOLATION = "linear"
 #: IMOD's tilt axis for this series (the .xf's rotation), the start given to indreg-align.
 AXIS_DEG = -4.3
 
@@ -118,80 +126,101 @@ def noise_variance(view: np.ndarray) -> float:
     return float(core.var() / 1.25)
 
 
-def reconstructions(fit: np.ndarray, theta: np.ndarray, thickness: float, centre: float, iters: int,
-                    every: np.ndarray, methods: tuple = ("WBP", "SIRT", "TV")) -> dict:
-    """``methods`` of WBP, SIRT and TV of the wide box (widened for all the tilts ``every``) from the fit views
-    ``(K, ny, nx)`` (axis frame)."""
-    from indreg.alignment.slab import slab_operators
+@dataclass
+class Series:
+    """The raw line integrals binned by ``b`` (``lines (K, ny, nx)``, never resampled for a score), indreg's angles
+    ``theta`` (radians) and the wide box of a slab ``thickness`` px deep about ``centre`` (binned px), widened for
+    all the tilts."""
+    lines: np.ndarray
+    theta: np.ndarray
+    thickness: float
+    centre: float
+    b: int
+
+    def operator(self, alpha_deg: float, v: np.ndarray, rows: np.ndarray, aligned: bool = True):
+        """The tilts ``rows`` on the wide box with the alignment ``(alpha_deg, v full-size px)`` in the operator
+        (``indreg.alignment.slab.aligned_slab_operator``: the map ``R(alpha)``, the shift ``R(alpha) v / b``,
+        :data:`INTERPOLATION`); ``aligned=False``: the axis frame's plain operator."""
+        from indreg.alignment.files import Alignment
+        from indreg.alignment.slab import aligned_slab_operator, slab_operators
+
+        K, ny, nx = self.lines.shape
+        if not aligned:
+            return slab_operators(self.theta[rows], nx, ny, self.thickness, self.centre, self.theta)[0]
+        a = math.radians(alpha_deg)
+        M = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        maps = Alignment(np.tile(M, (len(rows), 1, 1)), (np.asarray(v)[rows] / self.b) @ M.T,
+                         -np.degrees(self.theta[rows]), np.arange(len(rows)))
+        return aligned_slab_operator(self.theta[rows], nx, ny, self.thickness, maps, self.centre, self.theta,
+                                     INTERPOLATION)
+
+    def views(self, rows: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(self.lines[rows], dtype=np.float32))
+
+
+def binned_series(lines: np.ndarray, deg: np.ndarray, box: tuple, b: int) -> Series:
+    """The line integrals ``(K, ny, nx)`` binned by ``b``, the IMOD-signed angles ``deg`` as indreg's, the box
+    ``(thickness, centre)`` in full-size px."""
+    from indreg.alignment.slab import binned
+
+    return Series(binned(lines, b), -np.radians(deg), box[0] / b, box[1] / b, b)
+
+
+def reconstructions(series: Series, alpha: float, v: np.ndarray, fit: np.ndarray, iters: int,
+                    methods: tuple = ("WBP", "SIRT", "TV")) -> dict:
+    """``methods`` of WBP, SIRT and TV of the wide box from the tilts ``fit``: SIRT and TV through the operator
+    with the alignment in it, WBP (which filters along the axis frame's rows) from the views resampled into the
+    axis frame by cubic splines."""
+    from indreg.alignment.xcorr import axis_frame
     from indreg.forward import fbp, sirt, tv_reconstruction
     from indreg.forward.tv import tv_weight_unit
 
-    T, _ = slab_operators(theta, fit.shape[2], fit.shape[1], thickness, centre, every)
-    y = torch.from_numpy(np.ascontiguousarray(fit, dtype=np.float32))
+    T, y = series.operator(alpha, v, fit), series.views(fit)
     x_sirt = sirt(T, y, num_iter=iters, nonneg=True)[0]
     out = {"SIRT": x_sirt}
     if "WBP" in methods:
-        out["WBP"] = fbp(T, y)
+        frames = axis_frame(series.lines[fit], alpha, v[fit] / series.b, order=3)
+        out["WBP"] = fbp(series.operator(alpha, v, fit, aligned=False),
+                         torch.from_numpy(np.ascontiguousarray(frames, dtype=np.float32)))
     if "TV" in methods:
         out["TV"] = tv_reconstruction(T, y, 0.1 * tv_weight_unit(T, y), num_iter=iters, x0=x_sirt, nonneg=True)[0]
     return {m: out[m] for m in methods}
 
 
-def scores(volumes: dict, held: np.ndarray, theta: np.ndarray, thickness: float, centre: float,
-           every: np.ndarray) -> dict:
-    """Per volume, the noise-aware score (module docstring) of the held-out views, inside and beyond the range."""
-    from indreg.alignment.slab import slab_operators
-
-    T, _ = slab_operators(theta, held.shape[2], held.shape[1], thickness, centre, every)
-    sigma2 = np.array([noise_variance(v) for v in held])
-    out = {}
-    for name, x in volumes.items():
-        P = T(x).numpy()
-        chi = ((P - held) ** 2).mean(axis=(1, 2)) / sigma2
-        out[name] = chi
-    return out
+def scores(series: Series, volumes: dict, alpha: float, v: np.ndarray, held: np.ndarray) -> dict:
+    """Per volume, the noise-aware score (module docstring) of the raw held-out views against the volume's
+    projections through the alignment: ``{name: (len(held),) array}``."""
+    T, views = series.operator(alpha, v, held), series.lines[held]
+    sigma2 = np.array([noise_variance(view) for view in views])
+    return {name: ((T(x).numpy() - views) ** 2).mean(axis=(1, 2)) / sigma2 for name, x in volumes.items()}
 
 
-def cross_validation(lines: np.ndarray, deg: np.ndarray, alignments: dict, b: int, iters: int, box: tuple,
-                     folds: int) -> dict:
+def cross_validation(series: Series, alignments: dict, iters: int, folds: int) -> dict:
     """SIRT's score (module docstring) of every inside tilt, held out in one of ``folds`` interleaved sets and
     predicted from the other tilts, per alignment ``(alpha_deg, v full-size px)``: ``{label: (K,) array}`` (NaN at
     the 4 tilts beyond the range)."""
-    from indreg.alignment.slab import binned
-    from indreg.alignment.xcorr import axis_frame
-
-    theta, count = -np.radians(deg), len(deg)
-    lines_b, thickness, centre = binned(lines, b), box[0] / b, box[1] / b
+    count = len(series.theta)
     out = {}
     for label, (alpha, v) in alignments.items():
-        frames, chi = axis_frame(lines_b, alpha, v / b), np.full(count, np.nan)
+        chi = np.full(count, np.nan)
         for j in range(folds):
             held = np.arange(2 + j, count - 2, folds)
-            fit = np.setdiff1d(np.arange(count), held)
-            x = reconstructions(frames[fit], theta[fit], thickness, centre, iters, theta, ("SIRT",))["SIRT"]
-            chi[held] = scores({"SIRT": x}, frames[held], theta[held], thickness, centre, theta)["SIRT"]
+            x = reconstructions(series, alpha, v, np.setdiff1d(np.arange(count), held), iters, ("SIRT",))["SIRT"]
+            chi[held] = scores(series, {"SIRT": x}, alpha, v, held)["SIRT"]
         out[label] = chi
     return out
 
 
-def held_out_table(lines: np.ndarray, deg: np.ndarray, alignments: dict, b: int, iters: int, box: tuple) -> dict:
+def held_out_table(series: Series, alignments: dict, iters: int) -> dict:
     """For each alignment ``(alpha_deg, v full-size px)``: WBP / SIRT / TV from the 31 fit tilts, scored on the
     10 held out (inside / beyond)."""
-    from indreg.alignment.slab import binned
-    from indreg.alignment.xcorr import axis_frame
-
-    inside_k, beyond_k = held_out(len(deg))
+    inside_k, beyond_k = held_out(len(series.theta))
     held = np.array(sorted(inside_k + beyond_k))
-    fit = np.setdiff1d(np.arange(len(deg)), held)
-    theta = -np.radians(deg)                   # indreg's sign (IMOD's .tlt negated)
-    lines_b = binned(lines, b)
-    thickness, centre = box[0] / b, box[1] / b
+    fit = np.setdiff1d(np.arange(len(series.theta)), held)
+    inside = np.isin(held, inside_k)
     table = {}
     for label, (alpha, v) in alignments.items():
-        frames = axis_frame(lines_b, alpha, v / b)
-        vols = reconstructions(frames[fit], theta[fit], thickness, centre, iters, theta)
-        chi = scores(vols, frames[held], theta[held], thickness, centre, theta)
-        inside = np.isin(held, inside_k)
+        chi = scores(series, reconstructions(series, alpha, v, fit, iters), alpha, v, held)
         table[label] = {m: {"inside": float(c[inside].mean()), "beyond": float(c[~inside].mean())}
                         for m, c in chi.items()}
     return table
@@ -264,13 +293,11 @@ def main(argv=None) -> None:
     m["none_across"], m["none_along"] = gauge_rms(np.zeros_like(ref), ref, deg)
     m["beads"] = beads_table(lines, deg, {"indreg-align": (axis, v), "IMOD": (ref_axis, ref),
                                           "no shifts": (axis, np.zeros_like(ref))})
-    box = (record["slab"]["thickness_px"], record["slab"]["centre_px"])
-    m["held_out"] = held_out_table(lines, deg, {"axis only": (a.tilt_axis_angle, np.zeros_like(ref)),
-                                                "IMOD": (ref_axis, ref), "indreg-align": (axis, v)},
-                                   a.bin, a.iters, box)
+    series = binned_series(lines, deg, (record["slab"]["thickness_px"], record["slab"]["centre_px"]), a.bin)
+    m["held_out"] = held_out_table(series, {"axis only": (a.tilt_axis_angle, np.zeros_like(ref)),
+                                            "IMOD": (ref_axis, ref), "indreg-align": (axis, v)}, a.iters)
     if a.folds:
-        chi = cross_validation(lines, deg, {"IMOD": (ref_axis, ref), "indreg-align": (axis, v)}, a.bin, a.iters,
-                               box, a.folds)
+        chi = cross_validation(series, {"IMOD": (ref_axis, ref), "indreg-align": (axis, v)}, a.iters, a.folds)
         inside = np.isfinite(chi["IMOD"])
         m["folds"] = {"folds": a.folds, "tilts": int(inside.sum()), "IMOD": float(chi["IMOD"][inside].mean()),
                       "indreg-align": float(chi["indreg-align"][inside].mean()),

@@ -35,7 +35,8 @@ import numpy as np
 
 from .xcorr import BAND, TAPER, axis_frame, coarse_alignment, correlate, taper_window
 
-__all__ = ["HIGHPASS_PX", "SEARCH_PX", "SlabAlignment", "binned", "gauge_fix", "leave_one_out", "match_views",
+__all__ = ["HIGHPASS_PX", "SEARCH_PX", "SlabAlignment", "aligned_slab_operator", "binned", "gauge_fix",
+           "leave_one_out", "match_views",
            "slab_operators", "slab_projection_matching", "specimen_depth"]
 
 log = logging.getLogger("indreg.align")
@@ -61,11 +62,9 @@ def _highpass(frames: np.ndarray, sigma: float = HIGHPASS_PX) -> np.ndarray:
     return np.stack([f - gaussian_filter(f, sigma, mode="reflect") for f in frames])
 
 
-def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, centre: float = 0.0,
-                   box_angles: np.ndarray | None = None) -> tuple:
-    """The tilt series' operator on the wide box (unit voxels, the detector ``nx`` pixels wide) of a slab
-    ``thickness`` px deep about the depth ``centre``, and one operator per view on the same box; the box is
-    widened for ``box_angles`` (default the angles themselves: give the whole series' to compare subsets)."""
+def _slab_box(nx: int, ny: int, thickness: float, centre: float, box_angles: np.ndarray) -> tuple:
+    """``(box, make)``: the wide box of the slab widened for ``box_angles`` and ``make(theta)``, the tilt series'
+    operator of the given box (unit voxels, the detector ``nx`` pixels wide)."""
     import torch
 
     from ..domain import ImageDomain
@@ -78,9 +77,30 @@ def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, c
     def make(theta):
         return TiltSeriesTransform(domain, TiltSeriesGeometry(torch.as_tensor(theta, dtype=torch.float64), nx,
                                                               -nx / 2, nx / 2, angle_unit="rad"))
+    return wide_box(make(np.asarray(box_angles, dtype=np.float64))), make
+
+
+def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, centre: float = 0.0,
+                   box_angles: np.ndarray | None = None) -> tuple:
+    """The tilt series' operator on the wide box (unit voxels, the detector ``nx`` pixels wide) of a slab
+    ``thickness`` px deep about the depth ``centre``, and one operator per view on the same box; the box is
+    widened for ``box_angles`` (default the angles themselves: give the whole series' to compare subsets)."""
     theta = np.asarray(angles_rad, dtype=np.float64)
-    box = wide_box(make(theta if box_angles is None else np.asarray(box_angles, dtype=np.float64)))
+    box, make = _slab_box(nx, ny, thickness, centre, theta if box_angles is None else box_angles)
     return box.widen(make(theta)), [box.widen(make(theta[k:k + 1])) for k in range(len(theta))]
+
+
+def aligned_slab_operator(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, maps, centre: float = 0.0,
+                          box_angles: np.ndarray | None = None, interpolation: str = "cubic"):
+    """:func:`slab_operators`' operator with an alignment in it: the raw views' maps ``maps``
+    (``indreg.alignment.files.Alignment``, one per angle, pixels of these views) applied to the projections
+    (``indreg.alignment.files.to_operator``), so that the raw views are compared and fitted without being
+    resampled."""
+    from .files import to_operator
+
+    theta = np.asarray(angles_rad, dtype=np.float64)
+    box, make = _slab_box(nx, ny, thickness, centre, theta if box_angles is None else box_angles)
+    return box.widen(to_operator(make(theta), maps, interpolation=interpolation))
 
 
 def _filtered(T, frames):

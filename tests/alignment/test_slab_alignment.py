@@ -129,3 +129,33 @@ def test_slab_recovered_to_a_third_of_a_pixel():
     assert across < 0.3 and along < 0.3, (across, along)
     assert max(gauge_rms(result.shifts, truth, s["deg"])) < 1.0
     assert math.isfinite(result.thickness)
+
+
+def test_aligned_slab_operator_is_the_axis_frame_s_operator_moved():
+    """``aligned_slab_operator``: identity maps give ``slab_operators``' operator; it is adjoint to its adjoint; and
+    its projections, taken into the axis frame by ``axis_frame`` with the same alignment, are the plain
+    operator's (the maps' convention is ``axis_frame``'s: ``M = R(alpha)``, ``d = R(alpha) v``)."""
+    import torch
+
+    from indreg.alignment.files import Alignment
+    from indreg.alignment.slab import aligned_slab_operator, slab_operators
+
+    theta = np.radians(np.linspace(-60, 60, 7))
+    nx, ny, depth = 40, 32, 10.0
+    plain = slab_operators(theta, nx, ny, depth)[0]
+    still = Alignment(np.tile(np.eye(2), (7, 1, 1)), np.zeros((7, 2)), -np.degrees(theta), np.arange(7))
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(plain.domain.shape, generator=g, dtype=torch.float64)
+    assert torch.allclose(aligned_slab_operator(theta, nx, ny, depth, still, interpolation="linear")(x), plain(x))
+    alpha, v = 3.0, np.random.default_rng(1).uniform(-2, 2, (7, 2))
+    a = math.radians(alpha)
+    M = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    moved = aligned_slab_operator(theta, nx, ny, depth, Alignment(np.tile(M, (7, 1, 1)), v @ M.T,
+                                                                  -np.degrees(theta), np.arange(7)))
+    assert moved.adjointness_test() < 1e-12
+    X, Y, Z = np.meshgrid(*[np.linspace(-1, 1, n) for n in plain.domain.shape], indexing="ij")
+    blob = torch.from_numpy(np.exp(-(X ** 2 + Y ** 2 + Z ** 2) / 0.08))
+    back = axis_frame(moved(blob).numpy(), alpha, v, order=3)
+    inner = (slice(None), slice(6, -6), slice(6, -6))
+    want = plain(blob).numpy()
+    assert np.abs(back - want)[inner].max() < 0.02 * np.abs(want).max()
