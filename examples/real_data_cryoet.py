@@ -20,7 +20,7 @@ takes the views resampled into it by cubic splines). The score is noise-aware: t
 held-out view over its noise variance, the latter from the view itself (each pixel less its four neighbours' mean,
 whose variance is 5/4 of white noise's): 1 is a prediction to the noise. ``--folds N``: the same comparison of IMOD's
 and indreg's alignment for SIRT over N interleaved held-out sets of the inside tilts (every N-th of the 37 between
-the two at each end), each fitted on the other 40 tilts: every inside tilt scored once (about 6 s a fold and
+the two at each end), each fitted on the other 40 tilts: every inside tilt scored once (about 4 s a fold and
 alignment at bin 4).
 
     python examples/real_data_cryoet.py [--data DIR] [--cache DIR] [--out DIR] [--bin 4] [--iters 30] [--folds 5]

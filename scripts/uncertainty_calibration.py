@@ -7,9 +7,9 @@ angle held out, per model (``lddmm``, ``residual``). Printed per case and model:
 against the truth lies within 1 and 2 reported standard deviations, over all voxels and over the object's support
 (truth or result above 2 % of the truth's maximum, dilated by 2 voxels: outside it template and truth are both
 background and every error is 0), the seconds of the registration and of the uncertainty: the mean over the noise
-draws ``--seeds`` (default 0, 1, 2; a coverage varies by up to 8 points between draws), with the range. ``--noise-given``: the
-uncertainty takes the noise's standard deviation as the case drew it (the option ``uncertainty_noise``) instead of
-estimating it from the data.
+draws ``--seeds`` (default 0, 1, 2; a coverage varies by up to 8 points between draws), with the range.
+``--noise-given``: the uncertainty takes the noise's standard deviation as the case drew it (the option
+``uncertainty_noise``) instead of estimating it from the data.
 
     python scripts/uncertainty_calibration.py [--cases suite1,et3d,missing] [--models lddmm,residual] [--noise-given]
         [--seeds 0,1,2]

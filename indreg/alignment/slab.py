@@ -36,8 +36,7 @@ import numpy as np
 from .xcorr import BAND, TAPER, axis_frame, coarse_alignment, correlate, taper_window
 
 __all__ = ["HIGHPASS_PX", "SEARCH_PX", "SlabAlignment", "aligned_slab_operator", "binned", "gauge_fix",
-           "leave_one_out", "match_views",
-           "slab_operators", "slab_projection_matching", "specimen_depth"]
+           "leave_one_out", "match_views", "slab_operators", "slab_projection_matching", "specimen_depth"]
 
 log = logging.getLogger("indreg.align")
 

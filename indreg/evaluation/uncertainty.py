@@ -11,18 +11,19 @@ regulariser about 2e-6 of the objective on the HAADF walk-through: a Laplace app
 from that weight alone). :func:`registration_uncertainty` therefore re-optimises from the run's result, ``samples``
 times, with warm starts: the data re-drawn with white noise of the level the data show
 (``indreg.units.noise_std``; the option ``uncertainty_noise`` gives a known level instead: the estimate runs 30 %
-high on a 32-pixel detector, docs/evaluation.md), the momentum moved by a smooth random field whose velocity has ``prior`` times the
-result's own root-mean-square velocity (an empirical-Bayes scale: the deformation the data asked for measures how far
-the template was from them), then ``iterations`` steps of Algorithm 1 (and the residual model's finish). Directions
-the data pin down relax back within those steps; those they do not (a missing wedge, a flat region) keep the random
-move. The samples' root-mean-square deviation from the result is reported (their spread, and their common drift
-where the run had not settled), and to its square is added the square of the data's own correction
-(:func:`data_correction`: the least-norm change that the residual's part beyond the noise asks for, by CGLS stopped at
-the noise level, the discrepancy principle): where the data disagree with the result by more than their noise, the
-disagreement is an error the re-optimisations, started from the result, need not show. Nothing is scaled
-afterwards: held-out angles cannot calibrate it where the noise dominates their residual (measured: the held-out
-residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the truth is
-measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard deviations).
+high on a 32-pixel detector, docs/evaluation.md), the momentum moved by a smooth random field whose velocity has
+``prior`` times the result's own root-mean-square velocity (an empirical-Bayes scale: the deformation the data
+asked for measures how far the template was from them), then ``iterations`` steps of Algorithm 1 (and the residual
+model's finish). Directions the data pin down relax back within those steps; those they do not (a missing wedge, a
+flat region) keep the random move. The samples' root-mean-square deviation from the result is reported (their
+spread, and their common drift where the run had not settled), and to its square is added the square of the data's
+own correction (:func:`data_correction`: the least-norm change that the residual's part beyond the noise asks for,
+by CGLS stopped at the noise level, the discrepancy principle): where the data disagree with the result by more
+than their noise, the disagreement is an error the re-optimisations, started from the result, need not show.
+Nothing is scaled afterwards: held-out angles cannot calibrate it where the noise dominates their residual
+(measured: the held-out residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration
+against the truth is measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two
+standard deviations).
 
 Convention: images ``problem.image_domain.shape``; the noise standard deviation per datum in the data's units.
 """
