@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import subprocess
 import sys
 import tarfile
@@ -49,8 +48,6 @@ MEMBERS = {"testdata/00254.stack.mrc": "00254.stack.mrc", "testdata/xf_import/00
            "testdata/xf_import/00254.tlt": "00254.tlt", "testdata/00254.xml": "00254.xml",
            "LICENSE.txt": "LICENSE.txt"}
 NEEDED = ("00254.stack.mrc", "00254.xf", "00254.tlt")
-#: The alignment's interpolation in the operator (SIRT needs nonnegative weights: not cubic convolution's).
-INTERPOLATION = "linear"
 #: IMOD's tilt axis for this series (the .xf's rotation), the start given to indreg-align.
 AXIS_DEG = -4.3
 
@@ -139,20 +136,15 @@ class Series:
 
     def operator(self, alpha_deg: float, v: np.ndarray, rows: np.ndarray, aligned: bool = True):
         """The tilts ``rows`` on the wide box with the alignment ``(alpha_deg, v full-size px)`` in the operator
-        (``indreg.alignment.slab.aligned_slab_operator``: the map ``R(alpha)``, the shift ``R(alpha) v / b``,
-        :data:`INTERPOLATION`); ``aligned=False``: the axis frame's plain operator."""
-        from indreg.alignment.files import Alignment
+        (``indreg.alignment.slab.aligned_slab_operator``, bilinear); ``aligned=False``: the axis frame's plain
+        operator."""
         from indreg.alignment.slab import aligned_slab_operator, slab_operators
 
         K, ny, nx = self.lines.shape
         if not aligned:
             return slab_operators(self.theta[rows], nx, ny, self.thickness, self.centre, self.theta)[0]
-        a = math.radians(alpha_deg)
-        M = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        maps = Alignment(np.tile(M, (len(rows), 1, 1)), (np.asarray(v)[rows] / self.b) @ M.T,
-                         -np.degrees(self.theta[rows]), np.arange(len(rows)))
-        return aligned_slab_operator(self.theta[rows], nx, ny, self.thickness, maps, self.centre, self.theta,
-                                     INTERPOLATION)
+        return aligned_slab_operator(self.theta[rows], nx, ny, self.thickness, alpha_deg,
+                                     np.asarray(v)[rows] / self.b, self.centre, self.theta)
 
     def views(self, rows: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(self.lines[rows], dtype=np.float32))

@@ -89,15 +89,21 @@ def slab_operators(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, c
     return box.widen(make(theta)), [box.widen(make(theta[k:k + 1])) for k in range(len(theta))]
 
 
-def aligned_slab_operator(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, maps, centre: float = 0.0,
-                          box_angles: np.ndarray | None = None, interpolation: str = "cubic"):
-    """:func:`slab_operators`' operator with an alignment in it: the raw views' maps ``maps``
-    (``indreg.alignment.files.Alignment``, one per angle, pixels of these views) applied to the projections
-    (``indreg.alignment.files.to_operator``), so that the raw views are compared and fitted without being
-    resampled."""
-    from .files import to_operator
+def aligned_slab_operator(angles_rad: np.ndarray, nx: int, ny: int, thickness: float, alpha_deg: float,
+                          shifts: np.ndarray, centre: float = 0.0, box_angles: np.ndarray | None = None,
+                          interpolation: str = "linear"):
+    """:func:`slab_operators`' operator with the alignment ``(alpha_deg, shifts)`` in it (the axis frame's:
+    ``shifts`` ``(K, 2)`` px of these views, ``indreg.alignment.xcorr``'s Notes), applied to the projections as
+    the maps ``M = R(alpha)``, ``d = R(alpha) v`` (``indreg.alignment.files.to_operator``), so that the raw views
+    are compared and fitted without being resampled. ``interpolation="linear"`` keeps the matrix nonnegative (SIRT
+    needs it; cubic convolution's weights are not)."""
+    from .files import Alignment, to_operator
+    from .xcorr import _rotation
 
     theta = np.asarray(angles_rad, dtype=np.float64)
+    M = _rotation(alpha_deg)
+    maps = Alignment(np.tile(M, (len(theta), 1, 1)), np.asarray(shifts, dtype=np.float64) @ M.T,
+                     np.degrees(theta), np.arange(len(theta)))
     box, make = _slab_box(nx, ny, thickness, centre, theta if box_angles is None else box_angles)
     return box.widen(to_operator(make(theta), maps, interpolation=interpolation))
 

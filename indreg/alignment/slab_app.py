@@ -14,7 +14,6 @@ Notes
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 
@@ -52,11 +51,6 @@ def line_integrals(stack: np.ndarray, radians: np.ndarray) -> tuple:
     p, t = _line_integrals(torch.from_numpy(np.ascontiguousarray(stack, dtype=np.float64)), radians,
                            label="--intensities")
     return p.numpy().astype(np.float32), t.how
-
-
-def _rotation(deg: float) -> np.ndarray:
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    return np.array([[c, -s], [s, c]])
 
 
 def slab_alignment(lines: np.ndarray, radians: np.ndarray, rest: float, steps: list, rounds: int,
@@ -99,6 +93,8 @@ def slab_alignment(lines: np.ndarray, radians: np.ndarray, rest: float, steps: l
     elif len(steps) > 1 or search is not None and search.determined:
         result = slab_projection_matching(lines, radians, rest, steps[1:] or steps[-1:], counts[1:] or [1],
                                           result.thickness, bound, result.shifts, progress, result.centre)
+    from .xcorr import _rotation
+
     R = _rotation(rest)
     M = np.tile(R, (len(radians), 1, 1))
     return {"M": M, "d": result.shifts @ R.T, "result": result, "search": search, "fiducials": beads,
