@@ -116,10 +116,11 @@ def data_split(volume: torch.Tensor, operator, tol: float = DEFAULT_TOL, max_ite
 
 
 @torch.no_grad()
-def cgls(T, b: torch.Tensor, bound: float, max_iter: int) -> tuple:
+def cgls(T, b: torch.Tensor, bound: float, max_iter: int, callback=None) -> tuple:
     """``(x, iterations)``: conjugate gradients on the normal equations of ``T x = b`` from ``x = 0`` (CGLS, in
-    the domain's and the data's inner products), stopped when ``||T x - b|| <= bound`` or after ``max_iter``
-    iterations; ``x`` lies in the range of ``T^*``."""
+    the domain's and the data's inner products), stopped when ``||T x - b|| <= bound``, after ``max_iter``
+    iterations or when ``callback(x)``, called after each iteration, returns True; ``x`` lies in the range of
+    ``T^*``."""
     inner = T.domain.inner
     x, r = T.domain.zeros(dtype=b.dtype, device=b.device), b.clone()
     s = T.adjoint(r)
@@ -137,6 +138,8 @@ def cgls(T, b: torch.Tensor, bound: float, max_iter: int) -> tuple:
         gamma_new = float(inner(s, s))
         p = s.add_(p, alpha=gamma_new / gamma)
         gamma, k = gamma_new, k + 1
+        if callback is not None and callback(x):
+            break
     return x, k
 
 

@@ -85,8 +85,9 @@ def evaluate(problem, iterate: tuple, image: torch.Tensor, solver=None, options:
     if _wanted(o["uncertainty"], problem, image, True, validation):
         steps = getattr(solver, "step_sizes", None)
         steps = list(steps) if steps is not None and len(steps) == len(iterate) else None
+        held_out = None if validation is None else (validation.operator, validation.data)
         u = registration_uncertainty(problem, iterate, steps, samples=o["uncertainty_samples"],
-                                     noise_sd=o["uncertainty_noise"])
+                                     noise_sd=o["uncertainty_noise"], held_out=held_out)
         out["uncertainty"] = u.sd
         out["summary"].update(u.summary())
         if math.isfinite(u.seconds):

@@ -16,14 +16,17 @@ high on a 32-pixel detector, docs/evaluation.md), the momentum moved by a smooth
 asked for measures how far the template was from them), then ``iterations`` steps of Algorithm 1 (and the residual
 model's finish). Directions the data pin down relax back within those steps; those they do not (a missing wedge, a
 flat region) keep the random move. The samples' root-mean-square deviation from the result is reported (their
-spread, and their common drift where the run had not settled), and to its square is added the square of the data's
-own correction (:func:`data_correction`: the least-norm change that the residual's part beyond the noise asks for,
-by CGLS stopped at the noise level, the discrepancy principle): where the data disagree with the result by more
-than their noise, the disagreement is an error the re-optimisations, started from the result, need not show.
-Nothing is scaled afterwards: held-out angles cannot calibrate it where the noise dominates their residual
-(measured: the held-out residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration
-against the truth is measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two
-standard deviations).
+spread, and their common drift where the run had not settled; the result is not estimated from the samples, so the
+mean square is over ``samples``, not ``samples - 1``), and to its square is added the square of the data's own
+correction (:func:`data_correction`): the change of the result that the data ask for beyond their noise, by CGLS on
+the fitted data stopped at the noise level (the discrepancy principle) or later where the held-out data confirm the
+later iterate beyond their own noise (cross-validation: the noise level estimated from the data runs high on a
+small detector and stops the discrepancy principle early). Where the data disagree with the result by more than
+their noise, the disagreement is an error the re-optimisations, started from the result, need not show. Nothing is
+scaled afterwards: held-out angles cannot calibrate a scale where the noise dominates their residual (measured: the
+held-out residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the
+truth is measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard
+deviations).
 
 Convention: images ``problem.image_domain.shape``; the noise standard deviation per datum in the data's units.
 """
@@ -162,7 +165,7 @@ def _momentum_draw(problem, m: torch.Tensor, prior: float) -> Callable:
 
 def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = None, samples: int = SAMPLES,
                              iterations: int = ITERATIONS, prior: float = PRIOR, noise_sd: Optional[float] = None,
-                             seed: int = 0, correction: bool = True) -> Uncertainty:
+                             seed: int = 0, correction: bool = True, held_out: Optional[tuple] = None) -> Uncertainty:
     """The per-voxel standard deviation of a registration's reconstruction (module docstring).
 
     Parameters
@@ -183,6 +186,9 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
         Seeds the draws.
     correction : bool
         Add the data's correction beyond their noise (:func:`data_correction`) in quadrature.
+    held_out : tuple, optional
+        ``(T_H, g_H)``: the run's held-out operator and data, which choose the correction (None: the discrepancy
+        principle).
 
     Returns
     -------
@@ -226,25 +232,91 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
 
     mean, sd = perturbed_solutions(solve, data, sigma, samples, seed, draw)
     result = problem.reconstruction(iterate).detach().double()
-    sd = (sd.pow(2) + (mean - result).pow(2)).sqrt()   # about the result: a drift of every sample counts
+    sd = _rms_about(mean, sd, int(samples), result)
     if correction:
-        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma)
+        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma, held_out=held_out)
         sd = (sd.pow(2) + d.double().pow(2)).sqrt()
     return Uncertainty(sd.to(data.dtype), mean.to(data.dtype), int(samples), int(iterations), sigma, float(prior),
                        time.perf_counter() - t0)
 
 
-def data_correction(operator, image: torch.Tensor, data: torch.Tensor, noise_sd: float, max_iter: int = 100):
-    """The least-norm ``d`` with ``||T (f + d) - g|| <= ||n||``: CGLS for ``T d = g - T f`` from 0, stopped when the
-    residual falls to the noise's norm ``noise_sd sqrt(#data)`` (in the data inner product; the discrepancy
-    principle); 0 where the residual is already within the noise."""
+def _rms_about(mean: torch.Tensor, sd: torch.Tensor, samples: int, centre: torch.Tensor) -> torch.Tensor:
+    """The samples' root-mean-square deviation from ``centre`` from their ``mean`` and ``sd`` (divisor
+    ``samples - 1``): ``sqrt(mean_b (x_b - centre)^2)``, a drift of every sample included; the divisor is
+    ``samples`` because the centre is not estimated from them."""
+    return (sd.pow(2) * ((samples - 1) / samples) + (mean - centre).pow(2)).sqrt()
+
+
+def data_correction(operator, image: torch.Tensor, data: torch.Tensor, noise_sd: float, max_iter: int = 100,
+                    held_out: Optional[tuple] = None, z: float = 2.0, patience: int = 10) -> torch.Tensor:
+    """The change ``d`` of the image ``f`` that the data ask for beyond their noise: CGLS for ``T d = g - T f`` from 0.
+
+    CGLS stops when the residual falls to the noise's norm ``noise_sd sqrt(#data)`` (the discrepancy principle; 0
+    where the residual is already within the noise). With ``held_out = (T_H, g_H)``, data of angles ``T`` does not
+    see, a later CGLS iterate is taken where the held-out data confirm it: the iterate that lowers the held-out
+    squared residual most, counted only where that decrease ``D = 2 <r_H, T_H d> - ||T_H d||^2``
+    (``r_H = g_H - T_H f``) exceeds ``z`` times its standard deviation under noise alone,
+    ``2 noise_sd sqrt(w) ||T_H d||`` (``w`` the data weight), so that the held-out data's noise does not choose it.
+    The later of the two iterates is returned: an overestimated noise level stops the discrepancy principle early,
+    and a correction the fitted data ask for is kept where too few held-out angles can confirm it. The held-out
+    search stops ``patience`` iterations after its last confirmed iterate, or at ``max_iter``.
+
+    Parameters
+    ----------
+    operator : LinearOperator
+        ``T``, the fitted data's operator.
+    image : torch.Tensor
+        ``f``, the result.
+    data : torch.Tensor
+        ``g``, the fitted data.
+    noise_sd : float
+        The noise's standard deviation per datum.
+    max_iter : int
+        CGLS iterations at most.
+    held_out : tuple, optional
+        ``(T_H, g_H)``.
+    z : float
+        The held-out decrease's significance, in standard deviations.
+    patience : int
+        Iterations without a better held-out iterate before CGLS stops.
+
+    Returns
+    -------
+    torch.Tensor
+        ``d``, the image's shape.
+    """
     from .parts import cgls
 
     with torch.no_grad():
         b = data - operator(image)
         ones = torch.ones_like(b)
         bound = noise_sd * math.sqrt(max(float(operator.inner_data(ones, ones).sum()), 0.0))
-        return cgls(operator, b, bound, max_iter)[0]
+        d, k = cgls(operator, b, bound, max_iter)
+        if held_out is None:
+            return d
+        choose = _HeldOutChoice(*held_out, image, noise_sd, z, patience)
+        cgls(operator, b, 0.0, max_iter, callback=choose)
+        return choose.best if choose.iteration > k else d
+
+
+class _HeldOutChoice:
+    """:func:`data_correction`'s choice among the CGLS iterates by the held-out data (a ``cgls`` callback)."""
+
+    def __init__(self, T_H, g_H, image: torch.Tensor, noise_sd: float, z: float, patience: int):
+        self.T_H, self.r_H, self.patience = T_H, g_H - T_H(image), patience
+        ones = torch.ones_like(g_H)
+        weight = float(T_H.inner_data(ones, ones).sum()) / max(g_H.numel(), 1)
+        self.noise = 2.0 * z * noise_sd * math.sqrt(max(weight, 0.0))
+        self.best, self.decrease, self.iteration, self.calls = torch.zeros_like(image), 0.0, 0, 0
+
+    def __call__(self, d: torch.Tensor) -> bool:
+        self.calls += 1
+        q = self.T_H(d)
+        qq = float(self.T_H.inner_data(q, q).sum())
+        decrease = 2.0 * float(self.T_H.inner_data(self.r_H, q).sum()) - qq
+        if decrease > self.decrease and decrease > self.noise * math.sqrt(max(qq, 0.0)):
+            self.best, self.decrease, self.iteration = d.clone(), decrease, self.calls
+        return self.calls - self.iteration >= self.patience
 
 
 #: The residual model's finish in a sample: this fraction of the run's Chambolle-Pock iterations, warm-started, at

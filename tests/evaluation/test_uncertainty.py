@@ -123,6 +123,51 @@ def test_the_data_correction_stops_at_the_noise(small):
     assert float(data_correction(T, I, g, 1e6).abs().max()) == 0.0   # all within the noise: nothing
 
 
+def test_the_spread_is_taken_about_the_result():
+    from indreg.evaluation.uncertainty import _Moments, _rms_about
+
+    x = torch.randn(6, 5, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    centre, m = torch.full((5,), 0.3, dtype=torch.float64), _Moments()
+    for xb in x:
+        m.add(xb)
+    assert torch.allclose(_rms_about(m.mean, m.sd(), 6, centre), (x - centre).pow(2).mean(0).sqrt(), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def split_angles():
+    """20 angles, the odd ones held out; the truth ``V`` and its data with noise 0.05."""
+    from indreg.evaluation.validation import split
+
+    d = indreg.ImageDomain.paper(32)
+    T = indreg.RayTransform(d, indreg.ParallelBeamGeometry.paper(20, 46))
+    V = phantoms.get("v", d).double()
+    g = T(V) + 0.05 * torch.randn(T.range_shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    TF, gF, held = split(T, g, list(range(1, 20, 2)))
+    return V, TF, gF, (held.operator, held.data)
+
+
+def test_the_held_out_data_confirm_a_later_correction(split_angles):
+    """The noise level given 1.5 times too high (as the estimate runs on a 32-pixel detector) stops the discrepancy
+    principle before a faint error: the held-out angles confirm a later CGLS iterate, which corrects it; an error
+    too faint for them to confirm beyond their noise (a held-out decrease below 2 of its standard deviations) is
+    not, nor is anything where the result is the truth."""
+    V, TF, gF, held = split_angles
+    x = indreg.ImageDomain.paper(32).points()
+    blob = torch.exp(-((x[0] - 3.0) ** 2 + (x[1] + 4.0) ** 2) / 18.0).double()
+    high = 0.075
+    for size, within in ((0.02, 0.85), (0.3, 0.2)):
+        f = V + size * blob
+        assert size > 0.1 or float(data_correction(TF, f, gF, high).abs().max()) == 0.0
+        d = data_correction(TF, f, gF, high, held_out=held)
+        assert float((f + d - V).norm()) < within * float((size * blob).norm())
+    assert float(data_correction(TF, V, gF, high, held_out=held).abs().max()) == 0.0
+    faint = V + 0.005 * blob
+    assert float(data_correction(TF, faint, gF, high, held_out=held).abs().max()) == 0.0
+    assert float(data_correction(TF, faint, gF, high, held_out=held, z=0.0).abs().max()) > 0   # the test decides
+    plain = data_correction(TF, faint, gF, 0.05)   # the noise level right: the discrepancy principle's stop is kept
+    assert float(plain.abs().max()) > 0 and torch.equal(data_correction(TF, faint, gF, 0.05, held_out=held), plain)
+
+
 def test_one_default_number_of_samples():
     # the option table (torch-free, read by the CLI) and the module give the same default (docs/evaluation.md, "Cost")
     from indreg import options
