@@ -41,16 +41,11 @@ def case(name: str, seed: int = 0) -> tuple:
         d = indreg.ImageDomain.paper(64)
         T = indreg.RayTransform(d, indreg.ParallelBeamGeometry.paper(10, 92))
         I, V, snr, o = phantoms.get("j", d), phantoms.get("v", d), 4.87, dict(sigma=6.0, max_iter=200, holdout=5)
-    elif name == "et3d":
+    elif name in ("et3d", "et3d45"):
+        end, step = (60, 4) if name == "et3d" else (45, 3)   # the largest tilt, the step (degrees)
         d = indreg.ImageDomain.paper(32, 3)
-        T = indreg.TiltSeriesTransform(d, indreg.TiltSeriesGeometry.uniform(-60, 60, 4, det_count=32, det_min=-16.0,
-                                                                            det_max=16.0))
-        I, V = phantoms.get("shepp_logan_3d", d), phantoms.get("shepp_logan_3d_swirl", d)
-        snr, o = 10.0, dict(sigma=3.0, max_iter=60, num_steps=10, holdout=4, interpolation="compose")
-    elif name == "et3d45":
-        d = indreg.ImageDomain.paper(32, 3)
-        T = indreg.TiltSeriesTransform(d, indreg.TiltSeriesGeometry.uniform(-45, 45, 3, det_count=32, det_min=-16.0,
-                                                                            det_max=16.0))
+        T = indreg.TiltSeriesTransform(d, indreg.TiltSeriesGeometry.uniform(-end, end, step, det_count=32,
+                                                                            det_min=-16.0, det_max=16.0))
         I, V = phantoms.get("shepp_logan_3d", d), phantoms.get("shepp_logan_3d_swirl", d)
         snr, o = 10.0, dict(sigma=3.0, max_iter=60, num_steps=10, holdout=4, interpolation="compose")
     elif name == "six":

@@ -187,8 +187,8 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
     correction : bool
         Add the data's correction beyond their noise (:func:`data_correction`) in quadrature.
     held_out : tuple, optional
-        ``(T_H, g_H)``: the run's held-out operator and data, which choose the correction (None: the discrepancy
-        principle).
+        ``(T_H, g_H)``: the run's held-out operator and data, which may take the correction past the discrepancy
+        principle's stop (:func:`data_correction`; None: that stop alone).
 
     Returns
     -------
