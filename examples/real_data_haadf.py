@@ -501,8 +501,8 @@ def run(folder: Path, out: Path, size: int = 64, depth: int = 64, iters: int = 6
 
 def evaluate(metrics: dict, result, base: dict, T: dict, Y: dict, domain: ImageDomain, out: Path) -> None:
     """Section 10: the registered volume's split (and its check on the fitted tilts), its uncertainty (cost, and
-    whether the voxels it flags hold the worst errors on the test tilts: those replaced by TV's against random
-    ones), the figure ``evaluation.png``."""
+    whether the voxels it flags hold the worst errors on the test tilts: those replaced by TV's, and those alone
+    fitted to the test tilts, against random ones), the figure ``evaluation.png``."""
     say("10. what the data determine and what the template brings; the uncertainty (docs/evaluation.md)")
     ev = metrics["evaluation"] = {**result.evaluation, "split_check": split_check(result)}
     for how, c in ev["split_check"].items():
@@ -519,6 +519,8 @@ def evaluate(metrics: dict, result, base: dict, T: dict, Y: dict, domain: ImageD
             say(f"  the {f['voxels']} voxels of largest standard deviation replaced by TV's: test residual "
                 f"{f['as_is']:.4f} -> {f['flagged_replaced']:.4f}; as many random voxels: "
                 f"{f['random_replaced_mean']:.4f} ({f['random_replaced_min']:.4f}..{f['random_replaced_max']:.4f})")
+            say(f"  only those voxels fitted to the test tilts: {f['flagged_refitted']:.4f}; as many random voxels: "
+                f"{f['random_refitted_mean']:.4f} ({f['random_refitted_min']:.4f}..{f['random_refitted_max']:.4f})")
     box = (domain.min_pt, domain.max_pt)
     angles = np.degrees(T["fit"].operator.geometry.angles.numpy() if hasattr(T["fit"], "operator")
                         else T["fit"].geometry.angles.numpy())

@@ -358,7 +358,8 @@ def run(folder: Path, out: Path, size: int = 64, side_mm: float = 40.0, bin_fact
         f = ev["flagged"]
         say(f"  uncertainty in {ev['uncertainty_seconds']:.1f} s; the {f['voxels']} cells of largest standard "
             f"deviation replaced by TV's: test residual {f['as_is']:.4f} -> {f['flagged_replaced']:.4f}, as many "
-            f"random cells {f['random_replaced_mean']:.4f}")
+            f"random cells {f['random_replaced_mean']:.4f}; only those cells fitted to the test angles: "
+            f"{f['flagged_refitted']:.4f}, random cells {f['random_refitted_mean']:.4f}")
     h = side_mm / 2
     evaluation_png(result, out / "evaluation.png", ((-h, -h), (h, h)), "mm", "walnut: the registered image, what the "
                    "data determine, what the template fills; its standard deviation")

@@ -148,7 +148,7 @@ def test_pipeline_on_the_stand_in(example, stand_in, tmp_path, monkeypatch, caps
     rescored(out, m, monkeypatch, capsys)
     ev = m["evaluation"]   # the split, the uncertainty and its flagged voxels (docs/evaluation.md)
     assert ev["split_check"]["range"]["split_projection_difference"] <= 1.01e-3 and ev["uncertainty_seconds"] > 0
-    assert set(ev["flagged"]) >= {"as_is", "flagged_replaced", "random_replaced_mean"}
+    assert set(ev["flagged"]) >= {"as_is", "flagged_replaced", "random_replaced_mean", "flagged_refitted"}
     assert (out / "evaluation.png").stat().st_size > 0
     assert json.loads((out / "metrics.json").read_text())["num_tilts"] == 31
     assert (out / "figure.png").stat().st_size > 0
@@ -285,3 +285,26 @@ def test_the_pages_figure_shows_the_numbers_of_its_table():
     words = re.search(r"no\s+method\s+used:\s+template\s+([0-9.]+),\s+registered\s+([0-9.]+),\s+FBP\s+([0-9.]+),"
                       r"\s+SIRT\s+([0-9.]+),\s+TV\s+([0-9.]+);", page)
     assert words and list(words.groups()) == [shown[k] for k in ("template", "registered", "FBP", "SIRT", "TV")]
+
+
+def test_the_refit_measure_finds_the_voxels_that_hold_the_error(example):
+    """``evaluation_steps.refitted``: the voxels that hold an error fitted alone take the residual to nearly 0, as
+    many voxels far from it hardly move it, all voxels fit it; ``flagged_voxels`` reports both measures for a map
+    that points at the error (the replacement being the truth here)."""
+    import indreg
+    from indreg.evaluation.score import relative_residual
+    from evaluation_steps import flagged_voxels, refitted   # on sys.path once the example is loaded
+
+    d = indreg.ImageDomain.paper(32)
+    T = indreg.RayTransform(d, indreg.ParallelBeamGeometry.paper(12, 46))
+    V, x = phantoms.get("v", d).double(), d.points()
+    blob = torch.exp(-((x[0] - 3.0) ** 2 + (x[1] + 4.0) ** 2) / 4.0).double()
+    f, y = V + 0.5 * blob, T(V)
+    as_is = relative_residual(T, f, y)
+    far = torch.topk((-(x[0] - 10) ** 2 - (x[1] - 10) ** 2).reshape(-1), 60).indices
+    assert refitted(T, f, y, torch.topk(blob.reshape(-1), 60).indices) < 0.01 * as_is
+    assert refitted(T, f, y, far) > 0.95 * as_is
+    assert refitted(T, f, y, torch.arange(f.numel())) < 0.01 * as_is
+    out = flagged_voxels(f, blob, V, T, y)
+    assert out["flagged_refitted"] < 0.02 * out["random_refitted_min"]
+    assert out["flagged_replaced"] < 0.02 * out["random_replaced_min"]

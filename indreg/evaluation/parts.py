@@ -119,8 +119,8 @@ def data_split(volume: torch.Tensor, operator, tol: float = DEFAULT_TOL, max_ite
 def cgls(T, b: torch.Tensor, bound: float, max_iter: int, callback=None) -> tuple:
     """``(x, iterations)``: conjugate gradients on the normal equations of ``T x = b`` from ``x = 0`` (CGLS, in
     the domain's and the data's inner products), stopped when ``||T x - b|| <= bound``, after ``max_iter``
-    iterations or when ``callback(x)``, called after each iteration, returns True; ``x`` lies in the range of
-    ``T^*``."""
+    iterations or when ``callback(x, r)``, called after each iteration with the iterate and its residual
+    ``r = b - T x``, returns True; ``x`` lies in the range of ``T^*``."""
     inner = T.domain.inner
     x, r = T.domain.zeros(dtype=b.dtype, device=b.device), b.clone()
     s = T.adjoint(r)
@@ -138,7 +138,7 @@ def cgls(T, b: torch.Tensor, bound: float, max_iter: int, callback=None) -> tupl
         gamma_new = float(inner(s, s))
         p = s.add_(p, alpha=gamma_new / gamma)
         gamma, k = gamma_new, k + 1
-        if callback is not None and callback(x):
+        if callback is not None and callback(x, r):
             break
     return x, k
 

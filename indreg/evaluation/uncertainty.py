@@ -21,8 +21,10 @@ mean square is over ``samples``, not ``samples - 1``), and to its square is adde
 correction (:func:`data_correction`): the change of the result that the data ask for beyond their noise, by CGLS on
 the fitted data stopped at the noise level (the discrepancy principle) or later where the held-out data confirm the
 later iterate beyond their own noise (cross-validation: the noise level estimated from the data runs high on a
-small detector and stops the discrepancy principle early). Where the data disagree with the result by more than
-their noise, the disagreement is an error the re-optimisations, started from the result, need not show. Nothing is
+small detector and stops the discrepancy principle early); where the result is constrained to ``f >= 0`` (the
+problem's ``nonnegative``: the residual model's finish) only the part ``max(d, -f)`` that keeps it there. Where
+the data disagree with the result by more than their noise, the disagreement is an error the re-optimisations,
+started from the result, need not show. Nothing is
 scaled afterwards: held-out angles cannot calibrate a scale where the noise dominates their residual (measured: the
 held-out residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the
 truth is measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard
@@ -185,7 +187,8 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
     seed : int
         Seeds the draws.
     correction : bool
-        Add the data's correction beyond their noise (:func:`data_correction`) in quadrature.
+        Add the data's correction beyond their noise (:func:`data_correction`) in quadrature (``max(d, -f)`` where
+        ``problem.nonnegative``).
     held_out : tuple, optional
         ``(T_H, g_H)``: the run's held-out operator and data, which may take the correction past the discrepancy
         principle's stop (:func:`data_correction`; None: that stop alone).
@@ -234,7 +237,9 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
     result = problem.reconstruction(iterate).detach().double()
     sd = _rms_about(mean, sd, int(samples), result)
     if correction:
-        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma, held_out=held_out)
+        d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma, held_out=held_out).double()
+        if getattr(problem, "nonnegative", False):   # a result constrained to f >= 0: no error takes it below 0
+            d = torch.maximum(d, -result)
         sd = (sd.pow(2) + d.double().pow(2)).sqrt()
     return Uncertainty(sd.to(data.dtype), mean.to(data.dtype), int(samples), int(iterations), sigma, float(prior),
                        time.perf_counter() - t0)
@@ -291,32 +296,48 @@ def data_correction(operator, image: torch.Tensor, data: torch.Tensor, noise_sd:
         b = data - operator(image)
         ones = torch.ones_like(b)
         bound = noise_sd * math.sqrt(max(float(operator.inner_data(ones, ones).sum()), 0.0))
-        d, k = cgls(operator, b, bound, max_iter)
         if held_out is None:
-            return d
-        choose = _HeldOutChoice(*held_out, image, noise_sd, z, patience)
-        cgls(operator, b, 0.0, max_iter, callback=choose)
-        return choose.best if choose.iteration > k else d
+            return cgls(operator, b, bound, max_iter)[0]
+        choose = _HeldOutChoice(operator, *held_out, image, b, noise_sd, bound, z, patience)
+        d, _ = cgls(operator, b, 0.0, max_iter, callback=choose)
+        return choose.result(d)
 
 
 class _HeldOutChoice:
-    """:func:`data_correction`'s choice among the CGLS iterates by the held-out data (a ``cgls`` callback)."""
+    """:func:`data_correction`'s choice among the CGLS iterates (a ``cgls`` callback on one run without a bound):
+    the discrepancy principle's iterate (the first whose residual is within ``bound``) and the held-out data's
+    (searched until ``patience`` iterations after the last confirmed one); the run goes on until both are known."""
 
-    def __init__(self, T_H, g_H, image: torch.Tensor, noise_sd: float, z: float, patience: int):
+    def __init__(self, T, T_H, g_H, image: torch.Tensor, b: torch.Tensor, noise_sd: float, bound: float, z: float,
+                 patience: int):
+        from .parts import _dnorm
+
+        self.T, self.bound, self.dnorm = T, bound, _dnorm
         self.T_H, self.r_H, self.patience = T_H, g_H - T_H(image), patience
         ones = torch.ones_like(g_H)
         weight = float(T_H.inner_data(ones, ones).sum()) / max(g_H.numel(), 1)
         self.noise = 2.0 * z * noise_sd * math.sqrt(max(weight, 0.0))
         self.best, self.decrease, self.iteration, self.calls = torch.zeros_like(image), 0.0, 0, 0
+        within = _dnorm(T, b) <= bound   # the residual already within the noise: the discrepancy principle's is 0
+        self.discrepancy, self.discrepancy_at = (torch.zeros_like(image), 0) if within else (None, None)
 
-    def __call__(self, d: torch.Tensor) -> bool:
+    def __call__(self, d: torch.Tensor, r: torch.Tensor) -> bool:
         self.calls += 1
-        q = self.T_H(d)
-        qq = float(self.T_H.inner_data(q, q).sum())
-        decrease = 2.0 * float(self.T_H.inner_data(self.r_H, q).sum()) - qq
-        if decrease > self.decrease and decrease > self.noise * math.sqrt(max(qq, 0.0)):
-            self.best, self.decrease, self.iteration = d.clone(), decrease, self.calls
-        return self.calls - self.iteration >= self.patience
+        if self.discrepancy is None and self.dnorm(self.T, r) <= self.bound:
+            self.discrepancy, self.discrepancy_at = d.clone(), self.calls
+        if self.calls - 1 - self.iteration < self.patience:   # the search had not stopped at the previous call
+            q = self.T_H(d)
+            qq = float(self.T_H.inner_data(q, q).sum())
+            decrease = 2.0 * float(self.T_H.inner_data(self.r_H, q).sum()) - qq
+            if decrease > self.decrease and decrease > self.noise * math.sqrt(max(qq, 0.0)):
+                self.best, self.decrease, self.iteration = d.clone(), decrease, self.calls
+        return self.discrepancy is not None and self.calls - self.iteration >= self.patience
+
+    def result(self, last: torch.Tensor) -> torch.Tensor:
+        """The later of the two iterates (``last``, the run's final one, where the bound was never reached)."""
+        if self.discrepancy is None:
+            self.discrepancy, self.discrepancy_at = last, self.calls
+        return self.best if self.iteration > self.discrepancy_at else self.discrepancy
 
 
 #: The residual model's finish in a sample: this fraction of the run's Chambolle-Pock iterations, warm-started, at

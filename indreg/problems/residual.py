@@ -77,6 +77,7 @@ class ResidualRegistration(IndirectRegistration):
         self.finish_iter, self.mu_candidates, self.mu_unit = int(finish_iter), tuple(mu_candidates), float(mu_unit)
         self.finish_info: dict = {}
         self.finish_norms = None   # the finish's step norms (||T||, ||grad||): computed once, kept for re-solves
+        self.nonnegative = False   # the result is the finish's, f >= 0 (set by finish)
         self.smoothing = check_nonnegative(smoothing, "residual smoothing", template.dtype)
         if self.smoothing <= 0:
             raise ValueError(f"residual smoothing must be > 0 (the smoothed TV's eps), got {smoothing}")
@@ -176,9 +177,11 @@ class ResidualRegistration(IndirectRegistration):
         grid widened by a decade, at most :data:`MAX_WIDEN` times, while the best weight sits at its edge): the
         finish may keep ``x``. Without them the finish at ``residual_tv`` is taken. ``x`` unchanged when
         ``finish_iter`` is 0 or the weight is 0. Records the choice in ``finish_info`` (``chosen``: ``"loop"`` or
-        ``"finish"``; the weights also in ``mu_unit``, the unit they were given in) and logs which won."""
+        ``"finish"``; the weights also in ``mu_unit``, the unit they were given in), whether the result is the
+        finish's nonnegative one (``nonnegative``), and logs which won."""
         choosing = validation is not None and bool(self.mu_candidates)
         grid = sorted(self.mu_candidates) if choosing else [self.residual_tv]
+        self.nonnegative = False
         if self.finish_iter == 0 or max(grid) <= 0:
             return x
         with torch.no_grad():
@@ -197,6 +200,7 @@ class ResidualRegistration(IndirectRegistration):
             mu = min(solves, key=lambda m: solves[m][1]) if choosing else grid[0]
             loop = validation.residual(W + x[1]) if choosing else float("nan")
         keep = choosing and loop <= solves[mu][1]
+        self.nonnegative = not keep
         self.finish_info = {"residual_tv": mu, "holdout_by_weight": {m: v[1] for m, v in sorted(solves.items())},
                             "iterations": self.finish_iter, "unit": self.mu_unit, "holdout_loop": loop,
                             "chosen": "loop" if keep else "finish", "widened": widened}

@@ -115,6 +115,30 @@ def test_the_samples_are_seeded_and_leave_the_problem_alone(small):
         registration_uncertainty(object(), x)
 
 
+def test_a_nonnegative_result_takes_no_correction_below_zero(small):
+    """The residual model's finish makes ``f >= 0`` (``nonnegative``): the data's correction counts only as far as
+    ``f + d >= 0``; where the result is 0 a correction that asks for less adds nothing to the samples' spread."""
+    I, g, T = small
+    from indreg.registration.run import initial_state, setup
+
+    s = setup(I, g, T, sigma=4.0, model="residual", residual_finish_iter=8)
+    x = s.problem.finish(initial_state(s.problem).iterate, None)
+    assert s.problem.nonnegative
+    f = s.problem.reconstruction(x).double()
+    assert float(f.min()) >= 0
+    d = data_correction(s.problem.ray_transform, f, s.problem.data, 0.02).double()
+    below = (f + d < 0)
+    assert int(below.sum()) > 10
+    kept = registration_uncertainty(s.problem, x, samples=2, iterations=1, noise_sd=0.02)
+    spread = registration_uncertainty(s.problem, x, samples=2, iterations=1, noise_sd=0.02, correction=False)
+    assert torch.allclose(kept.sd.double().pow(2), spread.sd.double().pow(2) + torch.maximum(d, -f).pow(2))
+    zero = below & (f == 0)
+    assert int(zero.sum()) > 0 and torch.equal(kept.sd[zero], spread.sd[zero])
+    s.problem.nonnegative = False   # as a result the loop kept (not the finish's): the whole correction
+    whole = registration_uncertainty(s.problem, x, samples=2, iterations=1, noise_sd=0.02)
+    assert bool((whole.sd[zero] > kept.sd[zero]).all())
+
+
 def test_the_data_correction_stops_at_the_noise(small):
     I, g, T = small
     d = data_correction(T, I, g, 0.0, max_iter=60)
@@ -166,6 +190,43 @@ def test_the_held_out_data_confirm_a_later_correction(split_angles):
     assert float(data_correction(TF, faint, gF, high, held_out=held, z=0.0).abs().max()) > 0   # the test decides
     plain = data_correction(TF, faint, gF, 0.05)   # the noise level right: the discrepancy principle's stop is kept
     assert float(plain.abs().max()) > 0 and torch.equal(data_correction(TF, faint, gF, 0.05, held_out=held), plain)
+
+
+class _Counted:
+    """An operator that counts its forward and adjoint applications."""
+
+    def __init__(self, T):
+        self.T, self.calls = T, 0
+
+    def __getattr__(self, name):
+        return getattr(self.T, name)
+
+    def __call__(self, x):
+        self.calls += 1
+        return self.T(x)
+
+    def adjoint(self, y):
+        self.calls += 1
+        return self.T.adjoint(y)
+
+
+def test_the_held_out_choice_takes_one_cgls_run(split_angles):
+    """With held-out data the correction is a CGLS iterate later than the discrepancy principle's, found in one run
+    (1 + 1 + 2 applications of the fitted operator per iteration, up to ``patience`` past the confirmed one): the
+    discrepancy principle's first iterations are not computed twice."""
+    from indreg.evaluation.parts import cgls
+
+    V, TF, gF, held = split_angles
+    x = indreg.ImageDomain.paper(32).points()
+    f = V + 0.3 * torch.exp(-((x[0] - 3.0) ** 2 + (x[1] + 4.0) ** 2) / 18.0).double()
+    counted = _Counted(TF)
+    d = data_correction(counted, f, gF, 0.075, held_out=held, patience=4)
+    b = gF - TF(f)
+    bound = 0.075 * math.sqrt(float(TF.inner_data(torch.ones_like(b), torch.ones_like(b)).sum()))
+    k = cgls(TF, b, bound, 100)[1]
+    later = [j for j in range(k + 1, 60) if torch.equal(cgls(TF, b, 0.0, j)[0], d)]
+    assert k >= 1 and len(later) == 1
+    assert counted.calls <= 2 + 2 * (later[0] + 4)
 
 
 def test_one_default_number_of_samples():
