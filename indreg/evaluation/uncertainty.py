@@ -24,9 +24,9 @@ later iterate beyond their own noise (cross-validation: the noise level estimate
 small detector and stops the discrepancy principle early); where the result is constrained to ``f >= 0`` (the
 problem's ``nonnegative``: the residual model's finish) only the part ``max(d, -f)`` that keeps it there. Where
 the data disagree with the result by more than their noise, the disagreement is an error the re-optimisations,
-started from the result, need not show. Nothing is
-scaled afterwards: held-out angles cannot calibrate a scale where the noise dominates their residual (measured: the
-held-out residual of the paper's suite 1 at 10 dB lies below the noise's estimate). Its calibration against the
+started from the result, need not show. Nothing is scaled afterwards: held-out angles cannot calibrate a scale where
+the noise dominates their residual (measured: the held-out residual of the paper's suite 1 at 10 dB lies below the
+noise's estimate). Its calibration against the
 truth is measured in docs/evaluation.md (the fraction of voxels whose error lies within one and two standard
 deviations).
 
@@ -240,7 +240,7 @@ def registration_uncertainty(problem, iterate: tuple, steps: Optional[list] = No
         d = data_correction(problem.ray_transform, result.to(data.dtype), data, sigma, held_out=held_out).double()
         if getattr(problem, "nonnegative", False):   # a result constrained to f >= 0: no error takes it below 0
             d = torch.maximum(d, -result)
-        sd = (sd.pow(2) + d.double().pow(2)).sqrt()
+        sd = (sd.pow(2) + d.pow(2)).sqrt()
     return Uncertainty(sd.to(data.dtype), mean.to(data.dtype), int(samples), int(iterations), sigma, float(prior),
                        time.perf_counter() - t0)
 
